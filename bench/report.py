@@ -1,0 +1,32 @@
+"""Writing benchmark sections into ``BENCHMARKS.md`` between markers, leaving the rest intact."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+HEADER = (
+    "# Benchmarks\n\n"
+    "Every figure below was produced by the command written above its table, on the machine\n"
+    "named there, in one run. Machines here are shared and noisy: read medians and ratios.\n"
+)
+
+
+def replace_section(path: Path, name: str, body: str) -> None:
+    """Replace (or append) the section ``name`` of a Markdown file.
+
+    Args:
+        path: the file; created with a header when missing.
+        name: section id, used in the begin/end markers.
+        body: Markdown text of the section.
+    """
+    begin = f"<!-- begin {name} -->"
+    end = f"<!-- end {name} -->"
+    text = path.read_text(encoding="utf-8") if path.exists() else HEADER
+    block = f"{begin}\n{body.rstrip()}\n{end}"
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = head + block + tail
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    path.write_text(text, encoding="utf-8")

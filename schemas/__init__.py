@@ -1,0 +1,89 @@
+"""Wire schemas of the RLuTF localization service (WIRE.md, v1).
+
+Pydantic models of every message, their validation, JSON encode/decode and JSON Schema
+documents. Typical use at a boundary::
+
+    from schemas import LaserScan, SchemaError, decode, encode
+
+    try:
+        scan = decode(LaserScan, payload)
+    except SchemaError as err:  # str(err) names the field and value: "ranges[17]: ..."
+        ...
+    publish(encode(pose))
+"""
+
+from schemas._types import (
+    ID_PATTERN,
+    MAX_STAMP_NS,
+    WireModel,
+    valid_id,
+)
+from schemas.codec import DEFAULT_MAX_BYTES, Payload, decode, encode, to_jsonable
+from schemas.errors import (
+    EncodeError,
+    FieldIssue,
+    InvalidMessage,
+    InvalidUtf8,
+    MalformedJson,
+    PayloadTooLarge,
+    SchemaError,
+)
+from schemas.geometry import Geometry, MultiPolygon, Polygon, Position
+from schemas.messages import (
+    KNOWN_EVENT_CODES,
+    MAX_BEAMS,
+    Event,
+    EventCode,
+    EventLevel,
+    Health,
+    InitialPose,
+    LaserScan,
+    LatencyPercentiles,
+    Map,
+    Odometry,
+    PoseEstimate,
+    PoseStatus,
+    SensorOffset,
+)
+from schemas.names import MODELS_BY_SCHEMA_NAME, SCHEMA_NAMES, json_schema, schema_name
+
+__all__ = [
+    "DEFAULT_MAX_BYTES",
+    "ID_PATTERN",
+    "KNOWN_EVENT_CODES",
+    "MAX_BEAMS",
+    "MAX_STAMP_NS",
+    "MODELS_BY_SCHEMA_NAME",
+    "SCHEMA_NAMES",
+    "EncodeError",
+    "Event",
+    "EventCode",
+    "EventLevel",
+    "FieldIssue",
+    "Geometry",
+    "Health",
+    "InitialPose",
+    "InvalidMessage",
+    "InvalidUtf8",
+    "LaserScan",
+    "LatencyPercentiles",
+    "MalformedJson",
+    "Map",
+    "MultiPolygon",
+    "Odometry",
+    "Payload",
+    "PayloadTooLarge",
+    "Polygon",
+    "PoseEstimate",
+    "PoseStatus",
+    "Position",
+    "SchemaError",
+    "SensorOffset",
+    "WireModel",
+    "decode",
+    "encode",
+    "json_schema",
+    "schema_name",
+    "to_jsonable",
+    "valid_id",
+]

@@ -1,0 +1,229 @@
+"""Pydantic models of the wire messages in WIRE.md.
+
+Times are integer nanoseconds since the Unix epoch, lengths metres, angles radians
+(counter-clockwise positive, x forward, y left; REP 103). Every model is frozen, ignores
+unknown fields and rejects missing required fields, wrong types and non-finite numbers.
+Sequences are stored as tuples; Python callers may pass lists.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Final, Literal
+
+from pydantic import AfterValidator, Field, JsonValue, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
+
+from schemas._types import (
+    FiniteFloat,
+    Identifier,
+    NonEmptyStr,
+    NonNegativeFloat,
+    NonNegativeInt,
+    NumberOrNull,
+    StampNs,
+    Text,
+    WireModel,
+    check_finite_json,
+)
+from schemas.geometry import Geometry
+
+MAX_BEAMS: Final = 8192
+"""Most beams accepted in one LaserScan (a 0.05 degree scanner over a full turn is 7200)."""
+
+PoseStatus = Literal["tracking", "corrected", "lost"]
+EventLevel = Literal["debug", "info", "warning", "error"]
+
+
+class SensorOffset(WireModel):
+    """Pose of the laser sensor in the robot's base frame."""
+
+    x: FiniteFloat = Field(default=0.0, description="Forward offset, metres.")
+    y: FiniteFloat = Field(default=0.0, description="Leftward offset, metres.")
+    theta: FiniteFloat = Field(default=0.0, description="Mounting yaw, radians, counter-clockwise.")
+
+
+class LaserScan(WireModel):
+    """One 2D laser scan, with the meaning of ROS sensor_msgs/LaserScan.
+
+    Beam i points at angle_min + i * angle_increment in the sensor frame. A range that is null,
+    below range_min or above range_max is no return.
+    """
+
+    stamp_ns: StampNs = Field(description="Acquisition time, ns since the Unix epoch.")
+    angle_min: FiniteFloat = Field(description="Angle of beam 0, radians.")
+    angle_increment: FiniteFloat = Field(
+        description="Angle between consecutive beams, radians; non-zero, negative if clockwise."
+    )
+    range_min: NonNegativeFloat = Field(description="Shortest valid range, metres.")
+    range_max: FiniteFloat = Field(description="Longest valid range, metres; > range_min.")
+    ranges: Annotated[tuple[NumberOrNull, ...], Field(min_length=1, max_length=MAX_BEAMS)] = Field(
+        description="Range of each beam, metres; null is no return."
+    )
+    sensor_offset: SensorOffset = Field(
+        default=SensorOffset(),  # frozen, so one shared default is safe
+        description="Sensor pose in the robot's base frame; zero if absent.",
+    )
+
+    @field_validator("angle_increment")
+    @classmethod
+    def _nonzero_increment(cls, value: float) -> float:
+        if value == 0.0:
+            raise PydanticCustomError("nonzero", "angle_increment must not be 0")
+        return value
+
+    @field_validator("range_max")
+    @classmethod
+    def _max_above_min(cls, value: float, info: ValidationInfo) -> float:
+        range_min = info.data.get("range_min")
+        if range_min is not None and not value > range_min:
+            raise PydanticCustomError(
+                "greater_than_range_min",
+                "range_max must be greater than range_min ({range_min})",
+                {"range_min": range_min},
+            )
+        return value
+
+
+class Odometry(WireModel):
+    """The robot base's dead-reckoned pose in its own odometry frame.
+
+    Only the motion between two messages is used, so the frame's origin is irrelevant.
+    """
+
+    stamp_ns: StampNs = Field(description="Time of the pose, ns since the Unix epoch.")
+    x: FiniteFloat = Field(description="Position x, metres.")
+    y: FiniteFloat = Field(description="Position y, metres.")
+    theta: FiniteFloat = Field(description="Heading, radians.")
+
+
+class InitialPose(WireModel):
+    """A known pose of the robot base in map map_id; also re-seeds a lost robot."""
+
+    stamp_ns: StampNs = Field(description="Time the pose holds, ns since the Unix epoch.")
+    map_id: Identifier = Field(description="Map the pose is in.")
+    x: FiniteFloat = Field(description="Position x in the map, metres.")
+    y: FiniteFloat = Field(description="Position y in the map, metres.")
+    theta: FiniteFloat = Field(description="Heading in the map, radians.")
+
+
+Covariance = Annotated[tuple[FiniteFloat, ...], Field(min_length=9, max_length=9)]
+"""A 3x3 covariance of (x, y, theta), row-major."""
+
+
+class PoseEstimate(WireModel):
+    """The corrected pose of a robot, published once per processed scan."""
+
+    stamp_ns: StampNs = Field(description="Stamp of the scan this pose is for.")
+    robot_id: Identifier = Field(description="The robot.")
+    map_id: Identifier = Field(description="The map the pose is in.")
+    x: FiniteFloat = Field(description="Position x in the map, metres.")
+    y: FiniteFloat = Field(description="Position y in the map, metres.")
+    theta: FiniteFloat = Field(description="Heading in the map, radians.")
+    status: PoseStatus = Field(
+        description="tracking: accepted without search; corrected: the search moved the pose; "
+        "lost: no pose under the acceptance threshold (the best one is still given)."
+    )
+    discrepancy: NonNegativeFloat = Field(
+        description="Turning-function difference at the returned pose."
+    )
+    iterations: NonNegativeInt = Field(description="Search rounds used.")
+    covariance: Covariance | None = Field(
+        default=None, description="Optional 3x3 covariance of x, y, theta, row-major (9 numbers)."
+    )
+
+
+class Map(WireModel):
+    """A polygon map: free space is the interior, walls the boundary, holes obstacles."""
+
+    map_id: Identifier = Field(description="The map's id, as in its key.")
+    version: NonNegativeInt = Field(description="A newer version replaces an older one.")
+    frame_id: NonEmptyStr = Field(default="map", description="Frame of the coordinates.")
+    geometry: Geometry = Field(description="GeoJSON Polygon or MultiPolygon, metres.")
+
+
+class EventCode:
+    """Known values of :attr:`Event.code`; the field is a plain string, so more may appear.
+
+    WIRE.md requires the first six; the rest are this implementation's additions.
+    """
+
+    INVALID_MESSAGE: Final = "invalid_message"
+    """A payload was rejected: malformed, wrong types, missing fields or too large."""
+    INVALID_KEY: Final = "invalid_key"
+    """A key with a robot id or map id that does not match the id pattern."""
+    MAP_NOT_FOUND: Final = "map_not_found"
+    """An InitialPose names a map no storage answers for."""
+    INVALID_MAP: Final = "invalid_map"
+    """A map failed validation (schema or geometry)."""
+    NOT_INITIALIZED: Final = "not_initialized"
+    """A scan for a robot with no initial pose."""
+    LOST: Final = "lost"
+    """The localizer found no pose under its acceptance threshold."""
+    SCAN_DROPPED: Final = "scan_dropped"
+    """A newer scan replaced an unprocessed older one."""
+    RECORDER_OVERFLOW: Final = "recorder_overflow"
+    """The MCAP recorder's queue was full and messages were not logged."""
+    MAP_UPDATED: Final = "map_updated"
+    """A newer map version replaced the one robots were localized on."""
+
+
+KNOWN_EVENT_CODES: Final = frozenset(
+    value for name, value in vars(EventCode).items() if name.isupper() and isinstance(value, str)
+)
+"""Every code in :class:`EventCode`."""
+
+
+class Event(WireModel):
+    """A problem with a robot's input or state, or with the service."""
+
+    stamp_ns: StampNs = Field(description="When it happened, ns since the Unix epoch.")
+    level: EventLevel = Field(description="Severity.")
+    code: NonEmptyStr = Field(
+        description="What happened, machine-readable: invalid_message, invalid_key, "
+        "map_not_found, invalid_map, not_initialized, lost, scan_dropped, recorder_overflow, "
+        "map_updated; more may be added."
+    )
+    key: Text = Field(
+        default="", description="The key involved, e.g. where a bad message came from."
+    )
+    message: Text = Field(
+        default="", description="Human-readable explanation naming field and value."
+    )
+
+
+class LatencyPercentiles(WireModel):
+    """Distribution of update latency, milliseconds, over recent updates."""
+
+    p50: NonNegativeFloat = Field(default=0.0, description="Median.")
+    p90: NonNegativeFloat = Field(default=0.0, description="90th percentile.")
+    p99: NonNegativeFloat = Field(default=0.0, description="99th percentile.")
+    max: NonNegativeFloat = Field(default=0.0, description="Largest.")
+    count: NonNegativeInt = Field(default=0, description="Updates the figures are over; 0 if none.")
+
+
+FreeForm = Annotated[dict[str, JsonValue], AfterValidator(check_finite_json)]
+
+
+class Health(WireModel):
+    """Counters and state of one service instance."""
+
+    instance: NonEmptyStr = Field(description="Name of the instance.")
+    stamp_ns: StampNs | None = Field(
+        default=None, description="When the figures were taken, ns since the Unix epoch."
+    )
+    uptime_s: NonNegativeFloat = Field(
+        default=0.0, description="Seconds since the instance started."
+    )
+    robots: NonNegativeInt = Field(default=0, description="Robots the instance holds.")
+    received: NonNegativeInt = Field(default=0, description="Messages received.")
+    rejected: NonNegativeInt = Field(default=0, description="Messages rejected as invalid.")
+    processed: NonNegativeInt = Field(default=0, description="Scans processed into a pose.")
+    dropped: NonNegativeInt = Field(
+        default=0, description="Scans replaced by a newer one unprocessed."
+    )
+    latency_ms: LatencyPercentiles = Field(
+        default=LatencyPercentiles(), description="Per-update latency, milliseconds."
+    )
+    extra: FreeForm = Field(
+        default_factory=dict, description="Further implementation-defined figures."
+    )

@@ -1,0 +1,87 @@
+import math
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon, box
+
+from rlutf.errors import MapError
+from rlutf.map import Map
+
+ROOM = {
+    "type": "Polygon",
+    "coordinates": [
+        [[0, 0], [20, 0], [20, 10], [0, 10], [0, 0]],
+        [[5, 5], [6, 5], [6, 6], [5, 6], [5, 5]],
+    ],
+}
+
+
+def test_from_geojson_builds_walls_and_free_space() -> None:
+    m = Map.from_geojson(ROOM)
+    assert m.segments.shape == (8, 4)
+    assert math.isclose(m.geometry.area, 199.0)
+    inside = m.contains(np.array([[1.0, 1.0], [5.5, 5.5], [25.0, 1.0]]))
+    assert inside.tolist() == [True, False, False]
+    assert m.to_geojson()["type"] == "Polygon"
+
+
+def test_multipolygon_is_accepted() -> None:
+    m = Map.from_geojson(
+        {
+            "type": "MultiPolygon",
+            "coordinates": [
+                [[[0, 0], [1, 0], [1, 1], [0, 1], [0, 0]]],
+                [[[3, 0], [4, 0], [4, 1], [3, 1], [3, 0]]],
+            ],
+        }
+    )
+    assert len(m.segments) == 8
+
+
+@pytest.mark.parametrize(
+    ("geometry", "message"),
+    [
+        ({"type": "Point", "coordinates": [0, 0]}, "type"),
+        ({"type": "Polygon", "coordinates": []}, "at least one ring"),
+        ({"type": "Polygon", "coordinates": [[[0, 0], [1, 0], [1, 1], [0, 1]]]}, "not closed"),
+        ({"type": "Polygon", "coordinates": [[[0, 0], [1, 0], [0, 0]]]}, "at least 4"),
+        (
+            {"type": "Polygon", "coordinates": [[[0, 0], [1, 0], [1, float("nan")], [0, 0]]]},
+            "non-finite",
+        ),
+        (
+            {"type": "Polygon", "coordinates": [[[0, 0], [2, 2], [2, 0], [0, 2], [0, 0]]]},
+            "Self-intersection",
+        ),
+        ({"type": "Polygon", "coordinates": [[[0, 0], [1, 0], [2, 0], [0, 0]]]}, "invalid"),
+    ],
+)
+def test_invalid_maps_say_what_and_where(geometry: dict, message: str) -> None:
+    with pytest.raises(MapError, match=message):
+        Map.from_geojson(geometry)
+
+
+def test_empty_geometry_is_rejected() -> None:
+    with pytest.raises(MapError, match="empty"):
+        Map.from_shapely(Polygon())
+
+
+def test_walls_near_is_a_superset_of_walls_in_range() -> None:
+    rng = np.random.default_rng(0)
+    holes = [box(x, y, x + 0.3, y + 0.3) for x, y in rng.uniform(1, 48, (60, 2))]
+    geom = box(0, 0, 50, 50)
+    for h in holes:
+        geom = geom.difference(h)
+    m = Map.from_shapely(geom)
+    for x, y, r in [(10.0, 10.0, 3.0), (25.0, 40.0, 8.0), (49.0, 1.0, 2.0)]:
+        near = set(m.index.walls_near(x, y, r).tolist())
+        seg = m.segments
+        # distance from (x, y) to each wall
+        ax, ay, bx, by = seg.T
+        ex, ey = bx - ax, by - ay
+        u = np.clip(((x - ax) * ex + (y - ay) * ey) / (ex * ex + ey * ey), 0, 1)
+        d = np.hypot(ax + u * ex - x, ay + u * ey - y)
+        assert set(np.flatnonzero(d <= r).tolist()) <= near
+        # and the index prunes: far fewer than all walls for a small radius
+        if r <= 3.0:
+            assert len(near) < len(seg) / 4
