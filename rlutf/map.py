@@ -17,6 +17,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry.polygon import orient
 from shapely.validation import explain_validity
 
 from rlutf.errors import MapError
@@ -181,7 +182,8 @@ class Map:
 
     Attributes:
         geometry: free space, a shapely ``Polygon`` or ``MultiPolygon`` in metres.
-        segments: ``(M, 4)`` walls as ``x1, y1, x2, y2`` rows, metres.
+        segments: ``(M, 4)`` walls as ``x1, y1, x2, y2`` rows, metres, each directed so that the
+            free space is on its left (outer rings counter-clockwise, holes clockwise).
         index: grid index of the walls, for range-limited queries.
         wall_start: ``(M,)`` wall start points as complex numbers ``x + iy``.
         wall_direction: ``(M,)`` wall vectors (end minus start) as complex numbers.
@@ -252,7 +254,9 @@ def _segments_of(geom: Polygon | MultiPolygon) -> FloatArray:
     polys = [geom] if isinstance(geom, Polygon) else list(geom.geoms)
     parts: list[FloatArray] = []
     for p in polys:
-        for ring in (p.exterior, *p.interiors):
+        # Free space on the left of every wall: the ray caster skips walls seen from behind.
+        oriented = orient(p, sign=1.0)
+        for ring in (oriented.exterior, *oriented.interiors):
             xy = np.asarray(ring.coords, dtype=np.float64)[:, :2]
             seg = np.hstack([xy[:-1], xy[1:]])
             keep = (seg[:, 0] != seg[:, 2]) | (seg[:, 1] != seg[:, 3])

@@ -1,0 +1,141 @@
+"""Effective configuration: defaults, an optional file, ``RLUTF_*`` environment variables, flags.
+
+Later sources win: a value given as a command-line flag beats the environment, which beats the
+settings file (``--settings FILE`` or ``RLUTF_SETTINGS``; JSON, TOML or YAML), which beats the
+defaults. Nested localizer parameters use a double underscore in the environment, for example
+``RLUTF_LOCALIZER__EPSILON=0.004``. Lists accept JSON or comma-separated text
+(``RLUTF_CONNECT=tcp/10.0.0.5:7447,tcp/10.0.0.6:7447``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import (
+    BaseSettings,
+    JsonConfigSettingsSource,
+    NoDecode,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+    YamlConfigSettingsSource,
+)
+
+from rlutf.localizer import LocalizerConfig
+from schemas import ID_PATTERN
+
+ZenohMode = Literal["router", "peer", "client"]
+
+
+def _default_instance() -> str:
+    host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
+    return f"{host[:40] or 'rlutf'}-{os.getpid()}"
+
+
+class Settings(BaseSettings):
+    """Every setting of the service, with its unit; see ``rlutf config``."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="RLUTF_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        frozen=True,
+    )
+
+    # Zenoh, named like zenoh's own tools.
+    mode: ZenohMode = Field("router", description="Zenoh mode: router, peer or client.")
+    listen: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: ["tcp/[::]:7447"], description="Zenoh listen endpoints."
+    )
+    connect: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Zenoh endpoints to connect to."
+    )
+    zenoh_config: Path | None = Field(None, description="A zenoh JSON5 configuration file.")
+    multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")
+
+    prefix: str = Field(
+        "rlutf", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$", description="Key prefix."
+    )
+    instance: str = Field(
+        default_factory=_default_instance,
+        pattern=f"^{ID_PATTERN}$",
+        description="Name of this instance (liveliness and health keys).",
+    )
+
+    store_dir: Path = Field(Path("store"), description="Folder of the embedded map store.")
+    no_store: bool = Field(False, description="Do not host the embedded map storage.")
+    record_dir: Path = Field(Path("logs"), description="Folder of the MCAP recordings.")
+    no_record: bool = Field(False, description="Do not record MCAP logs.")
+    record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
+    record_max_seconds: float = Field(3600.0, gt=0, description="Rotate logs after seconds.")
+    record_queue: int = Field(20000, gt=0, description="Recorder queue length, messages.")
+
+    workers: int = Field(-1, ge=-1, description="Worker processes; -1: one per core; 0: threads.")
+    max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
+    map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
+    event_interval_s: float = Field(
+        1.0, ge=0, description="Least time between two events of one code for one robot."
+    )
+    localizer: LocalizerConfig = Field(
+        default_factory=LocalizerConfig, description="RLuTF parameters (see rlutf.LocalizerConfig)."
+    )
+
+    @field_validator("listen", "connect", mode="before")
+    @classmethod
+    def _split_list(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                return json.loads(text)
+            return [v.strip() for v in text.split(",") if v.strip()]
+        return value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        path = os.environ.get("RLUTF_SETTINGS")
+        if path:
+            sources.append(_file_source(settings_cls, Path(path)))
+        return tuple(sources)
+
+    def effective(self) -> dict[str, Any]:
+        """The configuration as JSON-ready data (what ``rlutf config`` prints)."""
+        return self.model_dump(mode="json")
+
+
+def _file_source(settings_cls: type[BaseSettings], path: Path) -> PydanticBaseSettingsSource:
+    if not path.is_file():
+        raise FileNotFoundError(f"settings file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        return JsonConfigSettingsSource(settings_cls, json_file=path)
+    if suffix == ".toml":
+        return TomlConfigSettingsSource(settings_cls, toml_file=path)
+    if suffix in (".yaml", ".yml"):
+        return YamlConfigSettingsSource(settings_cls, yaml_file=path)
+    raise ValueError(f"settings file {path}: use .json, .toml or .yaml")
+
+
+def load_settings(settings_file: Path | None = None, **overrides: Any) -> Settings:
+    """Settings from every source; ``overrides`` (flags) win, ``None`` values are ignored.
+
+    Args:
+        settings_file: a JSON, TOML or YAML file (else ``RLUTF_SETTINGS`` if set).
+        overrides: values from flags.
+    """
+    if settings_file is not None:
+        os.environ["RLUTF_SETTINGS"] = str(settings_file)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    return Settings(**given)

@@ -1,0 +1,194 @@
+"""``rlutf map import|build|show``: maps from occupancy grids and logs, and map pictures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+
+
+def register(msub: Any, zenoh_flags: Any) -> None:
+    """Add the import, build and show actions to the ``map`` subparsers."""
+    imp = msub.add_parser(
+        "import",
+        help="import a ROS map_server occupancy grid (YAML + PGM/PNG)",
+        description="Turn a ROS map_server grid (slam_toolbox, Cartographer, GMapping) into a "
+        "polygon Map: free space as polygons, obstacles as holes, unknown cells as walls.",
+    )
+    imp.add_argument("yaml", type=Path, help="the map's YAML file")
+    _map_output_flags(imp, zenoh_flags)
+    imp.set_defaults(func=cmd_import)
+
+    build = msub.add_parser(
+        "build",
+        help="build a map from a log of scans with known poses",
+        description="Build an occupancy grid from scans with known poses (a CARMEN log with "
+        "corrected poses, .log or .log.gz, or an MCAP log in the WIRE.md layout with poses) "
+        "and import it like `map import`.",
+    )
+    build.add_argument("log", type=Path, help="CARMEN log (.log, .gz) or MCAP log (.mcap)")
+    build.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
+    build.add_argument(
+        "--max-range", type=float, default=50.0, help="longer ranges are no return, m (default 50)"
+    )
+    build.add_argument(
+        "--save-grid",
+        type=Path,
+        metavar="YAML",
+        help="also write the grid as map_server YAML + PGM",
+    )
+    _map_output_flags(build, zenoh_flags)
+    build.set_defaults(func=cmd_build)
+
+    show = msub.add_parser(
+        "show",
+        help="render a map (file or stored id) to PNG",
+        description="Draw a map so a person can check it by eye.",
+    )
+    show.add_argument("source", help="a map JSON file, or the id of a stored map")
+    show.add_argument("--out", type=Path, default=Path("map.png"), help="PNG (default map.png)")
+    show.add_argument("--timeout", type=float, default=3.0)
+    zenoh_flags(show, client=True)
+    show.set_defaults(func=cmd_show)
+
+
+def _map_output_flags(p: argparse.ArgumentParser, zenoh_flags: Any) -> None:
+    p.add_argument("--id", dest="map_id", help="map id (default: from the file name)")
+    p.add_argument("--version", type=int, default=1, help="map version (default 1)")
+    p.add_argument("--out", type=Path, help="write the Map JSON here (default: <id>.json)")
+    p.add_argument("--put", action="store_true", help="also put it into the map store")
+    p.add_argument(
+        "--component",
+        help="free component to keep: index from the report, "
+        "a point 'x,y' inside it, or 'all' (default: the largest)",
+    )
+    p.add_argument("--min-area", type=float, help="drop free islands smaller than this, m^2")
+    p.add_argument(
+        "--simplify",
+        type=float,
+        help="simplification tolerance, m (default half a cell; never more than a cell)",
+    )
+    p.add_argument("--png", type=Path, help="also render the result to this PNG")
+    zenoh_flags(p, client=True)
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    from service.mapimport import parse_component
+
+    opts: dict[str, Any] = {"version": args.version}
+    if args.component:
+        opts["component"] = parse_component(args.component)
+    if args.min_area is not None:
+        opts["min_area"] = args.min_area
+    if args.simplify is not None:
+        opts["simplify"] = args.simplify
+    return opts
+
+
+def _finish(args: argparse.Namespace, result: Any) -> int:
+    from service.mapimport import render_map
+
+    print("\n".join(result.report))
+    mid = result.map["map_id"]
+    out = args.out or Path(f"{mid}.json")
+    out.write_text(json.dumps(result.map), encoding="utf-8")
+    print(f"wrote {out}")
+    if args.png:
+        render_map(result.map, args.png, title=f"{mid} v{result.map['version']}")
+        print(f"wrote {args.png}")
+    if args.put:
+        from service.cli import _client
+        from service.tools import put_map
+
+        settings, session = _client(args)
+        with session:
+            return put_map(session, settings.prefix, out, mid, result.map["version"])
+    return EXIT_OK
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """``rlutf map import``."""
+    from service.mapimport import MapImportError, import_grid
+
+    try:
+        result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
+    except MapImportError as err:
+        print(f"rlutf map import: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    return _finish(args, result)
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """``rlutf map build``."""
+    from service.mapimport import (
+        MapImportError,
+        build_from_carmen,
+        build_grid,
+        grid_to_map,
+        map_id_from_name,
+        save_grid,
+    )
+
+    try:
+        if args.log.suffix == ".mcap":
+            from service.mcapmaps import scans_with_poses
+
+            grid = build_grid(scans_with_poses(args.log), resolution=args.resolution)
+        else:
+            grid = build_from_carmen(args.log, resolution=args.resolution, max_range=args.max_range)
+        if args.save_grid:
+            save_grid(grid, args.save_grid)
+            print(f"wrote {args.save_grid}")
+        mid = args.map_id or map_id_from_name(args.log.name)
+        result = grid_to_map(grid, map_id=mid, **_options(args))
+    except (MapImportError, OSError, ValueError) as err:
+        print(f"rlutf map build: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    return _finish(args, result)
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    """``rlutf map show``."""
+    from service.mapimport import MapImportError, render_map
+
+    path = Path(args.source)
+    if path.is_file():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as err:
+            print(f"rlutf map show: cannot read {path}: {err}", file=sys.stderr)
+            return EXIT_FAILURE
+    else:
+        from schemas import valid_id
+        from service.cli import _client
+        from service.keys import Keys
+
+        if not valid_id(args.source):
+            print(
+                f"rlutf map show: {args.source!r} is neither a file nor a map id", file=sys.stderr
+            )
+            return EXIT_FAILURE
+        settings, session = _client(args)
+        with session:
+            replies = [
+                r.ok
+                for r in session.get(Keys(settings.prefix).map(args.source), timeout=args.timeout)
+                if r.ok
+            ]
+        if not replies:
+            print(f"rlutf map show: no storage answered for map {args.source!r}", file=sys.stderr)
+            return EXIT_FAILURE
+        data = json.loads(replies[0].payload.to_bytes())
+    try:
+        title = f"{data.get('map_id', path.stem)} v{data.get('version', '?')}"
+        render_map(data, args.out, title=title)
+    except (MapImportError, ValueError, KeyError, TypeError) as err:
+        print(f"rlutf map show: not a map: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    print(f"wrote {args.out}")
+    return EXIT_OK

@@ -1,0 +1,83 @@
+"""Counters and latency percentiles of one instance, for the health queryable."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from schemas import Health, LatencyPercentiles
+
+#: Latest latencies kept for the percentiles.
+_WINDOW = 10_000
+
+
+class Stats:
+    """Thread-safe counters of one service instance."""
+
+    def __init__(self, instance: str) -> None:
+        self.instance = instance
+        self.started = time.monotonic()
+        self._lock = threading.Lock()
+        self.received = 0
+        self.rejected = 0
+        self.processed = 0
+        self.published = 0
+        self.lost = 0
+        self._latency_ms: deque[float] = deque(maxlen=_WINDOW)
+        self._compute_ms: deque[float] = deque(maxlen=_WINDOW)
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Increase a counter."""
+        with self._lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def latency(self, end_to_end_ms: float) -> None:
+        """Record one scan's time from receipt to its pose being published."""
+        with self._lock:
+            self._latency_ms.append(end_to_end_ms)
+
+    def compute(self, ms: float) -> None:
+        """Record one batch's compute time in a worker."""
+        with self._lock:
+            self._compute_ms.append(ms)
+
+    @staticmethod
+    def _percentiles(values: list[float]) -> LatencyPercentiles:
+        if not values:
+            return LatencyPercentiles()
+        p50, p90, p99 = np.percentile(values, [50, 90, 99])
+        return LatencyPercentiles(
+            p50=float(p50),
+            p90=float(p90),
+            p99=float(p99),
+            max=float(max(values)),
+            count=len(values),
+        )
+
+    def health(self, robots: int, dropped: int, extra: dict[str, object]) -> Health:
+        """A Health message of the current figures."""
+        with self._lock:
+            lat = list(self._latency_ms)
+            comp = list(self._compute_ms)
+            counts = (self.received, self.rejected, self.processed, self.published, self.lost)
+        compute = self._percentiles(comp)
+        return Health(
+            instance=self.instance,
+            stamp_ns=time.time_ns(),
+            uptime_s=time.monotonic() - self.started,
+            robots=robots,
+            received=counts[0],
+            rejected=counts[1],
+            processed=counts[2],
+            dropped=dropped,
+            latency_ms=self._percentiles(lat),
+            extra={
+                "published": counts[3],
+                "lost": counts[4],
+                "compute_ms": compute.model_dump(),
+                **extra,
+            },
+        )

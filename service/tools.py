@@ -1,0 +1,129 @@
+"""Client tools over Zenoh: put and get maps, query poses and health."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from schemas import Health, Map, PoseEstimate, SchemaError, decode, encode, valid_id
+from service.keys import Keys
+from service.maps import MapRejected, load_map
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+def map_message_from_file(path: Path, map_id: str | None, version: int | None) -> bytes:
+    """A Map payload from a file holding a Map message or a bare GeoJSON geometry.
+
+    Raises:
+        ValueError: unreadable file, bad JSON, invalid id or invalid map (message says why).
+    """
+    try:
+        data: Any = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise ValueError(f"cannot read {path}: {err.strerror}") from err
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: malformed JSON: {err}") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    if data.get("type") in ("Polygon", "MultiPolygon"):
+        data = {"geometry": data}
+    if data.get("type") == "Feature":
+        data = {"geometry": data.get("geometry")}
+    mid = map_id or data.get("map_id") or path.stem.split(".")[0]
+    if not valid_id(str(mid)):
+        raise ValueError(f"map id {mid!r} does not match [A-Za-z0-9_-]{{1,64}}; use --id")
+    data["map_id"] = mid
+    data["version"] = version if version is not None else data.get("version", 1)
+    data.setdefault("frame_id", "map")
+    try:
+        msg = decode(Map, json.dumps(data))
+        payload = encode(msg)
+        load_map(payload, expected_id=str(mid), max_bytes=10**9)
+    except (SchemaError, MapRejected) as err:
+        raise ValueError(f"{path}: invalid map: {err}") from err
+    return payload
+
+
+def put_map(
+    session: zenoh.Session, prefix: str, path: Path, map_id: str | None, version: int | None
+) -> int:
+    """Put a map file into whatever storage holds ``{prefix}/maps/**``."""
+    try:
+        payload = map_message_from_file(path, map_id, version)
+    except ValueError as err:
+        print(f"rlutf map put: {err}", file=sys.stderr)
+        return 1
+    msg = decode(Map, payload)
+    key = Keys(prefix).map(msg.map_id)
+    session.put(key, payload, encoding=JSON)
+    print(f"put {key} (version {msg.version}, {len(payload)} bytes)")
+    return 0
+
+
+def get_map(
+    session: zenoh.Session, prefix: str, map_id: str, out: Path | None, timeout: float
+) -> int:
+    """Print (or write) a stored map."""
+    if not valid_id(map_id):
+        print(f"rlutf map get: invalid map id {map_id!r}", file=sys.stderr)
+        return 2
+    key = Keys(prefix).map(map_id)
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is None:
+            continue
+        payload = reply.ok.payload.to_bytes()
+        if out is not None:
+            out.write_bytes(payload)
+            print(f"wrote {out}")
+        else:
+            sys.stdout.write(payload.decode() + "\n")
+        return 0
+    print(f"rlutf map get: no storage answered for {key}", file=sys.stderr)
+    return 1
+
+
+def query_poses(session: zenoh.Session, prefix: str, robot: str, timeout: float) -> int:
+    """Print the latest PoseEstimate of one robot (or ``*``: all), one JSON per line."""
+    if robot != "*" and not valid_id(robot):
+        print(f"rlutf pose: invalid robot id {robot!r}", file=sys.stderr)
+        return 2
+    key = Keys(prefix).pose(robot)
+    found = 0
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            pose = decode(PoseEstimate, reply.ok.payload.to_bytes())
+        except SchemaError as err:
+            print(f"rlutf pose: bad reply on {reply.ok.key_expr}: {err}", file=sys.stderr)
+            continue
+        print(encode(pose).decode())
+        found += 1
+    if not found:
+        print(f"rlutf pose: no pose for {robot!r}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def query_health(session: zenoh.Session, prefix: str, instance: str, timeout: float) -> int:
+    """Print each live instance's Health; 0 if at least one answered."""
+    key = Keys(prefix).health(instance)
+    found = 0
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            health = decode(Health, reply.ok.payload.to_bytes())
+        except SchemaError:
+            continue
+        print(encode(health).decode())
+        found += 1
+    if not found:
+        print("rlutf health: no instance answered", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,142 @@
+"""Test harness: a real service and real Zenoh client sessions on loopback."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from rlutf.map import Map as World
+from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
+from schemas import InitialPose, LaserScan, Map, Odometry, encode
+from service.config import Settings
+from service.node import LocalizationService
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+@dataclass
+class Collector:
+    """Collects decoded JSON samples per key."""
+
+    samples: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.samples.setdefault(str(sample.key_expr), []).append(
+                json.loads(sample.payload.to_bytes())
+            )
+
+    def on(self, key: str) -> list[dict[str, Any]]:
+        with self.lock:
+            return list(self.samples.get(key, []))
+
+    def wait_for(self, pred: Callable[[], bool], timeout: float = 10.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return True
+            time.sleep(0.02)
+        return pred()
+
+
+@dataclass
+class SimRobot:
+    """A simulated robot driving one trajectory, publishing on a client session."""
+
+    robot_id: str
+    world: World
+    truth: np.ndarray
+    session: zenoh.Session
+    t0: int
+    step: int = 0
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+    def stamp(self, i: int) -> int:
+        return self.t0 + i * 100_000_000
+
+    def odom(self, i: int) -> None:
+        p = self.truth[i]
+        msg = Odometry(stamp_ns=self.stamp(i), x=float(p[0]), y=float(p[1]), theta=float(p[2]))
+        self.session.put(f"rlutf/robots/{self.robot_id}/odom", encode(msg), encoding=JSON)
+
+    def initial_pose(self, map_id: str, offset: tuple[float, float, float] = (0, 0, 0)) -> None:
+        p = self.truth[0]
+        msg = InitialPose(
+            stamp_ns=self.stamp(0),
+            map_id=map_id,
+            x=float(p[0] + offset[0]),
+            y=float(p[1] + offset[1]),
+            theta=float(p[2] + offset[2]),
+        )
+        self.odom(0)
+        self.session.put(f"rlutf/robots/{self.robot_id}/initialpose", encode(msg), encoding=JSON)
+
+    def scan_msg(self, i: int) -> LaserScan:
+        s = simulate_scan(self.world, self.truth[i], LidarModel(beams=180), self.rng)
+        return LaserScan(
+            stamp_ns=self.stamp(i),
+            angle_min=s.angle_min,
+            angle_increment=s.angle_increment,
+            range_min=s.range_min,
+            range_max=s.range_max,
+            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
+        )
+
+    def advance(self) -> int:
+        """Publish the next odometry and scan; returns the step index."""
+        self.step += 1
+        self.odom(self.step)
+        self.session.put(
+            f"rlutf/robots/{self.robot_id}/scan", encode(self.scan_msg(self.step)), encoding=JSON
+        )
+        return self.step
+
+
+@dataclass
+class Bench:
+    """A running service and an operator client session."""
+
+    service: LocalizationService
+    client: zenoh.Session
+    endpoint: str
+    world: World
+    store: Path
+
+    def put_map(self, map_id: str = "m1", version: int = 1, world: World | None = None) -> None:
+        w = world or self.world
+        self.client.put(
+            f"rlutf/maps/{map_id}",
+            encode(Map(map_id=map_id, version=version, geometry=w.to_geojson())),
+            encoding=JSON,
+        )
+
+    def robot(self, robot_id: str, seed: int, steps: int = 200) -> SimRobot:
+        rng = np.random.default_rng(seed)
+        truth = make_trajectory(self.world, rng, steps)
+        return SimRobot(robot_id, self.world, truth, self.client, time.time_ns(), rng=rng)
+
+
+WORLD = make_building(np.random.default_rng(11))
+
+
+def start_service(store: Path, port: int, workers: int = 0, **kw: Any) -> LocalizationService:
+    settings = Settings(
+        listen=[f"tcp/127.0.0.1:{port}"],
+        store_dir=store,
+        no_record=True,
+        workers=workers,
+        instance=f"test-{port}",
+        event_interval_s=0.0,
+        **kw,
+    )
+    return LocalizationService(settings).start()
