@@ -117,16 +117,18 @@ class FoxgloveConverter:
         lines = []
         for rings in polygons:
             for i, ring in enumerate(rings):
-                lines.append({
-                    "type": 0,  # LINE_STRIP: GeoJSON rings repeat their first point
-                    "pose": _pose(0.0, 0.0, 0.0),
-                    "thickness": _WALL_THICKNESS,
-                    "scale_invariant": False,
-                    "points": [{"x": float(p[0]), "y": float(p[1]), "z": 0.0} for p in ring],
-                    "color": _WALL_COLOR if i == 0 else _OBSTACLE_COLOR,
-                    "colors": [],
-                    "indices": [],
-                })
+                lines.append(
+                    {
+                        "type": 0,  # LINE_STRIP: GeoJSON rings repeat their first point
+                        "pose": _pose(0.0, 0.0, 0.0),
+                        "thickness": _WALL_THICKNESS,
+                        "scale_invariant": False,
+                        "points": [{"x": float(p[0]), "y": float(p[1]), "z": 0.0} for p in ring],
+                        "color": _WALL_COLOR if i == 0 else _OBSTACLE_COLOR,
+                        "colors": [],
+                        "indices": [],
+                    }
+                )
         entity = {
             "timestamp": _time(record.log_time_ns),
             "frame_id": frame,
@@ -137,13 +139,25 @@ class FoxgloveConverter:
                 {"key": "map_id", "value": map_id},
                 {"key": "version", "value": str(data.get("version", ""))},
             ],
-            "arrows": [], "cubes": [], "spheres": [], "cylinders": [],
+            "arrows": [],
+            "cubes": [],
+            "spheres": [],
+            "cylinders": [],
             "lines": lines,
-            "triangles": [], "texts": [], "models": [],
-        }  # fmt: skip
+            "triangles": [],
+            "texts": [],
+            "models": [],
+        }
         update = {"deletions": [], "entities": [entity]}
-        return [Record(f"/foxglove/maps/{map_id}", SCENE_UPDATE, _dumps(update),
-                       record.log_time_ns, record.log_time_ns)]  # fmt: skip
+        return [
+            Record(
+                f"/foxglove/maps/{map_id}",
+                SCENE_UPDATE,
+                _dumps(update),
+                record.log_time_ns,
+                record.log_time_ns,
+            )
+        ]
 
     def _scan(self, record: Record, data: dict[str, Any]) -> list[Record]:
         parts = _split(record.topic, "robots", 2)
@@ -156,15 +170,25 @@ class FoxgloveConverter:
         scan = {
             "timestamp": _time(int(data["stamp_ns"])),
             "frame_id": robot_frame(robot),
-            "pose": _pose(float(offset.get("x", 0.0)), float(offset.get("y", 0.0)),
-                          float(offset.get("theta", 0.0))),
+            "pose": _pose(
+                float(offset.get("x", 0.0)),
+                float(offset.get("y", 0.0)),
+                float(offset.get("theta", 0.0)),
+            ),
             "start_angle": start,
             "end_angle": start + (len(ranges) - 1) * float(data["angle_increment"]),
             "ranges": ranges,
             "intensities": [],
-        }  # fmt: skip
-        return [Record(f"/foxglove/robots/{robot}/scan", LASER_SCAN, _dumps(scan),
-                       record.log_time_ns, record.publish_time_ns)]  # fmt: skip
+        }
+        return [
+            Record(
+                f"/foxglove/robots/{robot}/scan",
+                LASER_SCAN,
+                _dumps(scan),
+                record.log_time_ns,
+                record.publish_time_ns,
+            )
+        ]
 
     def _located(self, record: Record, data: dict[str, Any]) -> list[Record]:
         """A PoseEstimate or InitialPose: a pose in the map frame and the robot's transform."""
@@ -216,8 +240,9 @@ def npm_schemas(prefix: Path) -> dict[str, Any]:
         "process.stdout.write(JSON.stringify(out));"
     )
     short = [name.removeprefix("foxglove.") for name in SCHEMA_NAMES]
-    done = subprocess.run(["node", "-e", script, str(module), *short], check=True,
-                          capture_output=True, timeout=60)  # fmt: skip
+    done = subprocess.run(
+        ["node", "-e", script, str(module), *short], check=True, capture_output=True, timeout=60
+    )
     result: dict[str, Any] = json.loads(done.stdout)
     return result
 

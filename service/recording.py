@@ -59,4 +59,5 @@ def make_recorder(settings: Any) -> Recorder:
         max_bytes=settings.record_max_bytes,
         max_seconds=settings.record_max_seconds,
         queue_size=settings.record_queue,
+        instance=settings.instance,
     )

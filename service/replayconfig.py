@@ -1,0 +1,159 @@
+"""The configuration a replay runs with: the log's ``rlutf.config``, then overrides.
+
+The recorded configuration (``rlutf.config`` metadata, the output of ``rlutf config``) is the
+base; a settings file given with ``--settings`` (JSON, TOML or YAML, same structure) is merged
+into it key by key, then each ``--set KEY=VALUE`` (dotted keys, e.g.
+``--set localizer.epsilon=0.004``; the value is read as JSON, else taken as text). A log with no
+configuration replays on the defaults, with the key prefix read from its topics. The
+environment (``RLUTF_*``) is never read: a replay depends on its inputs and flags only.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from pydantic import TypeAdapter, ValidationError
+
+from rlutf.localizer import LocalizerConfig
+from service.config import Settings
+
+
+class ReplayConfigError(ValueError):
+    """A configuration a replay cannot run with; the message names the key."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """What the engine needs, plus the full configuration to store in the output.
+
+    Attributes:
+        prefix: key prefix of the outputs.
+        localizer: localizer parameters.
+        event_interval_ns: least time between two events of one code for one robot.
+        max_payload_bytes: largest accepted payload.
+        settings: the merged configuration, stored as ``rlutf.config`` in the output.
+    """
+
+    prefix: str
+    localizer: LocalizerConfig
+    event_interval_ns: int
+    max_payload_bytes: int
+    settings: dict[str, Any]
+
+
+def _default(name: str) -> Any:
+    return Settings.model_fields[name].default
+
+
+def default_settings(prefix: str | None) -> dict[str, Any]:
+    """The parts of the service defaults a replay uses (no environment)."""
+    return {
+        "prefix": prefix or _default("prefix"),
+        "event_interval_s": _default("event_interval_s"),
+        "max_payload_bytes": _default("max_payload_bytes"),
+        "localizer": asdict(LocalizerConfig()),
+    }
+
+
+def _merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(base.get(key), dict):
+            _merge(base[key], value)
+        else:
+            base[key] = copy.deepcopy(value)
+    return base
+
+
+def read_settings_file(path: Path) -> dict[str, Any]:
+    """A settings file as a mapping (JSON, TOML or YAML, by suffix)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ReplayConfigError(f"cannot read settings file {path}: {err.strerror}") from err
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            data = json.loads(text)
+        elif suffix == ".toml":
+            data = tomllib.loads(text)
+        elif suffix in (".yaml", ".yml"):
+            import yaml
+
+            data = yaml.safe_load(text)
+        else:
+            raise ReplayConfigError(f"settings file {path}: use .json, .toml or .yaml")
+    except (ValueError, ImportError) as err:
+        if isinstance(err, ReplayConfigError):
+            raise
+        raise ReplayConfigError(f"settings file {path}: {err}") from err
+    if not isinstance(data, dict):
+        raise ReplayConfigError(f"settings file {path}: expected a mapping at the top")
+    return data
+
+
+def _assignment(text: str) -> dict[str, Any]:
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ReplayConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. localizer.epsilon=0.004")
+    try:
+        value: Any = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    out: dict[str, Any] = {}
+    node = out
+    parts = key.strip().split(".")
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+    node[parts[-1]] = value
+    return out
+
+
+def resolve(
+    recorded: Mapping[str, Any] | None,
+    *,
+    prefix_hint: str | None = None,
+    settings_file: Path | None = None,
+    assignments: Sequence[str] = (),
+) -> ReplayConfig:
+    """Merge the recorded configuration, a settings file and ``KEY=VALUE`` assignments.
+
+    Args:
+        recorded: the log's ``rlutf.config`` (``None``: defaults).
+        prefix_hint: the prefix read from the log's topics, used when nothing sets one.
+        settings_file: a settings file merged over the recorded configuration.
+        assignments: ``KEY=VALUE`` texts applied last.
+
+    Raises:
+        ReplayConfigError: unreadable file, unknown localizer parameter, invalid value.
+    """
+    merged = _merge(default_settings(prefix_hint), recorded or {})
+    if settings_file is not None:
+        _merge(merged, read_settings_file(settings_file))
+    for text in assignments:
+        _merge(merged, _assignment(text))
+    loc = merged.get("localizer")
+    if not isinstance(loc, dict):
+        raise ReplayConfigError("localizer: expected a mapping of localizer parameters")
+    known = {f.name for f in fields(LocalizerConfig)}
+    unknown = sorted(set(loc) - known)
+    if unknown:
+        raise ReplayConfigError(
+            f"localizer: unknown parameter(s) {', '.join(unknown)} "
+            f"(known: {', '.join(sorted(known))})"
+        )
+    try:
+        localizer = TypeAdapter(LocalizerConfig).validate_python(loc)
+        interval = float(merged["event_interval_s"])
+        max_bytes = int(merged["max_payload_bytes"])
+    except (ValidationError, TypeError, ValueError) as err:
+        raise ReplayConfigError(f"invalid configuration: {err}") from err
+    prefix = merged.get("prefix")
+    if not isinstance(prefix, str) or not prefix:
+        raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")
+    return ReplayConfig(prefix, localizer, int(interval * 1e9), max_bytes, merged)
