@@ -81,6 +81,24 @@ class Settings(BaseSettings):
     event_interval_s: float = Field(
         1.0, ge=0, description="Least time between two events of one code for one robot."
     )
+    handover_timeout_s: float = Field(
+        1.0,
+        gt=0,
+        description="Timeout of the liveliness get at start and of the pose get that seeds a "
+        "robot acquired with no pose in memory, seconds.",
+    )
+    handover_odom_s: float = Field(
+        5.0,
+        gt=0,
+        description="Odometry kept per robot owned by another instance (by stamp, seconds), to "
+        "anchor the seed when this instance takes the robot over.",
+    )
+    join_warmup_s: float = Field(
+        0.5,
+        ge=0,
+        description="When other instances are live at start: seconds to follow the fleet's "
+        "poses and odometry before declaring the liveliness token and taking robots over.",
+    )
     localizer: LocalizerConfig = Field(
         default_factory=LocalizerConfig, description="RLuTF parameters (see rlutf.LocalizerConfig)."
     )

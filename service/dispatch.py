@@ -341,13 +341,16 @@ class Dispatcher:
                 shard.cond.notify_all()
 
     def broadcast_map(self, loaded: LoadedMap) -> None:
-        """Send a map version to every shard, ahead of any batch queued after this call."""
+        """Send a map version to every shard, ahead of any batch queued after this call.
+
+        The caller holds :attr:`lock`, and took the map's receive time under it: then no input
+        received later can reach a worker before the map.
+        """
         geometry: Any = loaded.world if not self.processes else loaded.world.to_geojson()
         msg = ("map", loaded.map_id, loaded.version, geometry, loaded.received_ns)
-        with self.lock:
-            for s in self.shards:
-                s.control.append(msg)
-                s.cond.notify_all()
+        for s in self.shards:
+            s.control.append(msg)
+            s.cond.notify_all()
 
     def deliver(self, done: Done) -> None:
         """Pass a finished batch on (from a shard thread)."""

@@ -29,7 +29,7 @@ from schemas import Event, EventCode, InitialPose, LaserScan, Odometry, PoseEsti
 from service.keys import Keys
 
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map"]
+OutKind = Literal["pose", "event", "need_map", "skipped"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
@@ -40,8 +40,9 @@ class Outbound:
     """Something the engine wants published.
 
     Attributes:
-        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``) or
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published).
+        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
+            ``need_map`` (``map_id`` is wanted from the store; nothing is published) or
+            ``skipped`` (a scan was not turned into a pose; counted, nothing is published).
         key: the Zenoh key to put on.
         payload: encoded JSON.
         stamp_ns: the message's own stamp (MCAP ``publish_time``).
@@ -224,8 +225,9 @@ class FleetEngine:
 
     def _scan(self, robot: _Robot, msg: LaserScan, received_ns: int) -> list[Outbound]:
         key = self.keys.robot(robot.robot_id, "scan")
+        skipped = [Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
         if robot.map_id is None:
-            return self._event(
+            return skipped + self._event(
                 robot,
                 received_ns,
                 "warning",
@@ -234,7 +236,7 @@ class FleetEngine:
                 "scan before an initial pose; publish an InitialPose first",
             )
         if self._world_for(robot, received_ns) is None or robot.localizer is None:
-            return self._event(
+            return skipped + self._event(
                 robot,
                 received_ns,
                 "warning",
@@ -265,7 +267,7 @@ class FleetEngine:
         )
         result = robot.localizer.update(motion, scan)
         if not math.isfinite(result.discrepancy):
-            return self._event(
+            return skipped + self._event(
                 robot,
                 received_ns,
                 "warning",

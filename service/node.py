@@ -2,17 +2,23 @@
 
 Wiring only: callbacks decode, validate, record and hand inputs to the :class:`Dispatcher`;
 finished batches are published and recorded; maps are fetched and followed on a thread of their
-own. The computation is :class:`service.engine.FleetEngine`, the same code replay runs.
+own (:mod:`service.mapfeed`). The computation is :class:`service.engine.FleetEngine`, the same
+code replay runs.
+
+Scale-out: instances sharing a prefix split the fleet by rendezvous hashing over their
+liveliness tokens (:mod:`service.cluster`); each localizes, records, counts and answers pose
+queries for the robots it owns only, and seeds a robot it takes over from the robot's last
+published pose (:mod:`service.ownership`). A single instance owns every robot.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -23,17 +29,19 @@ from schemas import (
     EventCode,
     InitialPose,
     LaserScan,
-    Map,
     Odometry,
     PoseEstimate,
     SchemaError,
     decode,
     encode,
 )
+from service.cluster import Membership, fetch_last_pose, fetch_poses
 from service.config import Settings
-from service.dispatch import MODELS, Dispatcher, Done
-from service.keys import INPUT_KINDS, KeyError_, Keys
-from service.maps import LoadedMap, MapBook, MapRejected
+from service.dispatch import MODELS, Dispatcher, Done, Message
+from service.keys import INPUT_KINDS, InputKind, KeyError_, Keys
+from service.mapfeed import MapFeed
+from service.maps import MapBook
+from service.ownership import Ownership
 from service.recording import NullRecorder, Recorder
 from service.stats import Stats
 from service.store import FileMapStore, MapStorage
@@ -47,7 +55,6 @@ SCHEMA_OF_LEAF = {
     "pose": SCHEMA_NAMES[PoseEstimate],
     "events": SCHEMA_NAMES[Event],
 }
-MAP_SCHEMA = SCHEMA_NAMES[Map]
 EVENT_SCHEMA = SCHEMA_NAMES[Event]
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -109,12 +116,10 @@ class LocalizationService:
         self._poses: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
-        self._map_tasks: queue.Queue[tuple[str, str, bytes, int] | None] = queue.Queue()
-        self._fetching: dict[str, float] = {}
         self._declared: list[Any] = []
         self._input_sub: Any = None
+        self._token: Any = None
         self._storage: MapStorage | None = None
-        self._map_thread: threading.Thread | None = None
         self.dispatcher = Dispatcher(
             self.keys,
             settings.localizer,
@@ -122,6 +127,24 @@ class LocalizationService:
             int(settings.event_interval_s * 1e9),
             self._on_done,
             self._on_drop,
+        )
+        self.mapfeed = MapFeed(
+            self.keys,
+            self.maps,
+            self.dispatcher,
+            self.recorder,
+            self.clock,
+            settings.map_timeout_s,
+            self._global_event,
+            self._robot_event,
+        )
+        self.membership = Membership(settings.instance)
+        self.ownership = Ownership(
+            self.membership,
+            self._admit,
+            self.clock,
+            int(settings.handover_odom_s * 1e9),
+            on_release=self._forget_pose,
         )
         self.closed = threading.Event()
 
@@ -137,6 +160,9 @@ class LocalizationService:
         """Start workers, open the session and declare everything."""
         s = self.settings
         self.recorder.set_config(s.effective())
+        if hasattr(self.recorder, "on_overflow"):
+            # Already in the log; published so operators see it live.
+            self.recorder.on_overflow = lambda ev: self._publish(self.keys.events, encode(ev))
         self.dispatcher.start()
         if self._session is None:
             self._session = zenoh.open(zenoh_config(s))
@@ -151,15 +177,27 @@ class LocalizationService:
                     "error", EventCode.INVALID_MAP, key, msg
                 ),
             )
-        self._map_thread = threading.Thread(target=self._map_worker, name="rlutf-maps", daemon=True)
-        self._map_thread.start()
+        self.mapfeed.start(session)
         self._declared += [
-            session.declare_subscriber(self.keys.maps, self._on_map_sample),
+            session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample),
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
-            session.liveliness().declare_token(self.keys.service(s.instance)),
         ]
+        # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        timeout, limit = s.handover_timeout_s, s.max_payload_bytes
+        self.ownership.start(
+            partial(fetch_last_pose, session, self.keys, timeout=timeout, max_bytes=limit)
+        )
+        self.membership.start(session, self.keys, timeout)
+        if len(self.membership.members) > 1:
+            known = fetch_poses(session, self.keys, self.keys.all_poses, timeout, limit)
+            self.ownership.remember(*known.values())
+            for pose in {p.map_id: p for p in known.values()}.values():  # load the maps now
+                self.mapfeed.need(pose.map_id, pose.robot_id)
+            time.sleep(s.join_warmup_s)
+        self._token = session.liveliness().declare_token(self.keys.service(s.instance))
+        self.ownership.ready = True
         log.info("rlutf service %s started (mode %s, prefix %s)", s.instance, s.mode, s.prefix)
         return self
 
@@ -168,12 +206,14 @@ class LocalizationService:
         if self.closed.is_set():
             return
         self.closed.set()
+        if self._token is not None:
+            self._token.undeclare()  # the other instances take the robots over at once
         if self._input_sub is not None:
             self._input_sub.undeclare()
         self.dispatcher.stop()
-        self._map_tasks.put(None)
-        if self._map_thread is not None:
-            self._map_thread.join(5.0)
+        self.ownership.close()
+        self.membership.close()
+        self.mapfeed.close()
         for d in reversed(self._declared):
             try:
                 d.undeclare()
@@ -201,113 +241,41 @@ class LocalizationService:
         try:
             parsed = self.keys.parse_robot_key(key)
         except KeyError_ as err:
-            self.stats.add("received")
-            self.stats.add("rejected")
-            self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
+            if self.ownership.ready and self.membership.owns_key(key):  # one instance reports
+                self.stats.add("received")
+                self.stats.add("rejected")
+                self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
             return
         if parsed is None:
             return
         robot, leaf = parsed
+        limit = self.settings.max_payload_bytes
+        if leaf == "pose":  # every instance follows every pose, for handovers
+            self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
+            return
         if leaf not in INPUT_KINDS:
-            return  # our own poses and events, or keys of other tools
-        self.stats.add("received")
+            return  # events, or keys of other tools
         payload = sample.payload.to_bytes()
+        if not self.ownership.owns(robot):
+            self.ownership.ignore(robot, leaf, payload, limit)
+            return
+        self.stats.add("received")
         try:
-            msg = decode(MODELS[leaf], payload, max_bytes=self.settings.max_payload_bytes)
+            msg = decode(MODELS[leaf], payload, max_bytes=limit)
         except SchemaError as err:
             self.stats.add("rejected")
             self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
             return
-        self.recorder.record(key, SCHEMA_OF_LEAF[leaf], payload, received, msg.stamp_ns)
-        self.dispatcher.submit(robot, leaf, payload, msg, received)
+        self.ownership.offer(robot, leaf, payload, msg, received)
 
-    def _on_map_sample(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
-        key = str(sample.key_expr)
-        try:
-            map_id = self.keys.parse_map_key(key)
-        except KeyError_ as err:
-            self._global_event("error", EventCode.INVALID_KEY, key, str(err))
-            return
-        if map_id is not None:
-            self._map_tasks.put(("offer", map_id, sample.payload.to_bytes(), 0))
+    def _admit(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
+        """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
+        key = self.keys.robot(robot, kind)
+        self.recorder.record(key, SCHEMA_OF_LEAF[kind], payload, at, msg.stamp_ns)
+        self.dispatcher.submit(robot, kind, payload, msg, at)
 
-    # ------------------------------------------------------------------------ maps
-    def _map_worker(self) -> None:
-        while True:
-            task = self._map_tasks.get()
-            if task is None:
-                return
-            kind, map_id, payload, _ = task
-            try:
-                if kind == "offer":
-                    self._offer_map(map_id, payload)
-                else:
-                    self._fetch_map(map_id, payload.decode())
-            except Exception:
-                log.exception("map task %s %s failed", kind, map_id)
-
-    def _offer_map(self, map_id: str, payload: bytes) -> bool:
-        key = self.keys.map(map_id)
-        # Order matters for replay: the map is recorded and reaches the shards at one instant
-        # of the receive clock, before any input received after it.
-        with self.dispatcher.lock:
-            received = self.clock()
-            try:
-                loaded = self.maps.offer(map_id, payload, received)
-            except MapRejected as err:
-                loaded = None
-                error: str | None = str(err)
-            else:
-                error = None
-            if loaded is not None:
-                self._record_map(loaded)
-        if error is not None:
-            self._global_event("error", EventCode.INVALID_MAP, key, error, received)
-            return False
-        if loaded is None:
-            return True
-        self.dispatcher.broadcast_map(loaded)
-        self._global_event(
-            "info",
-            EventCode.MAP_UPDATED,
-            key,
-            f"map {map_id} version {loaded.version} loaded",
-            received,
-        )
-        return True
-
-    def _record_map(self, loaded: LoadedMap) -> None:
-        self.recorder.record(
-            self.keys.map(loaded.map_id),
-            MAP_SCHEMA,
-            loaded.payload,
-            loaded.received_ns,
-            loaded.received_ns,
-        )
-
-    def _fetch_map(self, map_id: str, robot: str) -> None:
-        now = time.monotonic()
-        if self.maps.get(map_id) is not None:
-            return
-        if now - self._fetching.get(map_id, -1e9) < 1.0:
-            return
-        self._fetching[map_id] = now
-        key = self.keys.map(map_id)
-        found = False
-        for reply in self.session.get(key, timeout=self.settings.map_timeout_s):
-            if reply.ok is None:
-                continue
-            found = self._offer_map(map_id, reply.ok.payload.to_bytes()) or found
-        if not found:
-            self._robot_event(
-                robot,
-                "error",
-                EventCode.MAP_NOT_FOUND,
-                key,
-                f"no storage answered for map {map_id!r}",
-            )
+    def _forget_pose(self, robot: str) -> None:
+        self._poses.pop(robot, None)
 
     # ------------------------------------------------------------------------ outputs
     def _on_done(self, done: Done) -> None:
@@ -315,10 +283,15 @@ class LocalizationService:
         for out in done.outputs:
             if out.kind == "need_map":
                 assert out.map_id is not None
-                self._map_tasks.put(("fetch", out.map_id, done.robot.encode(), 0))
+                self.mapfeed.need(out.map_id, done.robot)
+                continue
+            if out.kind == "skipped":
+                self.stats.add("skipped")
                 continue
             if out.kind == "pose":
-                self._poses[done.robot] = out.payload
+                with self.ownership.lock:  # a robot released meanwhile is not answered for
+                    if self.ownership.active(done.robot):
+                        self._poses[done.robot] = out.payload
                 self._publish(out.key, out.payload, pose=True)
                 now = self.clock()
                 self.recorder.record(
@@ -413,6 +386,7 @@ class LocalizationService:
             "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
             "recorder_overflow": self.recorder.overflowed,
             "maps": sorted(self.maps_held()),
+            **self.ownership.figures(),
         }
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
 

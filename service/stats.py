@@ -24,8 +24,8 @@ class Stats:
         self.received = 0
         self.rejected = 0
         self.processed = 0
-        self.published = 0
         self.lost = 0
+        self.skipped = 0
         self._latency_ms: deque[float] = deque(maxlen=_WINDOW)
         self._compute_ms: deque[float] = deque(maxlen=_WINDOW)
 
@@ -62,7 +62,7 @@ class Stats:
         with self._lock:
             lat = list(self._latency_ms)
             comp = list(self._compute_ms)
-            counts = (self.received, self.rejected, self.processed, self.published, self.lost)
+            counts = (self.received, self.rejected, self.processed, self.lost, self.skipped)
         compute = self._percentiles(comp)
         return Health(
             instance=self.instance,
@@ -75,8 +75,8 @@ class Stats:
             dropped=dropped,
             latency_ms=self._percentiles(lat),
             extra={
-                "published": counts[3],
-                "lost": counts[4],
+                "lost": counts[3],
+                "scans_not_processed": counts[4],
                 "compute_ms": compute.model_dump(),
                 **extra,
             },
