@@ -17,6 +17,7 @@ import json
 import os
 import re
 import shlex
+import signal
 import shutil
 import socket
 import subprocess
@@ -339,12 +340,54 @@ def test_rlutf_cli_has_the_healthcheck_subcommand() -> None:
     result = subprocess.run(
         [str(exe), "--help"], capture_output=True, text=True, timeout=30, check=False
     )
-    if "serve" not in result.stdout:
-        pytest.skip("the rlutf CLI has no subcommands yet")
     assert result.returncode == 0
+    assert "serve" in result.stdout
     _, argv = dockerfile_healthcheck()
     subcommand = healthcheck_rlutf_args(argv)[1]
     assert subcommand in result.stdout
+
+
+@pytest.mark.integration
+def test_image_entry_command_runs_outside_the_container(tmp_path: Path) -> None:
+    """ENTRYPOINT + CMD with the image's ENV (paths moved into tmp) serves, answers the
+    HEALTHCHECK command, and stops with exit 0 on SIGTERM."""
+    exe = Path(sys.executable).parent / "rlutf"
+    if not exe.exists():
+        pytest.skip("the rlutf console script is not installed in this environment")
+    port = free_port()
+    env = dict(os.environ)
+    for key, value in dockerfile_env().items():
+        env[key] = str(tmp_path / value.lstrip("/")) if value.startswith("/data") else value
+    env["RLUTF_LISTEN"] = f"tcp/127.0.0.1:{port}"
+    env["RLUTF_HEALTH_ARGS"] = f"--connect tcp/127.0.0.1:{port}"
+    env["RLUTF_WORKERS"] = "0"
+    argv = dockerfile_command()
+    assert argv[0] == "rlutf"
+    proc = subprocess.Popen([str(exe), *argv[1:]], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        _, check = dockerfile_healthcheck()
+
+        def healthy() -> bool:
+            r = subprocess.run(
+                check,
+                env={**env, "PATH": f"{exe.parent}:{env['PATH']}"},
+                capture_output=True,
+                text=True,
+                timeout=30,
+                check=False,
+            )
+            return r.returncode == 0 and '"instance"' in r.stdout
+
+        assert wait_until(healthy, 30.0), "the health check never passed"
+        assert (tmp_path / "data" / "store").is_dir()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            code = proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    assert code == 0, proc.stderr.read() if proc.stderr else ""
 
 
 # ========================================================================= Zenoh configuration

@@ -1,0 +1,350 @@
+"""The largest fleet one service instance holds at 10 Hz on this machine (issue 3 target).
+
+Run: ``python -m bench.fleet [--robots 25,50,100,150] [--duration 20] [--write]``.
+
+For each fleet size, a ``rlutf serve`` subprocess (router on a loopback port, embedded store,
+worker processes, recording on unless ``--no-record``) serves a load-generator process that
+publishes, for every robot, odometry and a 360-beam scan at 10 Hz (phases staggered) from a
+simulated run precomputed before the clock starts, and times each scan put to its pose put.
+The generator shares the two cores with the service, as robots' traffic handling would on a
+real host. Reported: scan-to-pose latency percentiles, scans sent, poses received, scans the
+service reports dropped (superseded before processing) and the difference (uncounted), and the
+service's peak resident memory (main process plus workers) sampled every second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import os
+import platform
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.report import replace_section
+
+SECTION = "fleet"
+RATE_HZ = 10.0
+
+
+def _rss_tree_mb(pid: int) -> float:
+    """Resident memory of a process and its children, MB (from /proc)."""
+    total = 0
+    pids = [pid]
+    try:
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    with open(f"/proc/{entry}/stat") as f:
+                        fields = f.read().rsplit(")", 1)[1].split()
+                    if int(fields[1]) == pid:
+                        pids.append(int(entry))
+                except OSError:
+                    continue
+        for p in pids:
+            try:
+                with open(f"/proc/{p}/status") as f:
+                    for line in f:
+                        if line.startswith("VmRSS:"):
+                            total += int(line.split()[1])
+            except OSError:
+                continue
+    except OSError:
+        return math.nan
+    return total / 1024.0
+
+
+def _generator(
+    endpoint: str, robots: int, duration: float, seed: int, out: Any, ready: Any, go: Any
+) -> None:
+    """Load generator (a separate process): precompute, then publish and time."""
+    import zenoh
+
+    from rlutf.sim import (
+        LidarModel,
+        OdometryModel,
+        drift_odometry,
+        make_building,
+        make_trajectory,
+        simulate_scan,
+    )
+    from schemas import InitialPose, Map, encode
+    from service.demo import client_config
+
+    rng = np.random.default_rng(seed)
+    world = make_building(rng)
+    steps = int(duration * RATE_HZ) + 1
+    lidar = LidarModel(beams=360)
+    plans = []
+    for i in range(robots):
+        truth = make_trajectory(world, rng, steps, dt=1.0 / RATE_HZ)
+        odom = drift_odometry(truth, OdometryModel(), rng)
+        scans = []
+        for k in range(steps):
+            s = simulate_scan(world, truth[k], lidar, rng)
+            ranges = [round(float(r), 4) if math.isfinite(r) else None for r in s.ranges]
+            scans.append((s.angle_min, s.angle_increment, s.range_min, s.range_max, ranges))
+        plans.append((f"r{i:03d}", truth, odom, scans))
+    sessions = [zenoh.open(client_config(endpoint)) for _ in range(max(1, min(8, robots // 12)))]
+    op = sessions[0]
+    op.put(
+        "rlutf/maps/bench",
+        encode(
+            Map.model_validate({"map_id": "bench", "version": 1, "geometry": world.to_geojson()})
+        ),
+    )
+    sent: dict[tuple[str, int], int] = {}
+    latencies: list[float] = []
+    poses = 0
+    lock = threading.Lock()
+
+    def on_pose(sample: Any) -> None:
+        nonlocal poses
+        now = time.time_ns()
+        d = json.loads(sample.payload.to_bytes())
+        with lock:
+            t = sent.pop((d["robot_id"], d["stamp_ns"]), None)
+            poses += 1
+            if t is not None:
+                latencies.append((now - t) / 1e6)
+
+    sub = op.declare_subscriber("rlutf/robots/*/pose", on_pose)
+    time.sleep(1.0)
+    t0 = time.time_ns()
+    pubs = []
+    for idx, (rid, truth, odom, _) in enumerate(plans):
+        sess = sessions[idx % len(sessions)]
+        o = odom[0]
+        sess.put(
+            f"rlutf/robots/{rid}/odom",
+            json.dumps({"stamp_ns": t0, "x": float(o[0]), "y": float(o[1]), "theta": float(o[2])}),
+        )
+        p = truth[0]
+        op.put(
+            f"rlutf/robots/{rid}/initialpose",
+            encode(
+                InitialPose(
+                    stamp_ns=t0, map_id="bench", x=float(p[0]), y=float(p[1]), theta=float(p[2])
+                )
+            ),
+        )
+        pubs.append(
+            (
+                sess.declare_publisher(f"rlutf/robots/{rid}/odom"),
+                sess.declare_publisher(f"rlutf/robots/{rid}/scan"),
+            )
+        )
+    # payloads encoded now, stamped at publication: only puts happen in the timed loop
+    encoded = []
+    for rid, _, odom, scans in plans:
+        rows = []
+        for k in range(1, steps):
+            a0, inc, rmin, rmax, ranges = scans[k]
+            rows.append(
+                (
+                    json.dumps(
+                        {"x": float(odom[k][0]), "y": float(odom[k][1]), "theta": float(odom[k][2])}
+                    )[1:],
+                    json.dumps(
+                        {
+                            "angle_min": a0,
+                            "angle_increment": inc,
+                            "range_min": rmin,
+                            "range_max": rmax,
+                            "ranges": ranges,
+                        }
+                    )[1:],
+                )
+            )
+        encoded.append((rid, rows))
+    ready.set()
+    go.wait()
+    time.sleep(1.0)
+    start = time.monotonic()
+    period = 1.0 / RATE_HZ
+    scans_sent = 0
+    events = sorted(
+        (k * period + (i / robots) * period, i, k) for i in range(robots) for k in range(steps - 1)
+    )
+    for when, i, k in events:
+        delay = start + when - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        rid, rows = encoded[i]
+        stamp = t0 + int((k + 1) * period * 1e9)
+        odom_rest, scan_rest = rows[k]
+        head = f'{{"stamp_ns": {stamp}, '
+        pubs[i][0].put(head + odom_rest)
+        with lock:
+            sent[(rid, stamp)] = time.time_ns()
+        pubs[i][1].put(head + scan_rest)
+        scans_sent += 1
+    behind = time.monotonic() - (start + events[-1][0])
+    time.sleep(2.0)
+    sub.undeclare()
+    for s in sessions:
+        s.close()
+    out.put(
+        {
+            "scans_sent": scans_sent,
+            "poses": poses,
+            "latencies": latencies,
+            "generator_behind_s": behind,
+        }
+    )
+
+
+def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[str, Any]:
+    """One fleet size against a fresh service subprocess."""
+    from service.demo import free_port
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    tmp = Path(tempfile.mkdtemp(prefix="rlutf-fleet-"))
+    exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
+    cmd = [
+        exe,
+        "serve",
+        "--listen",
+        endpoint,
+        "--store",
+        str(tmp / "store"),
+        "--instance",
+        "fleetbench",
+        "--workers",
+        str(workers),
+    ]
+    cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
+    ctx = mp.get_context("spawn")
+    out, ready, go = ctx.Queue(), ctx.Event(), ctx.Event()
+    gen = ctx.Process(target=_generator, args=(endpoint, robots, duration, 7, out, ready, go))
+    try:
+        time.sleep(2.0)
+        gen.start()
+        ready.wait(600)
+        rss: list[float] = []
+        stop = threading.Event()
+
+        def sample() -> None:
+            while not stop.wait(1.0):
+                rss.append(_rss_tree_mb(proc.pid))
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        go.set()
+        result = out.get(timeout=duration + 120)
+        health = _health(endpoint)
+        stop.set()
+        gen.join(10)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        shutil.rmtree(tmp, ignore_errors=True)
+    lat = np.asarray(result["latencies"]) if result["latencies"] else np.array([math.nan])
+    dropped = int(health.get("dropped", -1))
+    lost_no_pose = 0
+    return {
+        "robots": robots,
+        "sent": result["scans_sent"],
+        "poses": result["poses"],
+        "dropped": dropped,
+        "uncounted": result["scans_sent"] - result["poses"] - dropped - lost_no_pose,
+        "p50": float(np.percentile(lat, 50)),
+        "p99": float(np.percentile(lat, 99)),
+        "max": float(lat.max()),
+        "rss_peak": max(rss) if rss else math.nan,
+        "rss_first": rss[0] if rss else math.nan,
+        "rss_last": rss[-1] if rss else math.nan,
+        "behind": result["generator_behind_s"],
+        "compute_p50": float(health.get("extra", {}).get("compute_ms", {}).get("p50", math.nan)),
+    }
+
+
+def _health(endpoint: str) -> dict[str, Any]:
+    import zenoh
+
+    from service.demo import client_config
+
+    with zenoh.open(client_config(endpoint)) as s:
+        for r in s.get("rlutf/service/*/health", timeout=3.0):
+            if r.ok is not None:
+                return dict(json.loads(r.ok.payload.to_bytes()))
+    return {}
+
+
+def render(sizes: list[int], duration: float, record: bool, workers: int) -> str:
+    """Run every size and return the Markdown section."""
+    rows = []
+    held = 0
+    for n in sizes:
+        r = run_size(n, duration, record, workers)
+        ok = r["p99"] <= 50.0 and r["uncounted"] == 0 and r["dropped"] <= 0.01 * r["sent"]
+        held = n if ok else held
+        rows.append(
+            f"| {n} | {r['sent']} | {r['poses']} | {r['dropped']} | {r['uncounted']} "
+            f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['max']:.0f} | {r['compute_p50']:.2f} "
+            f"| {r['rss_first']:.0f} / {r['rss_peak']:.0f} / {r['rss_last']:.0f} "
+            f"| {'yes' if ok else 'no'} |"
+        )
+        print(rows[-1], flush=True)
+    sizes_arg = ",".join(str(s) for s in sizes)
+    flags = ("" if record else " --no-record") + (f" --workers {workers}" if workers >= 0 else "")
+    return "\n".join(
+        [
+            f"Command: `python -m bench.fleet --robots {sizes_arg} --duration {duration:g}"
+            f"{flags} --write`",
+            "",
+            f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
+            f"{platform.python_version()}. One `rlutf serve` (recording "
+            f"{'on' if record else 'off'}) and one load-generator process share the cores; "
+            f"{duration:g} s per size at 10 Hz per robot, 360-beam scans, 1 cm noise.",
+            "",
+            "| robots | scans sent | poses | dropped (reported) | uncounted | latency p50 ms "
+            "| p99 ms | max ms | worker compute p50 ms | service RSS MB first / peak / last "
+            "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            *rows,
+            "",
+            f"Largest fleet held: **{held} robots**." if held else "No size was held.",
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry."""
+    p = argparse.ArgumentParser(
+        prog="python -m bench.fleet",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robots", default="25,50,100,150", help="fleet sizes, comma-separated")
+    p.add_argument("--duration", type=float, default=20.0, help="seconds per size")
+    p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
+    p.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    p.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
+    args = p.parse_args(argv)
+    sizes = [int(s) for s in args.robots.split(",")]
+    text = render(sizes, args.duration, not args.no_record, args.workers)
+    print(text)
+    if args.write:
+        replace_section(Path("BENCHMARKS.md"), SECTION, text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
