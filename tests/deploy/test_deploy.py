@@ -17,8 +17,8 @@ import json
 import os
 import re
 import shlex
-import signal
 import shutil
+import signal
 import socket
 import subprocess
 import sys
