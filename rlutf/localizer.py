@@ -10,8 +10,18 @@ odometry motion since the previous scan and the new scan, and
 4. accepts the prediction if the discrepancy is under ``epsilon``; otherwise samples
    ``candidates`` random poses within ``delta`` (position) and ``delta_theta`` (heading) of the
    current best, keeps the best (the current best too, unless ``mode == "paper"``), halves the
-   radii and repeats until ``epsilon`` is met, the radius falls under ``delta_min``, or
-   ``max_rounds`` rounds were used.
+   radii and repeats until ``epsilon`` is met, the radii fall under ``delta_min`` (and, in the
+   default mode, ``delta_theta_min``), or ``max_rounds`` rounds were used.
+
+In the default mode the first radii follow the odometry motion and the previous correction, and
+a search that ends at the edge of its radii, or with a discrepancy well over the recent typical
+one, is followed by another around its best with doubled radii (the full radii when over
+``lost_threshold``). The area discrepancy caps each beam's share (``area_cap``), so that beams
+grazing an edge or hitting people cannot dominate it.
+
+All candidates of one search lie within twice its initial radii of its start, so one
+:class:`~rlutf.raycast.RegionCaster` per search prepares the ray casting once, and the
+prediction is scored together with the first round's candidates.
 
 Randomness comes from a seeded :class:`numpy.random.Generator` owned by the localizer, so the
 same seed and inputs give the same poses bit for bit.
@@ -26,12 +36,14 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rlutf.discrepancy import anchored_turning, polar_area, turning_steps
+from rlutf.discrepancy import PolarArea, anchored_turning, turning_steps
 from rlutf.errors import ConfigError
 from rlutf.map import Map
-from rlutf.motion import compose, wrap_scalar
-from rlutf.raycast import Beams, cast_rays
+from rlutf.motion import wrap_scalar
+from rlutf.raycast import Beams
+from rlutf.region import RegionCaster
 from rlutf.scan import Scan, beam_points, needs_origin, simplify_ring
+from rlutf.search import RandomSearch
 
 FloatArray = NDArray[np.float64]
 
@@ -46,23 +58,39 @@ class LocalizerConfig:
 
     Attributes:
         mode: ``"default"`` or ``"paper"`` (Algorithm 1 read literally: perimeter-normalised
-            turning functions, no elitism, fixed initial radius).
+            turning functions, no elitism, fixed initial radius, exact area).
         discrepancy: ``"turning"`` (anchored turning function, radians), ``"area"`` (area between
             the polygons over the perimeter, metres) or ``"combined"`` (turning plus
             ``area_weight`` times area).
-        epsilon: accept a pose whose discrepancy is under this (the discrepancy's unit).
+        epsilon: accept a pose whose discrepancy is under this (the discrepancy's unit). With
+            range noise ``s`` the area at the true pose is about ``0.3 s``, so the default
+            accepts the prediction only for near-noise-free scans and otherwise searches.
         lost_threshold: a best discrepancy over this gives status ``lost``.
         candidates: random candidates per search round (the paper uses 3).
         delta: initial search radius in position, metres.
         delta_theta: initial search radius in heading, radians.
         delta_min: the search stops when the position radius falls under this, metres.
+        delta_theta_min: ... and (default mode) the heading radius under this, radians.
         max_rounds: most search rounds per update.
-        adaptive: start the search with radii proportional to the odometry motion (default
-            mode only); the full radii are used when that search ends over ``lost_threshold``.
+        adaptive: start the search with radii from the odometry motion and the previous
+            correction (default mode only), and search again with larger radii when a stage ends
+            over ``lost_threshold`` (the full radii) or at the edge of its radii (doubled).
         delta_start: smallest adaptive position radius, metres.
         delta_per_metre: adaptive position radius per metre travelled.
         delta_theta_start: smallest adaptive heading radius, radians.
         delta_theta_per_radian: adaptive heading radius per radian turned.
+        delta_theta_per_metre: adaptive heading radius per metre travelled, radians.
+        delta_per_correction: adaptive radii grow by this times the previous update's correction
+            (position and heading).
+        expand_fraction: (adaptive) when a stage's best pose moved more than this fraction of its
+            position or heading radius, another stage searches around it with the radii doubled.
+        surprise_ratio: (adaptive) a stage that ends over this many times the running typical
+            discrepancy (or over ``lost_threshold``) is followed by one with the full radii.
+        typical_rate: weight of each update's discrepancy in the running typical one.
+        max_stages: (adaptive) most search stages per update.
+        area_cap: with ``discrepancy="area"``, each beam's share of the area is capped at a band
+            of this width, metres (see :class:`rlutf.discrepancy.PolarArea`); ``None`` uses the
+            exact area. ``"combined"`` always uses the exact area.
         simplify_tolerance: Douglas-Peucker tolerance for the real polygon, metres (about two
             to three times the range noise).
         area_weight: weight of the area term in ``"combined"``, radians per metre.
@@ -74,18 +102,26 @@ class LocalizerConfig:
 
     mode: Mode = "default"
     discrepancy: DiscrepancyKind = "area"
-    epsilon: float = 0.006
-    lost_threshold: float = 0.1
-    candidates: int = 3
+    epsilon: float = 0.0015
+    lost_threshold: float = 0.03
+    candidates: int = 8
     delta: float = 0.3
     delta_theta: float = 0.12
     delta_min: float = 0.003
+    delta_theta_min: float = 0.001
     max_rounds: int = 10
     adaptive: bool = True
-    delta_start: float = 0.03
-    delta_per_metre: float = 0.15
-    delta_theta_start: float = 0.015
-    delta_theta_per_radian: float = 0.1
+    delta_start: float = 0.004
+    delta_per_metre: float = 0.05
+    delta_theta_start: float = 0.002
+    delta_theta_per_radian: float = 0.05
+    delta_theta_per_metre: float = 0.02
+    delta_per_correction: float = 1.0
+    expand_fraction: float = 0.75
+    surprise_ratio: float = 1.6
+    typical_rate: float = 0.1
+    max_stages: int = 4
+    area_cap: float | None = 0.1
     simplify_tolerance: float = 0.03
     area_weight: float = 5.0
     max_gap: float = 0.35
@@ -105,12 +141,30 @@ class LocalizerConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: must be positive, got {getattr(self, name)}")
+        non_negative = (
+            "delta_theta_min",
+            "delta_theta_per_metre",
+            "expand_fraction",
+            "surprise_ratio",
+            "typical_rate",
+            "delta_start",
+            "delta_per_metre",
+            "delta_theta_start",
+            "delta_theta_per_radian",
+            "delta_per_correction",
+            "simplify_tolerance",
+        )
+        for name in non_negative:
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
+        if self.area_cap is not None and not self.area_cap > 0:
+            raise ConfigError(f"area_cap: must be positive or None, got {self.area_cap}")
         if self.candidates < 1:
             raise ConfigError(f"candidates: must be at least 1, got {self.candidates}")
         if self.max_rounds < 0:
             raise ConfigError(f"max_rounds: must be at least 0, got {self.max_rounds}")
-        if self.simplify_tolerance < 0:
-            raise ConfigError(f"simplify_tolerance: must be >= 0, got {self.simplify_tolerance}")
+        if self.max_stages < 1:
+            raise ConfigError(f"max_stages: must be at least 1, got {self.max_stages}")
         if self.lost_threshold < self.epsilon:
             raise ConfigError("lost_threshold: must be at least epsilon")
 
@@ -123,10 +177,12 @@ class LocalizerConfig:
             adaptive=False,
             epsilon=0.005,
             lost_threshold=0.1,
+            candidates=3,
             delta=0.04,
             delta_theta=0.03,
             delta_min=0.001,
             max_rounds=12,
+            area_cap=None,
         )
         return replace(base, **overrides)  # type: ignore[arg-type]
 
@@ -151,51 +207,78 @@ class LocalizeResult:
 
 
 class _Problem:
-    """What one update compares against: the real polygon and the beams to cast."""
+    """What one update compares against: the real scan, its polygon and the beams to cast."""
 
-    def __init__(self, world: Map, scan: Scan, config: LocalizerConfig) -> None:
+    def __init__(self, world: Map, scan: Scan, config: LocalizerConfig, beams: Beams) -> None:
         valid = scan.valid()
-        angles = scan.angles[valid]
-        self.count = int(valid.sum())
+        self.count = int(np.count_nonzero(valid))
         self.world = world
         self.config = config
         self.offset = scan.sensor_offset
-        self.beams = Beams.of(angles)
         self.range_max = scan.range_max
+        self.caster: RegionCaster | None = None
+        if self.count < config.min_returns:
+            return
+        self.beams = beams.select(valid)
+        angles = self.beams.angles
         self.real_ranges = scan.ranges[valid]
-        points = beam_points(self.real_ranges, self.beams.cos, self.beams.sin, self.offset)
-        self.closing = needs_origin(angles, scan.covers_full_circle(), config.max_gap)
-        real = np.vstack([points, self.offset[None, :2]]) if self.closing else points
-        if config.discrepancy != "area":
+        gaps = np.abs(np.diff(angles))
+        self.closing = needs_origin(angles, scan.covers_full_circle(), config.max_gap, gaps)
+        kind = config.discrepancy
+        if kind != "turning":
+            # The combined discrepancy keeps the exact area: capped, its turning term (which
+            # people and grazed edges disturb the most) would dominate.
+            self.area = PolarArea(
+                self.real_ranges,
+                angles,
+                self.closing,
+                config.area_cap if kind == "area" else None,
+                unit=self.beams.unit,
+                gaps=gaps,
+            )
+        if kind == "area" and config.area_cap is not None:
+            # A virtual range past the real one plus the cap counts as the cap, so no beam needs
+            # casting farther than the longest return plus the cap (much less wall to look at).
+            longest = float(self.real_ranges.max()) + config.area_cap
+            self.range_max = min(self.range_max, longest)
+        if kind != "area":
+            points = beam_points(self.real_ranges, self.beams.cos, self.beams.sin, self.offset)
+            real = np.vstack([points, self.offset[None, :2]]) if self.closing else points
             self.real_steps = turning_steps(simplify_ring(real, config.simplify_tolerance))
 
+    def search_region(self, centre: FloatArray, radius: float, heading_radius: float) -> None:
+        """Prepare casting from poses within ``radius`` and ``heading_radius`` of ``centre``."""
+        self.caster = RegionCaster(
+            self.world, self.beams, centre, radius, heading_radius, self.range_max, self.offset
+        )
+
     def score(self, poses: FloatArray) -> FloatArray:
-        """``(K,)`` discrepancies of ``(K, 3)`` poses; ``inf`` outside the free space."""
+        """``(K,)`` discrepancies of ``(K, 3)`` poses of the search region; ``inf`` outside the
+        free space."""
+        caster = self.caster
+        assert caster is not None, "search_region() first"
+        if caster.poses_inside:
+            return self._discrepancy(caster.cast(poses))
         inside = self.world.contains(poses[:, :2])
         out = np.full(len(poses), np.inf)
-        if not inside.any():
-            return out
-        cand = poses[inside]
-        sensors = compose(cand, self.offset)
-        ranges = cast_rays(self.world, sensors, self.beams, self.range_max)
-        np.minimum(ranges, self.range_max, out=ranges)
+        if inside.any():
+            out[inside] = self._discrepancy(caster.cast(poses[inside]))
+        return out
+
+    def _discrepancy(self, ranges: FloatArray) -> FloatArray:
         kind = self.config.discrepancy
         if kind == "area":
-            out[inside] = polar_area(ranges, self.real_ranges, self.beams.angles, self.closing)
-            return out
+            return self.area(ranges)
         rings = beam_points(ranges, self.beams.cos, self.beams.sin, self.offset)
         if self.closing:
-            origin = np.broadcast_to(self.offset[:2], (len(cand), 1, 2))
+            origin = np.broadcast_to(self.offset[:2], (len(ranges), 1, 2))
             rings = np.concatenate([rings, origin], axis=1)
         d = anchored_turning(
             turning_steps(rings), self.real_steps, normalise=self.config.mode == "paper"
         )
         if kind == "combined":
-            d = d + self.config.area_weight * polar_area(
-                ranges, self.real_ranges, self.beams.angles, self.closing
-            )
-        out[inside] = d
-        return out
+            d = d + self.config.area_weight * self.area(ranges)
+        return d
 
 
 class Localizer:
@@ -220,6 +303,12 @@ class Localizer:
         self._map = world
         self._pose = _pose3(pose)
         self._rng = np.random.default_rng([int(self.config.seed), int(seed)])
+        self._beams: tuple[tuple[int, float, float], Beams] | None = None
+        # Size of the last correction (position, heading): scales the next search.
+        self._correction = (0.0, 0.0)
+        # Running typical discrepancy at the corrected pose: a much larger one is a surprise.
+        self._typical = math.inf
+        self._previous: _Problem | None = None
 
     @property
     def pose(self) -> FloatArray:
@@ -234,6 +323,8 @@ class Localizer:
     def reset(self, pose: ArrayLike) -> None:
         """Re-seed the pose (an operator's initial pose)."""
         self._pose = _pose3(pose)
+        self._correction = (0.0, 0.0)
+        self._typical = math.inf
 
     def set_map(self, world: Map) -> None:
         """Switch to a new version of the map, keeping the pose."""
@@ -251,35 +342,58 @@ class Localizer:
         """
         cfg = self.config
         mot = _pose3(motion)
-        predicted = compose(self._pose, mot)
-        problem = _Problem(self._map, scan, cfg)
+        predicted = _compose(self._pose, mot)
+        problem = _Problem(self._map, scan, cfg, self._scan_beams(scan))
         if problem.count < cfg.min_returns:
             inside = bool(self._map.contains(predicted[None, :2])[0])
             self._pose = predicted if inside else self._pose
             return LocalizeResult(self._pose.copy(), math.inf, 0, "lost", 0)
 
-        best = predicted
-        best_d = float(problem.score(predicted[None])[0])
-        evaluations = 1
+        best, best_d = predicted, math.inf
         rounds = 0
-        if best_d >= cfg.epsilon:
-            radii = [(cfg.delta, cfg.delta_theta)]
-            if cfg.adaptive and cfg.mode != "paper":
-                travel = math.hypot(float(mot[0]), float(mot[1]))
-                turn = abs(float(mot[2]))
-                small = (
-                    min(cfg.delta, cfg.delta_start + cfg.delta_per_metre * travel),
-                    min(cfg.delta_theta, cfg.delta_theta_start + cfg.delta_theta_per_radian * turn),
-                )
-                radii = [small, (cfg.delta, cfg.delta_theta)]
-            for stage, (delta, delta_theta) in enumerate(radii):
-                if stage > 0 and best_d <= cfg.lost_threshold:
+        evaluations = 0
+        delta, delta_theta = self._initial_radii(mot)
+        for stage in range(max(cfg.max_stages, 1)):
+            start = best
+            # Every candidate of a search lies within twice the initial radii of its start.
+            problem.search_region(start, 2.0 * delta + 1e-9, 2.0 * delta_theta + 1e-9)
+            search = self._search(start, delta, delta_theta)
+            if stage == 0:
+                if cfg.mode == "paper":
+                    best_d = float(problem.score(predicted[None])[0])
+                    evaluations += 1
+                else:
+                    # Score the prediction together with the first round's candidates: one cast
+                    # instead of two; the candidates are only used if the search runs.
+                    cand = search.candidates()
+                    d = problem.score(np.vstack([predicted, cand]))
+                    best_d = float(d[0])
+                    search.pending = (cand, d[1:])
+                    evaluations += 1 + len(cand)
+                if best_d < cfg.epsilon:
                     break
-                best, best_d, used, scored = self._search(problem, best, best_d, delta, delta_theta)
-                rounds += used
-                evaluations += scored
+            search.best_d = best_d
+            scored = search.run(problem.score)
+            best, best_d = search.best, search.best_d
+            rounds += search.rounds
+            evaluations += scored
+            radii = self._next_radii(start, best, best_d, delta, delta_theta)
+            if radii is None:
+                break
+            delta, delta_theta = radii
         if not math.isfinite(best_d):
             best = self._pose
+        elif best_d <= cfg.lost_threshold:
+            rate = cfg.typical_rate
+            self._typical = (
+                best_d
+                if not math.isfinite(self._typical)
+                else ((1.0 - rate) * self._typical + rate * best_d)
+            )
+        self._correction = (
+            math.hypot(float(best[0] - predicted[0]), float(best[1] - predicted[1])),
+            abs(wrap_scalar(float(best[2] - predicted[2]))),
+        )
         if rounds == 0 and best_d < cfg.epsilon:
             status: Status = "tracking"
         elif best_d <= cfg.lost_threshold:
@@ -287,39 +401,87 @@ class Localizer:
         else:
             status = "lost"
         self._pose = np.array([best[0], best[1], wrap_scalar(float(best[2]))])
+        # Free the previous update's arrays only now that this one has made its own: freed
+        # first, they would leave free memory at the top of the heap, which malloc gives back to
+        # the system, and every update would pay page faults to map it again.
+        self._previous = problem
         return LocalizeResult(self._pose.copy(), best_d, rounds, status, evaluations)
 
-    def _search(
-        self,
-        problem: _Problem,
-        start: FloatArray,
-        start_d: float,
-        delta: float,
-        delta_theta: float,
-    ) -> tuple[FloatArray, float, int, int]:
+    def _scan_beams(self, scan: Scan) -> Beams:
+        """Beams of the scan's geometry, prepared once per geometry."""
+        key = (len(scan.ranges), scan.angle_min, scan.angle_increment)
+        if self._beams is None or self._beams[0] != key:
+            self._beams = (key, Beams.of(scan.angles))
+        return self._beams[1]
+
+    def _search(self, start: FloatArray, delta: float, delta_theta: float) -> RandomSearch:
         cfg = self.config
-        elitist = cfg.mode != "paper"
-        best, best_d = start, start_d
-        rounds = 0
-        scored = 0
-        while rounds < cfg.max_rounds and delta >= cfg.delta_min and best_d >= cfg.epsilon:
-            k = cfg.candidates
-            u = self._rng.random((k, 3))
-            radius = delta * np.sqrt(u[:, 0])
-            bearing = 2.0 * math.pi * u[:, 1]
-            cand = np.empty((k, 3))
-            cand[:, 0] = best[0] + radius * np.cos(bearing)
-            cand[:, 1] = best[1] + radius * np.sin(bearing)
-            cand[:, 2] = best[2] + delta_theta * (2.0 * u[:, 2] - 1.0)
-            d = problem.score(cand)
-            scored += k
-            i = int(np.argmin(d))
-            if math.isfinite(float(d[i])) and (not elitist or float(d[i]) < best_d):
-                best, best_d = cand[i], float(d[i])
-            delta *= 0.5
-            delta_theta *= 0.5
-            rounds += 1
-        return best, best_d, rounds, scored
+        paper = cfg.mode == "paper"
+        return RandomSearch(
+            self._rng,
+            start,
+            delta,
+            delta_theta,
+            candidates=cfg.candidates,
+            max_rounds=cfg.max_rounds,
+            delta_min=cfg.delta_min,
+            # The paper halves one radius; the default mode also waits for the heading radius.
+            delta_theta_min=math.inf if paper else cfg.delta_theta_min,
+            epsilon=cfg.epsilon,
+            elitist=not paper,
+        )
+
+    def _initial_radii(self, mot: FloatArray) -> tuple[float, float]:
+        """Search radii (position, heading) of the first stage."""
+        cfg = self.config
+        if not cfg.adaptive or cfg.mode == "paper":
+            return cfg.delta, cfg.delta_theta
+        travel = math.hypot(float(mot[0]), float(mot[1]))
+        turn = abs(float(mot[2]))
+        moved, turned = self._correction
+        delta = cfg.delta_start + cfg.delta_per_metre * travel + cfg.delta_per_correction * moved
+        delta_theta = (
+            cfg.delta_theta_start
+            + cfg.delta_theta_per_radian * turn
+            + cfg.delta_theta_per_metre * travel
+            + cfg.delta_per_correction * turned
+        )
+        return min(cfg.delta, delta), min(cfg.delta_theta, delta_theta)
+
+    def _next_radii(
+        self, start: FloatArray, best: FloatArray, best_d: float, delta: float, delta_theta: float
+    ) -> tuple[float, float] | None:
+        """Radii of another search stage around ``best``, or ``None`` when done.
+
+        A stage that ends over ``lost_threshold`` is followed by one with the full radii; one
+        whose best pose moved most of the way to the edge of its radii, by one with the radii
+        doubled (the error may be larger than the odometry suggested).
+        """
+        cfg = self.config
+        if not cfg.adaptive or cfg.mode == "paper":
+            return None
+        if delta >= cfg.delta and delta_theta >= cfg.delta_theta:
+            return None
+        if best_d > cfg.lost_threshold:
+            return cfg.delta, cfg.delta_theta
+        moved = math.hypot(float(best[0] - start[0]), float(best[1] - start[1]))
+        turned = abs(float(best[2] - start[2]))
+        if (
+            moved > cfg.expand_fraction * delta
+            or turned > cfg.expand_fraction * delta_theta
+            or best_d > cfg.surprise_ratio * self._typical
+        ):
+            return min(cfg.delta, 2.0 * delta), min(cfg.delta_theta, 2.0 * delta_theta)
+        return None
+
+
+def _compose(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a (+) b`` for one pose each, without numpy's per-call overhead."""
+    c, s = math.cos(float(a[2])), math.sin(float(a[2]))
+    x, y = float(b[0]), float(b[1])
+    return np.array(
+        [a[0] + c * x - s * y, a[1] + s * x + c * y, wrap_scalar(float(a[2]) + float(b[2]))]
+    )
 
 
 def _pose3(p: ArrayLike) -> FloatArray:

@@ -187,6 +187,7 @@ class Map:
         index: grid index of the walls, for range-limited queries.
         wall_start: ``(M,)`` wall start points as complex numbers ``x + iy``.
         wall_direction: ``(M,)`` wall vectors (end minus start) as complex numbers.
+        wall_length: ``(M,)`` wall lengths, metres.
     """
 
     geometry: Polygon | MultiPolygon
@@ -194,12 +195,14 @@ class Map:
     index: WallIndex = field(repr=False)
     wall_start: NDArray[np.complex128] = field(repr=False, init=False)
     wall_direction: NDArray[np.complex128] = field(repr=False, init=False)
+    wall_length: FloatArray = field(repr=False, init=False)
 
     def __post_init__(self) -> None:
         # Walls as complex numbers (start, end - start), for the ray caster.
         s = self.segments
         object.__setattr__(self, "wall_start", s[:, 0] + 1j * s[:, 1])
         object.__setattr__(self, "wall_direction", (s[:, 2] - s[:, 0]) + 1j * (s[:, 3] - s[:, 1]))
+        object.__setattr__(self, "wall_length", np.abs(self.wall_direction))
 
     @classmethod
     def from_shapely(

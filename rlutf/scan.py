@@ -89,8 +89,10 @@ class Scan:
     def valid(self) -> BoolArray:
         """``(N,)`` mask of beams with a return."""
         r = self.ranges
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+        # NaN and infinities fail one of the comparisons (which do not warn).
+        valid = r >= self.range_min
+        valid &= r <= self.range_max
+        return valid
 
     def covers_full_circle(self) -> bool:
         """Whether the beams go all the way round (the last beam ends where the first starts)."""
@@ -122,7 +124,9 @@ def beam_points(
     )
 
 
-def needs_origin(angles: FloatArray, full_circle: bool, max_gap: float) -> bool:
+def needs_origin(
+    angles: FloatArray, full_circle: bool, max_gap: float, gaps: FloatArray | None = None
+) -> bool:
     """Whether a scan polygon over beams at ``angles`` must close through the sensor.
 
     Args:
@@ -130,11 +134,13 @@ def needs_origin(angles: FloatArray, full_circle: bool, max_gap: float) -> bool:
         full_circle: the scanner sweeps 360 degrees.
         max_gap: widest angular gap between consecutive kept beams that is still bridged by a
             polygon edge, radians.
+        gaps: ``|diff(angles)|`` if already at hand.
     """
     if len(angles) < 2:
         return True
-    gaps = np.abs(np.diff(angles))
-    if len(gaps) and float(gaps.max()) > max_gap:
+    if gaps is None:
+        gaps = np.abs(np.diff(angles))
+    if float(gaps.max()) > max_gap:
         return True
     if not full_circle:
         return True

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import shapely
 
-from rlutf.discrepancy import anchored_turning, polar_area, turning_steps
+from rlutf.discrepancy import PolarArea, anchored_turning, polar_area, turning_steps
 
 
 def _star(ranges: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -61,3 +61,34 @@ def test_turning_sees_heading() -> None:
         turning_steps(_star(turned, ANGLES)), turning_steps(_star(real, ANGLES)), normalise=True
     )
     assert norm[0] > 0.01
+
+
+def test_prepared_area_equals_polar_area() -> None:
+    rng = np.random.default_rng(0)
+    real = _box_ranges(1.3, 1.1)
+    virt = np.array([_box_ranges(1.3 + dx, 1.1 + dy) for dx, dy in rng.normal(0, 0.05, (5, 2))])
+    for closing in (False, True):
+        prepared = PolarArea(real, ANGLES, closing)
+        np.testing.assert_allclose(prepared(virt), polar_area(virt, real, ANGLES, closing))
+        with_hints = PolarArea(
+            real, ANGLES, closing, unit=np.exp(1j * ANGLES), gaps=np.abs(np.diff(ANGLES))
+        )
+        np.testing.assert_allclose(with_hints(virt), prepared(virt), rtol=1e-12)
+
+
+def test_capped_area_bounds_each_beam() -> None:
+    real = _box_ranges(2.0, 1.5)
+    near = _box_ranges(2.01, 1.5)
+    # one beam that jumps far away (an edge grazed, or a person in the real scan)
+    jump = near.copy()
+    jump[40] += 5.0
+    exact = polar_area(np.array([near, jump]), real, ANGLES, closing=False)
+    capped = polar_area(np.array([near, jump]), real, ANGLES, closing=False, cap=0.1)
+    # small errors are untouched by the cap ...
+    assert capped[0] == exact[0]
+    # ... and the jump costs at most a band of cap width along that beam's sectors
+    perimeter = 14.0
+    bound = 0.1 * real[40] * (ANGLES[1] - ANGLES[0]) / perimeter
+    assert exact[1] - exact[0] > 10 * bound
+    assert capped[1] - capped[0] <= bound * 1.01
+    assert np.all(capped <= exact)

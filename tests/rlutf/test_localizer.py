@@ -4,10 +4,19 @@ import numpy as np
 import pytest
 
 from rlutf.errors import ConfigError
-from rlutf.localizer import Localizer, LocalizerConfig
+from rlutf.localizer import Localizer, LocalizerConfig, _Problem
 from rlutf.motion import compose, relative, wrap_angle
+from rlutf.raycast import Beams
 from rlutf.scan import Scan
-from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
+from rlutf.search import RandomSearch
+from rlutf.sim import (
+    LidarModel,
+    OdometryModel,
+    drift_odometry,
+    make_building,
+    make_trajectory,
+    simulate_scan,
+)
 
 STEPS = 80
 
@@ -37,10 +46,10 @@ def _final_error(poses: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 def test_default_mode_removes_injected_error(seed: int) -> None:
     poses, truth = _run(LocalizerConfig(), seed)
     trans, deg = _final_error(poses, truth)
-    assert trans < 0.04 and deg < 0.6, (trans, deg)
+    assert trans < 0.01 and deg < 0.1, (trans, deg)
     # and it stays corrected over the last part of the run
     err = np.hypot(*(poses[-20:, :2] - truth[-20:, :2]).T)
-    assert err.max() < 0.06
+    assert err.max() < 0.015
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -123,3 +132,121 @@ def test_partial_field_of_view_with_sensor_offset() -> None:
 def test_config_is_validated(kwargs: dict, field: str) -> None:
     with pytest.raises(ConfigError, match=field):
         LocalizerConfig(**kwargs)
+
+
+def test_default_mode_is_accurate_with_drifting_odometry() -> None:
+    errors, headings = [], []
+    for seed in (11, 12):
+        rng = np.random.default_rng(seed)
+        world = make_building(rng)
+        truth = make_trajectory(world, rng, 120)
+        odom = drift_odometry(truth, OdometryModel(), rng)
+        loc = Localizer(world, truth[0], seed=seed)
+        for i in range(1, len(truth)):
+            scan = simulate_scan(world, truth[i], LidarModel(), rng)
+            res = loc.update(relative(odom[i - 1], odom[i]), scan)
+            errors.append(math.hypot(*(res.pose[:2] - truth[i, :2])))
+            headings.append(float(wrap_angle(res.pose[2] - truth[i, 2])))
+    # 1 cm range noise, 360 beams: well under a centimetre and a tenth of a degree
+    assert math.sqrt(np.mean(np.square(errors))) < 0.007
+    assert math.degrees(math.sqrt(np.mean(np.square(headings)))) < 0.06
+    assert max(errors) < 0.03
+
+
+def test_sensor_offset_is_used() -> None:
+    rng = np.random.default_rng(8)
+    world = make_building(rng)
+    truth = make_trajectory(world, rng, 60)
+    offset = np.array([0.2, -0.05, 0.3])
+    loc = Localizer(world, compose(truth[0], [0.05, 0.03, 0.02]))
+    errors = []
+    for i in range(1, len(truth)):
+        raw = simulate_scan(world, compose(truth[i], offset), LidarModel(), rng)
+        scan = Scan.create(
+            raw.ranges, raw.angle_min, raw.angle_increment, raw.range_min, raw.range_max, offset
+        )
+        res = loc.update(relative(truth[i - 1], truth[i]), scan)
+        errors.append(math.hypot(*(res.pose[:2] - truth[i, :2])))
+    assert max(errors[-30:]) < 0.01
+
+
+class _RandomScores:
+    """Stands in for a problem: random scores, and a record of every pose scored."""
+
+    def __init__(self) -> None:
+        self.rng = np.random.default_rng(0)
+        self.poses: list[np.ndarray] = []
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        self.poses.append(poses.copy())
+        return self.rng.random(len(poses)) + 1.0
+
+
+def _search_of(config: LocalizerConfig, seed: int, start: np.ndarray) -> RandomSearch:
+    # the search the localizer runs for ``config`` (see Localizer._search)
+    return Localizer(make_building(np.random.default_rng(0)), start, config, seed)._search(
+        start, 0.05, 0.02
+    )
+
+
+@pytest.mark.parametrize("mode", ["default", "paper"])
+def test_search_stays_within_twice_its_radii(mode: str) -> None:
+    config = LocalizerConfig() if mode == "default" else LocalizerConfig.paper()
+    start = np.array([1.0, 2.0, 0.5])
+    for seed in range(20):
+        scores = _RandomScores()
+        search = _search_of(config, seed, start)
+        search.best_d = 2.0
+        search.run(scores)
+        poses = np.vstack(scores.poses)
+        # the region the caster was prepared for: 2 delta and 2 delta_theta around the start
+        assert np.hypot(*(poses[:, :2] - start[:2]).T).max() < 0.1
+        assert np.abs(poses[:, 2] - start[2]).max() < 0.04
+        assert search.rounds == len(scores.poses) > 0
+        # the paper stops on the position radius only, the default mode on both
+        assert search.delta < config.delta_min
+        if mode == "default":
+            assert search.delta_theta < config.delta_theta_min
+
+
+def test_paper_search_keeps_no_elite_and_default_does() -> None:
+    start = np.array([0.0, 0.0, 0.0])
+    for config, moves in ((LocalizerConfig.paper(), True), (LocalizerConfig(), False)):
+        search = _search_of(config, 1, start)
+        assert len(search.candidates()) == config.candidates
+        search.best_d = 0.5  # the start is better than every candidate (scores >= 1)
+        search.run(_RandomScores())
+        assert (search.best is not start) == moves
+        assert search.best_d >= 1.0 if moves else search.best_d == 0.5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"area_cap": 0.0}, "area_cap"),
+        ({"delta_theta_min": -1.0}, "delta_theta_min"),
+        ({"delta_per_correction": -0.5}, "delta_per_correction"),
+    ],
+)
+def test_new_config_fields_are_validated(kwargs: dict, field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        LocalizerConfig(**kwargs)
+    assert LocalizerConfig.paper().area_cap is None
+    assert LocalizerConfig.paper().candidates == 3
+
+
+def test_capped_area_casts_only_as_far_as_needed_without_changing_scores() -> None:
+    rng = np.random.default_rng(21)
+    world = make_building(rng)
+    truth = make_trajectory(world, rng, 5)
+    config = LocalizerConfig()
+    scan = simulate_scan(world, truth[3], LidarModel(max_range=30.0), rng)
+    beams = Beams.of(scan.angles)
+    short = _Problem(world, scan, config, beams)
+    full = _Problem(world, scan, config, beams)
+    assert short.range_max < scan.range_max
+    full.range_max = scan.range_max
+    poses = compose(truth[3], rng.normal(0.0, [0.05, 0.05, 0.02], (20, 3)))
+    for problem in (short, full):
+        problem.search_region(truth[3], 0.3, 0.1)
+    np.testing.assert_allclose(short.score(poses), full.score(poses), rtol=1e-12)

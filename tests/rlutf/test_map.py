@@ -85,3 +85,22 @@ def test_walls_near_is_a_superset_of_walls_in_range() -> None:
         # and the index prunes: far fewer than all walls for a small radius
         if r <= 3.0:
             assert len(near) < len(seg) / 4
+
+
+def test_walls_have_the_free_space_on_their_left() -> None:
+    rng = np.random.default_rng(2)
+    holes = [box(x, y, x + 0.5, y + 0.3) for x, y in rng.uniform(1, 8, (6, 2))]
+    geom = box(0, 0, 10, 10)
+    for h in holes:
+        geom = geom.difference(h)
+    # rings given clockwise (shell) and counter-clockwise (holes) are reoriented as well
+    flipped = Polygon(geom.exterior.coords[::-1], [r.coords[::-1] for r in geom.interiors])
+    for g in (geom, flipped):
+        m = Map.from_shapely(g)
+        ax, ay, bx, by = m.segments.T
+        mid = np.column_stack([(ax + bx) / 2, (ay + by) / 2])
+        left = np.column_stack([-(by - ay), bx - ax])
+        left /= np.hypot(*left.T)[:, None]
+        assert m.contains(mid + 1e-6 * left).all()
+        assert not m.contains(mid - 1e-6 * left).any()
+        np.testing.assert_allclose(m.wall_length, np.hypot(bx - ax, by - ay))

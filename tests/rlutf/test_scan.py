@@ -51,3 +51,14 @@ def test_simplify_removes_noise_and_keeps_anchor() -> None:
     out = simplify_ring(ring, 0.03)
     assert len(out) < 12
     np.testing.assert_array_equal(out[0], ring[0])
+
+
+def test_valid_rejects_infinities_and_given_gaps_agree() -> None:
+    s = Scan.create([float("inf"), -float("inf"), 2.0, 12.0, 0.05], 0.0, 0.1, 0.05, 12.0)
+    assert s.valid().tolist() == [False, False, True, True, True]
+    full = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    gap = np.concatenate([full[:100], full[200:]])
+    for angles in (full, gap, full[:180]):
+        gaps = np.abs(np.diff(angles))
+        for fc in (True, False):
+            assert needs_origin(angles, fc, 0.35, gaps) == needs_origin(angles, fc, 0.35)

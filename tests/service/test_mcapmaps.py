@@ -30,8 +30,9 @@ def test_map_built_from_a_replayed_log_matches_the_world(tmp_path: Path) -> None
     assert built.difference(WORLD.geometry.buffer(0.2)).area < 0.05 * seen
 
 
-def test_log_without_poses_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]
-                                            ) -> None:
+def test_log_without_poses_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     log = tmp_path / "inputs.mcap"
     write_log(log, simulated_inputs(steps=3))
     assert main(["map", "build", str(log), "--out", str(tmp_path / "m.json")]) == 1

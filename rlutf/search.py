@@ -1,0 +1,123 @@
+"""The random search of RLuTF: rounds of random candidate poses around the best one so far.
+
+Each round draws ``candidates`` poses uniformly in the disc of radius ``delta`` around the best
+pose and within ``delta_theta`` of its heading, keeps the best of them (with ``elitist``, only if
+it beats the current best), then halves both radii. The search stops when the best discrepancy
+is under ``epsilon``, after ``max_rounds`` rounds, or when both radii are under their minimums.
+Every candidate therefore lies within twice the initial radii of the start.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+_TWO_PI_J = 2j * math.pi
+
+
+class RandomSearch:
+    """One search from ``start``; the random numbers of all its rounds are drawn up front.
+
+    Args:
+        rng: the generator to draw from.
+        start: ``(3,)`` pose to search around.
+        delta: initial position radius, metres.
+        delta_theta: initial heading radius, radians.
+        candidates: poses per round.
+        max_rounds: most rounds.
+        delta_min: the search stops once the position radius is under this, metres ...
+        delta_theta_min: ... and the heading radius under this, radians (``inf``: ignore it).
+        epsilon: the search stops once the best discrepancy is under this.
+        elitist: keep the best so far unless a candidate beats it (``False``: the paper's
+            procedure, which moves to the best candidate of every round).
+
+    Attributes:
+        best: ``(3,)`` best pose so far.
+        best_d: its discrepancy (set it to the start's before :meth:`run`).
+        rounds: rounds done.
+        pending: candidates of the current round scored already, with their discrepancies;
+            :meth:`run` uses them instead of drawing and scoring the round.
+    """
+
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        start: FloatArray,
+        delta: float,
+        delta_theta: float,
+        *,
+        candidates: int,
+        max_rounds: int,
+        delta_min: float,
+        delta_theta_min: float,
+        epsilon: float,
+        elitist: bool,
+    ) -> None:
+        self.best = start
+        self.best_d = math.inf
+        self.delta = delta
+        self.delta_theta = delta_theta
+        self.rounds = 0
+        self.pending: tuple[FloatArray, FloatArray] | None = None
+        self._delta_min = delta_min
+        self._delta_theta_min = delta_theta_min
+        self._epsilon = epsilon
+        self._elitist = elitist
+        planned = 0
+        d, dt = delta, delta_theta
+        while planned < max_rounds and self._open(d, dt):
+            planned += 1
+            d *= 0.5
+            dt *= 0.5
+        u = rng.random((planned, candidates, 3))
+        self._steps = np.sqrt(u[..., 0]) * np.exp(_TWO_PI_J * u[..., 1])
+        self._turns = 2.0 * u[..., 2] - 1.0
+
+    def _open(self, delta: float, delta_theta: float) -> bool:
+        return delta >= self._delta_min or delta_theta >= self._delta_theta_min
+
+    def candidates(self) -> FloatArray:
+        """``(candidates, 3)`` random poses of the current round around the best."""
+        steps = self._steps[self.rounds]
+        cand = np.empty((len(steps), 3))
+        np.multiply(steps, self.delta, out=cand[:, :2].view(np.complex128)[:, 0])
+        cand[:, :2] += self.best[:2]
+        np.multiply(self._turns[self.rounds], self.delta_theta, out=cand[:, 2])
+        cand[:, 2] += self.best[2]
+        return cand
+
+    def run(self, score: Callable[[FloatArray], FloatArray]) -> int:
+        """Search until a stop condition.
+
+        Args:
+            score: ``(K,)`` discrepancies of ``(K, 3)`` poses; ``inf`` for impossible ones.
+
+        Returns:
+            The number of poses scored.
+        """
+        scored = 0
+        while (
+            self.rounds < len(self._steps)
+            and self._open(self.delta, self.delta_theta)
+            and self.best_d >= self._epsilon
+        ):
+            if self.pending is not None:
+                cand, d = self.pending
+                self.pending = None
+            else:
+                cand = self.candidates()
+                d = score(cand)
+                scored += len(cand)
+            i = int(np.argmin(d))
+            di = float(d[i])
+            if math.isfinite(di) and (not self._elitist or di < self.best_d):
+                self.best, self.best_d = cand[i], di
+            self.delta *= 0.5
+            self.delta_theta *= 0.5
+            self.rounds += 1
+        return scored
