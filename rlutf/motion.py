@@ -27,12 +27,15 @@ def wrap_angle(angle: ArrayLike) -> FloatArray:
         The wrapped angles, same shape, float64.
     """
     a = np.asarray(angle, dtype=np.float64)
-    return np.asarray((a + math.pi) % _TWO_PI - math.pi, dtype=np.float64)
+    out = np.asarray((a + math.pi) % _TWO_PI - math.pi, dtype=np.float64)
+    # An angle just under pi can round to pi itself.
+    return np.where(out >= math.pi, out - _TWO_PI, out)
 
 
 def wrap_scalar(angle: float) -> float:
     """Wrap one angle to ``[-pi, pi)`` without numpy overhead."""
-    return (angle + math.pi) % _TWO_PI - math.pi
+    out = (angle + math.pi) % _TWO_PI - math.pi
+    return out - _TWO_PI if out >= math.pi else out
 
 
 def _as_pose(p: ArrayLike, name: str) -> FloatArray:

@@ -464,4 +464,6 @@ def _match_functions(
         if d2_direct < best_d2:
             best_d2, best_mean, best_t = d2_direct, mean_diff, t_cand
     rotation = (-best_mean + math.pi) % _TWO_PI - math.pi
+    if rotation >= math.pi:  # rounding of an angle just under pi
+        rotation -= _TWO_PI
     return TurningMatch(distance=math.sqrt(max(best_d2, 0.0)), rotation=rotation, shift=best_t)

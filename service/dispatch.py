@@ -307,6 +307,10 @@ class Dispatcher:
 
     def start(self) -> None:
         """Start the shards (worker processes take a moment to import numpy)."""
+        if self.processes:
+            # One BLAS thread per worker: the workers already fill the cores, and BLAS threads
+            # contending with them cost more than they save on the small products of an update.
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         for s in self.shards:
             s.start()
 

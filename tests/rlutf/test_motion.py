@@ -4,7 +4,15 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rlutf.motion import compose, interpolate, inverse, relative, transform_points, wrap_angle
+from rlutf.motion import (
+    compose,
+    interpolate,
+    inverse,
+    relative,
+    transform_points,
+    wrap_angle,
+    wrap_scalar,
+)
 
 finite = st.floats(-50, 50, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -17,6 +25,14 @@ def test_wrap_angle_range_and_values() -> None:
     assert a[0] == 0.0
     assert a[1] == -math.pi
     assert math.isclose(a[4], 7.0 - 2 * math.pi)
+
+
+def test_wrap_angle_just_under_pi_stays_in_range() -> None:
+    just_under = math.nextafter(math.pi, 0.0)
+    for a in (just_under, -math.pi - 1e-17, 3 * math.pi - 1e-15):
+        w = float(wrap_angle(a))
+        assert -math.pi <= w < math.pi
+        assert -math.pi <= wrap_scalar(a) < math.pi
 
 
 def test_compose_known_values() -> None:
