@@ -257,12 +257,14 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
         shutil.rmtree(tmp, ignore_errors=True)
     lat = np.asarray(result["latencies"]) if result["latencies"] else np.array([math.nan])
     dropped = int(health.get("dropped", -1))
-    lost_no_pose = 0
+    # scans the service took but could not turn into a pose (no map yet, too few returns)
+    lost_no_pose = int(health.get("extra", {}).get("scans_not_processed", 0))
     return {
         "robots": robots,
         "sent": result["scans_sent"],
         "poses": result["poses"],
         "dropped": dropped,
+        "not_processed": lost_no_pose,
         "uncounted": result["scans_sent"] - result["poses"] - dropped - lost_no_pose,
         "p50": float(np.percentile(lat, 50)),
         "p99": float(np.percentile(lat, 99)),
@@ -291,12 +293,14 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
     """Run every size and return the Markdown section."""
     rows = []
     held = 0
+    load = os.getloadavg()[0]
     for n in sizes:
         r = run_size(n, duration, record, workers)
         ok = r["p99"] <= 50.0 and r["uncounted"] == 0 and r["dropped"] <= 0.01 * r["sent"]
         held = n if ok else held
         rows.append(
-            f"| {n} | {r['sent']} | {r['poses']} | {r['dropped']} | {r['uncounted']} "
+            f"| {n} | {r['sent']} | {r['poses']} | {r['dropped']} | {r['not_processed']} "
+            f"| {r['uncounted']} "
             f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['max']:.0f} | {r['compute_p50']:.2f} "
             f"| {r['rss_first']:.0f} / {r['rss_peak']:.0f} / {r['rss_last']:.0f} "
             f"| {'yes' if ok else 'no'} |"
@@ -312,12 +316,15 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
             f"{platform.python_version()}. One `rlutf serve` (recording "
             f"{'on' if record else 'off'}) and one load-generator process share the cores; "
-            f"{duration:g} s per size at 10 Hz per robot, 360-beam scans, 1 cm noise.",
+            f"{duration:g} s per size at 10 Hz per robot, 360-beam scans, 1 cm noise. "
+            f"Load average when the run started: {load:.1f} (2 cores; above 0 means other work "
+            "was competing for them).",
             "",
-            "| robots | scans sent | poses | dropped (reported) | uncounted | latency p50 ms "
+            "| robots | scans sent | poses | dropped (reported) | not processed (reported) "
+            "| uncounted | latency p50 ms "
             "| p99 ms | max ms | worker compute p50 ms | service RSS MB first / peak / last "
             "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             *rows,
             "",
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",
