@@ -15,7 +15,7 @@ from bench.carmen import LOGS, carmen_run
 from bench.crb import run_bounds
 from bench.measures import Summary, summarise
 from bench.methods import Method, Trace, track
-from bench.scenarios import FloatArray, Run, Scenario, named_scenarios, simulate
+from bench.scenarios import DATA, FloatArray, Run, Scenario, named_scenarios, simulate
 
 
 @dataclass(frozen=True)
@@ -100,6 +100,15 @@ class ScenarioResult:
         return self.name in REAL
 
 
+def has_data(world: str) -> bool:
+    """Whether the shared data a world needs is there (procedural buildings need none)."""
+    if world == "building":
+        return True
+    if world in LOGS:
+        return (DATA / "carmen" / f"{world}-corrected.log.gz").exists()
+    return (DATA / "maps" / f"{world}.yaml").exists()
+
+
 def scenario_list(profile: Profile) -> list[Scenario]:
     """The simulated scenarios of a profile."""
     return named_scenarios(profile.steps)
@@ -110,6 +119,9 @@ def build_runs(
 ) -> list[ScenarioResult]:
     """Simulate (or load) the runs of every scenario, without tracking them yet.
 
+    Scenarios whose shared data (``shared/data/maps``, ``shared/data/carmen``) is missing are
+    left out.
+
     Args:
         profile: sizes.
         only: scenario names to keep (``None``: all).
@@ -117,6 +129,8 @@ def build_runs(
     """
     out = []
     for sc in scenario_list(profile):
+        if not has_data(sc.world):
+            continue
         if only is None or sc.name in only:
             runs = [simulate(sc, seed) for seed in profile.seeds]
             out.append(ScenarioResult(sc.name, sc.description, runs))
@@ -124,7 +138,7 @@ def build_runs(
         out += [
             ScenarioResult(name, REAL[name], [carmen_run(name, profile.carmen_limit)])
             for name in LOGS
-            if only is None or name in only
+            if (only is None or name in only) and has_data(name)
         ]
     return out
 

@@ -200,6 +200,6 @@ def latency(
     ax.set_xlabel(xlabel)
     ax.set_ylabel("update latency [ms] (median, bar to p99)")
     ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=8, frameon=False)
+    ax.legend(fontsize=8, loc="best", framealpha=0.9)
     fig.tight_layout()
     return _save(fig, path)

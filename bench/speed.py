@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from bench.accuracy import Profile
+from bench.accuracy import Profile, has_data
 from bench.baselines import AmclConfig, ParticleFilter
 from bench.measures import fit_power, rms
 from bench.methods import Method, all_methods, track
@@ -115,8 +115,11 @@ def sweep_maps(profile: Profile) -> list[tuple[str, Map]]:
     if profile.real_maps:
         from bench.carmen import carmen_world
 
-        maps.append(("depot (imported)", imported_map("depot")))
-        maps += [(f"{n} (built from log)", carmen_world(n)) for n in ("intel", "aces")]
+        if has_data("depot"):
+            maps.append(("depot (imported)", imported_map("depot")))
+        maps += [
+            (f"{n} (built from log)", carmen_world(n)) for n in ("intel", "aces") if has_data(n)
+        ]
     return maps
 
 
