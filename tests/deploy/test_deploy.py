@@ -911,8 +911,13 @@ def _check_acl(open_as: Callable[[str], Any]) -> None:
 
         queryable = service.declare_queryable("rlutf/robots/*/pose", answer)
         stack.callback(queryable.undeclare)
-        own = [r for r in robot1.get("rlutf/robots/r1/pose", timeout=WAIT) if r.ok is not None]
-        assert [str(r.ok.key_expr) for r in own] == ["rlutf/robots/r1/pose"]
+
+        def own_pose() -> bool:
+            # retried: the queryable's declaration reaches the router a moment after declare
+            own = [r for r in robot1.get("rlutf/robots/r1/pose", timeout=1.0) if r.ok is not None]
+            return [str(r.ok.key_expr) for r in own] == ["rlutf/robots/r1/pose"]
+
+        assert wait_until(own_pose), "r1 must get its own pose"
         theirs = [r for r in robot1.get("rlutf/robots/r2/pose", timeout=1.0) if r.ok is not None]
         assert theirs == [], "r1 must not get r2's pose"
 
