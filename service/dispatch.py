@@ -143,7 +143,7 @@ class _ThreadShard(_Shard):
                 return
             robot, item = work
             if robot == "control":
-                _apply_control(self.engine, item, None)  # type: ignore[arg-type]
+                _apply_control(self.engine, item)  # type: ignore[arg-type]
                 continue
             t0 = time.perf_counter()
             outputs = _run_batch(self.engine, robot, item)  # type: ignore[arg-type]
@@ -235,7 +235,7 @@ def _run_batch(engine: FleetEngine, robot: str, entries: list[_Entry]) -> list[O
     return outputs
 
 
-def _apply_control(engine: FleetEngine, msg: tuple[Any, ...], world: World | None) -> None:
+def _apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
     if msg[0] == "map":
         _, map_id, version, geometry_or_world, received_ns = msg
         w = (
@@ -259,7 +259,7 @@ def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interva
             conn.send(("stopped",))
             return
         if kind == "map":
-            _apply_control(engine, msg, None)
+            _apply_control(engine, msg)
             continue
         _, robot, batch = msg
         entries = [_Entry(k, p, None, r) for k, p, r in batch]

@@ -121,10 +121,6 @@ class FleetEngine:
         if len(book.worlds) > _MAP_VERSIONS_KEPT:
             del book.received[0], book.versions[0], book.worlds[0]
 
-    def has_map(self, map_id: str) -> bool:
-        """Whether any version of ``map_id`` is registered."""
-        return map_id in self._maps
-
     # ----------------------------------------------------------------------------- state
     @property
     def robot_ids(self) -> list[str]:
