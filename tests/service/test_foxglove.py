@@ -215,3 +215,62 @@ def test_recorded_log_carries_views_with_npm_schemas(
         seen = _foxglove_reads(npm_prefix, path)
         assert seen["messages"] == len(read_all(path)) > 0
         assert "jsonschema foxglove.LaserScan" in seen["schemas"]
+
+
+@pytest.mark.parametrize(
+    "scan, indent",
+    [
+        ({"ranges": [1.0, None, 2.5e-1, None]}, None),
+        ({"ranges": [1.0, None, 2.0]}, 2),  # newlines and spaces inside the array
+        ({"ranges": []}, None),
+        ({"ranges": [3.0], "frame_id": "ranges"}, None),  # "ranges" twice in the text
+        ({"frame_id": "lidar", "ranges": [1, 2, None]}, None),  # integers, member not last
+    ],
+)
+def test_scan_view_from_text_equals_parsed_view(scan: dict[str, Any], indent: int | None) -> None:
+    """The spliced view of a scan (its ranges copied as text) equals the one built by parsing."""
+    body = {"stamp_ns": 5, "angle_min": 0.0, "angle_increment": 0.25, **scan}
+    payload = json.dumps(body, indent=indent).encode()
+    record = Record("x/robots/r1/scan", "rlutf.LaserScan", payload, 1, 1)
+    conv = FoxgloveConverter()
+    (fast,) = conv(record)
+    (parsed,) = conv._scan(record, json.loads(payload))
+    expected = json.loads(parsed.payload)
+    assert json.loads(fast.payload) == expected
+    assert expected["ranges"] == [0.0 if r is None else float(r) for r in body["ranges"]]
+    assert expected["end_angle"] == 0.25 * (len(body["ranges"]) - 1)
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-17, -math.pi, 2.5, 1e300])
+def test_pose_views_equal_their_dict_form(theta: float) -> None:
+    """The text templates give exactly the JSON of the nested dicts they stand for."""
+    x, y, stamp = -1.5e-7, 123456.789, 1_700_000_000_123_456_789
+    record = Record(
+        "p/robots/r/pose",
+        "rlutf.PoseEstimate",
+        json.dumps({"stamp_ns": stamp, "map_id": "m", "x": x, "y": y, "theta": theta}).encode(),
+        3,
+        2,
+    )
+    located, tf = FoxgloveConverter()(record)
+    time_ = {"sec": stamp // 10**9, "nsec": stamp % 10**9}
+    position = {"x": x, "y": y, "z": 0.0}
+    orientation = {"x": 0.0, "y": 0.0, "z": math.sin(theta / 2), "w": math.cos(theta / 2)}
+    assert json.loads(located.payload) == {
+        "timestamp": time_,
+        "frame_id": "map",
+        "pose": {"position": position, "orientation": orientation},
+    }
+    assert json.loads(tf.payload) == {
+        "timestamp": time_,
+        "parent_frame_id": "map",
+        "child_frame_id": "r/base_link",
+        "translation": position,
+        "rotation": orientation,
+    }
+
+
+def test_views_of_non_finite_numbers_are_skipped() -> None:
+    """A log from elsewhere may hold numbers JSON cannot carry: no view, no failure."""
+    bad = b'{"stamp_ns": 1, "map_id": "m", "x": 1e999, "y": 0, "theta": 0}'
+    assert FoxgloveConverter()(Record("p/robots/r/pose", "rlutf.PoseEstimate", bad, 1, 1)) == []
