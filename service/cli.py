@@ -205,6 +205,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.dispatch import tune_gc
     from service.node import LocalizationService
     from service.recording import make_recorder
 
@@ -219,6 +220,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     try:
         service = LocalizationService(settings, recorder=make_recorder(settings)).start()
+        tune_gc()
     except zenoh.ZError as err:
         print(f"rlutf serve: cannot open the zenoh session: {err}", file=sys.stderr)
         return EXIT_FAILURE

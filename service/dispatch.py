@@ -11,9 +11,11 @@ holds the GIL, so threads would cap the service at one core) or, with ``workers=
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import multiprocessing as mp
 import os
+import pickle
 import threading
 import time
 import zlib
@@ -40,6 +42,8 @@ MODELS: dict[str, type[Message]] = {
 }
 #: Batches a shard may have in flight at once (for different robots), so it never waits idle.
 _IN_FLIGHT = 4
+#: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
+_GC_THRESHOLDS = (20_000, 20, 20)
 
 
 @dataclass
@@ -190,18 +194,18 @@ class _ProcessShard(_Shard):
                 batch = [(e.kind, e.payload, e.received_ns) for e in item]
                 msg = ("batch", robot, batch)
             try:
-                self.conn.send(msg)
+                _send(self.conn, msg)
             except (OSError, ValueError):
                 log.exception("worker %d is gone", self.index)
                 return
         with contextlib.suppress(OSError, ValueError):
-            self.conn.send(("stop",))
+            _send(self.conn, ("stop",))
 
     def _recv(self) -> None:
         d = self.dispatcher
         while True:
             try:
-                msg = self.conn.recv()
+                msg = _recv(self.conn)
             except (EOFError, OSError):
                 return
             if msg[0] == "stopped":
@@ -216,6 +220,16 @@ class _ProcessShard(_Shard):
         self.process.join(timeout)
         if self.process.is_alive():
             self.process.terminate()
+
+
+def _send(conn: Connection, msg: tuple[Any, ...]) -> None:
+    """Send over a worker pipe: ``Connection.send`` builds a new ForkingPickler per message,
+    which costs more than the pickling of a batch."""
+    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _recv(conn: Connection) -> Any:
+    return pickle.loads(conn.recv_bytes())
 
 
 def _run_batch(engine: FleetEngine, robot: str, entries: list[_Entry]) -> list[Outbound]:
@@ -246,17 +260,31 @@ def _apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
         engine.register_map(map_id, version, w, received_ns)
 
 
+def tune_gc() -> None:
+    """Make garbage collection cheap for a process that handles a stream of messages.
+
+    Every message allocates short-lived containers, and Python's default thresholds then run a
+    full collection, which walks every object alive, every few hundred messages: about a sixth
+    of the service's main process time at 250 scans/s. Objects alive now (modules, settings,
+    maps) are frozen out of collections, and young collections run less often.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*_GC_THRESHOLDS)
+
+
 def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interval: int) -> None:
     """Entry point of a worker process: apply batches until told to stop."""
     engine = FleetEngine(Keys(prefix), config, interval)
+    tune_gc()
     while True:
         try:
-            msg = conn.recv()
+            msg = _recv(conn)
         except (EOFError, OSError, KeyboardInterrupt):
             return
         kind = msg[0]
         if kind == "stop":
-            conn.send(("stopped",))
+            _send(conn, ("stopped",))
             return
         if kind == "map":
             _apply_control(engine, msg)
@@ -265,7 +293,7 @@ def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interva
         entries = [_Entry(k, p, None, r) for k, p, r in batch]
         t0 = time.perf_counter()
         outputs = _run_batch(engine, robot, entries)
-        conn.send(("done", robot, outputs, time.perf_counter() - t0))
+        _send(conn, ("done", robot, outputs, time.perf_counter() - t0))
 
 
 class Dispatcher:

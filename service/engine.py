@@ -254,7 +254,7 @@ class FleetEngine:
         if odom is not None:
             robot.anchor = odom
         scan = Scan.create(
-            [math.nan if r is None else r for r in msg.ranges],
+            np.array(msg.ranges, dtype=np.float64),  # None (no return) becomes NaN
             msg.angle_min,
             msg.angle_increment,
             msg.range_min,
