@@ -2,10 +2,11 @@
 
 Zenoh callbacks only validate and call :meth:`Dispatcher.submit`. Each robot has a mailbox of its
 inputs in arrival order; a newer scan replaces an unprocessed older one (the drop is counted and
-reported), odometry and initial poses are never dropped. Robots are spread over shards by a hash
-of their id; a shard runs one batch per robot at a time, so one robot's updates are sequential
-while different robots run in parallel. A shard is a worker process (the default: numpy work
-holds the GIL, so threads would cap the service at one core) or, with ``workers=0``, a thread.
+reported), odometry and initial poses are never dropped. A robot is given, when first seen, to
+the shard with the fewest robots; a shard runs one batch per robot at a time, so one robot's
+updates are sequential while different robots run in parallel. A shard is a worker process (the
+default: numpy work holds the GIL, so threads would cap the service at one core) or, with
+``workers=0``, a thread.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import os
 import pickle
 import threading
 import time
-import zlib
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -57,6 +57,7 @@ class _Entry:
 
 @dataclass
 class _Mailbox:
+    shard: _Shard
     entries: deque[_Entry] = field(default_factory=deque)
     scan: _Entry | None = None  # the unprocessed scan in ``entries``, if any
     busy: bool = False
@@ -87,6 +88,7 @@ class _Shard:
         self.control: deque[tuple[Any, ...]] = deque()
         self.cond = threading.Condition(dispatcher.lock)
         self.in_flight = 0
+        self.robots = 0  # robots assigned to this shard
         self.threads: list[threading.Thread] = []
 
     def start(self) -> None:
@@ -342,9 +344,6 @@ class Dispatcher:
         for s in self.shards:
             s.start()
 
-    def _shard_of(self, robot: str) -> _Shard:
-        return self.shards[zlib.crc32(robot.encode()) % len(self.shards)]
-
     def submit(
         self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
     ) -> None:
@@ -352,13 +351,16 @@ class Dispatcher:
         entry = _Entry(
             kind, payload, None if self.processes else message, received_ns, message.stamp_ns
         )
-        shard = self._shard_of(robot)
         with self.lock:
             if self.stopping:
                 return
             box = self.boxes.get(robot)
             if box is None:
-                box = self.boxes[robot] = _Mailbox()
+                # A robot's localizer lives in one worker for good: balance robot counts (a hash
+                # of a few dozen ids can leave one worker a fifth busier than the other).
+                shard = min(self.shards, key=lambda s: s.robots)
+                shard.robots += 1
+                box = self.boxes[robot] = _Mailbox(shard)
             if kind == "scan":
                 old = box.scan
                 if old is not None:
@@ -369,8 +371,8 @@ class Dispatcher:
             box.entries.append(entry)
             if not box.busy and not box.queued:
                 box.queued = True
-                shard.ready.append(robot)
-                shard.cond.notify_all()
+                box.shard.ready.append(robot)
+                box.shard.cond.notify_all()
 
     def broadcast_map(self, loaded: LoadedMap) -> None:
         """Send a map version to every shard, ahead of any batch queued after this call.
