@@ -292,6 +292,9 @@ class LocalizationService:
                 with self.ownership.lock:  # a robot released meanwhile is not answered for
                     if self.ownership.active(done.robot):
                         self._poses[done.robot] = out.payload
+                # Poses are not delivered back to this session's own subscriber (see _publish):
+                # follow our own here, for a robot that comes back after a handover.
+                self.ownership.follow_pose(done.robot, out.payload, self.settings.max_payload_bytes)
                 self._publish(out.key, out.payload, pose=True)
                 now = self.clock()
                 self.recorder.record(
@@ -336,6 +339,9 @@ class LocalizationService:
                                 congestion_control=zenoh.CongestionControl.DROP,
                                 priority=zenoh.Priority.DATA_HIGH,
                                 express=True,
+                                # Not to our own subscriber on {prefix}/robots/*/*: a callback
+                                # per pose only to follow what _on_done already has.
+                                allowed_destination=zenoh.Locality.REMOTE,
                             )
                             self._publishers[key] = pub
                 pub.put(payload)
