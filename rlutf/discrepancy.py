@@ -154,20 +154,24 @@ class PolarArea:
     ) -> None:
         n = len(angles)
         if gaps is None:
-            gaps = np.abs(np.diff(angles))
+            gaps = np.abs(angles[1:] - angles[:-1])
         if unit is None:
             unit = np.exp(1j * angles)
         points = real_ranges * unit
-        perimeter = float(np.abs(np.diff(points)).sum())
+        steps = points[1:] - points[:-1]
+        perimeter = float(np.add.reduce(np.abs(steps)))
         wrap = 0.0
         if not closing and n > 1:
             wrap = _TWO_PI - abs(float(angles[-1] - angles[0]))
             perimeter += abs(complex(points[0] - points[-1]))
         elif n:
             perimeter += float(real_ranges[0] + real_ranges[-1])
-        weights = np.zeros(n)
-        weights[:-1] += gaps
-        weights[1:] += gaps
+        # Each beam's weight is half the gaps on either side of it (the trapezoid rule).
+        weights = np.empty(n)
+        if n:
+            weights[0] = 0.0
+            weights[1:] = gaps
+            weights[:-1] += gaps
         if n > 1:
             weights[0] += wrap
             weights[-1] += wrap
@@ -183,7 +187,7 @@ class PolarArea:
         np.abs(diff, out=diff)
         if self._cap is not None:
             np.minimum(diff, self._cap, out=diff)
-        return np.asarray(diff @ self._weights, dtype=np.float64)
+        return np.asarray(diff.dot(self._weights), dtype=np.float64)
 
 
 def polar_area(

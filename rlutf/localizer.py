@@ -222,7 +222,8 @@ class _Problem:
         self.beams = beams.select(valid)
         angles = self.beams.angles
         self.real_ranges = scan.ranges[valid]
-        gaps = np.abs(np.diff(angles))
+        gaps = angles[1:] - angles[:-1]
+        np.abs(gaps, out=gaps)
         self.closing = needs_origin(angles, scan.covers_full_circle(), config.max_gap, gaps)
         kind = config.discrepancy
         if kind != "turning":
@@ -366,7 +367,7 @@ class Localizer:
                     # Score the prediction together with the first round's candidates: one cast
                     # instead of two; the candidates are only used if the search runs.
                     cand = search.candidates()
-                    d = problem.score(np.vstack([predicted, cand]))
+                    d = problem.score(np.concatenate((predicted[None], cand)))
                     best_d = float(d[0])
                     search.pending = (cand, d[1:])
                     evaluations += 1 + len(cand)
@@ -486,6 +487,6 @@ def _compose(a: FloatArray, b: FloatArray) -> FloatArray:
 
 def _pose3(p: ArrayLike) -> FloatArray:
     arr = np.array(p, dtype=np.float64).reshape(-1)
-    if arr.shape != (3,) or not np.isfinite(arr).all():
+    if arr.shape != (3,) or not all(map(math.isfinite, arr.tolist())):
         raise ValueError(f"a pose must be 3 finite numbers (x, y, theta), got {arr.tolist()}")
     return arr

@@ -247,6 +247,11 @@ class Map:
         b = self.geometry.bounds
         return (float(b[0]), float(b[1]), float(b[2]), float(b[3]))
 
+    def contains_point(self, x: float, y: float) -> bool:
+        """Whether the point ``(x, y)`` lies in the free space (walls excluded); for one point,
+        cheaper than :meth:`contains`."""
+        return bool(shapely.contains_xy(self.geometry, x, y))
+
     def contains(self, points: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Whether each point ``(K, 2)`` lies in the free space (walls excluded)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)

@@ -67,15 +67,18 @@ class Beams:
     def select(self, mask: NDArray[np.bool_]) -> Beams:
         """The beams where ``(N,)`` ``mask`` is true, in their order, without sorting again."""
         keep = np.asarray(mask, dtype=bool)
-        if keep.all():
+        index = keep.nonzero()[0]
+        if len(index) == len(keep):
             return self
         in_sorted = keep[self.order]
-        renumber = np.cumsum(keep) - 1
+        # New index of each kept beam (the others are never read).
+        renumber = np.empty(len(keep), dtype=np.intp)
+        renumber[index] = np.arange(len(index))
         return Beams(
-            self.angles[keep],
-            self.cos[keep],
-            self.sin[keep],
-            self.unit[keep],
+            self.angles[index],
+            self.cos[index],
+            self.sin[index],
+            self.unit[index],
             renumber[self.order[in_sorted]],
             self.sorted_wrapped[in_sorted],
         )

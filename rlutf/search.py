@@ -70,25 +70,31 @@ class RandomSearch:
         self._elitist = elitist
         planned = 0
         d, dt = delta, delta_theta
+        radii: list[tuple[float, float, float]] = []
         while planned < max_rounds and self._open(d, dt):
             planned += 1
+            radii.append((d, d, dt))
             d *= 0.5
             dt *= 0.5
         u = rng.random((planned, candidates, 3))
-        self._steps = np.sqrt(u[..., 0]) * np.exp(_TWO_PI_J * u[..., 1])
-        self._turns = 2.0 * u[..., 2] - 1.0
+        steps = np.sqrt(u[..., 0]) * np.exp(_TWO_PI_J * u[..., 1])
+        # Every round's offsets from its best pose, made at once: (dx, dy, dtheta) are the step
+        # times the round's radius, with the radii halved each round exactly as run() halves
+        # them, so each round's candidates cost one addition.
+        offsets = np.empty((planned, candidates, 3))
+        offsets[..., 0] = steps.real
+        offsets[..., 1] = steps.imag
+        np.multiply(u[..., 2], 2.0, out=offsets[..., 2])
+        offsets[..., 2] -= 1.0
+        offsets *= np.array(radii).reshape(planned, 1, 3)
+        self._offsets = offsets
 
     def _open(self, delta: float, delta_theta: float) -> bool:
         return delta >= self._delta_min or delta_theta >= self._delta_theta_min
 
     def candidates(self) -> FloatArray:
         """``(candidates, 3)`` random poses of the current round around the best."""
-        steps = self._steps[self.rounds]
-        cand = np.empty((len(steps), 3))
-        np.multiply(steps, self.delta, out=cand[:, :2].view(np.complex128)[:, 0])
-        cand[:, :2] += self.best[:2]
-        np.multiply(self._turns[self.rounds], self.delta_theta, out=cand[:, 2])
-        cand[:, 2] += self.best[2]
+        cand: FloatArray = self._offsets[self.rounds] + self.best
         return cand
 
     def run(self, score: Callable[[FloatArray], FloatArray]) -> int:
@@ -102,7 +108,7 @@ class RandomSearch:
         """
         scored = 0
         while (
-            self.rounds < len(self._steps)
+            self.rounds < len(self._offsets)
             and self._open(self.delta, self.delta_theta)
             and self.best_d >= self._epsilon
         ):
@@ -113,7 +119,7 @@ class RandomSearch:
                 cand = self.candidates()
                 d = score(cand)
                 scored += len(cand)
-            i = int(np.argmin(d))
+            i = int(d.argmin())
             di = float(d[i])
             if math.isfinite(di) and (not self._elitist or di < self.best_d):
                 self.best, self.best_d = cand[i], di

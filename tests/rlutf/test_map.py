@@ -104,3 +104,10 @@ def test_walls_have_the_free_space_on_their_left() -> None:
         assert m.contains(mid + 1e-6 * left).all()
         assert not m.contains(mid - 1e-6 * left).any()
         np.testing.assert_allclose(m.wall_length, np.hypot(bx - ax, by - ay))
+
+
+def test_contains_point_agrees_with_contains() -> None:
+    m = Map.from_geojson(ROOM)
+    points = np.array([[1.0, 1.0], [5.5, 5.5], [25.0, 1.0], [0.0, 3.0], [5.0, 5.5]])
+    expected = m.contains(points).tolist()
+    assert [m.contains_point(float(x), float(y)) for x, y in points] == expected

@@ -194,9 +194,71 @@ def test_region_caster_rings_skip_hidden_walls_exactly(
         poses = poses[WORLD.contains(compose(poses, off)[:, :2])]
         ref = np.minimum(brute_force(WORLD, compose(poses, off), angles, 30.0), 30.0)
         np.testing.assert_allclose(caster.cast(poses), ref, rtol=0, atol=1e-9)
-        monkeypatch.setattr(region, "_RING_WALLS", 10**9)
-        culled += (
-            caster.pairs < RegionCaster(WORLD, beams, centre, radius, heading, 30.0, off).pairs
-        )
-        monkeypatch.setattr(region, "_RING_WALLS", 0)
+        # Against one window of walls without culling (which skips them the same way).
+        with monkeypatch.context() as m:
+            m.setattr(region, "_RING_WALLS", 10**9)
+            m.setattr(region._Region, "cull", lambda self, beam, wall, *rest: (beam, wall))
+            full = RegionCaster(WORLD, beams, centre, radius, heading, 30.0, off)
+        culled += caster.pairs < full.pairs
     assert culled > 10  # the rings did skip walls behind certain hits
+
+
+def test_selecting_no_beams_gives_empty_beams() -> None:
+    beams = Beams.of(np.linspace(-math.pi, math.pi, 12, endpoint=False))
+    none = beams.select(np.zeros(12, dtype=bool))
+    assert len(none) == 0 and len(none.order) == 0 and len(none.sorted_wrapped) == 0
+
+
+def test_culling_drops_hidden_pairs_without_changing_ranges(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rng = np.random.default_rng(21)
+    angles = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+    beams = Beams.of(angles)
+    culled = 0
+    for trial in range(40):
+        centre = np.array([*rng.uniform((0.3, 0.3), (19.7, 11.7)), rng.uniform(-3, 3)])
+        if not WORLD.contains(centre[None, :2])[0]:
+            continue
+        radius, heading = [(0.0, 0.0), (0.02, 0.01), (0.3, 0.1)][trial % 3]
+        off = np.array([(0.0, 0.0, 0.0), (0.2, -0.1, 0.3)][trial % 2])
+        poses = np.vstack([centre[None], _region_poses(rng, centre, radius, heading, 5)])
+        poses = poses[WORLD.contains(compose(poses, off)[:, :2])]
+        caster = RegionCaster(WORLD, beams, centre, radius, heading, 30.0, off)
+        with monkeypatch.context() as m:
+            m.setattr(region._Region, "cull", lambda self, beam, wall, *rest: (beam, wall))
+            full = RegionCaster(WORLD, beams, centre, radius, heading, 30.0, off)
+        assert caster.pairs <= full.pairs
+        culled += caster.pairs < full.pairs
+        # The pairs dropped are never a first hit: the very same ranges, bit for bit.
+        np.testing.assert_array_equal(caster.cast(poses), full.cast(poses))
+        ref = np.minimum(brute_force(WORLD, compose(poses, off), angles, 30.0), 30.0)
+        np.testing.assert_allclose(caster.cast(poses), ref, rtol=0, atol=1e-9)
+    assert culled > 10
+
+
+def test_region_caster_with_no_pairs_gives_max_range(recwarn: pytest.WarningsRecorder) -> None:
+    beams = Beams.of(np.linspace(-math.pi, math.pi, 36, endpoint=False))
+    centre = np.array([10.0, 6.0, 0.3])
+    # No wall anywhere near a point 2.5 m from every wall: no pair at all.
+    caster = RegionCaster(WORLD, beams, centre, 0.01, 0.01, 0.05)
+    assert caster.pairs == 0
+    poses = np.vstack([centre, centre + np.array([0.005, 0.0, 0.005])])
+    np.testing.assert_array_equal(caster.cast(poses), np.full((2, 36), 0.05))
+    assert caster.cast(np.zeros((0, 3))).shape == (0, 36)
+    assert not recwarn.list
+
+
+def test_region_caster_where_every_pose_misses_every_wall(
+    recwarn: pytest.WarningsRecorder,
+) -> None:
+    # Pairs exist (walls within reach of the region's window) but no beam reaches them.
+    beams = Beams.of(np.linspace(-math.pi, math.pi, 72, endpoint=False))
+    centre = np.array([10.0, 6.0, 0.0])
+    caster = RegionCaster(WORLD, beams, centre, 0.2, 0.1, 2.2)
+    assert caster.pairs > 0
+    poses = np.array([[10.0, 6.0, 0.0], [10.1, 6.05, 0.05], [9.9, 5.95, -0.05]])
+    ref = np.minimum(brute_force(WORLD, poses, beams.angles, 2.2), 2.2)
+    assert np.all(ref == 2.2)
+    np.testing.assert_array_equal(caster.cast(poses), ref)
+    assert not recwarn.list
