@@ -8,8 +8,11 @@ publishes, for every robot, odometry and a 360-beam scan at 10 Hz (phases stagge
 simulated run precomputed before the clock starts, and times each scan put to its pose put.
 The generator shares the two cores with the service, as robots' traffic handling would on a
 real host. Reported: scan-to-pose latency percentiles, scans sent, poses received, scans the
-service reports dropped (superseded before processing) and the difference (uncounted), and the
-service's peak resident memory (main process plus workers) sampled every second.
+service reports dropped (superseded before processing) or not processed, the difference
+(uncounted; in brackets, how many of those the service reports as processed, i.e. poses
+published but not received), the CPU time per scan sent of the service's main process, of its
+workers and of the generator over the publishing interval (where the two cores go), and the
+service's resident memory (main process plus workers) sampled every second.
 """
 
 from __future__ import annotations
@@ -41,34 +44,59 @@ RATE_HZ = 10.0
 def _rss_tree_mb(pid: int) -> float:
     """Resident memory of a process and its children, MB (from /proc)."""
     total = 0
-    pids = [pid]
-    try:
-        for entry in os.listdir("/proc"):
-            if entry.isdigit():
-                try:
-                    with open(f"/proc/{entry}/stat") as f:
-                        fields = f.read().rsplit(")", 1)[1].split()
-                    if int(fields[1]) == pid:
-                        pids.append(int(entry))
-                except OSError:
-                    continue
-        for p in pids:
-            try:
-                with open(f"/proc/{p}/status") as f:
-                    for line in f:
-                        if line.startswith("VmRSS:"):
-                            total += int(line.split()[1])
-            except OSError:
-                continue
-    except OSError:
-        return math.nan
+    for p in [pid, *_children(pid)]:
+        try:
+            with open(f"/proc/{p}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        total += int(line.split()[1])
+        except OSError:
+            continue
     return total / 1024.0
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of one process so far, seconds (from /proc)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        found.append(int(entry))
+            except OSError:
+                continue
+    return found
+
+
 def _generator(
-    endpoint: str, robots: int, duration: float, seed: int, out: Any, ready: Any, go: Any
+    endpoint: str,
+    robots: int,
+    duration: float,
+    seed: int,
+    out: Any,
+    ready: Any,
+    go: Any,
+    began: Any,
+    ended: Any,
 ) -> None:
-    """Load generator (a separate process): precompute, then publish and time."""
+    """Load generator (a separate process): precompute, then publish and time.
+
+    Sets ``began`` and ``ended`` around the timed publishing, so that the parent can read the
+    service's CPU time over the same interval.
+    """
+    import resource
+
     import zenoh
 
     from rlutf.sim import (
@@ -171,6 +199,9 @@ def _generator(
     ready.set()
     go.wait()
     time.sleep(1.0)
+    began.set()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    cpu0 = usage.ru_utime + usage.ru_stime
     start = time.monotonic()
     period = 1.0 / RATE_HZ
     scans_sent = 0
@@ -191,6 +222,9 @@ def _generator(
         pubs[i][1].put(head + scan_rest)
         scans_sent += 1
     behind = time.monotonic() - (start + events[-1][0])
+    ended.set()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = usage.ru_utime + usage.ru_stime - cpu0
     time.sleep(2.0)
     sub.undeclare()
     for s in sessions:
@@ -201,6 +235,7 @@ def _generator(
             "poses": poses,
             "latencies": latencies,
             "generator_behind_s": behind,
+            "generator_cpu_s": cpu,
         }
     )
 
@@ -228,8 +263,10 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
     cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
     proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
     ctx = mp.get_context("spawn")
-    out, ready, go = ctx.Queue(), ctx.Event(), ctx.Event()
-    gen = ctx.Process(target=_generator, args=(endpoint, robots, duration, 7, out, ready, go))
+    out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
+    gen = ctx.Process(
+        target=_generator, args=(endpoint, robots, duration, 7, out, ready, go, began, ended)
+    )
     try:
         time.sleep(2.0)
         gen.start()
@@ -244,7 +281,14 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
         go.set()
-        result = out.get(timeout=duration + 120)
+        began.wait(60)
+        workers_pids = _children(proc.pid)
+        main0 = _cpu_seconds(proc.pid)
+        workers0 = sum(_cpu_seconds(p) for p in workers_pids)
+        ended.wait(duration + 120)
+        main_cpu = _cpu_seconds(proc.pid) - main0
+        workers_cpu = sum(_cpu_seconds(p) for p in workers_pids) - workers0
+        result = out.get(timeout=60)
         health = _health(endpoint)
         stop.set()
         gen.join(10)
@@ -274,6 +318,11 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
         "rss_last": rss[-1] if rss else math.nan,
         "behind": result["generator_behind_s"],
         "compute_p50": float(health.get("extra", {}).get("compute_ms", {}).get("p50", math.nan)),
+        # CPU time per scan sent, ms: where the two cores go
+        "cpu_main": 1e3 * main_cpu / max(result["scans_sent"], 1),
+        "cpu_workers": 1e3 * workers_cpu / max(result["scans_sent"], 1),
+        "cpu_generator": 1e3 * result["generator_cpu_s"] / max(result["scans_sent"], 1),
+        "processed": int(health.get("processed", -1)),
     }
 
 
@@ -300,8 +349,9 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
         held = n if ok else held
         rows.append(
             f"| {n} | {r['sent']} | {r['poses']} | {r['dropped']} | {r['not_processed']} "
-            f"| {r['uncounted']} "
+            f"| {r['uncounted']} ({r['processed'] - r['poses']}) "
             f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['max']:.0f} | {r['compute_p50']:.2f} "
+            f"| {r['cpu_main']:.2f} / {r['cpu_workers']:.2f} / {r['cpu_generator']:.2f} "
             f"| {r['rss_first']:.0f} / {r['rss_peak']:.0f} / {r['rss_last']:.0f} "
             f"| {'yes' if ok else 'no'} |"
         )
@@ -321,10 +371,12 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
             "was competing for them).",
             "",
             "| robots | scans sent | poses | dropped (reported) | not processed (reported) "
-            "| uncounted | latency p50 ms "
-            "| p99 ms | max ms | worker compute p50 ms | service RSS MB first / peak / last "
+            "| uncounted (of which published, not received) | latency p50 ms "
+            "| p99 ms | max ms | worker compute p50 ms "
+            "| CPU ms per scan: service main / workers / generator "
+            "| service RSS MB first / peak / last "
             "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             *rows,
             "",
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",
