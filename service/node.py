@@ -17,7 +17,6 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -407,8 +406,7 @@ class LocalizationService:
         with query:
             query.reply(self.keys.health(self.settings.instance), self.health(), encoding=JSON)
 
-    def wait(self, stop: threading.Event, tick: Callable[[], None] | None = None) -> None:
-        """Block until ``stop`` is set, calling ``tick`` about once a second."""
+    def wait(self, stop: threading.Event) -> None:
+        """Block until ``stop`` is set (a signal handler sets it)."""
         while not stop.wait(1.0):
-            if tick is not None:
-                tick()
+            pass

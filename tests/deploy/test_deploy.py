@@ -19,7 +19,6 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -31,6 +30,8 @@ from typing import Any
 
 import pytest
 import yaml
+
+from service.demo import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -215,12 +216,6 @@ def build_context_files(root: Path = REPO) -> list[str]:
 
 
 # ------------------------------------------------------------------------------- misc helpers
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def load_yaml_docs(path: Path) -> list[dict[str, Any]]:
