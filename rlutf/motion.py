@@ -95,16 +95,7 @@ def relative(a: ArrayLike, b: ArrayLike) -> FloatArray:
     Returns:
         ``(..., 3)`` relative motions.
     """
-    pa = _as_pose(a, "a")
-    pb = _as_pose(b, "b")
-    if pa.shape == pb.shape == (3,):
-        # One motion (the service's case, once per scan): plain floats skip numpy's per-call
-        # cost, which is most of the time for three numbers.
-        ax, ay, at = float(pa[0]), float(pa[1]), float(pa[2])
-        c, s = math.cos(at), math.sin(at)
-        dx, dy = float(pb[0]) - ax, float(pb[1]) - ay
-        return np.array([c * dx + s * dy, c * dy - s * dx, wrap_scalar(float(pb[2]) - at)])
-    return compose(inverse(pa), pb)
+    return compose(inverse(a), b)
 
 
 def transform_points(pose: ArrayLike, points: ArrayLike) -> FloatArray:

@@ -73,14 +73,3 @@ def test_interpolate_endpoints_and_middle() -> None:
     np.testing.assert_allclose(interpolate(a, b, 0.0), a, atol=1e-12)
     np.testing.assert_allclose(interpolate(a, b, 1.0), b, atol=1e-12)
     assert math.isclose(float(interpolate(a, b, 0.5)[2]), 0.2)
-
-
-@given(pose, pose)
-@settings(max_examples=80, deadline=None)
-def test_relative_of_one_pose_equals_the_batched_form(a: np.ndarray, b: np.ndarray) -> None:
-    """The plain-float path for one pair agrees with the vectorised one used for batches."""
-    one = relative(a, b)
-    batched = relative(a[None], b[None])[0]
-    assert one.shape == (3,) and -math.pi <= one[2] < math.pi
-    np.testing.assert_allclose(one[:2], batched[:2], atol=1e-9)
-    assert abs(wrap_scalar(float(one[2] - batched[2]))) < 1e-12
