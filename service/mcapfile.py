@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterable, Mapping
 from functools import cache
-from importlib import resources
+from importlib import metadata, resources
 from typing import IO, Any, NamedTuple
 
 from mcap.writer import CompressionType, Writer
@@ -30,7 +30,18 @@ CONFIG_METADATA = "rlutf.config"
 """Name of the metadata record holding the effective configuration."""
 CONFIG_KEY = "json"
 """Key of the configuration's JSON text inside the ``rlutf.config`` metadata record."""
-LIBRARY = "rlutf"
+
+
+def _library() -> str:
+    """What writes the logs: ``rlutf`` and the package version, so that an auditor can tell
+    which code recorded a log (a change to the localizer's results changes the version)."""
+    try:
+        return f"rlutf {metadata.version('rlutf')}"
+    except metadata.PackageNotFoundError:  # run from a source tree that is not installed
+        return "rlutf"
+
+
+LIBRARY = _library()
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 
 

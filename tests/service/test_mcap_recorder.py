@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from importlib import metadata
 from io import BytesIO
 from pathlib import Path
 
@@ -57,6 +58,8 @@ def test_writer_layout_matches_wire_md() -> None:
     assert json.loads(meta[0].metadata[CONFIG_KEY]) == CONFIG
     assert summary.chunk_indexes and all(c.compression == "zstd" for c in summary.chunk_indexes)
     assert schema_data("nope.Thing") is None
+    # the header names the code that wrote the log, version included, for audits
+    assert reader.get_header().library == f"rlutf {metadata.version('rlutf')}"
 
 
 def test_recorder_writes_part_then_renames_with_instance_name(tmp_path: Path) -> None:
