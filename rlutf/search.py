@@ -60,27 +60,23 @@ class RandomSearch:
     ) -> None:
         self.best = start
         self.best_d = math.inf
-        self.delta = delta
-        self.delta_theta = delta_theta
         self.rounds = 0
+        self._radii0 = (delta, delta_theta)
         self.pending: tuple[FloatArray, FloatArray] | None = None
-        self._delta_min = delta_min
-        self._delta_theta_min = delta_theta_min
         self._epsilon = epsilon
         self._elitist = elitist
-        planned = 0
         d, dt = delta, delta_theta
         radii: list[tuple[float, float, float]] = []
-        while planned < max_rounds and self._open(d, dt):
-            planned += 1
+        while len(radii) < max_rounds and (d >= delta_min or dt >= delta_theta_min):
             radii.append((d, d, dt))
             d *= 0.5
             dt *= 0.5
+        planned = len(radii)
         u = rng.random((planned, candidates, 3))
         steps = np.sqrt(u[..., 0]) * np.exp(_TWO_PI_J * u[..., 1])
         # Every round's offsets from its best pose, made at once: (dx, dy, dtheta) are the step
-        # times the round's radius, with the radii halved each round exactly as run() halves
-        # them, so each round's candidates cost one addition.
+        # times the round's radius, the radii halved each round, so each round's candidates
+        # cost one addition.
         offsets = np.empty((planned, candidates, 3))
         offsets[..., 0] = steps.real
         offsets[..., 1] = steps.imag
@@ -89,8 +85,15 @@ class RandomSearch:
         offsets *= np.array(radii).reshape(planned, 1, 3)
         self._offsets = offsets
 
-    def _open(self, delta: float, delta_theta: float) -> bool:
-        return delta >= self._delta_min or delta_theta >= self._delta_theta_min
+    @property
+    def delta(self) -> float:
+        """Position radius of the current round, metres (halved after every round)."""
+        return self._radii0[0] * 0.5**self.rounds
+
+    @property
+    def delta_theta(self) -> float:
+        """Heading radius of the current round, radians (halved after every round)."""
+        return self._radii0[1] * 0.5**self.rounds
 
     def candidates(self) -> FloatArray:
         """``(candidates, 3)`` random poses of the current round around the best."""
@@ -107,11 +110,8 @@ class RandomSearch:
             The number of poses scored.
         """
         scored = 0
-        while (
-            self.rounds < len(self._offsets)
-            and self._open(self.delta, self.delta_theta)
-            and self.best_d >= self._epsilon
-        ):
+        # The plan made at construction holds exactly the rounds whose radii are still open.
+        while self.rounds < len(self._offsets) and self.best_d >= self._epsilon:
             if self.pending is not None:
                 cand, d = self.pending
                 self.pending = None
@@ -123,7 +123,5 @@ class RandomSearch:
             di = float(d[i])
             if math.isfinite(di) and (not self._elitist or di < self.best_d):
                 self.best, self.best_d = cand[i], di
-            self.delta *= 0.5
-            self.delta_theta *= 0.5
             self.rounds += 1
         return scored

@@ -38,8 +38,6 @@ def test_candidates_use_the_draws_and_radii_of_each_round() -> None:
         # What one round of run() does when the second candidate wins.
         search.best, best = got[1], got[1]
         search.rounds += 1
-        search.delta *= 0.5
-        search.delta_theta *= 0.5
         delta *= 0.5
         delta_theta *= 0.5
         rounds += 1
