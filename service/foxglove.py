@@ -125,10 +125,7 @@ class FoxgloveConverter:
         if handler is None:
             return []
         try:
-            if handler is FoxgloveConverter._scan:
-                return self._scan_text(record)
-            data = json.loads(record.payload)
-            return handler(self, record, data)
+            return handler(self, record)
         except (ValueError, TypeError, KeyError, IndexError, AttributeError):
             # Inputs are validated before they are logged; a log from elsewhere may hold
             # anything, and a view is not worth failing a recording for.
@@ -139,7 +136,8 @@ class FoxgloveConverter:
         """The frame of a map (``map`` until the map itself was seen)."""
         return self._frames.get(map_id, DEFAULT_FRAME)
 
-    def _map(self, record: Record, data: dict[str, Any]) -> list[Record]:
+    def _map(self, record: Record) -> list[Record]:
+        data = json.loads(record.payload)
         parts = _split(record.topic, "maps", 1)
         if parts is None:
             return []
@@ -197,7 +195,7 @@ class FoxgloveConverter:
             )
         ]
 
-    def _scan_text(self, record: Record) -> list[Record]:
+    def _scan(self, record: Record) -> list[Record]:
         """A LaserScan's view, splicing its ranges' JSON text instead of parsing it.
 
         Formatting 360 floats costs about 40 times more than the rest of the view; the ranges
@@ -213,12 +211,13 @@ class FoxgloveConverter:
                 head: dict[str, Any] = json.loads(payload[: m.end()] + payload[end:])
                 if head.get("ranges") == []:  # the spliced member is the one a parser sees
                     count = text.count(b",") + 1 if text else 0
-                    return self._scan(record, head, (text.replace(b"null", b"0"), count))
-        return self._scan(record, json.loads(payload))
+                    return self._scan_view(record, head, (text.replace(b"null", b"0"), count))
+        return self._scan_view(record, json.loads(payload))
 
-    def _scan(
+    def _scan_view(
         self, record: Record, data: dict[str, Any], text: tuple[bytes, int] | None = None
     ) -> list[Record]:
+        """The view of a parsed scan; ``text``: its ranges as JSON text and their count."""
         parts = _split(record.topic, "robots", 2)
         if parts is None:
             return []
@@ -253,8 +252,9 @@ class FoxgloveConverter:
             )
         ]
 
-    def _located(self, record: Record, data: dict[str, Any]) -> list[Record]:
+    def _located(self, record: Record) -> list[Record]:
         """A PoseEstimate or InitialPose: a pose in the map frame and the robot's transform."""
+        data = json.loads(record.payload)
         parts = _split(record.topic, "robots", 2)
         if parts is None:
             return []

@@ -234,7 +234,7 @@ def test_scan_view_from_text_equals_parsed_view(scan: dict[str, Any], indent: in
     record = Record("x/robots/r1/scan", "rlutf.LaserScan", payload, 1, 1)
     conv = FoxgloveConverter()
     (fast,) = conv(record)
-    (parsed,) = conv._scan(record, json.loads(payload))
+    (parsed,) = conv._scan_view(record, json.loads(payload))
     expected = json.loads(parsed.payload)
     assert json.loads(fast.payload) == expected
     assert expected["ranges"] == [0.0 if r is None else float(r) for r in body["ranges"]]
