@@ -407,6 +407,10 @@ class LocalizationService:
             query.reply(self.keys.health(self.settings.instance), self.health(), encoding=JSON)
 
     def wait(self, stop: threading.Event) -> None:
-        """Block until ``stop`` is set (a signal handler sets it)."""
+        """Block until ``stop`` is set (a signal handler sets it).
+
+        Timed waits in a loop, so that the main thread returns to the interpreter at least once
+        a second and runs pending signal handlers.
+        """
         while not stop.wait(1.0):
-            pass
+            continue
