@@ -108,7 +108,7 @@ def _generator(
         simulate_scan,
     )
     from schemas import InitialPose, Map, encode
-    from service.demo import client_config
+    from service.live.sessions import client_config
 
     rng = np.random.default_rng(seed)
     world = make_building(rng)
@@ -242,7 +242,7 @@ def _generator(
 
 def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[str, Any]:
     """One fleet size against a fresh service subprocess."""
-    from service.demo import free_port
+    from service.live.sessions import free_port
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -333,7 +333,7 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
 def _health(endpoint: str) -> dict[str, Any]:
     import zenoh
 
-    from service.demo import client_config
+    from service.live.sessions import client_config
 
     with zenoh.open(client_config(endpoint)) as s:
         for r in s.get("rlutf/service/*/health", timeout=3.0):
