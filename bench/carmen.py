@@ -1,7 +1,7 @@
 """Real runs from the CARMEN logs of ``shared/data/carmen`` (Intel lab, ACES building).
 
-The map is built from the logs' corrected scans (:func:`service.mapimport.build_from_carmen`,
-then :func:`service.mapimport.grid_to_map`, the path of ``rlutf map build``). The motion input
+The map is built from the logs' corrected scans (:func:`service.maps.mapimport.build_from_carmen`,
+then :func:`service.maps.mapimport.grid_to_map`, the path of ``rlutf map build``). The motion input
 is the raw wheel odometry of the ``ODOM`` lines at each scan's stamp (see
 :func:`raw_odometry`: the logs re-anchor it at every corrected pose, which is undone); the
 reference is the corrected pose of the ``FLASER`` lines (the SLAM method's
@@ -36,7 +36,7 @@ BASE_NS = 1_600_000_000_000_000_000
 @cache
 def carmen_world(name: str) -> Map:
     """The map built from a log's corrected scans (5 cm cells, largest free component)."""
-    from service.mapimport import build_from_carmen, grid_to_map
+    from service.maps.mapimport import build_from_carmen, grid_to_map
 
     grid = build_from_carmen(DATA / "carmen" / f"{name}-corrected.log.gz")
     return Map.from_geojson(grid_to_map(grid, map_id=name).map["geometry"])
@@ -94,7 +94,7 @@ def carmen_run(name: str, limit: int | None = None) -> Run:
         kept: their stamps jitter back by up to half a second, and the motion between two
         scans is all the localizers use.)
     """
-    from service.mapimport import parse_carmen
+    from service.maps.mapimport import parse_carmen
 
     raw = (DATA / "carmen" / f"{name}-corrected.log.gz").read_bytes()
     text = gzip.decompress(raw).decode("utf-8", errors="replace")

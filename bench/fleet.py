@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.report import replace_section
+from bench.report import section_main
 
 SECTION = "fleet"
 RATE_HZ = 10.0
@@ -108,7 +108,7 @@ def _generator(
         simulate_scan,
     )
     from schemas import InitialPose, Map, encode
-    from service.demo import client_config
+    from service.live.sessions import client_config
 
     rng = np.random.default_rng(seed)
     world = make_building(rng)
@@ -242,7 +242,7 @@ def _generator(
 
 def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[str, Any]:
     """One fleet size against a fresh service subprocess."""
-    from service.demo import free_port
+    from service.live.sessions import free_port
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -333,7 +333,7 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
 def _health(endpoint: str) -> dict[str, Any]:
     import zenoh
 
-    from service.demo import client_config
+    from service.live.sessions import client_config
 
     with zenoh.open(client_config(endpoint)) as s:
         for r in s.get("rlutf/service/*/health", timeout=3.0):
@@ -415,14 +415,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0, help="seconds per size")
     p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
     p.add_argument("--workers", type=int, default=-1, help="service worker processes")
-    p.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
-    args = p.parse_args(argv)
-    sizes = [int(s) for s in args.robots.split(",")]
-    text = render(sizes, args.duration, not args.no_record, args.workers)
-    print(text)
-    if args.write:
-        replace_section(Path("BENCHMARKS.md"), SECTION, text)
-    return 0
+
+    def run(args: argparse.Namespace) -> str:
+        sizes = [int(s) for s in args.robots.split(",")]
+        return render(sizes, args.duration, not args.no_record, args.workers)
+
+    return section_main(p, run, SECTION, argv)
 
 
 if __name__ == "__main__":

@@ -14,12 +14,11 @@ import math
 import platform
 import resource
 import time
-from pathlib import Path
 
 import numpy as np
 
 from bench import bench_turning
-from bench.report import replace_section
+from bench.report import section_main
 from rlutf.localizer import Localizer, LocalizerConfig
 from rlutf.motion import relative, wrap_angle
 from rlutf.raycast import Beams, cast_rays
@@ -184,13 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     """Command-line entry."""
     parser = argparse.ArgumentParser(prog="python -m bench.library", description=__doc__)
     parser.add_argument("--updates", type=int, default=300, help="localizer updates per mode")
-    parser.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
-    args = parser.parse_args(argv)
-    text = render(args.updates)
-    print(text)
-    if args.write:
-        replace_section(Path("BENCHMARKS.md"), SECTION, text)
-    return 0
+    return section_main(parser, lambda args: render(args.updates), SECTION, argv)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 HEADER = (
@@ -30,3 +32,27 @@ def replace_section(path: Path, name: str, body: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     path.write_text(text, encoding="utf-8")
+
+
+def section_main(
+    parser: argparse.ArgumentParser,
+    render: Callable[[argparse.Namespace], str],
+    section: str,
+    argv: list[str] | None = None,
+) -> int:
+    """The command-line tail of a benchmark that writes one section of ``BENCHMARKS.md``.
+
+    Adds ``--write`` to ``parser``, parses ``argv``, prints the section ``render`` returns for
+    the parsed arguments and, with ``--write``, replaces the section ``section`` of
+    ``BENCHMARKS.md`` in the working directory with it.
+
+    Returns:
+        The exit code, 0.
+    """
+    parser.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    text = render(args)
+    print(text)
+    if args.write:
+        replace_section(Path("BENCHMARKS.md"), section, text)
+    return 0

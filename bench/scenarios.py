@@ -155,7 +155,7 @@ def imported_map(stem: str) -> Map:
     border, reached through gaps in the walls: rays leave through those gaps as they would on
     the grid. Paths keep their clearance, so none runs in the band.
     """
-    from service.mapimport import import_grid
+    from service.maps.mapimport import import_grid
 
     result = import_grid(DATA / "maps" / f"{stem}.yaml")
     return Map.from_geojson(result.map["geometry"])

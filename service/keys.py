@@ -1,14 +1,20 @@
-"""The key layout of WIRE.md and the parsing of incoming keys."""
+"""The key layout of WIRE.md, the parsing of incoming keys, and the model of each input kind."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
 
-from schemas import valid_id
+from schemas import InitialPose, LaserScan, Odometry, valid_id
 
 InputKind = Literal["scan", "odom", "initialpose"]
 INPUT_KINDS: tuple[InputKind, ...] = ("scan", "odom", "initialpose")
+Message = LaserScan | Odometry | InitialPose
+MODELS: dict[str, type[Message]] = {
+    "scan": LaserScan,
+    "odom": Odometry,
+    "initialpose": InitialPose,
+}
 
 
 class KeyError_(ValueError):

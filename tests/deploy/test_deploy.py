@@ -31,7 +31,7 @@ from typing import Any
 import pytest
 import yaml
 
-from service.demo import free_port
+from service.live.sessions import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"

@@ -9,7 +9,7 @@ import pytest
 import zenoh
 from service_harness import WORLD, Bench, start_service
 
-from service.demo import client_config, free_port
+from service.live.sessions import client_config, free_port
 
 
 @pytest.fixture

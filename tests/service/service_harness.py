@@ -18,7 +18,7 @@ from rlutf.map import Map as World
 from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
 from schemas import InitialPose, LaserScan, Map, Odometry, encode
 from service.config import Settings
-from service.node import LocalizationService
+from service.live.node import LocalizationService
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 

@@ -1,0 +1,128 @@
+"""Flag groups and exit codes shared by the command groups, and the client session they open.
+
+Zenoh flags are named like zenoh's own tools (``--mode``, ``--listen``, ``--connect``,
+``--config``); the service's settings flags feed :func:`service.config.load_settings`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+
+
+def zenoh_flags(p: argparse.ArgumentParser, *, client: bool) -> None:
+    """Add the zenoh flags and ``--prefix``; ``client``: a tool that joins a running fleet."""
+    g = p.add_argument_group("zenoh (named like zenoh's own tools)")
+    g.add_argument(
+        "-m",
+        "--mode",
+        choices=["router", "peer", "client"],
+        help="zenoh mode" + (" (default: client)" if client else " (default: router)"),
+    )
+    if not client:
+        g.add_argument(
+            "-l",
+            "--listen",
+            action="append",
+            metavar="ENDPOINT",
+            help="endpoint to listen on, repeatable (default: tcp/[::]:7447)",
+        )
+    g.add_argument(
+        "-e",
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="endpoint to connect to, repeatable"
+        + (" (default: tcp/127.0.0.1:7447)" if client else ""),
+    )
+    g.add_argument("-c", "--config", type=Path, metavar="FILE", help="zenoh JSON5 config file")
+    p.add_argument("--prefix", help="key prefix (default: rlutf)")
+
+
+def settings_flags(p: argparse.ArgumentParser) -> None:
+    """Add the flags of the service's settings (``serve`` and ``config``)."""
+    p.add_argument(
+        "--settings",
+        type=Path,
+        metavar="FILE",
+        help="settings file (JSON, TOML or YAML); also RLUTF_SETTINGS",
+    )
+    p.add_argument("--instance", help="instance name (default: host-pid)")
+    p.add_argument("--store", type=Path, metavar="DIR", help="map store folder (default: store)")
+    p.add_argument(
+        "--no-store",
+        action="store_true",
+        default=None,
+        help="do not host the map storage (use zenohd's storage manager)",
+    )
+    p.add_argument("--record", type=Path, metavar="DIR", help="MCAP log folder (default: logs)")
+    p.add_argument("--no-record", action="store_true", default=None, help="do not record")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="worker processes (-1: one per core, the default; 0: in-process thread)",
+    )
+
+
+def load(args: argparse.Namespace) -> Any:
+    """The effective settings of :func:`zenoh_flags` and :func:`settings_flags`.
+
+    Raises:
+        SystemExit: the configuration is invalid or the settings file cannot be read.
+    """
+    from pydantic import ValidationError
+
+    from service.config import load_settings
+
+    try:
+        return load_settings(
+            args.settings,
+            mode=args.mode,
+            listen=args.listen,
+            connect=args.connect,
+            zenoh_config=args.config,
+            prefix=args.prefix,
+            instance=args.instance,
+            store_dir=args.store,
+            no_store=args.no_store,
+            record_dir=args.record,
+            no_record=args.no_record,
+            workers=args.workers,
+        )
+    except ValidationError as err:
+        raise SystemExit(f"rlutf: invalid configuration:\n{err}") from err
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"rlutf: {err}") from err
+
+
+def client(args: argparse.Namespace) -> Any:
+    """The settings and an open client session of a tool's :func:`zenoh_flags` (``client``).
+
+    Raises:
+        SystemExit: no zenoh router is reachable.
+    """
+    import zenoh
+
+    from service.config import Settings
+
+    settings = Settings(
+        mode=args.mode or "client",
+        connect=args.connect or ["tcp/127.0.0.1:7447"],
+        listen=[],
+        zenoh_config=args.config,
+        **({"prefix": args.prefix} if args.prefix else {}),
+    )
+    from service.live.sessions import zenoh_config
+
+    try:
+        return settings, zenoh.open(zenoh_config(settings))
+    except zenoh.ZError as err:
+        raise SystemExit(
+            f"rlutf: cannot reach zenoh at {', '.join(settings.connect)}: {err}"
+        ) from err

@@ -1,0 +1,224 @@
+"""``rlutf map put|get|import|build|show``: maps into and out of the store, from grids and logs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
+
+
+def register(sub: Any) -> None:
+    """Add ``map`` and its actions to the ``rlutf`` subcommands."""
+    maps = sub.add_parser("map", help="put, get, import, build and show maps")
+    msub = maps.add_subparsers(dest="map_command", metavar="ACTION")
+    maps.set_defaults(func=cmd_map)
+    put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
+    put.add_argument("file", type=Path)
+    put.add_argument("--id", dest="map_id", help="map id (default: the file's map_id or stem)")
+    put.add_argument("--version", type=int, help="version (default: the file's, else 1)")
+    zenoh_flags(put, client=True)
+    get = msub.add_parser("get", help="print a stored map")
+    get.add_argument("map_id")
+    get.add_argument("--out", type=Path, help="write to a file instead of stdout")
+    get.add_argument("--timeout", type=float, default=3.0)
+    zenoh_flags(get, client=True)
+
+    imp = msub.add_parser(
+        "import",
+        help="import a ROS map_server occupancy grid (YAML + PGM/PNG)",
+        description="Turn a ROS map_server grid (slam_toolbox, Cartographer, GMapping) into a "
+        "polygon Map: free space as polygons, obstacles as holes, unknown cells as walls.",
+    )
+    imp.add_argument("yaml", type=Path, help="the map's YAML file")
+    _map_output_flags(imp)
+    imp.set_defaults(func=cmd_import)
+
+    build = msub.add_parser(
+        "build",
+        help="build a map from a log of scans with known poses",
+        description="Build an occupancy grid from scans with known poses (a CARMEN log with "
+        "corrected poses, .log or .log.gz, or an MCAP log in the WIRE.md layout with poses) "
+        "and import it like `map import`.",
+    )
+    build.add_argument("log", type=Path, help="CARMEN log (.log, .gz) or MCAP log (.mcap)")
+    build.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
+    build.add_argument(
+        "--max-range", type=float, default=50.0, help="longer ranges are no return, m (default 50)"
+    )
+    build.add_argument(
+        "--save-grid",
+        type=Path,
+        metavar="YAML",
+        help="also write the grid as map_server YAML + PGM",
+    )
+    _map_output_flags(build)
+    build.set_defaults(func=cmd_build)
+
+    show = msub.add_parser(
+        "show",
+        help="render a map (file or stored id) to PNG",
+        description="Draw a map so a person can check it by eye.",
+    )
+    show.add_argument("source", help="a map JSON file, or the id of a stored map")
+    show.add_argument("--out", type=Path, default=Path("map.png"), help="PNG (default map.png)")
+    show.add_argument("--timeout", type=float, default=3.0)
+    zenoh_flags(show, client=True)
+    show.set_defaults(func=cmd_show)
+
+
+def _map_output_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--id", dest="map_id", help="map id (default: from the file name)")
+    p.add_argument("--version", type=int, default=1, help="map version (default 1)")
+    p.add_argument("--out", type=Path, help="write the Map JSON here (default: <id>.json)")
+    p.add_argument("--put", action="store_true", help="also put it into the map store")
+    p.add_argument(
+        "--component",
+        help="free component to keep: index from the report, "
+        "a point 'x,y' inside it, or 'all' (default: the largest)",
+    )
+    p.add_argument("--min-area", type=float, help="drop free islands smaller than this, m^2")
+    p.add_argument(
+        "--simplify",
+        type=float,
+        help="simplification tolerance, m (default half a cell; never more than a cell)",
+    )
+    p.add_argument("--png", type=Path, help="also render the result to this PNG")
+    zenoh_flags(p, client=True)
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    """``rlutf map put|get``, and the usage of ``rlutf map`` without an action."""
+    from service.maps.client import get_map, put_map
+
+    if args.map_command == "put":
+        settings, session = client(args)
+        with session:
+            return put_map(session, settings.prefix, args.file, args.map_id, args.version)
+    if args.map_command == "get":
+        settings, session = client(args)
+        with session:
+            return get_map(session, settings.prefix, args.map_id, args.out, args.timeout)
+    print(
+        "rlutf map: choose an action: put, get, import, build, show (see rlutf map --help)",
+        file=sys.stderr,
+    )
+    return EXIT_USAGE
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    from service.maps.mapimport import parse_component
+
+    opts: dict[str, Any] = {"version": args.version}
+    if args.component:
+        opts["component"] = parse_component(args.component)
+    if args.min_area is not None:
+        opts["min_area"] = args.min_area
+    if args.simplify is not None:
+        opts["simplify"] = args.simplify
+    return opts
+
+
+def _finish(args: argparse.Namespace, result: Any) -> int:
+    from service.maps.mapimport import render_map
+
+    print("\n".join(result.report))
+    mid = result.map["map_id"]
+    out = args.out or Path(f"{mid}.json")
+    out.write_text(json.dumps(result.map), encoding="utf-8")
+    print(f"wrote {out}")
+    if args.png:
+        render_map(result.map, args.png, title=f"{mid} v{result.map['version']}")
+        print(f"wrote {args.png}")
+    if args.put:
+        from service.maps.client import put_map
+
+        settings, session = client(args)
+        with session:
+            return put_map(session, settings.prefix, out, mid, result.map["version"])
+    return EXIT_OK
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """``rlutf map import``."""
+    from service.maps.mapimport import MapImportError, import_grid
+
+    try:
+        result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
+    except MapImportError as err:
+        print(f"rlutf map import: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    return _finish(args, result)
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """``rlutf map build``."""
+    from service.maps.mapimport import (
+        MapImportError,
+        build_from_carmen,
+        build_grid,
+        grid_to_map,
+        map_id_from_name,
+        save_grid,
+    )
+
+    try:
+        if args.log.suffix == ".mcap":
+            from service.logs.mcapmaps import scans_with_poses
+
+            grid = build_grid(scans_with_poses(args.log), resolution=args.resolution)
+        else:
+            grid = build_from_carmen(args.log, resolution=args.resolution, max_range=args.max_range)
+        if args.save_grid:
+            save_grid(grid, args.save_grid)
+            print(f"wrote {args.save_grid}")
+        mid = args.map_id or map_id_from_name(args.log.name)
+        result = grid_to_map(grid, map_id=mid, **_options(args))
+    except (MapImportError, OSError, ValueError) as err:
+        print(f"rlutf map build: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    return _finish(args, result)
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    """``rlutf map show``."""
+    from service.maps.mapimport import MapImportError, render_map
+
+    path = Path(args.source)
+    if path.is_file():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as err:
+            print(f"rlutf map show: cannot read {path}: {err}", file=sys.stderr)
+            return EXIT_FAILURE
+    else:
+        from schemas import valid_id
+        from service.keys import Keys
+
+        if not valid_id(args.source):
+            print(
+                f"rlutf map show: {args.source!r} is neither a file nor a map id", file=sys.stderr
+            )
+            return EXIT_FAILURE
+        settings, session = client(args)
+        with session:
+            replies = [
+                r.ok
+                for r in session.get(Keys(settings.prefix).map(args.source), timeout=args.timeout)
+                if r.ok
+            ]
+        if not replies:
+            print(f"rlutf map show: no storage answered for map {args.source!r}", file=sys.stderr)
+            return EXIT_FAILURE
+        data = json.loads(replies[0].payload.to_bytes())
+    try:
+        title = f"{data.get('map_id', path.stem)} v{data.get('version', '?')}"
+        render_map(data, args.out, title=title)
+    except (MapImportError, ValueError, KeyError, TypeError) as err:
+        print(f"rlutf map show: not a map: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    print(f"wrote {args.out}")
+    return EXIT_OK

@@ -1,0 +1,321 @@
+"""The robots one instance localizes, and the handover of a robot to this instance.
+
+The owner of a robot comes from :class:`service.cluster.membership.Membership`. For robots it
+does not own, an instance ignores the inputs (not recorded, not counted as received or rejected;
+counted as ``ignored_not_owner``) except that it keeps a short tail of their odometry, and it
+follows every robot's pose puts, keeping the newest PoseEstimate per robot.
+
+A robot is *acquired* at its first input after this instance became its owner, whether the
+instance never held it (first sight, a member left or joined) or held it before and lost it.
+Before that input the robot is seeded from its last published pose: the odometry tail (from the
+reading at or before the pose's stamp on), then an InitialPose built from that pose (map, x, y,
+theta, stamp), so the localizer starts from the pose with odometry anchored at its stamp. (An
+operator's InitialPose newer than the last pose, which the old owner never localized from, is
+used instead, as it was received.) Both go through the same path as received inputs and are
+recorded like them: **handover seeds are recorded as initial poses** on the robot's
+``initialpose`` topic (and the tail on its ``odom`` topic), so replaying the instance's log
+reproduces the handover. Seeds are never published.
+
+With no pose in memory (every instance restarted), the pose is fetched with a Zenoh get on a
+thread of its own (a storage on the pose keys answers); the robot's inputs are held meanwhile
+and released in order after the seed, with receive times taken at release so the recorded order
+is the order the engine saw. An input that starts with the operator's InitialPose needs no seed.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from schemas import InitialPose, Odometry, PoseEstimate, SchemaError, decode, encode
+from service.cluster.membership import Membership
+from service.keys import MODELS, InputKind, Message
+
+log = logging.getLogger(__name__)
+
+Admit = Callable[[str, InputKind, bytes, Message, int], None]
+"""Record and dispatch one input: robot, kind, payload, message, receive time (ns)."""
+FetchPose = Callable[[str], PoseEstimate | None]
+"""The robot's last pose from the bus, or ``None`` (blocking; called off the Zenoh threads)."""
+
+#: Inputs held per robot while its pose is fetched; later ones are dropped and counted.
+HOLD_MAX = 256
+#: Odometry readings kept per robot not owned, whatever their stamps.
+TAIL_MAX = 1024
+
+
+@dataclass(frozen=True)
+class _Odom:
+    stamp_ns: int
+    payload: bytes
+    message: Odometry
+
+
+class Ownership:
+    """Which robots this instance localizes, and their seeding when it acquires them.
+
+    Nothing is owned until :attr:`ready` is set: a starting instance first follows the fleet
+    (poses and odometry) so that it can seed the robots it takes over. It installs itself as
+    the membership's ``on_change``: when members come or go, the robots that moved away are
+    released at once.
+
+    Args:
+        membership: the live members and the robot owners.
+        admit: records and dispatches an input (see :data:`Admit`).
+        clock: strictly increasing receive clock, ns.
+        tail_ns: how much odometry (by stamp, before the newest reading) to keep per robot
+            owned elsewhere, to anchor a seed at the last pose's stamp.
+        on_release: called (lock held, keep it short) when a robot stops being localized here.
+    """
+
+    def __init__(
+        self,
+        membership: Membership,
+        admit: Admit,
+        clock: Callable[[], int],
+        tail_ns: int,
+        on_release: Callable[[str], None] | None = None,
+    ) -> None:
+        self.membership = membership
+        self._admit = admit
+        self._fetch: FetchPose = lambda robot: None
+        self.ready = False
+        self._clock = clock
+        self._tail_ns = tail_ns
+        self._on_release = on_release or (lambda robot: None)
+        self.lock = threading.RLock()
+        self._active: set[str] = set()
+        self._held: dict[str, list[tuple[InputKind, bytes, Message]]] = {}
+        self._last_in: dict[str, int] = {}
+        self._poses: dict[str, PoseEstimate] = {}
+        self._tails: dict[str, deque[_Odom]] = {}
+        self._placed: dict[str, tuple[bytes, InitialPose]] = {}
+        self._fetches: queue.Queue[str | None] = queue.Queue()
+        self._thread: threading.Thread | None = None
+        self.ignored_not_owner = 0
+        self.seeded = 0
+        self.fetched = 0
+        self.held_dropped = 0
+        membership.on_change = self.rebalance
+
+    # ------------------------------------------------------------------------ lifecycle
+    def start(self, fetch: FetchPose) -> None:
+        """Start the thread that fetches the poses of robots acquired with none in memory."""
+        self._fetch = fetch
+        self._thread = threading.Thread(target=self._fetcher, name="rlutf-handover", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop the pose-fetching thread (a get in progress ends at its timeout)."""
+        self._fetches.put(None)
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------------ followers
+    def follow_pose(self, robot: str, payload: bytes, max_bytes: int) -> None:
+        """Keep a pose put on the bus (by any instance) if it is the robot's newest."""
+        try:
+            pose = decode(PoseEstimate, payload, max_bytes=max_bytes)
+        except SchemaError:
+            return
+        if pose.robot_id == robot:
+            self.remember(pose)
+
+    def remember(self, *poses: PoseEstimate) -> None:
+        """Keep each robot's pose if it is the newest known."""
+        with self.lock:
+            for pose in poses:
+                held = self._poses.get(pose.robot_id)
+                if held is None or pose.stamp_ns >= held.stamp_ns:
+                    self._poses[pose.robot_id] = pose
+
+    def last_pose(self, robot: str) -> PoseEstimate | None:
+        """The newest pose followed for ``robot``."""
+        with self.lock:
+            return self._poses.get(robot)
+
+    def owns(self, robot: str) -> bool:
+        """Whether this instance owns ``robot`` now (never before :attr:`ready`)."""
+        return self.ready and self.membership.owns(robot)
+
+    def ignore(self, robot: str, kind: InputKind, payload: bytes, max_bytes: int) -> None:
+        """Count an input of a robot owned elsewhere.
+
+        Odometry goes to the robot's tail; the newest InitialPose is kept too, in case its
+        owner dies before localizing a scan from it.
+        """
+        with self.lock:
+            self.ignored_not_owner += 1
+            if robot in self._active or robot in self._held:
+                self._release(robot)  # moved away just now; rebalance may not have run yet
+        if kind == "scan":
+            return
+        try:
+            msg = decode(MODELS[kind], payload, max_bytes=max_bytes)
+        except SchemaError:
+            return  # its owner reports it
+        with self.lock:
+            if isinstance(msg, InitialPose):
+                placed = self._placed.get(robot)
+                if placed is None or msg.stamp_ns >= placed[1].stamp_ns:
+                    self._placed[robot] = (bytes(payload), msg)
+                return
+            assert isinstance(msg, Odometry)
+            tail = self._tails.get(robot)
+            if tail is None:
+                tail = self._tails[robot] = deque(maxlen=TAIL_MAX)
+            tail.append(_Odom(msg.stamp_ns, bytes(payload), msg))
+            while tail[0].stamp_ns < msg.stamp_ns - self._tail_ns:
+                tail.popleft()
+
+    # ------------------------------------------------------------------------ inputs
+    def offer(
+        self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
+    ) -> bool:
+        """Localize a validated input here if this instance owns its robot.
+
+        Returns:
+            ``False`` when the robot is owned elsewhere (the input was ignored and counted).
+        """
+        with self.lock:
+            if not self.owns(robot):
+                if robot in self._active or robot in self._held:
+                    self._release(robot)
+                self.ignored_not_owner += 1
+                return False
+            if robot in self._active:
+                self._pass(robot, kind, payload, message, received_ns)
+            elif robot in self._held:
+                if len(self._held[robot]) < HOLD_MAX:
+                    self._held[robot].append((kind, payload, message))
+                else:
+                    self.held_dropped += 1
+            else:
+                self._acquire(robot, kind, payload, message, received_ns)
+            return True
+
+    def _pass(
+        self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
+    ) -> None:
+        # A receive time taken before a seed or a release of held inputs would sort this input
+        # before them in the log; take a new one then.
+        if received_ns <= self._last_in.get(robot, 0):
+            received_ns = self._clock()
+        self._last_in[robot] = received_ns
+        self._admit(robot, kind, payload, message, received_ns)
+
+    def _acquire(
+        self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
+    ) -> None:
+        if kind == "initialpose":  # the operator places it: nothing to seed
+            self._placed.pop(robot, None)
+            self._seed(robot, message.stamp_ns, None)
+        elif robot in self._poses or robot in self._placed:
+            self._start_from(robot, self._poses.get(robot))
+        else:
+            self._held[robot] = [(kind, payload, message)]
+            self._fetches.put(robot)
+            return
+        self._pass(robot, kind, payload, message, received_ns)
+
+    def _start_from(self, robot: str, pose: PoseEstimate | None) -> None:
+        placed = self._placed.pop(robot, None)
+        if placed is not None and (pose is None or placed[1].stamp_ns > pose.stamp_ns):
+            self._seed(robot, placed[1].stamp_ns, placed)  # placed, not localized since
+        elif pose is not None:
+            seed = InitialPose(
+                stamp_ns=pose.stamp_ns, map_id=pose.map_id, x=pose.x, y=pose.y, theta=pose.theta
+            )
+            self._seed(robot, pose.stamp_ns, (encode(seed), seed))
+        else:
+            self._seed(robot, None, None)
+
+    def _seed(
+        self, robot: str, anchor_ns: int | None, seed: tuple[bytes, InitialPose] | None
+    ) -> None:
+        """Hand the odometry tail and the seed to the engine; the robot is localized here."""
+        tail = sorted(self._tails.pop(robot, ()), key=lambda o: o.stamp_ns)
+        if anchor_ns is not None:
+            before = [i for i, o in enumerate(tail) if o.stamp_ns <= anchor_ns]
+            tail = tail[before[-1] :] if before else tail
+        for o in tail:
+            self._pass(robot, "odom", o.payload, o.message, self._clock())
+        self._active.add(robot)
+        if seed is not None:
+            self._pass(robot, "initialpose", seed[0], seed[1], self._clock())
+            self.seeded += 1
+            log.info("%s: seeded from its pose at %d", robot, seed[1].stamp_ns)
+
+    def _fetcher(self) -> None:
+        while True:
+            robot = self._fetches.get()
+            if robot is None:
+                return
+            try:
+                found = self._fetch(robot)
+            except Exception:
+                log.exception("fetching the pose of %s failed", robot)
+                found = None
+            self._fetched(robot, found)
+
+    def _fetched(self, robot: str, found: PoseEstimate | None) -> None:
+        with self.lock:
+            held = self._held.pop(robot, None)
+            if held is None:
+                return  # released meanwhile
+            self.fetched += found is not None
+            pose = self._poses.get(robot)
+            if found is not None and (pose is None or found.stamp_ns > pose.stamp_ns):
+                pose = self._poses[robot] = found
+            first_kind, _, first = held[0]
+            if first_kind == "initialpose":
+                self._placed.pop(robot, None)
+                self._seed(robot, first.stamp_ns, None)
+            else:
+                self._start_from(robot, pose)
+            for kind, payload, message in held:
+                self._pass(robot, kind, payload, message, self._clock())
+
+    # ------------------------------------------------------------------------ membership
+    def rebalance(self) -> None:
+        """Stop localizing the robots this instance no longer owns (membership changed)."""
+        with self.lock:
+            for robot in [*self._active, *self._held]:
+                if not self.membership.owns(robot):
+                    self._release(robot)
+
+    def _release(self, robot: str) -> None:
+        self._active.discard(robot)
+        self.ignored_not_owner += len(self._held.pop(robot, ()))
+        self._on_release(robot)
+        log.info("%s: now owned by %s", robot, self.membership.owner(robot))
+
+    def active(self, robot: str) -> bool:
+        """Whether ``robot`` is localized here (owned and seeded)."""
+        with self.lock:
+            return robot in self._active
+
+    def owned(self) -> list[str]:
+        """Robots localized here, sorted."""
+        with self.lock:
+            return sorted(self._active)
+
+    def figures(self) -> dict[str, object]:
+        """Scale-out figures for the health message."""
+        members = self.membership.members
+        with self.lock:
+            return {
+                "members": len(members),
+                "member_names": members,
+                "owned": sorted(self._active),
+                "owned_count": len(self._active),
+                "acquiring": len(self._held),
+                "ignored_not_owner": self.ignored_not_owner,
+                "handover_seeds": self.seeded,
+                "handover_fetched": self.fetched,
+                "handover_held_dropped": self.held_dropped,
+            }

@@ -1,0 +1,403 @@
+"""Per-robot mailboxes and the worker shards that run the localizers.
+
+Zenoh callbacks only validate and call :meth:`Dispatcher.submit`. Each robot has a mailbox of its
+inputs in arrival order; a newer scan replaces an unprocessed older one (the drop is counted and
+reported), odometry and initial poses are never dropped. A robot is given, when first seen, to
+the shard with the fewest robots; a shard runs one batch per robot at a time, so one robot's
+updates are sequential while different robots run in parallel. A shard is a worker process (the
+default: numpy work holds the GIL, so threads would cap the service at one core) or, with
+``workers=0``, a thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import logging
+import multiprocessing as mp
+import os
+import pickle
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from typing import Any
+
+from rlutf.localizer import LocalizerConfig
+from rlutf.map import Map as World
+from schemas import SchemaError, decode
+from service.engine import FleetEngine, Outbound
+from service.keys import MODELS, InputKind, Keys, Message
+from service.maps.book import LoadedMap
+
+log = logging.getLogger(__name__)
+
+#: Batches a shard may have in flight at once (for different robots), so it never waits idle.
+_IN_FLIGHT = 4
+#: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
+_GC_THRESHOLDS = (20_000, 20, 20)
+
+
+@dataclass
+class _Entry:
+    kind: InputKind
+    payload: bytes
+    message: Message | None
+    received_ns: int
+    stamp_ns: int = 0
+
+
+@dataclass
+class _Mailbox:
+    shard: _Shard
+    entries: deque[_Entry] = field(default_factory=deque)
+    scan: _Entry | None = None  # the unprocessed scan in ``entries``, if any
+    busy: bool = False
+    queued: bool = False
+
+
+@dataclass(frozen=True)
+class Done:
+    """Result of one robot batch: what to publish and the compute time."""
+
+    robot: str
+    outputs: list[Outbound]
+    compute_s: float
+
+
+OnDone = Callable[[Done], None]
+OnDrop = Callable[[str, int, int], None]
+"""Called with the robot, the dropped scan's stamp and when it was received."""
+
+
+class _Shard:
+    """A queue of ready robots served by one worker (process or thread)."""
+
+    def __init__(self, index: int, dispatcher: Dispatcher) -> None:
+        self.index = index
+        self.dispatcher = dispatcher
+        self.ready: deque[str] = deque()
+        self.control: deque[tuple[Any, ...]] = deque()
+        self.cond = threading.Condition(dispatcher.lock)
+        self.in_flight = 0
+        self.robots = 0  # robots assigned to this shard
+        self.threads: list[threading.Thread] = []
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def join(self, timeout: float) -> None:
+        for t in self.threads:
+            t.join(timeout)
+
+    def next_work(self) -> tuple[str, tuple[Any, ...] | list[_Entry]] | None:
+        """Block until there is a control message or a ready robot (lock held by caller)."""
+        d = self.dispatcher
+        while True:
+            if self.control:
+                return "control", self.control.popleft()
+            if self.ready and self.in_flight < _IN_FLIGHT:
+                robot = self.ready.popleft()
+                box = d.boxes[robot]
+                box.queued = False
+                entries = list(box.entries)
+                box.entries.clear()
+                box.scan = None
+                box.busy = True
+                self.in_flight += 1
+                return robot, entries
+            if d.stopping and not self.ready and self.in_flight == 0:
+                return None
+            self.cond.wait(0.5)
+
+    def finish(self, robot: str) -> None:
+        """Mark a robot's batch done and requeue it if more arrived (lock held by caller)."""
+        box = self.dispatcher.boxes[robot]
+        box.busy = False
+        self.in_flight -= 1
+        if box.entries and not box.queued:
+            box.queued = True
+            self.ready.append(robot)
+        self.cond.notify_all()
+
+
+class _ThreadShard(_Shard):
+    def __init__(self, index: int, dispatcher: Dispatcher) -> None:
+        super().__init__(index, dispatcher)
+        d = dispatcher
+        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
+
+    def start(self) -> None:
+        t = threading.Thread(target=self._run, name=f"rlutf-shard-{self.index}", daemon=True)
+        self.threads.append(t)
+        t.start()
+
+    def _run(self) -> None:
+        d = self.dispatcher
+        while True:
+            with d.lock:
+                work = self.next_work()
+            if work is None:
+                return
+            robot, item = work
+            if robot == "control":
+                _apply_control(self.engine, item)  # type: ignore[arg-type]
+                continue
+            t0 = time.perf_counter()
+            outputs = _run_batch(self.engine, robot, item)  # type: ignore[arg-type]
+            done = Done(robot, outputs, time.perf_counter() - t0)
+            with d.lock:
+                self.finish(robot)
+            d.deliver(done)
+
+
+class _ProcessShard(_Shard):
+    def __init__(self, index: int, dispatcher: Dispatcher) -> None:
+        super().__init__(index, dispatcher)
+        ctx = mp.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        d = dispatcher
+        self.process = ctx.Process(
+            target=_worker_main,
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns),
+            name=f"rlutf-worker-{index}",
+            daemon=True,
+        )
+        self.send_lock = threading.Lock()
+
+    def start(self) -> None:
+        self.process.start()
+        for name, target in (("send", self._send), ("recv", self._recv)):
+            t = threading.Thread(
+                target=target, name=f"rlutf-shard-{self.index}-{name}", daemon=True
+            )
+            self.threads.append(t)
+            t.start()
+
+    def _send(self) -> None:
+        d = self.dispatcher
+        while True:
+            with d.lock:
+                work = self.next_work()
+            if work is None:
+                break
+            robot, item = work
+            if robot == "control":
+                msg: tuple[Any, ...] = item  # type: ignore[assignment]
+            else:
+                batch = [(e.kind, e.payload, e.received_ns) for e in item]
+                msg = ("batch", robot, batch)
+            try:
+                _send(self.conn, msg)
+            except (OSError, ValueError):
+                log.exception("worker %d is gone", self.index)
+                return
+        with contextlib.suppress(OSError, ValueError):
+            _send(self.conn, ("stop",))
+
+    def _recv(self) -> None:
+        d = self.dispatcher
+        while True:
+            try:
+                msg = _recv(self.conn)
+            except (EOFError, OSError):
+                return
+            if msg[0] == "stopped":
+                return
+            _, robot, outputs, compute_s = msg
+            with d.lock:
+                self.finish(robot)
+            d.deliver(Done(robot, outputs, compute_s))
+
+    def join(self, timeout: float) -> None:
+        super().join(timeout)
+        self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+
+
+def _send(conn: Connection, msg: tuple[Any, ...]) -> None:
+    """Send over a worker pipe: ``Connection.send`` builds a new ForkingPickler per message,
+    which costs more than the pickling of a batch."""
+    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _recv(conn: Connection) -> Any:
+    return pickle.loads(conn.recv_bytes())
+
+
+def _run_batch(engine: FleetEngine, robot: str, entries: list[_Entry]) -> list[Outbound]:
+    outputs: list[Outbound] = []
+    for e in entries:
+        msg = e.message
+        if msg is None:
+            try:
+                msg = decode(MODELS[e.kind], e.payload)
+            except SchemaError:  # validated at the callback; only a bug gets here
+                log.exception("undecodable %s for %s reached a worker", e.kind, robot)
+                continue
+        try:
+            outputs += engine.handle(robot, msg, e.received_ns)
+        except Exception:  # one robot's failure must not take the worker down
+            log.exception("update of %s failed", robot)
+    return outputs
+
+
+def _apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
+    if msg[0] == "map":
+        _, map_id, version, geometry_or_world, received_ns = msg
+        w = (
+            geometry_or_world
+            if isinstance(geometry_or_world, World)
+            else World.from_geojson(geometry_or_world)
+        )
+        engine.register_map(map_id, version, w, received_ns)
+
+
+def tune_gc() -> None:
+    """Make garbage collection cheap for a process that handles a stream of messages.
+
+    Every message allocates short-lived containers, and Python's default thresholds then run a
+    full collection, which walks every object alive, every few hundred messages: about a sixth
+    of the service's main process time at 250 scans/s. Objects alive now (modules, settings,
+    maps) are frozen out of collections, and young collections run less often.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*_GC_THRESHOLDS)
+
+
+def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interval: int) -> None:
+    """Entry point of a worker process: apply batches until told to stop."""
+    engine = FleetEngine(Keys(prefix), config, interval)
+    tune_gc()
+    while True:
+        try:
+            msg = _recv(conn)
+        except (EOFError, OSError, KeyboardInterrupt):
+            return
+        kind = msg[0]
+        if kind == "stop":
+            _send(conn, ("stopped",))
+            return
+        if kind == "map":
+            _apply_control(engine, msg)
+            continue
+        _, robot, batch = msg
+        entries = [_Entry(k, p, None, r) for k, p, r in batch]
+        t0 = time.perf_counter()
+        outputs = _run_batch(engine, robot, entries)
+        _send(conn, ("done", robot, outputs, time.perf_counter() - t0))
+
+
+class Dispatcher:
+    """Mailboxes and shards.
+
+    Args:
+        keys: key layout.
+        config: localizer parameters.
+        workers: worker processes; 0 runs one shard in a thread; -1 one process per core.
+        event_interval_ns: least time between two events of one code for one robot.
+        on_done: called (from a shard's thread) with each finished batch.
+        on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
+    """
+
+    def __init__(
+        self,
+        keys: Keys,
+        config: LocalizerConfig,
+        workers: int,
+        event_interval_ns: int,
+        on_done: OnDone,
+        on_drop: OnDrop,
+    ) -> None:
+        self.keys = keys
+        self.config = config
+        self.event_interval_ns = event_interval_ns
+        self.on_done = on_done
+        self.on_drop = on_drop
+        self.lock = threading.Lock()
+        self.boxes: dict[str, _Mailbox] = {}
+        self.stopping = False
+        self.dropped = 0
+        count = (os.cpu_count() or 1) if workers < 0 else workers
+        self.processes = count > 0
+        if count == 0:
+            self.shards: list[_Shard] = [_ThreadShard(0, self)]
+        else:
+            self.shards = [_ProcessShard(i, self) for i in range(count)]
+
+    def start(self) -> None:
+        """Start the shards (worker processes take a moment to import numpy)."""
+        if self.processes:
+            # One BLAS thread per worker: the workers already fill the cores, and BLAS threads
+            # contending with them cost more than they save on the small products of an update.
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+        for s in self.shards:
+            s.start()
+
+    def submit(
+        self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
+    ) -> None:
+        """Hand one validated input to its robot's mailbox (called from Zenoh callbacks)."""
+        entry = _Entry(
+            kind, payload, None if self.processes else message, received_ns, message.stamp_ns
+        )
+        with self.lock:
+            if self.stopping:
+                return
+            box = self.boxes.get(robot)
+            if box is None:
+                # A robot's localizer lives in one worker for good: balance robot counts (a hash
+                # of a few dozen ids can leave one worker a fifth busier than the other).
+                shard = min(self.shards, key=lambda s: s.robots)
+                shard.robots += 1
+                box = self.boxes[robot] = _Mailbox(shard)
+            if kind == "scan":
+                old = box.scan
+                if old is not None:
+                    box.entries.remove(old)
+                    self.dropped += 1
+                    self.on_drop(robot, old.stamp_ns, old.received_ns)
+                box.scan = entry
+            box.entries.append(entry)
+            if not box.busy and not box.queued:
+                box.queued = True
+                box.shard.ready.append(robot)
+                box.shard.cond.notify_all()
+
+    def broadcast_map(self, loaded: LoadedMap) -> None:
+        """Send a map version to every shard, ahead of any batch queued after this call.
+
+        The caller holds :attr:`lock`, and took the map's receive time under it: then no input
+        received later can reach a worker before the map.
+        """
+        geometry: Any = loaded.world if not self.processes else loaded.world.to_geojson()
+        msg = ("map", loaded.map_id, loaded.version, geometry, loaded.received_ns)
+        for s in self.shards:
+            s.control.append(msg)
+            s.cond.notify_all()
+
+    def deliver(self, done: Done) -> None:
+        """Pass a finished batch on (from a shard thread)."""
+        try:
+            self.on_done(done)
+        except Exception:
+            log.exception("publishing the results of %s failed", done.robot)
+
+    def pending(self) -> int:
+        """Inputs waiting in mailboxes."""
+        with self.lock:
+            return sum(len(b.entries) for b in self.boxes.values())
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Take no more input, finish what is queued and in flight, stop the shards."""
+        with self.lock:
+            self.stopping = True
+            for s in self.shards:
+                s.cond.notify_all()
+        deadline = time.monotonic() + timeout
+        for s in self.shards:
+            s.join(max(deadline - time.monotonic(), 0.1))

@@ -1,0 +1,401 @@
+"""The localization service on a Zenoh session.
+
+Wiring only: callbacks decode, validate, record and hand inputs to the :class:`Dispatcher`;
+finished batches are published and recorded; maps are fetched and followed on a thread of their
+own (:mod:`service.live.mapfeed`). The computation is :class:`service.engine.FleetEngine`, the
+same code replay runs.
+
+Scale-out: instances sharing a prefix split the fleet by rendezvous hashing over their
+liveliness tokens (:mod:`service.cluster.membership`); each localizes, records, counts and
+answers pose queries for the robots it owns only, and seeds a robot it takes over from the
+robot's last published pose (:mod:`service.cluster.ownership`). A single instance owns every
+robot.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from functools import partial
+from typing import Any
+
+import zenoh
+
+from schemas import (
+    SCHEMA_NAMES,
+    Event,
+    EventCode,
+    InitialPose,
+    LaserScan,
+    Odometry,
+    PoseEstimate,
+    SchemaError,
+    decode,
+    encode,
+)
+from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
+from service.cluster.ownership import Ownership
+from service.config import Settings
+from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.live.dispatch import Dispatcher, Done
+from service.live.mapfeed import MapFeed
+from service.live.sessions import zenoh_config
+from service.live.stats import Stats
+from service.logs.recording import NullRecorder, Recorder
+from service.maps.book import MapBook
+from service.maps.store import FileMapStore, MapStorage
+
+log = logging.getLogger(__name__)
+
+SCHEMA_OF_LEAF = {
+    "scan": SCHEMA_NAMES[LaserScan],
+    "odom": SCHEMA_NAMES[Odometry],
+    "initialpose": SCHEMA_NAMES[InitialPose],
+    "pose": SCHEMA_NAMES[PoseEstimate],
+    "events": SCHEMA_NAMES[Event],
+}
+EVENT_SCHEMA = SCHEMA_NAMES[Event]
+JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+class _Clock:
+    """Strictly increasing receive times (ns since the epoch), so log order is total."""
+
+    def __init__(self) -> None:
+        self._last = 0
+        self._lock = threading.Lock()
+
+    def __call__(self) -> int:
+        with self._lock:
+            now = max(time.time_ns(), self._last + 1)
+            self._last = now
+            return now
+
+
+class LocalizationService:
+    """One instance of the service.
+
+    Args:
+        settings: effective configuration.
+        recorder: where to record; ``None`` records nothing.
+        session: an open Zenoh session to use (tests); by default one is opened from the
+            settings and closed with the service.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        recorder: Recorder | None = None,
+        session: zenoh.Session | None = None,
+    ) -> None:
+        self.settings = settings
+        self.keys = Keys(settings.prefix)
+        self.recorder: Recorder = recorder or NullRecorder()
+        self.stats = Stats(settings.instance)
+        self.clock = _Clock()
+        self.maps = MapBook(settings.max_payload_bytes)
+        self._own_session = session is None
+        self._session = session
+        self._poses: dict[str, bytes] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+        self._declared: list[Any] = []
+        self._input_sub: Any = None
+        self._token: Any = None
+        self._storage: MapStorage | None = None
+        self.dispatcher = Dispatcher(
+            self.keys,
+            settings.localizer,
+            settings.workers,
+            int(settings.event_interval_s * 1e9),
+            self._on_done,
+            self._on_drop,
+        )
+        self.mapfeed = MapFeed(
+            self.keys,
+            self.maps,
+            self.dispatcher,
+            self.recorder,
+            self.clock,
+            settings.map_timeout_s,
+            self._global_event,
+            self._robot_event,
+        )
+        self.membership = Membership(settings.instance)
+        self.ownership = Ownership(
+            self.membership,
+            self._admit,
+            self.clock,
+            int(settings.handover_odom_s * 1e9),
+            on_release=self._forget_pose,
+        )
+        self.closed = threading.Event()
+
+    # ------------------------------------------------------------------------ lifecycle
+    @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session (open after :meth:`start`)."""
+        if self._session is None:
+            raise RuntimeError("the service is not started")
+        return self._session
+
+    def start(self) -> LocalizationService:
+        """Start workers, open the session and declare everything."""
+        s = self.settings
+        self.recorder.set_config(s.effective())
+        if hasattr(self.recorder, "on_overflow"):
+            # Already in the log; published so operators see it live.
+            self.recorder.on_overflow = lambda ev: self._publish(self.keys.events, encode(ev))
+        self.dispatcher.start()
+        if self._session is None:
+            self._session = zenoh.open(zenoh_config(s))
+        session = self._session
+        if not s.no_store:
+            self._storage = MapStorage(
+                session,
+                self.keys,
+                FileMapStore(s.store_dir),
+                s.max_payload_bytes,
+                on_error=lambda key, msg: self._global_event(
+                    "error", EventCode.INVALID_MAP, key, msg
+                ),
+            )
+        self.mapfeed.start(session)
+        self._declared += [
+            session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample),
+            session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
+            session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
+        ]
+        # Follow the fleet first and join last, so robots that move here can be seeded.
+        self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        timeout, limit = s.handover_timeout_s, s.max_payload_bytes
+        self.ownership.start(
+            partial(fetch_last_pose, session, self.keys, timeout=timeout, max_bytes=limit)
+        )
+        self.membership.start(session, self.keys, timeout)
+        if len(self.membership.members) > 1:
+            known = fetch_poses(session, self.keys, self.keys.all_poses, timeout, limit)
+            self.ownership.remember(*known.values())
+            for pose in {p.map_id: p for p in known.values()}.values():  # load the maps now
+                self.mapfeed.need(pose.map_id, pose.robot_id)
+            time.sleep(s.join_warmup_s)
+        self._token = session.liveliness().declare_token(self.keys.service(s.instance))
+        self.ownership.ready = True
+        log.info("rlutf service %s started (mode %s, prefix %s)", s.instance, s.mode, s.prefix)
+        return self
+
+    def close(self) -> None:
+        """Graceful stop: no more input, finish in-flight updates, flush, close the session."""
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        if self._token is not None:
+            self._token.undeclare()  # the other instances take the robots over at once
+        if self._input_sub is not None:
+            self._input_sub.undeclare()
+        self.dispatcher.stop()
+        self.ownership.close()
+        self.membership.close()
+        self.mapfeed.close()
+        for d in reversed(self._declared):
+            try:
+                d.undeclare()
+            except Exception:  # already gone with the session
+                log.debug("undeclare failed", exc_info=True)
+        for pub in self._publishers.values():
+            pub.undeclare()
+        if self._storage is not None:
+            self._storage.close()
+        self.recorder.close()
+        if self._own_session and self._session is not None:
+            self._session.close()
+        log.info("rlutf service %s stopped", self.settings.instance)
+
+    def __enter__(self) -> LocalizationService:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------ inputs
+    def _on_robot_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        received = self.clock()
+        try:
+            parsed = self.keys.parse_robot_key(key)
+        except KeyError_ as err:
+            if self.ownership.ready and self.membership.owns_key(key):  # one instance reports
+                self.stats.add("received")
+                self.stats.add("rejected")
+                self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
+            return
+        if parsed is None:
+            return
+        robot, leaf = parsed
+        limit = self.settings.max_payload_bytes
+        if leaf == "pose":  # every instance follows every pose, for handovers
+            self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
+            return
+        if leaf not in INPUT_KINDS:
+            return  # events, or keys of other tools
+        payload = sample.payload.to_bytes()
+        if not self.ownership.owns(robot):
+            self.ownership.ignore(robot, leaf, payload, limit)
+            return
+        self.stats.add("received")
+        try:
+            msg = decode(MODELS[leaf], payload, max_bytes=limit)
+        except SchemaError as err:
+            self.stats.add("rejected")
+            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
+            return
+        self.ownership.offer(robot, leaf, payload, msg, received)
+
+    def _admit(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
+        """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
+        key = self.keys.robot(robot, kind)
+        self.recorder.record(key, SCHEMA_OF_LEAF[kind], payload, at, msg.stamp_ns)
+        self.dispatcher.submit(robot, kind, payload, msg, at)
+
+    def _forget_pose(self, robot: str) -> None:
+        self._poses.pop(robot, None)
+
+    # ------------------------------------------------------------------------ outputs
+    def _on_done(self, done: Done) -> None:
+        self.stats.compute(done.compute_s * 1e3)
+        for out in done.outputs:
+            if out.kind == "need_map":
+                assert out.map_id is not None
+                self.mapfeed.need(out.map_id, done.robot)
+                continue
+            if out.kind == "skipped":
+                self.stats.add("skipped")
+                continue
+            if out.kind == "pose":
+                with self.ownership.lock:  # a robot released meanwhile is not answered for
+                    if self.ownership.active(done.robot):
+                        self._poses[done.robot] = out.payload
+                # Poses are not delivered back to this session's own subscriber (see _publish):
+                # follow our own here, for a robot that comes back after a handover.
+                self.ownership.follow_pose(done.robot, out.payload, self.settings.max_payload_bytes)
+                self._publish(out.key, out.payload, pose=True)
+                now = self.clock()
+                self.recorder.record(
+                    out.key, SCHEMA_OF_LEAF["pose"], out.payload, now, out.stamp_ns
+                )
+                self.stats.add("processed")
+                if out.received_ns is not None:
+                    self.stats.latency((now - out.received_ns) / 1e6)
+                if out.status == "lost":
+                    self.stats.add("lost")
+            else:
+                self._publish(out.key, out.payload)
+                self.recorder.record(out.key, EVENT_SCHEMA, out.payload, self.clock(), out.stamp_ns)
+
+    def _on_drop(self, robot: str, stamp_ns: int, received_ns: int) -> None:
+        # Recorded (not published: under overload that would add load) so replay drops the
+        # same scans; counted in health.
+        ev = Event(
+            stamp_ns=stamp_ns,
+            level="info",
+            code=EventCode.SCAN_DROPPED,
+            key=self.keys.robot(robot, "scan"),
+            message=f"scan {stamp_ns} replaced by a newer scan before processing",
+        )
+        self.recorder.record(
+            self.keys.robot_events(robot), EVENT_SCHEMA, encode(ev), self.clock(), stamp_ns
+        )
+
+    def _publish(self, key: str, payload: bytes, pose: bool = False) -> None:
+        if self.closed.is_set() and self._session is None:
+            return
+        try:
+            if pose:
+                pub = self._publishers.get(key)
+                if pub is None:
+                    with self._lock:
+                        pub = self._publishers.get(key)
+                        if pub is None:
+                            pub = self.session.declare_publisher(
+                                key,
+                                encoding=JSON,
+                                congestion_control=zenoh.CongestionControl.DROP,
+                                priority=zenoh.Priority.DATA_HIGH,
+                                # Not express: batched with other messages. Express, every
+                                # pose took a slot of the link's short queue, and under CPU
+                                # load Zenoh dropped some (measured at 50 robots: ~1 %).
+                                express=False,
+                                # Not to our own subscriber on {prefix}/robots/*/*: a callback
+                                # per pose only to follow what _on_done already has.
+                                allowed_destination=zenoh.Locality.REMOTE,
+                            )
+                            self._publishers[key] = pub
+                pub.put(payload)
+            else:
+                self.session.put(key, payload, encoding=JSON)
+        except zenoh.ZError:
+            log.warning("could not publish on %s", key, exc_info=True)
+
+    def _event(
+        self, key: str, level: str, code: str, about: str, message: str, now: int | None = None
+    ) -> None:
+        stamp = now if now is not None else self.clock()
+        ev = Event(stamp_ns=stamp, level=level, code=code, key=about, message=message)
+        payload = encode(ev)
+        log.log(
+            logging.WARNING if level in ("warning", "error") else logging.INFO,
+            "%s %s: %s",
+            code,
+            about,
+            message,
+        )
+        self._publish(key, payload)
+        self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)
+
+    def _robot_event(
+        self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
+    ) -> None:
+        self._event(self.keys.robot_events(robot), level, code, about, message, now)
+
+    def _global_event(
+        self, level: str, code: str, about: str, message: str, now: int | None = None
+    ) -> None:
+        self._event(self.keys.events, level, code, about, message, now)
+
+    # ------------------------------------------------------------------------ queries
+    def _on_pose_query(self, query: zenoh.Query) -> None:
+        with query:
+            ke = query.key_expr
+            for robot, payload in list(self._poses.items()):
+                key = self.keys.pose(robot)
+                if ke.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, payload, encoding=JSON)
+
+    def health(self) -> bytes:
+        """The current Health message, encoded."""
+        extra: dict[str, Any] = {
+            "pending_inputs": self.dispatcher.pending(),
+            "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
+            "recorder_overflow": self.recorder.overflowed,
+            "maps": sorted(self.maps_held()),
+            **self.ownership.figures(),
+        }
+        return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
+
+    def maps_held(self) -> list[str]:
+        """Ids of the maps loaded."""
+        return self.maps.ids()
+
+    def _on_health_query(self, query: zenoh.Query) -> None:
+        with query:
+            query.reply(self.keys.health(self.settings.instance), self.health(), encoding=JSON)
+
+    def wait(self, stop: threading.Event) -> None:
+        """Block until ``stop`` is set (a signal handler sets it).
+
+        Timed waits in a loop, so that the main thread returns to the interpreter at least once
+        a second and runs pending signal handlers.
+        """
+        while not stop.wait(1.0):
+            continue

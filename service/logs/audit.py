@@ -1,0 +1,161 @@
+"""Audit: recorded poses against the poses a replay recomputed from the same inputs.
+
+Poses are matched per robot by the stamp of the scan they answer (in order among equal
+stamps). Per robot the audit reports the translation and heading deviations (max and RMS),
+how many payloads are byte-identical, and the poses present on one side only:
+
+* ``missing``: recorded but not recomputed: always a failure;
+* ``extra``: recomputed but not recorded, before the robot's last recorded pose: a failure;
+* ``unverified``: recomputed after the robot's last recorded pose: the log ends before them
+  (a recovered crash log loses its last second), reported but not a failure unless ``strict``.
+
+A robot fails when a deviation exceeds its tolerance, a status differs, or poses are missing or
+extra. Where the log holds no poses at all there is nothing to audit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from rich.console import Console
+from rich.table import Table
+
+from rlutf.motion import wrap_scalar
+from service.logs.replay import PoseRecord
+
+DEFAULT_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class RobotAudit:
+    """The comparison for one robot (deviations in metres and radians)."""
+
+    robot: str
+    matched: int
+    identical: int
+    missing: int
+    extra: int
+    unverified: int
+    status_differs: int
+    max_translation: float
+    rms_translation: float
+    max_heading: float
+    rms_heading: float
+
+    def passed(self, tolerance_m: float, tolerance_rad: float, strict: bool = False) -> bool:
+        """Whether the robot's recorded poses are reproduced within the tolerances."""
+        return (
+            self.max_translation <= tolerance_m
+            and self.max_heading <= tolerance_rad
+            and self.missing == 0
+            and self.extra == 0
+            and self.status_differs == 0
+            and (not strict or self.unverified == 0)
+        )
+
+
+def _audit_robot(
+    robot: str, recorded: Sequence[PoseRecord], recomputed: Sequence[PoseRecord]
+) -> RobotAudit:
+    by_stamp: dict[int, list[PoseRecord]] = defaultdict(list)
+    for p in recomputed:
+        by_stamp[p.stamp_ns].append(p)
+    last = max((p.stamp_ns for p in recorded), default=None)
+    dt: list[float] = []
+    dh: list[float] = []
+    identical = missing = status = 0
+    for rec in recorded:
+        candidates = by_stamp.get(rec.stamp_ns)
+        if not candidates:
+            missing += 1
+            continue
+        new = candidates.pop(0)
+        dt.append(math.hypot(new.x - rec.x, new.y - rec.y))
+        dh.append(abs(wrap_scalar(new.theta - rec.theta)))
+        identical += new.payload == rec.payload
+        status += new.status != rec.status
+    left = [p for group in by_stamp.values() for p in group]
+    unverified = sum(1 for p in left if last is None or p.stamp_ns > last)
+
+    def rms(values: list[float]) -> float:
+        return math.sqrt(sum(v * v for v in values) / len(values)) if values else 0.0
+
+    return RobotAudit(
+        robot=robot,
+        matched=len(dt),
+        identical=identical,
+        missing=missing,
+        extra=len(left) - unverified,
+        unverified=unverified,
+        status_differs=status,
+        max_translation=max(dt, default=0.0),
+        rms_translation=rms(dt),
+        max_heading=max(dh, default=0.0),
+        rms_heading=rms(dh),
+    )
+
+
+def audit(
+    recorded: Mapping[str, Sequence[PoseRecord]], recomputed: Mapping[str, Sequence[PoseRecord]]
+) -> list[RobotAudit]:
+    """Compare per robot; empty when ``recorded`` holds no poses (nothing to audit)."""
+    if not any(recorded.values()):
+        return []
+    robots = sorted(set(recorded) | set(recomputed))
+    return [_audit_robot(r, recorded.get(r, ()), recomputed.get(r, ())) for r in robots]
+
+
+def all_passed(
+    audits: Sequence[RobotAudit], tolerance_m: float, tolerance_rad: float, strict: bool = False
+) -> bool:
+    """Whether every robot passed."""
+    return all(a.passed(tolerance_m, tolerance_rad, strict) for a in audits)
+
+
+def render(
+    audits: Sequence[RobotAudit],
+    tolerance_m: float,
+    tolerance_rad: float,
+    console: Console,
+    strict: bool = False,
+) -> None:
+    """Print the per-robot table."""
+    table = Table(
+        title=f"Audit: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
+        f"{tolerance_rad:g} rad)"
+    )
+    for name in (
+        "robot",
+        "matched",
+        "identical",
+        "missing",
+        "extra",
+        "unverified",
+        "status differs",
+        "max dxy [m]",
+        "rms dxy [m]",
+        "max dtheta [rad]",
+        "rms dtheta [rad]",
+        "result",
+    ):
+        table.add_column(name, justify="left" if name == "robot" else "right")
+    for a in audits:
+        ok = a.passed(tolerance_m, tolerance_rad, strict)
+        table.add_row(
+            a.robot,
+            str(a.matched),
+            str(a.identical),
+            str(a.missing),
+            str(a.extra),
+            str(a.unverified),
+            str(a.status_differs),
+            f"{a.max_translation:.3g}",
+            f"{a.rms_translation:.3g}",
+            f"{a.max_heading:.3g}",
+            f"{a.rms_heading:.3g}",
+            "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]",
+        )
+    console.print(table)

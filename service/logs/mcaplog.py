@@ -1,0 +1,361 @@
+"""The MCAP recorder of the service: one writer thread fed by a bounded queue.
+
+:meth:`McapRecorder.record` only enqueues: it never blocks and never raises. When the queue is
+full the message is not recorded, :attr:`McapRecorder.overflowed` counts it, and once the queue
+has drained the writer logs an Event with code ``recorder_overflow`` on ``{prefix}/events``
+saying how many were lost. Everything else happens on the writer thread: JSON Schema
+registration, the Foxglove views (:mod:`service.logs.foxglove`), chunking and zstd compression.
+
+Files are named ``rlutf[-{instance}]-{UTC start}-{n}.mcap`` in the record folder. A file is
+written as ``NAME.mcap.part``, flushed (chunk closed, fsync) at least every ``flush_interval_s``
+while messages come in, so a crash loses about that much; it is finished (summary, footer,
+fsync) and renamed to ``NAME.mcap`` when it reaches ``max_bytes`` or ``max_seconds``, or when
+the recorder closes. A ``.part`` file left by a crash is repaired by ``rlutf log recover``. A
+file is opened at the first message after start or rotation; each file starts with the
+``rlutf.config`` metadata and the newest version of every map seen so far (with its original
+``log_time``), so every file opens in Foxglove with its map.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any, NamedTuple
+
+from schemas import Event, EventCode, encode
+from service.logs.foxglove import FoxgloveConverter
+from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
+
+log = logging.getLogger(__name__)
+
+PART_SUFFIX = ".part"
+_MAP_SCHEMA = "rlutf.Map"
+#: The open file's size and age are checked for rotation after this many seconds or this many
+#: message bytes (uncompressed; at most a sixteenth of the size limit), whichever comes first.
+_ROTATE_CHECK_S = 0.1
+_ROTATE_CHECK_BYTES = 64 * 1024
+#: The writer thread takes the queued messages this often, seconds (see :class:`_Queue`).
+_POLL_S = 0.02
+
+
+class _Config(NamedTuple):
+    config: dict[str, Any]
+
+
+class _Stop(NamedTuple):
+    pass
+
+
+_Item = Record | _Config | _Stop
+
+
+class _Queue:
+    """A bounded FIFO with one consumer, cheaper than :class:`queue.Queue` for many producers.
+
+    A put is an append under the GIL. ``queue.Queue`` takes its lock on every put and get, and
+    producers on the Zenoh callback threads then waited for the writer thread: measured at about
+    half the cost of recording a scan. Messages do not wake the consumer either: it takes what
+    has come every ``poll_s`` (and at once when the queue is a quarter full or a control item
+    comes), so it runs once per batch instead of once per message, which costs the service two
+    thread switches per message otherwise.
+    """
+
+    def __init__(self, maxsize: int, poll_s: float) -> None:
+        self._items: deque[_Item] = deque()
+        self._maxsize = maxsize
+        self._soon = max(maxsize // 4, 1)
+        self._poll_s = poll_s
+        self._wake = threading.Event()
+
+    def put_nowait(self, item: _Item) -> bool:
+        """Append unless full; ``False`` when full."""
+        items = self._items
+        if len(items) >= self._maxsize:
+            return False
+        items.append(item)
+        if len(items) >= self._soon and not self._wake.is_set():
+            self._wake.set()
+        return True
+
+    def put(self, item: _Item) -> None:
+        """Append, full or not, and wake the consumer (control items)."""
+        self._items.append(item)
+        self._wake.set()
+
+    def get(self, timeout: float) -> _Item | None:
+        """The oldest item, waiting at most ``min(timeout, poll_s)`` for one; ``None`` if none."""
+        items = self._items
+        if items:
+            return items.popleft()
+        self._wake.clear()
+        if not items:  # a put between the test and the clear has set nothing: look again
+            self._wake.wait(min(timeout, self._poll_s))
+        return items.popleft() if items else None
+
+    def empty(self) -> bool:
+        """Nothing is queued."""
+        return not self._items
+
+
+class _OpenFile(NamedTuple):
+    part: Path
+    final: Path
+    stream: IO[bytes]
+    writer: LogWriter
+    opened: float  # time.monotonic()
+
+
+class McapRecorder:
+    """Records the service's messages into rotated MCAP files (see the module docstring).
+
+    Args:
+        record_dir: folder of the logs; created if missing.
+        max_bytes: rotate a file once it is this large.
+        max_seconds: rotate a file this long after it was opened.
+        queue_size: messages the queue holds; past that they are counted and dropped.
+        instance: the service instance's name, put in file names (replicas may share a folder).
+        flush_interval_s: longest time between two flushes of an open file.
+        chunk_size: uncompressed bytes at which a chunk is closed early.
+        foxglove: also log the Foxglove views.
+    """
+
+    def __init__(
+        self,
+        record_dir: Path | str,
+        *,
+        max_bytes: int = 256 * 1024 * 1024,
+        max_seconds: float = 3600.0,
+        queue_size: int = 20000,
+        instance: str | None = None,
+        flush_interval_s: float = 1.0,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        foxglove: bool = True,
+    ) -> None:
+        self.record_dir = Path(record_dir)
+        self.record_dir.mkdir(parents=True, exist_ok=True)
+        self.max_bytes = max_bytes
+        self.max_seconds = max_seconds
+        self.queue_size = queue_size
+        self.instance = instance
+        self.flush_interval_s = flush_interval_s
+        self.chunk_size = chunk_size
+        self._converter = FoxgloveConverter() if foxglove else None
+        self._queue = _Queue(queue_size, _POLL_S)
+        self._lock = threading.Lock()
+        self._overflowed = 0
+        self._unreported = 0
+        self._closed = False
+        self._config: dict[str, Any] | None = None
+        self._maps: dict[str, Record] = {}
+        self._unchecked = 0  # message bytes written since the last rotation check
+        self._file: _OpenFile | None = None
+        self._sequence = 0
+        self.files: list[Path] = []
+        """Finished files, oldest first."""
+        self.errors = 0
+        """Write errors (each also logged)."""
+        self.on_overflow: Callable[[Event], None] | None = None
+        """Called (on the writer thread) with each ``recorder_overflow`` Event once it is logged,
+        e.g. to publish it; it must not call :meth:`record` with it (it is logged already)."""
+        self._thread = threading.Thread(target=self._run, name="rlutf-recorder", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ any thread
+    def record(
+        self, topic: str, schema_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int
+    ) -> None:
+        """Queue one message; never blocks and never raises on a full queue."""
+        if self._closed:
+            return
+        if not self._queue.put_nowait(
+            Record(topic, schema_name, bytes(payload), log_time_ns, publish_time_ns)
+        ):
+            with self._lock:
+                self._overflowed += 1
+                self._unreported += 1
+
+    def set_config(self, config: dict[str, Any]) -> None:
+        """Store the effective configuration as ``rlutf.config`` metadata in every file."""
+        if self._closed:
+            return
+        # Never dropped (called once at start-up).
+        self._queue.put(_Config(dict(config)))
+
+    @property
+    def overflowed(self) -> int:
+        """Messages not recorded because the queue was full."""
+        return self._overflowed
+
+    @property
+    def current_path(self) -> Path | None:
+        """The ``.part`` file being written, if any."""
+        f = self._file
+        return f.part if f is not None else None
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Write what is queued, finish the open file and stop the writer thread."""
+        if self._closed:
+            return
+        self._closed = True
+        deadline = time.monotonic() + timeout
+        self._queue.put(_Stop())
+        self._thread.join(max(deadline - time.monotonic(), 0.1))
+        if self._thread.is_alive():
+            log.error("recorder did not finish within %.0f s", timeout)
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval_s
+        next_rotate_check = 0.0
+        check_bytes = min(_ROTATE_CHECK_BYTES, self.max_bytes // 16)
+        while True:
+            item = self._queue.get(max(next_flush - time.monotonic(), 0.0))
+            if isinstance(item, _Stop):
+                break
+            try:
+                if item is not None:
+                    self._handle(item)
+                if self._unreported and self._queue.empty():
+                    self._report_overflow()
+                now = time.monotonic()
+                if now >= next_flush:
+                    self._flush()
+                    next_flush = now + self.flush_interval_s
+                if now >= next_rotate_check or self._unchecked >= check_bytes:
+                    # Not after every message: the size check is a system call.
+                    self._unchecked = 0
+                    self._maybe_rotate()
+                    next_rotate_check = now + _ROTATE_CHECK_S
+            except Exception:  # a full disk must not stop the service
+                self.errors += 1
+                log.exception("recording failed")
+                self._abandon()
+        try:
+            if self._unreported:
+                self._report_overflow()
+            self._finish()
+        except Exception:
+            self.errors += 1
+            log.exception("finishing the log failed")
+
+    def _handle(self, item: Record | _Config) -> None:
+        if isinstance(item, _Config):
+            self._config = item.config
+            if self._file is not None:
+                self._file.writer.write_config(item.config)
+            return
+        self._unchecked += len(item.payload)
+        writer = self._writer()  # before latching: a new file starts with the maps seen before
+        if item.schema_name == _MAP_SCHEMA:
+            self._maps[item.topic] = item
+        writer.write(item)
+
+    def _writer(self) -> LogWriter:
+        if self._file is None:
+            self._file = self._open()
+            writer = self._file.writer
+            if self._config is not None:
+                writer.write_config(self._config)
+            writer.write_all(self._maps.values())
+        return self._file.writer
+
+    def _open(self) -> _OpenFile:
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        base = f"rlutf-{self.instance}" if self.instance else "rlutf"
+        while True:
+            self._sequence += 1
+            final = self.record_dir / f"{base}-{stamp}-{self._sequence:03d}.mcap"
+            part = final.with_name(final.name + PART_SUFFIX)
+            if not final.exists() and not part.exists():
+                break
+        stream = open(part, "xb")  # noqa: SIM115 -- owned by _OpenFile until _finish
+        writer = LogWriter(stream, self._converter, self.chunk_size)
+        log.info("recording to %s", part)
+        return _OpenFile(part, final, stream, writer, time.monotonic())
+
+    def _report_overflow(self) -> None:
+        with self._lock:
+            lost, self._unreported = self._unreported, 0
+        prefix = str((self._config or {}).get("prefix", "rlutf"))
+        now = time.time_ns()
+        about = f"{prefix}/service/{self.instance}" if self.instance else ""
+        event = Event(
+            stamp_ns=now,
+            level="warning",
+            code=EventCode.RECORDER_OVERFLOW,
+            key=about,
+            message=f"{lost} messages were not recorded: the recorder queue "
+            f"({self.queue_size} messages) was full",
+        )
+        log.warning("recorder queue full: %d messages not recorded", lost)
+        self._writer().write(Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now))
+        if self.on_overflow is not None:
+            try:
+                self.on_overflow(event)
+            except Exception:
+                log.exception("on_overflow failed")
+
+    def _flush(self) -> None:
+        f = self._file
+        if f is None or not f.writer.dirty:
+            return
+        f.writer.flush()
+        f.stream.flush()
+        os.fsync(f.stream.fileno())
+
+    def _maybe_rotate(self) -> None:
+        f = self._file
+        if f is None:
+            return
+        if f.stream.tell() >= self.max_bytes or time.monotonic() - f.opened >= self.max_seconds:
+            self._finish()
+
+    def _finish(self) -> None:
+        f = self._file
+        if f is None:
+            return
+        self._file = None
+        try:
+            f.writer.finish()
+            f.stream.flush()
+            os.fsync(f.stream.fileno())
+        finally:
+            f.stream.close()
+        os.replace(f.part, f.final)
+        _fsync_dir(f.final.parent)
+        self.files.append(f.final)
+        log.info("finished %s", f.final)
+
+    def _abandon(self) -> None:
+        """After a write error: close the file as it is (``rlutf log recover`` repairs it)."""
+        f = self._file
+        self._file = None
+        if f is not None:
+            with contextlib.suppress(OSError):
+                f.stream.close()
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

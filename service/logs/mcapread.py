@@ -1,0 +1,238 @@
+"""Reading logs in the WIRE.md layout, with clear errors for files that are not complete.
+
+A file that does not end in the MCAP magic (cut short by a crash, or still being written as
+``.part``), or whose chunks fail their CRC or do not decompress, raises :class:`DamagedLog`,
+whose message says to run ``rlutf log recover``. Callers at the command line turn
+:class:`LogError` into an exit code; nothing here prints or exits.
+"""
+
+from __future__ import annotations
+
+import heapq
+import io
+from collections.abc import Collection, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any, NamedTuple
+
+from mcap.reader import SeekingReader
+
+from service.logs.mcapfile import CONFIG_METADATA, Record, config_from_metadata
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class LogError(Exception):
+    """A log that cannot be read; the message says which and why."""
+
+
+class NotALog(LogError):
+    """The file is missing or is not an MCAP file at all."""
+
+
+class DamagedLog(LogError):
+    """An MCAP file cut short or corrupted: ``rlutf log recover`` can salvage it."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(
+            f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
+            f"short); salvage its complete chunks with: rlutf log recover {path} FIXED.mcap"
+        )
+        self.path = path
+
+
+class ChannelInfo(NamedTuple):
+    """One channel of a log and its message count."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    messages: int
+
+
+class RobotTopic(NamedTuple):
+    """A topic ``{prefix}/robots/{robot}/{leaf}`` split up."""
+
+    prefix: str
+    robot: str
+    leaf: str
+
+
+def robot_topic(topic: str) -> RobotTopic | None:
+    """Split ``{prefix}/robots/{robot}/{leaf}``; ``None`` for other topics."""
+    parts = topic.split("/")
+    if len(parts) < 4 or parts[-3] != "robots" or not parts[-2] or not parts[-1]:
+        return None
+    return RobotTopic("/".join(parts[:-3]), parts[-2], parts[-1])
+
+
+def map_topic(topic: str) -> tuple[str, str] | None:
+    """Split ``{prefix}/maps/{map_id}`` into ``(prefix, map_id)``; ``None`` for other topics."""
+    parts = topic.split("/")
+    if len(parts) < 3 or parts[-2] != "maps" or not parts[-1]:
+        return None
+    return "/".join(parts[:-2]), parts[-1]
+
+
+@dataclass(frozen=True)
+class _Index:
+    channels: dict[int, tuple[str, str, str]]  # id -> topic, schema name, encoding
+    counts: dict[int, int]
+    start_ns: int | None
+    end_ns: int | None
+
+
+class LogFile:
+    """An open, complete log file.
+
+    Args:
+        path: the ``.mcap`` file.
+
+    Raises:
+        NotALog: missing, unreadable, or not MCAP.
+        DamagedLog: truncated or with an unreadable summary.
+    """
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        try:
+            self._stream: IO[bytes] = open(self.path, "rb")  # noqa: SIM115 -- closed in close()
+        except OSError as err:
+            raise NotALog(f"{self.path}: cannot open: {err.strerror or err}") from err
+        try:
+            self._index = self._check()
+        except BaseException:
+            self._stream.close()
+            raise
+
+    def _check(self) -> _Index:
+        head = self._stream.read(len(MAGIC))
+        if head != MAGIC:
+            raise NotALog(f"{self.path}: not an MCAP file (it does not start with the MCAP magic)")
+        self._stream.seek(-len(MAGIC), io.SEEK_END)
+        if self._stream.tell() < len(MAGIC) or self._stream.read(len(MAGIC)) != MAGIC:
+            raise DamagedLog(self.path, "the file does not end with the MCAP magic")
+        self._stream.seek(0)
+        self._reader = SeekingReader(self._stream, validate_crcs=True)
+        try:
+            summary = self._reader.get_summary()
+        except Exception as err:  # the library raises many types on garbage
+            detail = f"unreadable summary ({type(err).__name__}: {err})"
+            raise DamagedLog(self.path, detail) from err
+        if summary is None:
+            return self._scan_index()
+        schemas = {i: s.name for i, s in summary.schemas.items()}
+        channels = {
+            i: (c.topic, schemas.get(c.schema_id, ""), c.message_encoding)
+            for i, c in summary.channels.items()
+        }
+        stats = summary.statistics
+        if stats is None:
+            return self._scan_index(channels)
+        counts = dict(stats.channel_message_counts)
+        empty = stats.message_count == 0
+        return _Index(
+            channels,
+            counts,
+            None if empty else stats.message_start_time,
+            None if empty else stats.message_end_time,
+        )
+
+    def _scan_index(self, channels: dict[int, tuple[str, str, str]] | None = None) -> _Index:
+        """Index a file without summary statistics by reading it through."""
+        found: dict[int, tuple[str, str, str]] = dict(channels or {})
+        counts: dict[int, int] = {}
+        start = end = None
+        for schema, channel, message in self._iter(None):
+            found[channel.id] = (
+                channel.topic,
+                schema.name if schema else "",
+                channel.message_encoding,
+            )
+            counts[channel.id] = counts.get(channel.id, 0) + 1
+            start = message.log_time if start is None else min(start, message.log_time)
+            end = message.log_time if end is None else max(end, message.log_time)
+        return _Index(found, counts, start, end)
+
+    def _iter(self, topics: list[str] | None) -> Iterator[Any]:
+        try:
+            yield from self._reader.iter_messages(topics=topics, log_time_order=True)
+        except Exception as err:  # CRC mismatch, zstd error, short read ...
+            raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
+
+    # ------------------------------------------------------------------ queries
+    def channels(self) -> list[ChannelInfo]:
+        """Every channel, by topic."""
+        out = [
+            ChannelInfo(topic, schema, encoding, self._index.counts.get(i, 0))
+            for i, (topic, schema, encoding) in self._index.channels.items()
+        ]
+        return sorted(out)
+
+    @property
+    def time_range(self) -> tuple[int, int] | None:
+        """First and last ``log_time``, ns; ``None`` for a log with no messages."""
+        i = self._index
+        if i.start_ns is None or i.end_ns is None:
+            return None
+        return i.start_ns, i.end_ns
+
+    def count(self, schema_names: Collection[str] | None = None) -> int:
+        """Messages on channels of these schemas (all if ``None``)."""
+        return sum(
+            c.messages
+            for c in self.channels()
+            if schema_names is None or c.schema_name in schema_names
+        )
+
+    def metadata(self) -> list[tuple[str, dict[str, str]]]:
+        """Every metadata record, in file order."""
+        try:
+            return [(m.name, dict(m.metadata)) for m in self._reader.iter_metadata()]
+        except Exception as err:
+            raise DamagedLog(self.path, f"unreadable metadata ({type(err).__name__})") from err
+
+    def config(self) -> dict[str, Any] | None:
+        """The last ``rlutf.config`` stored, if any."""
+        found = None
+        for name, data in self.metadata():
+            if name == CONFIG_METADATA:
+                found = config_from_metadata(data) or found
+        return found
+
+    def messages(self, schema_names: Collection[str] | None = None) -> Iterator[Record]:
+        """Messages in ``log_time`` order (file order among equal times).
+
+        Args:
+            schema_names: only channels with these schema names (all if ``None``).
+
+        Raises:
+            DamagedLog: a chunk fails its CRC or does not decompress.
+        """
+        topics = None
+        if schema_names is not None:
+            topics = sorted({c.topic for c in self.channels() if c.schema_name in schema_names})
+            if not topics:
+                return
+        for schema, channel, message in self._iter(topics):
+            name = schema.name if schema is not None else ""
+            if schema_names is not None and name not in schema_names:
+                continue
+            yield Record(channel.topic, name, message.data, message.log_time, message.publish_time)
+
+    def close(self) -> None:
+        """Close the file."""
+        self._stream.close()
+
+    def __enter__(self) -> LogFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def merged_messages(
+    logs: Iterable[LogFile], schema_names: Collection[str] | None = None
+) -> Iterator[Record]:
+    """Messages of several logs in one ``log_time`` order (earlier files first among ties)."""
+    return heapq.merge(*(log.messages(schema_names) for log in logs), key=lambda r: r.log_time_ns)

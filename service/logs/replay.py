@@ -1,0 +1,318 @@
+"""Replay: the service's computation over a log's inputs, with no Zenoh.
+
+The inputs of any file in the WIRE.md layout, whoever wrote it, are fed in ``log_time`` order
+through the same code the live service runs: :class:`service.maps.book.MapBook` takes the maps
+(schema ``rlutf.Map`` on ``{prefix}/maps/{map_id}``) and registers the accepted ones with
+:class:`service.engine.FleetEngine`, which takes the initial poses, odometry and scans (schemas
+``rlutf.InitialPose``, ``rlutf.Odometry``, ``rlutf.LaserScan``; the robot id is read from the
+topic) with their ``log_time`` as receive time. The same inputs and configuration give the same
+pose payloads, byte for byte.
+
+Overload: under load the live service drops a robot's unprocessed scan when a newer one arrives,
+and records an Event ``scan_dropped`` (``stamp_ns`` = the dropped scan's stamp) on
+``{prefix}/robots/{robot}/events``. Replay reads those events first and skips the same scans
+(per robot and stamp), so live and replay stay identical whatever the load was.
+
+The output holds the inputs, the recorded ``scan_dropped`` events, the recomputed poses and
+events (``log_time`` = the receive time of the input they answer), the Foxglove views, the
+configuration used (``rlutf.config``) and ``rlutf.replay`` metadata naming the inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+from schemas import (
+    EventCode,
+    InitialPose,
+    LaserScan,
+    Odometry,
+    PoseEstimate,
+    SchemaError,
+    decode,
+)
+from service.engine import FleetEngine
+from service.keys import Keys
+from service.logs.foxglove import FoxgloveConverter
+from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
+from service.logs.mcapread import LogFile, map_topic, merged_messages, robot_topic
+from service.logs.replayconfig import ReplayConfig, resolve
+from service.maps.book import MapBook, MapRejected
+
+log = logging.getLogger(__name__)
+
+INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose]] = {
+    "rlutf.LaserScan": LaserScan,
+    "rlutf.Odometry": Odometry,
+    "rlutf.InitialPose": InitialPose,
+}
+MAP_SCHEMA = "rlutf.Map"
+POSE_SCHEMA = "rlutf.PoseEstimate"
+EVENT_SCHEMA = "rlutf.Event"
+REPLAYED = frozenset({*INPUT_MODELS, MAP_SCHEMA, POSE_SCHEMA})
+REPLAY_METADATA = "rlutf.replay"
+
+Progress = Callable[[int], None]
+"""Called with the number of messages just handled."""
+
+
+class PoseRecord(NamedTuple):
+    """One PoseEstimate, recorded or recomputed."""
+
+    robot: str
+    stamp_ns: int
+    map_id: str
+    x: float
+    y: float
+    theta: float
+    status: str
+    payload: bytes
+
+
+@dataclass
+class ReplayResult:
+    """What a replay found and computed.
+
+    Attributes:
+        config: the configuration it ran with.
+        recorded: poses found in the inputs, per robot, in log order.
+        recomputed: poses computed by the replay, per robot, in order.
+        odometry: ``(stamp_ns, x, y, theta)`` per robot.
+        initial_poses: ``(stamp_ns, map_id, x, y, theta)`` per robot.
+        maps: newest accepted Map payload per map id.
+        inputs: input messages handled (maps included).
+        dropped: scans skipped because they were dropped live.
+        rejected: inputs rejected as invalid (the live service would not have recorded them).
+        unreadable_poses: recorded poses that are not valid PoseEstimates.
+        out: the output file, if one was written.
+    """
+
+    config: ReplayConfig
+    recorded: dict[str, list[PoseRecord]] = field(default_factory=lambda: defaultdict(list))
+    recomputed: dict[str, list[PoseRecord]] = field(default_factory=lambda: defaultdict(list))
+    odometry: dict[str, list[tuple[int, float, float, float]]] = field(
+        default_factory=lambda: defaultdict(list)
+    )
+    initial_poses: dict[str, list[tuple[int, str, float, float, float]]] = field(
+        default_factory=lambda: defaultdict(list)
+    )
+    maps: dict[str, bytes] = field(default_factory=dict)
+    inputs: int = 0
+    dropped: int = 0
+    rejected: int = 0
+    unreadable_poses: int = 0
+    out: Path | None = None
+
+
+def pose_record(payload: bytes) -> PoseRecord:
+    """A PoseRecord from a PoseEstimate payload.
+
+    Raises:
+        SchemaError: not a valid PoseEstimate.
+    """
+    p = decode(PoseEstimate, payload)
+    return PoseRecord(p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload)
+
+
+def _dropped_scans(logs: Sequence[LogFile]) -> tuple[Counter[tuple[str, int]], list[Record]]:
+    drops: Counter[tuple[str, int]] = Counter()
+    records = []
+    for rec in merged_messages(logs, {EVENT_SCHEMA}):
+        where = robot_topic(rec.topic)
+        if where is None or where.leaf != "events":
+            continue
+        try:
+            data = json.loads(rec.payload)
+        except ValueError:
+            continue
+        if isinstance(data, dict) and data.get("code") == EventCode.SCAN_DROPPED:
+            stamp = data.get("stamp_ns")
+            if isinstance(stamp, int):
+                drops[(where.robot, stamp)] += 1
+                records.append(rec)
+    return drops, records
+
+
+def _prefix_hint(logs: Sequence[LogFile]) -> str | None:
+    for lf in logs:
+        for ch in lf.channels():
+            where = robot_topic(ch.topic) if ch.schema_name in INPUT_MODELS else None
+            if where is not None:
+                return where.prefix
+    return None
+
+
+class _Run:
+    """One pass over the inputs."""
+
+    def __init__(
+        self, result: ReplayResult, drops: Counter[tuple[str, int]], writer: LogWriter | None
+    ) -> None:
+        cfg = result.config
+        self.result = result
+        self.drops = drops
+        self.writer = writer
+        self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
+        self.book = MapBook(cfg.max_payload_bytes)
+        self.maps_seen: set[tuple[str, int, bytes]] = set()
+
+    def handle(self, rec: Record) -> None:
+        if rec.schema_name == POSE_SCHEMA:
+            try:
+                pose = pose_record(rec.payload)
+            except SchemaError:
+                self.result.unreadable_poses += 1
+                return
+            self.result.recorded[pose.robot].append(pose)
+        elif rec.schema_name == MAP_SCHEMA:
+            self._map(rec)
+        else:
+            self._input(rec)
+
+    def _write(self, rec: Record) -> None:
+        if self.writer is not None:
+            self.writer.write(rec)
+
+    def _map(self, rec: Record) -> None:
+        where = map_topic(rec.topic)
+        seen = (rec.topic, rec.log_time_ns, rec.payload)
+        if where is None or seen in self.maps_seen:
+            return  # rotated files each start with the maps recorded before them
+        self.maps_seen.add(seen)
+        self.result.inputs += 1
+        try:
+            loaded = self.book.offer(where[1], rec.payload, rec.log_time_ns)
+        except MapRejected as err:
+            self.result.rejected += 1
+            log.warning("map on %s rejected: %s", rec.topic, err)
+            return
+        self._write(rec)
+        if loaded is not None:
+            self.engine.register_map(
+                loaded.map_id, loaded.version, loaded.world, loaded.received_ns
+            )
+            self.result.maps[loaded.map_id] = loaded.payload
+
+    def _input(self, rec: Record) -> None:
+        where = robot_topic(rec.topic)
+        if where is None:
+            return
+        model = INPUT_MODELS[rec.schema_name]
+        try:
+            msg = decode(model, rec.payload, max_bytes=self.result.config.max_payload_bytes)
+        except SchemaError as err:
+            self.result.rejected += 1
+            log.warning("%s on %s rejected: %s", rec.schema_name, rec.topic, err)
+            return
+        self.result.inputs += 1
+        self._write(rec)
+        robot = where.robot
+        if isinstance(msg, Odometry):
+            self.result.odometry[robot].append((msg.stamp_ns, msg.x, msg.y, msg.theta))
+        elif isinstance(msg, InitialPose):
+            self.result.initial_poses[robot].append(
+                (msg.stamp_ns, msg.map_id, msg.x, msg.y, msg.theta)
+            )
+        elif self.drops[(robot, msg.stamp_ns)] > 0:
+            self.drops[(robot, msg.stamp_ns)] -= 1
+            self.result.dropped += 1
+            return
+        try:
+            outputs = self.engine.handle(robot, msg, rec.log_time_ns)
+        except Exception:  # as the live workers do: one bad update never stops the others
+            log.exception("update of %s failed", robot)
+            return
+        for out in outputs:
+            if out.kind == "need_map":
+                continue
+            schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
+            self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
+            if out.kind == "pose":
+                self.result.recomputed[robot].append(pose_record(out.payload))
+
+
+def replay(
+    inputs: Sequence[Path],
+    out: Path | None = None,
+    *,
+    settings_file: Path | None = None,
+    assignments: Sequence[str] = (),
+    config: ReplayConfig | None = None,
+    foxglove: bool = True,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    progress: Progress | None = None,
+    on_total: Callable[[int], None] | None = None,
+) -> ReplayResult:
+    """Replay the inputs of one or more logs (merged in ``log_time`` order).
+
+    Args:
+        inputs: log files, e.g. the rotated files of one run in order.
+        out: where to write the output log (written as ``OUT.part``, renamed when complete);
+            ``None`` writes nothing.
+        settings_file: settings merged over the recorded configuration.
+        assignments: ``KEY=VALUE`` overrides applied last.
+        config: use this configuration instead of resolving one.
+        foxglove: add the Foxglove views to the output.
+        chunk_size: uncompressed chunk size of the output, bytes.
+        progress: called as messages are handled.
+        on_total: called once with the number of messages to handle.
+
+    Raises:
+        service.logs.mcapread.LogError: an input is missing, not MCAP, or damaged.
+        service.logs.replayconfig.ReplayConfigError: the configuration is invalid.
+    """
+    with ExitStack() as stack:
+        logs = [stack.enter_context(LogFile(p)) for p in inputs]
+        if config is None:
+            recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            config = resolve(
+                recorded,
+                prefix_hint=_prefix_hint(logs),
+                settings_file=settings_file,
+                assignments=assignments,
+            )
+        result = ReplayResult(config)
+        drops, drop_records = _dropped_scans(logs)
+        if on_total is not None:
+            on_total(sum(lf.count(REPLAYED) for lf in logs))
+        part = out.with_name(out.name + ".part") if out is not None else None
+        stream = stack.enter_context(open(part, "wb")) if part is not None else None
+        try:
+            converter = FoxgloveConverter() if foxglove else None
+            writer = LogWriter(stream, converter, chunk_size) if stream is not None else None
+            if writer is not None:
+                writer.write_config(config.settings)
+                writer.write_metadata(
+                    REPLAY_METADATA,
+                    {
+                        "inputs": json.dumps([str(p) for p in inputs]),
+                        "assignments": json.dumps(list(assignments)),
+                        "settings_file": str(settings_file or ""),
+                    },
+                )
+                writer.write_all(drop_records)
+            run = _Run(result, drops, writer)
+            for rec in merged_messages(logs, REPLAYED):
+                run.handle(rec)
+                if progress is not None:
+                    progress(1)
+            if writer is not None and stream is not None:
+                writer.finish()
+                stream.flush()
+                os.fsync(stream.fileno())
+        except BaseException:
+            if part is not None:
+                part.unlink(missing_ok=True)
+            raise
+    if part is not None and out is not None:
+        os.replace(part, out)
+        result.out = out
+    return result

@@ -1,0 +1,279 @@
+"""Occupancy grids from laser scans with known poses, and the CARMEN log reader.
+
+Every beam with a return marks the cell of its end point as hit and every other cell it
+crosses on the way as passed (an exact grid traversal, each cell once per beam). A cell's
+occupancy is its hit ratio ``hits / (hits + passes)``; cells seen fewer than
+``min_observations`` times are unknown, and the rest are classified with the map_server
+thresholds (occupied above ``occupied_thresh``, free below ``free_thresh``, unknown between).
+Beams without a return (range not finite, at most ``range_min``, or at least the scan's max
+range) mark nothing: a missing echo says little about where the free space ends.
+
+CARMEN logs (``FLASER`` lines, see ``../shared/data/README.md``): a scan of ``n`` beams starts
+at -pi/2 and is spaced pi/n for even n and pi/(n - 1) for odd n; its ``x y theta`` is the
+laser's pose. Other message types are skipped. Gzip-compressed logs are read transparently.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from service.maps.mapimport.errors import CarmenError, EmptyMapError, MapFileError, MapImportError
+from service.maps.mapimport.grid import FloatArray, OccupancyGrid
+from service.maps.mapimport.raymarch import traverse
+
+#: Default sensor range (metres): CARMEN writes 81.83 or the sensor's maximum for no return.
+DEFAULT_MAX_RANGE = 50.0
+#: Cells the grid extends beyond the outermost pose or hit point.
+_MARGIN_CELLS = 2
+#: Traversal steps to collect before counting them (bounds memory).
+_FLUSH_CELLS = 4_000_000
+
+
+class CarmenScan(NamedTuple):
+    """One laser scan in the map frame, in the form :func:`build_grid` takes.
+
+    Attributes:
+        pose: ``(3,)`` laser pose ``(x, y, theta)``, metres and radians.
+        ranges: ``(N,)`` ranges, metres.
+        angles: ``(N,)`` beam angles relative to the laser's heading, radians.
+        max_range: ranges at or above this are no return, metres.
+    """
+
+    pose: FloatArray
+    ranges: FloatArray
+    angles: FloatArray
+    max_range: float
+
+
+@dataclass(frozen=True, eq=False)
+class CarmenLog:
+    """The scans and odometry of a CARMEN log.
+
+    Attributes:
+        scans: the ``FLASER`` scans in file order.
+        stamps: ``(S,)`` their timestamps, seconds.
+        odometry: ``(M, 4)`` ``ODOM`` rows ``(timestamp, x, y, theta)``.
+    """
+
+    scans: tuple[CarmenScan, ...]
+    stamps: FloatArray
+    odometry: FloatArray
+
+    @property
+    def poses(self) -> FloatArray:
+        """``(S, 3)`` the scans' laser poses."""
+        return np.array([s.pose for s in self.scans]).reshape(-1, 3)
+
+
+def carmen_angles(n: int) -> FloatArray:
+    """Beam angles of an ``n``-beam CARMEN scan: from -pi/2, pi/n apart (pi/(n-1) if n is odd)."""
+    step = math.pi / n if n % 2 == 0 else math.pi / max(n - 1, 1)
+    return -0.5 * math.pi + step * np.arange(n, dtype=np.float64)
+
+
+def _floats(fields: Sequence[str], lineno: int) -> list[float]:
+    try:
+        return [float(f) for f in fields]
+    except ValueError as err:
+        raise CarmenError(f"line {lineno}: not a number in {' '.join(fields[:8])}...") from err
+
+
+def parse_carmen(text: str | bytes, *, max_range: float = DEFAULT_MAX_RANGE) -> CarmenLog:
+    """Parse a CARMEN log's text.
+
+    Args:
+        text: the log (already decompressed).
+        max_range: the no-return range given to every scan, metres.
+
+    Returns:
+        The scans and odometry.
+
+    Raises:
+        CarmenError: a malformed ``FLASER`` or ``ODOM`` line (named by its number), or no scan.
+    """
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", errors="replace")
+    scans: list[CarmenScan] = []
+    stamps: list[float] = []
+    odometry: list[list[float]] = []
+    angle_cache: dict[int, FloatArray] = {}
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        if fields[0] == "FLASER":
+            try:
+                n = int(fields[1])
+            except (IndexError, ValueError) as err:
+                raise CarmenError(f"line {lineno}: FLASER needs a beam count") from err
+            if n < 1 or len(fields) < n + 9:
+                raise CarmenError(
+                    f"line {lineno}: FLASER with {n} beams needs {n + 9} fields "
+                    f"(n, ranges, x y theta, odom x y theta, timestamp), got {len(fields) - 1}"
+                )
+            values = _floats(fields[2 : n + 9], lineno)
+            if n not in angle_cache:
+                angle_cache[n] = carmen_angles(n)
+            pose = np.array(values[n : n + 3])
+            scans.append(CarmenScan(pose, np.array(values[:n]), angle_cache[n], max_range))
+            stamps.append(values[n + 6])
+        elif fields[0] == "ODOM":
+            if len(fields) < 8:
+                raise CarmenError(f"line {lineno}: ODOM needs 7 fields, got {len(fields) - 1}")
+            x, y, theta, _tv, _rv, _acc, stamp = _floats(fields[1:8], lineno)
+            odometry.append([stamp, x, y, theta])
+    if not scans:
+        raise CarmenError("the log holds no FLASER scan")
+    return CarmenLog(
+        tuple(scans), np.array(stamps), np.array(odometry, dtype=np.float64).reshape(-1, 4)
+    )
+
+
+def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> CarmenLog:
+    """Read a CARMEN log file, gzip-compressed or not.
+
+    Raises:
+        MapFileError: the file is missing, unreadable or a broken gzip stream.
+        CarmenError: a malformed line.
+    """
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+        if data[:2] == b"\x1f\x8b":
+            data = gzip.decompress(data)
+    except (OSError, EOFError) as err:
+        raise MapFileError(f"CARMEN log '{p}': cannot read: {err}") from err
+    try:
+        return parse_carmen(data, max_range=max_range)
+    except CarmenError as err:
+        raise CarmenError(f"{p}: {err}") from err
+
+
+def build_grid(
+    scans: Iterable[tuple[ArrayLike, ArrayLike, ArrayLike, float]],
+    *,
+    resolution: float = 0.05,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.25,
+    min_observations: int = 1,
+    range_min: float = 0.0,
+) -> OccupancyGrid:
+    """Build an occupancy grid from scans taken at known poses.
+
+    Args:
+        scans: ``(pose (3,), ranges (N,), angles (N,), max_range)`` per scan: the sensor's
+            map-frame pose, ranges in metres (non-finite, ``<= range_min`` or
+            ``>= max_range`` is no return) and beam angles relative to the sensor heading.
+        resolution: cell size, metres.
+        occupied_thresh: hit ratio above which a cell is occupied.
+        free_thresh: hit ratio below which a cell is free.
+        min_observations: cells seen (hit or passed) fewer times are unknown.
+        range_min: ranges at or below this are no return, metres.
+
+    Returns:
+        The grid, axis-aligned (yaw 0), its origin on a multiple of the resolution, covering
+        every pose and hit point with a margin of two cells.
+
+    Raises:
+        MapImportError: bad parameters, a scan of the wrong shape, or no beam with a return.
+    """
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise MapImportError(f"resolution: must be positive, got {resolution}")
+    if not 0.0 <= free_thresh <= occupied_thresh <= 1.0:
+        raise MapImportError(
+            f"thresholds: need 0 <= free_thresh ({free_thresh}) <= occupied_thresh "
+            f"({occupied_thresh}) <= 1"
+        )
+    starts: list[FloatArray] = []
+    ends: list[FloatArray] = []
+    for k, (pose, ranges, angles, max_range) in enumerate(scans):
+        p = np.asarray(pose, dtype=np.float64).reshape(-1)
+        r = np.asarray(ranges, dtype=np.float64).reshape(-1)
+        a = np.asarray(angles, dtype=np.float64).reshape(-1)
+        if p.shape != (3,) or r.shape != a.shape or not np.isfinite(p).all():
+            raise MapImportError(
+                f"scan {k}: need a finite pose (3,) and ranges and angles of one length, "
+                f"got {p.shape}, {r.shape}, {a.shape}"
+            )
+        ok = np.isfinite(r) & (r > range_min) & (r < max_range)
+        heading = p[2] + a[ok]
+        ends.append(p[:2] + r[ok, None] * np.column_stack([np.cos(heading), np.sin(heading)]))
+        starts.append(np.broadcast_to(p[:2], (int(ok.sum()), 2)))
+    start = np.vstack(starts) if starts else np.empty((0, 2))
+    end = np.vstack(ends) if ends else np.empty((0, 2))
+    if len(end) == 0:
+        raise EmptyMapError("no beam with a return: nothing to build a map from")
+    lo = np.floor(np.minimum(start.min(axis=0), end.min(axis=0)) / resolution) - _MARGIN_CELLS
+    hi = np.floor(np.maximum(start.max(axis=0), end.max(axis=0)) / resolution) + _MARGIN_CELLS
+    cols, rows = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
+    o = start / resolution - lo
+    e = end / resolution - lo
+    length = np.hypot(*(e - o).T)
+    direction = (e - o) / np.maximum(length, 1e-12)[:, None]
+    hit_cell = np.floor(e).astype(np.int64)
+    hit_flat = hit_cell[:, 1] * cols + hit_cell[:, 0]
+    size = rows * cols
+    hits = np.bincount(hit_flat, minlength=size)
+    passes = np.zeros(size, dtype=np.int64)
+    pending: list[np.ndarray[tuple[int], np.dtype[np.int64]]] = []
+    pending_count = 0
+    for beam, flat, _ in traverse(o, direction, length, (rows, cols)):
+        crossed = flat[flat != hit_flat[beam]]
+        pending.append(crossed)
+        pending_count += len(crossed)
+        if pending_count > _FLUSH_CELLS:
+            passes += np.bincount(np.concatenate(pending), minlength=size)
+            pending, pending_count = [], 0
+    if pending:
+        passes += np.bincount(np.concatenate(pending), minlength=size)
+    seen = hits + passes
+    known = seen >= max(min_observations, 1)
+    ratio = np.where(known, hits / np.maximum(seen, 1), np.nan)
+    data = np.where(known, np.rint(100.0 * np.nan_to_num(ratio)), -1).astype(np.int8)
+    return OccupancyGrid(
+        data=data.reshape(rows, cols),
+        free=(known & (np.nan_to_num(ratio, nan=1.0) < free_thresh)).reshape(rows, cols),
+        occupied=(known & (np.nan_to_num(ratio) > occupied_thresh)).reshape(rows, cols),
+        resolution=resolution,
+        origin=(float(lo[0] * resolution), float(lo[1] * resolution), 0.0),
+    )
+
+
+def build_from_carmen(
+    log_path: str | Path,
+    *,
+    resolution: float = 0.05,
+    max_range: float = DEFAULT_MAX_RANGE,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.25,
+    min_observations: int = 1,
+) -> OccupancyGrid:
+    """Build an occupancy grid from a CARMEN log's ``FLASER`` scans at their logged poses.
+
+    Args:
+        log_path: the log, plain or gzip-compressed.
+        resolution: cell size, metres.
+        max_range: ranges at or above this are no return, metres.
+        occupied_thresh: hit ratio above which a cell is occupied.
+        free_thresh: hit ratio below which a cell is free.
+        min_observations: cells seen fewer times are unknown.
+
+    Raises:
+        MapImportError: unreadable or malformed log, or no beam with a return.
+    """
+    log = read_carmen(log_path, max_range=max_range)
+    return build_grid(
+        log.scans,
+        resolution=resolution,
+        occupied_thresh=occupied_thresh,
+        free_thresh=free_thresh,
+        min_observations=min_observations,
+    )

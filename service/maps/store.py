@@ -1,0 +1,182 @@
+"""The embedded, file-backed map storage.
+
+A Zenoh storage is a subscriber that persists puts plus a ``complete`` queryable that answers
+gets; zenoh-python ignores zenohd's plugin section, so the service hosts this one itself. Maps
+are files ``{map_id}.json`` in one folder, written atomically (temporary file, fsync, rename,
+fsync of the folder), so a crash leaves either the old map or the new one, never half of one.
+Fleets that run zenohd's storage manager start the service with ``--no-store``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Protocol
+
+import zenoh
+
+from schemas import valid_id
+from service.keys import KeyError_, Keys
+from service.maps.book import MapRejected, load_map
+
+log = logging.getLogger(__name__)
+
+
+class MapStore(Protocol):
+    """Persistence of map payloads by id."""
+
+    def get(self, map_id: str) -> bytes | None:
+        """The stored payload, or ``None``."""
+
+    def put(self, map_id: str, payload: bytes) -> None:
+        """Store a payload, replacing any other."""
+
+    def delete(self, map_id: str) -> None:
+        """Forget a map."""
+
+    def ids(self) -> list[str]:
+        """Every stored id."""
+
+
+class FileMapStore:
+    """Maps as JSON files in one folder.
+
+    Args:
+        root: the folder; created if missing.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+
+    def _path(self, map_id: str) -> Path:
+        if not valid_id(map_id):
+            raise ValueError(f"invalid map id {map_id!r}")
+        return self.root / f"{map_id}.json"
+
+    def get(self, map_id: str) -> bytes | None:
+        """The stored payload, or ``None``."""
+        try:
+            return self._path(map_id).read_bytes()
+        except FileNotFoundError:
+            return None
+
+    def put(self, map_id: str, payload: bytes) -> None:
+        """Write atomically: a crash leaves the old file or the new one."""
+        path = self._path(map_id)
+        with self._lock:
+            fd, tmp = tempfile.mkstemp(prefix=f".{map_id}.", suffix=".tmp", dir=self.root)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(payload)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.replace(tmp, path)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+            dir_fd = os.open(self.root, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+
+    def delete(self, map_id: str) -> None:
+        """Remove the file if present."""
+        with self._lock:
+            self._path(map_id).unlink(missing_ok=True)
+
+    def ids(self) -> list[str]:
+        """Ids of the stored maps, sorted."""
+        return sorted(p.stem for p in self.root.glob("*.json") if valid_id(p.stem))
+
+    def items(self) -> Iterator[tuple[str, bytes]]:
+        """Every stored ``(map_id, payload)``."""
+        for map_id in self.ids():
+            payload = self.get(map_id)
+            if payload is not None:
+                yield map_id, payload
+
+
+class MapStorage:
+    """Serves a :class:`FileMapStore` on ``{prefix}/maps/**`` as a Zenoh storage.
+
+    Puts of valid maps are persisted (an older version than the stored one is ignored);
+    invalid ones are not stored and reported through ``on_error``. Gets are answered from the
+    files, so maps survive restarts.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        store: FileMapStore,
+        max_bytes: int,
+        on_error: Callable[[str, str], None] | None = None,
+    ) -> None:
+        self.store = store
+        self.keys = keys
+        self.max_bytes = max_bytes
+        self.on_error = on_error or (lambda key, msg: None)
+        self._versions: dict[str, int] = {}
+        for map_id, payload in store.items():
+            try:
+                msg, _ = load_map(payload, expected_id=map_id, max_bytes=max_bytes)
+                self._versions[map_id] = msg.version
+            except MapRejected as err:
+                log.warning("stored map %s is invalid and is not served: %s", map_id, err)
+        self._sub = session.declare_subscriber(keys.maps_storage, self._on_sample)
+        self._queryable = session.declare_queryable(
+            keys.maps_storage, self._on_query, complete=True
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            map_id = self.keys.parse_map_key(key)
+        except KeyError_ as err:
+            self.on_error(key, str(err))
+            return
+        if map_id is None:
+            return
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.store.delete(map_id)
+            self._versions.pop(map_id, None)
+            return
+        payload = sample.payload.to_bytes()
+        try:
+            msg, _ = load_map(payload, expected_id=map_id, max_bytes=self.max_bytes)
+        except MapRejected:
+            return  # the service's map subscriber reports it
+        held = self._versions.get(map_id)
+        if held is not None and msg.version < held:
+            log.info(
+                "map %s version %d is older than stored %d; not stored", map_id, msg.version, held
+            )
+            return
+        try:
+            self.store.put(map_id, payload)
+        except OSError as err:
+            self.on_error(key, f"could not store map {map_id}: {err}")
+            return
+        self._versions[map_id] = msg.version
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with query:
+            ke = query.key_expr
+            for map_id in list(self._versions):
+                key = self.keys.map(map_id)
+                if ke.intersects(zenoh.KeyExpr(key)):
+                    payload = self.store.get(map_id)
+                    if payload is not None:
+                        query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def close(self) -> None:
+        """Stop serving."""
+        self._sub.undeclare()
+        self._queryable.undeclare()

@@ -1,0 +1,52 @@
+"""The ``rlutf`` command line: every group's commands are registered, in their order."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from service.cli.main import build_parser, main
+
+COMMANDS = ["serve", "config", "demo", "map", "pose", "health", "replay", "log"]
+ACTIONS = {"map": ["put", "get", "import", "build", "show"], "log": ["info", "recover"]}
+
+
+def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def test_commands_and_actions_in_order() -> None:
+    commands = _subcommands(build_parser())
+    assert list(commands) == COMMANDS
+    for command, actions in ACTIONS.items():
+        assert list(_subcommands(commands[command])) == actions
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [[c] for c in COMMANDS] + [[c, a] for c, actions in ACTIONS.items() for a in actions],
+)
+def test_every_command_has_help(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--help"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: rlutf {' '.join(argv)}")
+
+
+def test_no_command_prints_help_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 2
+    assert "COMMAND" in capsys.readouterr().out
+
+
+def test_map_without_an_action_says_which_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["map"]) == 2
+    assert "choose an action: put, get, import, build, show" in capsys.readouterr().err
+
+
+def test_log_without_an_action_prints_its_help_and_exits_2(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["log"]) == 2
+    assert "usage: rlutf log" in capsys.readouterr().err

@@ -1,0 +1,182 @@
+"""Membership from liveliness events, and one instance's ownership and handover seeding."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+from scaleout_harness import wait_until
+
+from schemas import InitialPose, Odometry, PoseEstimate, encode
+from service.cluster.membership import Membership, owner_of
+from service.cluster.ownership import Ownership
+from service.keys import InputKind, Message
+
+ROBOTS = [f"robot-{i}" for i in range(100)]
+LIMIT = 1_000_000
+
+
+# ---------------------------------------------------------------------------- membership
+def test_membership_follows_tokens_and_keeps_itself() -> None:
+    changes: list[list[str]] = []
+    m = Membership("i1", on_change=lambda: changes.append(m.members))
+    assert m.members == ["i1"]
+    assert all(m.owns(r) for r in ROBOTS)  # alone, it owns everything
+    assert m.update("i2", alive=True)
+    assert not m.update("i2", alive=True)
+    assert not m.update("i1", alive=False)  # its own token's DELETE (at close) changes nothing
+    assert m.members == ["i1", "i2"]
+    assert [r for r in ROBOTS if m.owns(r)] == [
+        r for r in ROBOTS if owner_of(r, ["i1", "i2"]) == "i1"
+    ]
+    # the priming get does not revive a member the subscriber saw leave
+    assert m.update("i3", alive=True) and m.update("i3", alive=False)
+    assert not m.update("i3", alive=True, prime=True)
+    assert m.update("i4", alive=True, prime=True)
+    assert not m.update("a/b", alive=True)
+    assert changes == [["i1", "i2"], ["i1", "i2", "i3"], ["i1", "i2"], ["i1", "i2", "i4"]]
+
+
+# ---------------------------------------------------------------------------- ownership
+Admitted = list[tuple[str, InputKind, Message, int]]
+
+
+def _odom(stamp: int, x: float = 0.0) -> tuple[bytes, Odometry]:
+    msg = Odometry(stamp_ns=stamp, x=x, y=0.0, theta=0.0)
+    return encode(msg), msg
+
+
+def _pose(robot: str, stamp: int) -> PoseEstimate:
+    return PoseEstimate(
+        stamp_ns=stamp, robot_id=robot, map_id="m1", x=1.0, y=2.0, theta=0.3,
+        status="tracking", discrepancy=0.01, iterations=1,
+    )  # fmt: skip
+
+
+def _ownership(
+    m: Membership, fetch: object = None, released: list[str] | None = None
+) -> tuple[Ownership, Admitted]:
+    admitted: Admitted = []
+    clock = itertools.count(1_000)
+    own = Ownership(
+        m,
+        lambda robot, kind, payload, msg, received: admitted.append((robot, kind, msg, received)),
+        lambda: next(clock),
+        tail_ns=5_000_000_000,
+        on_release=(released.append if released is not None else None),
+    )
+    own.ready = True
+    if callable(fetch):
+        own.start(fetch)
+    return own, admitted
+
+
+def _robot_of(owner: str, members: list[str]) -> str:
+    return next(r for r in ROBOTS if owner_of(r, members) == owner)
+
+
+def test_takeover_seeds_from_the_last_pose_with_the_odometry_tail() -> None:
+    m = Membership("a")
+    m.update("b", alive=True)
+    own, admitted = _ownership(m)
+    robot = _robot_of("b", ["a", "b"])
+    s = 1_000_000_000
+    for i in range(1, 6):  # odometry while b owns it: ignored, kept in the tail
+        payload, msg = _odom(i * s, x=float(i))
+        assert not own.offer(robot, "odom", payload, msg, 10 + i)
+        own.ignore(robot, "odom", payload, LIMIT)
+    own.follow_pose(robot, encode(_pose(robot, int(3.5 * s))), LIMIT)
+    own.follow_pose(robot, encode(_pose(robot, 2 * s)), LIMIT)  # older: not kept
+    assert admitted == []
+    m.update("b", alive=False)  # b dies: a owns everything
+    payload, msg = _odom(6 * s, x=6.0)
+    assert own.offer(robot, "odom", payload, msg, 20)
+    kinds = [(k, m_.stamp_ns // 10**8) for _, k, m_, _ in admitted]
+    # odometry from the reading at or before the pose's stamp on, the seed, then the input
+    assert kinds == [("odom", 30), ("odom", 40), ("odom", 50), ("initialpose", 35), ("odom", 60)]
+    seed = admitted[3][2]
+    assert isinstance(seed, InitialPose)
+    assert (seed.map_id, seed.x, seed.y, seed.theta) == ("m1", 1.0, 2.0, 0.3)
+    received = [r for *_, r in admitted]
+    assert received == sorted(received) and len(set(received)) == len(received)
+    fig = own.figures()
+    assert fig["owned"] == [robot] and fig["handover_seeds"] == 1
+    assert fig["ignored_not_owner"] == 5 + 5  # offers refused and ignore() calls
+
+
+def test_an_initial_pose_its_dead_owner_never_used_is_replayed_on_takeover() -> None:
+    m = Membership("a")
+    m.update("b", alive=True)
+    own, admitted = _ownership(m)
+    robot = _robot_of("b", ["a", "b"])
+    own.follow_pose(robot, encode(_pose(robot, 3_000)), LIMIT)
+    placed = InitialPose(stamp_ns=4_000, map_id="m2", x=5.0, y=6.0, theta=0.0)
+    own.ignore(robot, "initialpose", encode(placed), LIMIT)
+    payload, msg = _odom(3_500)
+    own.ignore(robot, "odom", payload, LIMIT)
+    m.update("b", alive=False)
+    payload, msg = _odom(4_500)
+    own.offer(robot, "odom", payload, msg, 10)
+    assert [(k, m_.stamp_ns) for _, k, m_, _ in admitted] == [
+        ("odom", 3_500),
+        ("initialpose", 4_000),
+        ("odom", 4_500),
+    ]
+    assert admitted[1][2] == placed
+
+
+def test_unknown_pose_is_fetched_while_inputs_wait() -> None:
+    asked: list[str] = []
+    robot = "rx"
+
+    def fetch(r: str) -> PoseEstimate | None:
+        asked.append(r)
+        time.sleep(0.1)
+        return _pose(r, 500)
+
+    own, admitted = _ownership(Membership("a"), fetch)
+    try:
+        for i in range(3):
+            payload, msg = _odom(1_000 + i)
+            own.offer(robot, "odom", payload, msg, 1 + i)
+        assert admitted == []  # held while the get runs
+        assert wait_until(lambda: len(admitted) == 4, 3.0)
+    finally:
+        own.close()
+    assert asked == [robot]
+    assert [k for _, k, _, _ in admitted] == ["initialpose", "odom", "odom", "odom"]
+    assert [m.stamp_ns for _, _, m, _ in admitted[1:]] == [1_000, 1_001, 1_002]
+    assert own.figures()["handover_fetched"] == 1
+
+
+def test_no_pose_anywhere_releases_inputs_unseeded_and_an_initial_pose_needs_no_fetch() -> None:
+    asked: list[str] = []
+    own, admitted = _ownership(Membership("a"), asked.append)
+    try:
+        payload, msg = _odom(7)
+        own.offer("new", "odom", payload, msg, 1)
+        assert wait_until(lambda: len(admitted) == 1, 3.0)
+        ip = InitialPose(stamp_ns=9, map_id="m1", x=0.0, y=0.0, theta=0.0)
+        own.offer("placed", "initialpose", encode(ip), ip, 2)
+    finally:
+        own.close()
+    assert asked == ["new"]
+    assert [(r, k) for r, k, _, _ in admitted] == [("new", "odom"), ("placed", "initialpose")]
+    assert own.figures()["handover_seeds"] == 0
+
+
+def test_a_joining_member_takes_its_robots_away() -> None:
+    released: list[str] = []
+    m = Membership("a")
+    own, _ = _ownership(m, released=released)
+    robot = _robot_of("b", ["a", "b"])
+    keep = _robot_of("a", ["a", "b"])
+    for r in (robot, keep):
+        ip = InitialPose(stamp_ns=9, map_id="m1", x=0.0, y=0.0, theta=0.0)
+        assert own.offer(r, "initialpose", encode(ip), ip, 2)
+    assert own.owned() == sorted([robot, keep])
+    m.update("b", alive=True)
+    assert released == [robot]
+    assert own.owned() == [keep] and own.active(keep) and not own.active(robot)
+    payload, msg = _odom(10)
+    assert not own.offer(robot, "odom", payload, msg, 3)

@@ -1,0 +1,42 @@
+"""The dispatcher's assignment of robots to shards, and the service processes' settings."""
+
+from __future__ import annotations
+
+import gc
+
+from rlutf.localizer import LocalizerConfig
+from schemas import Odometry
+from service.keys import Keys
+from service.live.dispatch import _GC_THRESHOLDS, Dispatcher, tune_gc
+
+
+def test_tune_gc_freezes_what_is_alive_and_collects_less_often() -> None:
+    before = gc.get_threshold()
+    try:
+        survivor = [[i] for i in range(100)]
+        tune_gc()
+        assert gc.get_threshold() == _GC_THRESHOLDS
+        assert _GC_THRESHOLDS[0] > before[0]
+        assert gc.get_freeze_count() >= len(survivor)
+        # frozen: in no generation that a collection walks
+        walked = {id(o) for g in range(3) for o in gc.get_objects(generation=g)}
+        assert id(survivor) not in walked and id(survivor[0]) not in walked
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*before)
+
+
+def test_robots_are_spread_evenly_over_worker_shards() -> None:
+    """Each new robot goes to the shard with the fewest robots (not started: nothing runs)."""
+    dispatcher = Dispatcher(Keys("rlutf"), LocalizerConfig(), 3, 0, lambda done: None, _no_drop)
+    robots = [f"amr-{i}" for i in range(10)]
+    for i, robot in enumerate(robots * 2):  # the second round: robots keep their shard
+        dispatcher.submit(robot, "odom", b"{}", Odometry(stamp_ns=i, x=0, y=0, theta=0), i)
+    assert sorted(s.robots for s in dispatcher.shards) == [3, 3, 4]
+    for shard in dispatcher.shards:
+        mine = {r for r in robots if dispatcher.boxes[r].shard is shard}
+        assert len(mine) == shard.robots and set(shard.ready) == mine
+
+
+def _no_drop(robot: str, stamp_ns: int, received_ns: int) -> None:
+    raise AssertionError("odometry is never dropped")

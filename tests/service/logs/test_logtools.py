@@ -1,0 +1,147 @@
+"""``rlutf log info``, ``rlutf log recover`` and how damaged files are reported."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcaplog_fixtures import read_all, simulated_inputs
+
+from service.cli.main import main
+from service.logs.logtools import log_info, recover
+from service.logs.mcaplog import McapRecorder
+from service.logs.mcapread import DamagedLog, LogFile, NotALog
+from service.logs.replay import replay
+
+CONFIG = {"prefix": "rlutf", "instance": "edge-1", "workers": 0}
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A recorded log with many small chunks and poses (from a replay of simulated inputs)."""
+    folder = tmp_path_factory.mktemp("logs")
+    src = folder / "inputs.mcap"
+    rec = McapRecorder(folder / "rec", chunk_size=2048, foxglove=True)
+    rec.set_config(CONFIG)
+    for r in simulated_inputs(steps=12):
+        rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+    rec.close()
+    (path,) = rec.files
+    # Add recomputed poses, so the file looks like a service log with outputs.
+    replay([path], src, foxglove=True, chunk_size=4096)
+    return src
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_info_lists_channels_robots_maps(log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    info = log_info(log)
+    topics = {c.topic: c for c in info.channels}
+    assert topics["rlutf/robots/r1/scan"].messages == 12
+    assert topics["rlutf/robots/r1/scan"].schema_name == "rlutf.LaserScan"
+    assert topics["rlutf/robots/r2/pose"].messages == 12
+    assert set(info.robots) == {"r1", "r2"} and info.robots["r1"]["odom"] == 13
+    assert info.maps == {"m1": [1]}
+    assert info.time_range is not None and info.time_range[0] < info.time_range[1]
+    code, out, _ = _run(["log", "info", str(log)], capsys)
+    assert code == 0
+    for text in ("rlutf/robots/r2/scan", "rlutf.PoseEstimate", "map m1", "instance"):
+        assert text in out
+    code, out, _ = _run(["log", "info", str(log), "--json"], capsys)
+    data = json.loads(out)
+    assert code == 0 and data["messages"] == info.messages and data["maps"] == {"m1": [1]}
+
+
+def test_not_mcap_and_missing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"hello world, not a log at all")
+    for argv in (
+        ["log", "info", str(junk)],
+        ["replay", str(junk), "--out", str(tmp_path / "o")],
+        ["log", "recover", str(junk), str(tmp_path / "r.mcap")],
+        ["log", "info", str(tmp_path / "missing.mcap")],
+    ):
+        code, _, err = _run(argv, capsys)
+        assert code == 2 and "Traceback" not in err
+        assert "not an MCAP file" in err or "cannot open" in err
+    with pytest.raises(NotALog):
+        LogFile(junk)
+
+
+def test_truncated_files_get_a_recover_hint_and_recover_keeps_complete_chunks(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = log.read_bytes()
+    original = read_all(log)
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 20
+    cuts = sorted({*range(8, len(data), max(len(data) // 37, 1)), len(data) - 1, len(data) - 9})
+    recovered_counts = []
+    for k, cut in enumerate(cuts):
+        broken = tmp_path / f"cut{cut}.mcap"
+        broken.write_bytes(data[:cut])
+        with pytest.raises(DamagedLog, match="rlutf log recover"):
+            LogFile(broken)
+        if k % 6 == 0:
+            for argv in (
+                ["log", "info", str(broken)],
+                ["replay", str(broken), "--out", str(tmp_path / "o.mcap"), "--quiet"],
+            ):
+                code, _, err = _run(argv, capsys)
+                assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
+        fixed = tmp_path / f"fixed{cut}.mcap"
+        report = recover(broken, fixed)
+        assert report.stopped is not None and report.bad_chunks == 0
+        got = read_all(fixed)
+        # every complete chunk and nothing else: the messages are a prefix of the original
+        assert got == original[: len(got)]
+        assert report.messages == len(got)
+        recovered_counts.append(len(got))
+        if got and k % 6 == 0:
+            with LogFile(fixed) as lf:
+                assert lf.config() == replay([log]).config.settings
+            assert replay([fixed]).config.prefix == "rlutf"
+    assert recovered_counts == sorted(recovered_counts)
+    assert recovered_counts[0] == 0 and recovered_counts[-1] > 0.9 * len(original)
+    # an intact file: everything, complete
+    report = recover(log, tmp_path / "same.mcap")
+    assert report.complete and read_all(tmp_path / "same.mcap") == original
+
+
+def test_corrupt_chunk_is_reported_and_skipped_by_recover(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    data = bytearray(log.read_bytes())
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    code, _, err = _run(["log", "info", str(bad)], capsys)
+    assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
+    code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
+    assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
+    assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.part").exists()
+    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "skipped 1 damaged chunks" in err
+    original = read_all(log)
+    got = read_all(tmp_path / "fixed.mcap")
+    assert 0 < len(original) - len(got) < len(original) // 10
+    assert set(got) <= set(original)
+
+
+def test_recover_refuses_to_overwrite_its_input(
+    log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _, err = _run(["log", "recover", str(log), str(log)], capsys)
+    assert code == 2 and "must not be the input" in err

@@ -1,0 +1,158 @@
+"""The MCAP recorder: layout, rotation, flushing, overflow, config in every file."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from importlib import metadata
+from io import BytesIO
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcaplog_fixtures import read_all, simulated_inputs
+
+from schemas import SCHEMA_NAMES, Event, EventCode, decode
+from service.logs.logtools import recover
+from service.logs.mcapfile import (
+    CONFIG_KEY,
+    CONFIG_METADATA,
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    LogWriter,
+    Record,
+    schema_data,
+)
+from service.logs.mcaplog import McapRecorder
+from service.logs.mcapread import LogFile
+
+CONFIG = {"prefix": "rlutf", "instance": "t1", "localizer": {"epsilon": 0.006}}
+REPO = Path(__file__).resolve().parents[3]
+
+
+def _record_all(rec: McapRecorder, records: list[Record]) -> None:
+    for r in records:
+        rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+
+
+def test_writer_layout_matches_wire_md() -> None:
+    buf = BytesIO()
+    writer = LogWriter(buf)
+    writer.write_config(CONFIG)
+    inputs = simulated_inputs(("r1",), steps=2)
+    writer.write_all(inputs)
+    writer.finish()
+    reader = make_reader(BytesIO(buf.getvalue()))
+    summary = reader.get_summary()
+    assert summary is not None
+    for schema in summary.schemas.values():
+        assert schema.encoding == SCHEMA_ENCODING
+        assert schema.name in SCHEMA_NAMES.values()
+        assert schema.data == (REPO / "schemas" / "jsonschema" / f"{schema.name}.json").read_bytes()
+    for channel in summary.channels.values():
+        assert channel.message_encoding == MESSAGE_ENCODING
+    got = [(c.topic, m.log_time, m.publish_time, m.data) for _, c, m in reader.iter_messages()]
+    assert got == [(r.topic, r.log_time_ns, r.publish_time_ns, r.payload) for r in inputs]
+    meta = list(reader.iter_metadata())
+    assert [m.name for m in meta] == [CONFIG_METADATA]
+    assert json.loads(meta[0].metadata[CONFIG_KEY]) == CONFIG
+    assert summary.chunk_indexes and all(c.compression == "zstd" for c in summary.chunk_indexes)
+    assert schema_data("nope.Thing") is None
+    # the header names the code that wrote the log, version included, for audits
+    assert reader.get_header().library == f"rlutf {metadata.version('rlutf')}"
+
+
+def test_recorder_writes_part_then_renames_with_instance_name(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, instance="node-a", flush_interval_s=0.1)
+    rec.set_config(CONFIG)
+    inputs = simulated_inputs(steps=3)
+    _record_all(rec, inputs)
+    deadline = time.monotonic() + 5
+    while rec.current_path is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    part = rec.current_path
+    assert part is not None and part.name.endswith(".mcap.part") and "node-a" in part.name
+    rec.close()
+    assert rec.files == [part.with_name(part.name.removesuffix(".part"))]
+    assert not part.exists() and not list(tmp_path.glob("*.part"))
+    assert rec.overflowed == 0
+    got = read_all(rec.files[0], {r.schema_name for r in inputs})
+    assert got == inputs
+    with LogFile(rec.files[0]) as lf:
+        assert lf.config() == CONFIG
+    rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b"{}", 1, 1)  # after close: ignored
+    rec.close()
+
+
+def test_rotation_by_size_keeps_config_and_maps_in_every_file(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, instance="n", max_bytes=20_000, chunk_size=4096)
+    rec.set_config(CONFIG)
+    inputs = simulated_inputs(steps=20)
+    _record_all(rec, inputs)
+    rec.close()
+    assert len(rec.files) >= 3
+    total = []
+    for path in rec.files:
+        with LogFile(path) as lf:
+            assert lf.config() == CONFIG
+            maps = list(lf.messages({"rlutf.Map"}))
+            assert [m.payload for m in maps][:1] == [inputs[0].payload]
+            total += [r for r in lf.messages() if r.schema_name != "rlutf.Map"]
+    assert [r for r in total if r.schema_name.startswith("rlutf.")] == inputs[1:]
+
+
+def test_rotation_by_duration(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, max_seconds=0.3, flush_interval_s=0.05)
+    rec.set_config(CONFIG)
+    for i in range(8):
+        rec.record("rlutf/events", "rlutf.Event", b'{"stamp_ns":1}', i, i)
+        time.sleep(0.1)
+    rec.close()
+    assert len(rec.files) >= 2
+    assert all(p.name.startswith("rlutf-2") for p in rec.files)  # no instance: rlutf-{UTC}
+    assert sum(len(read_all(p)) for p in rec.files) == 8
+
+
+def test_open_file_is_flushed_so_a_crash_loses_at_most_the_interval(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, flush_interval_s=0.2)
+    inputs = simulated_inputs(("r1",), steps=5)
+    _record_all(rec, inputs)
+    time.sleep(0.6)
+    part = rec.current_path
+    assert part is not None
+    crashed = tmp_path / "crashed.mcap.part"  # what a crash now would leave
+    crashed.write_bytes(part.read_bytes())
+    report = recover(crashed, tmp_path / "recovered.mcap")
+    assert not report.complete
+    assert read_all(tmp_path / "recovered.mcap", {r.schema_name for r in inputs}) == inputs
+    rec.close()
+
+
+def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, queue_size=5, foxglove=False)
+    gate = threading.Event()
+    handle = rec._handle  # stall the writer thread to fill the queue
+
+    def slow(item: object) -> None:
+        gate.wait(10)
+        handle(item)  # type: ignore[arg-type]
+
+    rec._handle = slow  # type: ignore[method-assign]
+    published: list[Event] = []
+    rec.on_overflow = published.append
+    rec.set_config(CONFIG)
+    deadline = time.monotonic() + 5
+    while not rec._queue.empty() and time.monotonic() < deadline:
+        time.sleep(0.01)  # until the writer holds the config item and waits
+    t0 = time.perf_counter()
+    for i in range(100):
+        rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', i + 1, i)
+    assert time.perf_counter() - t0 < 0.5
+    assert rec.overflowed == 95
+    gate.set()
+    rec.close()
+    events = [decode(Event, r.payload) for r in read_all(rec.files[0], ["rlutf.Event"])]
+    assert [e.code for e in events] == [EventCode.RECORDER_OVERFLOW]
+    assert "95 messages" in events[0].message
+    assert published == events
+    assert len(read_all(rec.files[0], ["rlutf.Odometry"])) == 5

@@ -1,0 +1,217 @@
+"""Replay over logs written by hand (no Zenoh): determinism, drops, configuration, output."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcaplog_fixtures import T0, payloads, read_all, simulated_inputs, write_log
+
+from rlutf.localizer import LocalizerConfig
+from rlutf.motion import compose
+from schemas import Event, EventCode, decode, encode
+from service.cli.main import main
+from service.engine import FleetEngine
+from service.keys import Keys
+from service.logs.mcapfile import Record
+from service.logs.mcapread import LogFile
+from service.logs.plots import dead_reckoning
+from service.logs.replay import INPUT_MODELS, REPLAY_METADATA, pose_record, replay
+from service.logs.replayconfig import ReplayConfigError, resolve
+from service.maps.book import MapBook
+
+
+@pytest.fixture(scope="module")
+def inputs_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("replay") / "inputs.mcap"
+    return write_log(path, simulated_inputs())
+
+
+def test_replay_without_config_uses_defaults_and_topic_prefix(tmp_path: Path) -> None:
+    log = write_log(tmp_path / "in.mcap", simulated_inputs(("a",), steps=5, prefix="fleet/x"))
+    result = replay([log], tmp_path / "out.mcap")
+    assert result.config.prefix == "fleet/x"
+    assert result.config.localizer == LocalizerConfig()
+    poses = read_all(tmp_path / "out.mcap", ["rlutf.PoseEstimate"])
+    assert {p.topic for p in poses} == {"fleet/x/robots/a/pose"}
+    assert len(poses) == 5
+
+
+def test_replay_is_deterministic_and_writes_inputs_poses_config(
+    inputs_log: Path, tmp_path: Path
+) -> None:
+    one = replay([inputs_log], tmp_path / "one.mcap")
+    two = replay([inputs_log], tmp_path / "two.mcap")
+    assert sum(len(v) for v in one.recomputed.values()) == 40
+    for robot in ("r1", "r2"):
+        assert [p.payload for p in one.recomputed[robot]] == [
+            p.payload for p in two.recomputed[robot]
+        ]
+    assert payloads(tmp_path / "one.mcap", "rlutf.PoseEstimate") == payloads(
+        tmp_path / "two.mcap", "rlutf.PoseEstimate"
+    )
+    # inputs are copied unchanged, in the same order
+    for schema in ("rlutf.Map", "rlutf.InitialPose", "rlutf.Odometry", "rlutf.LaserScan"):
+        assert payloads(tmp_path / "one.mcap", schema) == payloads(inputs_log, schema)
+    # a pose is logged at the receive time of its scan, publish time = the scan's stamp
+    scans = {
+        (r.topic.split("/")[2], r.publish_time_ns): r.log_time_ns
+        for r in read_all(inputs_log, ["rlutf.LaserScan"])
+    }
+    for pose in read_all(tmp_path / "one.mcap", ["rlutf.PoseEstimate"]):
+        assert scans[(pose.topic.split("/")[2], pose.publish_time_ns)] == pose.log_time_ns
+    with LogFile(tmp_path / "one.mcap") as lf:
+        assert lf.config() == one.config.settings
+        names = [name for name, _ in lf.metadata()]
+        assert REPLAY_METADATA in names
+
+
+def test_replay_equals_the_engine_fed_directly(inputs_log: Path) -> None:
+    """The same code path: FleetEngine fed the inputs in log order gives the same bytes."""
+    result = replay([inputs_log])
+    cfg = result.config
+    engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
+    book = MapBook(cfg.max_payload_bytes)
+    expected: dict[str, list[bytes]] = {}
+    for rec in read_all(inputs_log):
+        if rec.schema_name == "rlutf.Map":
+            loaded = book.offer("m1", rec.payload, rec.log_time_ns)
+            assert loaded is not None
+            engine.register_map("m1", 1, loaded.world, rec.log_time_ns)
+            continue
+        msg = decode(INPUT_MODELS[rec.schema_name], rec.payload)
+        for out in engine.handle(rec.topic.split("/")[2], msg, rec.log_time_ns):
+            if out.kind == "pose":
+                expected.setdefault(pose_record(out.payload).robot, []).append(out.payload)
+    assert {r: [p.payload for p in v] for r, v in result.recomputed.items()} == expected
+
+
+def _drop_event(robot: str, stamp: int, log_time: int) -> Record:
+    ev = Event(
+        stamp_ns=stamp,
+        level="info",
+        code=EventCode.SCAN_DROPPED,
+        key=f"rlutf/robots/{robot}/scan",
+        message="replaced",
+    )
+    return Record(f"rlutf/robots/{robot}/events", "rlutf.Event", encode(ev), log_time, stamp)
+
+
+def test_recorded_drops_are_honoured(tmp_path: Path) -> None:
+    records = simulated_inputs(("r1",), steps=8)
+    dropped_stamp = T0 + 4 * 100_000_000
+    # The event comes after the scan it drops (as live: when the newer scan arrives).
+    with_drop = [*records, _drop_event("r1", dropped_stamp, T0 + 5 * 100_000_000 + 2_000_000)]
+    without_scan = [
+        r
+        for r in records
+        if not (r.schema_name == "rlutf.LaserScan" and r.publish_time_ns == dropped_stamp)
+    ]
+    a = replay([write_log(tmp_path / "drop.mcap", with_drop)], tmp_path / "a.mcap")
+    b = replay([write_log(tmp_path / "noscan.mcap", without_scan)])
+    assert a.dropped == 1
+    stamps = [p.stamp_ns for p in a.recomputed["r1"]]
+    assert dropped_stamp not in stamps and len(stamps) == 7
+    assert [p.payload for p in a.recomputed["r1"]] == [p.payload for p in b.recomputed["r1"]]
+    # The output keeps the dropped scan and the event, so replaying it drops it again.
+    again = replay([tmp_path / "a.mcap"])
+    assert again.dropped == 1
+    assert [p.payload for p in again.recomputed["r1"]] == [p.payload for p in a.recomputed["r1"]]
+
+
+def test_rotated_files_replay_as_one(tmp_path: Path) -> None:
+    records = simulated_inputs(steps=10)
+    whole = replay([write_log(tmp_path / "whole.mcap", records)])
+    half = len(records) // 2
+    parts = [
+        write_log(tmp_path / "p1.mcap", records[:half]),
+        write_log(tmp_path / "p2.mcap", records[half:]),
+    ]
+    # a rotated file starts with the maps recorded before it: replayed once
+    parts.append(write_log(tmp_path / "p3.mcap", [records[0], *records[half + 1 :][:0]]))
+    split = replay(parts, tmp_path / "split.mcap")
+    assert len(payloads(tmp_path / "split.mcap", "rlutf.Map")) == 1
+    assert {r: [p.payload for p in v] for r, v in split.recomputed.items()} == {
+        r: [p.payload for p in v] for r, v in whole.recomputed.items()
+    }
+
+
+def test_config_from_log_and_overrides(tmp_path: Path) -> None:
+    loc = asdict(LocalizerConfig())
+    loc["epsilon"] = 0.02
+    recorded = {
+        "prefix": "rlutf",
+        "event_interval_s": 0.5,
+        "max_payload_bytes": 2_000_000,
+        "localizer": loc,
+        "instance": "x",
+    }
+    log = write_log(tmp_path / "in.mcap", simulated_inputs(("r1",), steps=3), config=recorded)
+    assert replay([log]).config.localizer.epsilon == 0.02
+    settings = tmp_path / "s.toml"
+    settings.write_text("[localizer]\nepsilon = 0.03\ndelta = 1\n")
+    cfg = replay([log], settings_file=settings, assignments=["localizer.max_rounds=2"]).config
+    assert cfg.localizer.epsilon == 0.03 and cfg.localizer.max_rounds == 2
+    assert isinstance(cfg.localizer.delta, float) and cfg.localizer.delta == 1.0
+    assert cfg.event_interval_ns == 500_000_000 and cfg.settings["instance"] == "x"
+    with pytest.raises(ReplayConfigError, match="unknown parameter"):
+        resolve(recorded, assignments=["localizer.bogus=1"])
+    with pytest.raises(ReplayConfigError, match="KEY=VALUE"):
+        resolve(recorded, assignments=["nonsense"])
+    with pytest.raises(ReplayConfigError, match="epsilon"):
+        resolve(recorded, assignments=["localizer.epsilon=-1"])
+
+
+def test_invalid_inputs_are_rejected_not_fatal(tmp_path: Path) -> None:
+    records = simulated_inputs(("r1",), steps=4)
+    bad = Record(
+        "rlutf/robots/r1/scan",
+        "rlutf.LaserScan",
+        b'{"stamp_ns": "x"}',
+        records[-1].log_time_ns + 1,
+        0,
+    )
+    result = replay([write_log(tmp_path / "in.mcap", [*records, bad])])
+    assert result.rejected == 1
+    assert len(result.recomputed["r1"]) == 4
+
+
+def test_replay_metadata_names_inputs(inputs_log: Path, tmp_path: Path) -> None:
+    replay([inputs_log], tmp_path / "o.mcap", assignments=["localizer.seed=1"])
+    with LogFile(tmp_path / "o.mcap") as lf:
+        meta = dict(lf.metadata())[REPLAY_METADATA]
+        assert json.loads(meta["inputs"]) == [str(inputs_log)]
+        assert json.loads(meta["assignments"]) == ["localizer.seed=1"]
+        assert lf.config() is not None and lf.config()["localizer"]["seed"] == 1  # type: ignore[index]
+    assert not (tmp_path / "o.mcap.part").exists()
+
+
+def test_dead_reckoning_anchors_odometry_at_the_initial_pose() -> None:
+    truth = np.array([[1.0 + 0.1 * i, 2.0 + 0.05 * i * i, 0.2 * i] for i in range(10)])
+    frame = np.array([-5.0, 3.0, 1.1])  # the odometry frame's origin is irrelevant
+    odom = [(i, *compose(frame, p)) for i, p in enumerate(truth)]
+    start = [(0, "m1", *truth[0])]
+    assert np.allclose(dead_reckoning(odom, start), truth, atol=1e-12)
+    # re-anchored at a second initial pose
+    moved = (5, "m1", 0.0, 0.0, 0.0)
+    dr = dead_reckoning(odom, [*start, moved])
+    assert np.allclose(dr[5], [0.0, 0.0, 0.0]) and np.allclose(dr[:5], truth[:5])
+    assert len(dead_reckoning(odom, [])) == 0
+
+
+def test_cli_replay_writes_plots(
+    inputs_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["replay", str(inputs_log), "--out", str(tmp_path / "o.mcap"), "--quiet"]
+    assert main([*argv, "--plot", str(tmp_path / "plots")]) == 0
+    out = capsys.readouterr().out
+    assert "nothing to audit" in out
+    for robot in ("r1", "r2"):
+        png = tmp_path / "plots" / f"{robot}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert main([*argv, "--set", "localizer.bogus=1"]) == 2
+    assert "unknown parameter" in capsys.readouterr().err
+    assert main(["replay", str(inputs_log), "--out", str(inputs_log), "--quiet"]) == 2

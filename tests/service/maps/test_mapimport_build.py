@@ -1,0 +1,170 @@
+"""Occupancy grids from scans at known poses, and the CARMEN log reader."""
+
+from __future__ import annotations
+
+import gzip
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+from shapely.geometry import Polygon, box
+
+from rlutf.map import Map
+from rlutf.raycast import cast_rays
+from service.maps.mapimport import (
+    CarmenError,
+    EmptyMapError,
+    MapFileError,
+    MapImportError,
+    build_from_carmen,
+    build_grid,
+    carmen_angles,
+    grid_to_map,
+    parse_carmen,
+    read_carmen,
+)
+
+CARMEN = Path(__file__).parents[3].parent / "shared" / "data" / "carmen"
+ROOM = box(0.0, 0.0, 6.0, 4.0).difference(box(2.5, 1.5, 3.0, 2.0))
+NO_RETURN = 81.83
+
+
+def room_log(scans_without_return: int = 0) -> str:
+    """A CARMEN log of scans in ROOM (6 x 4 m with a 0.5 m pillar), exact ranges."""
+    world = Map.from_shapely(ROOM)
+    angles = carmen_angles(180)
+    lines = ["# synthetic", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    spots = [(1.0, 1.0), (1.0, 3.0), (3.0, 0.8), (5.0, 1.0), (5.0, 3.0), (3.0, 3.2), (1.8, 2.0)]
+    stamp = 0.0
+    for x, y in spots:
+        for theta in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
+            ranges = cast_rays(world, [x, y, theta], angles, 40.0)[0]
+            if scans_without_return:
+                ranges[:] = NO_RETURN
+                scans_without_return -= 1
+            ranges[:5] = NO_RETURN  # a few beams with no return in every scan
+            stamp += 0.1
+            lines.append(f"ODOM {x} {y} {theta} 0 0 0 {stamp:.3f} nohost {stamp:.3f}")
+            text = " ".join(f"{r:.4f}" for r in ranges)
+            pose = f"{x} {y} {theta}"
+            lines.append(f"FLASER 180 {text} {pose} {pose} {stamp:.3f} nohost {stamp:.3f}")
+    return "\n".join(lines) + "\n"
+
+
+def test_carmen_angles_follow_the_spacing_rule() -> None:
+    even = carmen_angles(180)
+    assert even[0] == pytest.approx(-0.5 * math.pi)
+    assert np.diff(even) == pytest.approx(np.full(179, math.pi / 180))
+    odd = carmen_angles(361)
+    assert odd[0] == pytest.approx(-0.5 * math.pi)
+    assert odd[-1] == pytest.approx(0.5 * math.pi)
+
+
+def test_parse_carmen_reads_scans_and_odometry() -> None:
+    log = parse_carmen(room_log(), max_range=50.0)
+    assert len(log.scans) == 28
+    assert log.odometry.shape == (28, 4)
+    first = log.scans[0]
+    assert first.pose.tolist() == [1.0, 1.0, 0.0]
+    assert first.max_range == 50.0
+    assert first.ranges[:5].tolist() == [NO_RETURN] * 5
+    assert log.stamps[:2] == pytest.approx([0.1, 0.2])
+    assert log.poses.shape == (28, 3)
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("FLASER 3 1.0 2.0 3.0 0 0 0\n", "line 1: FLASER with 3 beams needs 12 fields"),
+        ("ODOM 0 0 0 0 0 0 1 h 1\nFLASER 1 x 0 0 0 0 0 0 1 h 1\n", "line 2: not a number"),
+        ("FLASER many\n", "line 1: FLASER needs a beam count"),
+        ("ODOM 1 2\n", "line 1: ODOM needs 7 fields"),
+        ("PARAM a b\n# nothing else\n", "no FLASER scan"),
+    ],
+)
+def test_parse_carmen_errors_name_the_line(text: str, words: str) -> None:
+    with pytest.raises(CarmenError, match=words):
+        parse_carmen(text)
+
+
+def test_read_carmen_accepts_gzip_and_reports_missing_files(tmp_path: Path) -> None:
+    text = room_log()
+    (tmp_path / "room.log").write_text(text)
+    (tmp_path / "room.log.gz").write_bytes(gzip.compress(text.encode()))
+    plain = read_carmen(tmp_path / "room.log")
+    packed = read_carmen(tmp_path / "room.log.gz")
+    assert all(
+        np.array_equal(a.ranges, b.ranges) for a, b in zip(plain.scans, packed.scans, strict=True)
+    )
+    with pytest.raises(MapFileError, match=r"missing\.log"):
+        read_carmen(tmp_path / "missing.log")
+    (tmp_path / "bad.log").write_text("FLASER 2 1 1\n")
+    with pytest.raises(CarmenError, match=r"bad\.log: line 1"):
+        read_carmen(tmp_path / "bad.log")
+
+
+def test_build_from_a_synthetic_log_recovers_the_room(tmp_path: Path) -> None:
+    path = tmp_path / "room.log.gz"
+    path.write_bytes(gzip.compress(room_log().encode()))
+    grid = build_from_carmen(path, resolution=0.05)
+    assert grid.origin[2] == 0.0
+    result = grid_to_map(grid, map_id="room")
+    geom = result.polygons.geometry
+    assert isinstance(geom, Polygon)
+    # The free space ends at the cells the walls were hit in: within two cells of the walls.
+    assert shapely.hausdorff_distance(geom.exterior, ROOM.exterior) <= 0.1
+    assert geom.symmetric_difference(ROOM).area < 0.05 * ROOM.area
+    assert len(geom.interiors) == 1
+    assert shapely.hausdorff_distance(geom.interiors[0], ROOM.interiors[0]) <= 0.1
+    assert not geom.contains(shapely.Point(2.75, 1.75))
+    assert grid.occupied.any()
+    # Seen cells carry hit ratios in percent; unseen cells are -1.
+    assert set(np.unique(grid.data)) <= set(range(-1, 101))
+
+
+def test_no_return_beams_mark_nothing() -> None:
+    log = parse_carmen(room_log(scans_without_return=27), max_range=50.0)
+    grid = build_grid(log.scans, resolution=0.05)
+    only = build_grid([log.scans[27]], resolution=0.05)
+    assert grid.origin == only.origin
+    assert np.array_equal(grid.data, only.data)
+    with pytest.raises(EmptyMapError, match="no beam with a return"):
+        build_grid(log.scans[:27])
+
+
+def test_build_grid_takes_any_iterable_of_tuples() -> None:
+    angles = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    world = Map.from_shapely(box(-2.0, -1.0, 2.0, 1.0))
+
+    def scans() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+        for x in (-1.0, 0.0, 1.0):
+            pose = np.array([x, 0.0, 0.3])
+            yield pose, cast_rays(world, pose, angles, 10.0)[0], angles, 10.0
+
+    grid = build_grid(scans(), resolution=0.1)
+    geom = grid_to_map(grid, map_id="corridor").polygons.geometry
+    assert geom.area == pytest.approx(8.0, rel=0.1)
+    for bad in ({"resolution": 0.0}, {"free_thresh": 0.9}):
+        with pytest.raises(MapImportError):
+            build_grid(scans(), **bad)  # type: ignore[arg-type]
+    with pytest.raises(MapImportError, match="scan 0"):
+        build_grid([(np.zeros(2), np.ones(3), np.ones(3), 5.0)])
+
+
+@pytest.mark.skipif(not CARMEN.exists(), reason=f"shared CARMEN logs not found at {CARMEN}")
+@pytest.mark.parametrize(("name", "area"), [("intel", (450.0, 600.0)), ("aces", (700.0, 900.0))])
+def test_build_real_logs(name: str, area: tuple[float, float]) -> None:
+    start = time.perf_counter()
+    path = CARMEN / f"{name}-corrected.log.gz"
+    result = grid_to_map(build_from_carmen(path), map_id=name)
+    assert time.perf_counter() - start < 20.0
+    geom = result.polygons.geometry
+    assert area[0] < geom.area < area[1]
+    # The robot drove in the free space: its logged poses are inside the map.
+    poses = read_carmen(path).poses
+    inside = Map.from_geojson(result.map["geometry"]).contains(poses[:, :2])
+    assert inside.mean() > 0.98

@@ -1,0 +1,234 @@
+"""map_server YAML and image loading, saving, and the grid ray marcher."""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.maps.mapimport import (
+    MapFileError,
+    MapImportError,
+    MapMetadata,
+    MapYamlError,
+    OccupancyGrid,
+    encode_pgm,
+    grid_from_image,
+    load_grid,
+    march_rays,
+    parse_map_yaml,
+    save_grid,
+)
+
+YAML = """\
+image: room.pgm
+resolution: 0.1
+origin: [1.0, -2.0, 0.0]
+negate: 0
+occupied_thresh: 0.65
+free_thresh: 0.25
+"""
+
+
+def pgm(pixels: np.ndarray) -> bytes:
+    rows, cols = pixels.shape
+    return f"P5\n{cols} {rows}\n255\n".encode() + pixels.astype(np.uint8).tobytes()
+
+
+def png(pixels: np.ndarray, mode: str) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(pixels.astype(np.uint8), mode=mode).save(out, format="PNG")
+    return out.getvalue()
+
+
+def meta(**kw: object) -> MapMetadata:
+    base: dict[str, object] = {"image": "x.pgm", "resolution": 0.1, "origin": (0.0, 0.0, 0.0)}
+    base.update(kw)
+    return MapMetadata(**base)  # type: ignore[arg-type]
+
+
+def test_parse_yaml_reads_keys_and_defaults() -> None:
+    m = parse_map_yaml(YAML.replace("negate: 0\n", ""))
+    assert m == MapMetadata("room.pgm", 0.1, (1.0, -2.0, 0.0), False, 0.65, 0.25, "trinary")
+    assert parse_map_yaml(YAML + "mode: Scale\n").mode == "scale"
+    assert parse_map_yaml(YAML.encode()).negate is False
+
+
+def test_parse_yaml_names_every_missing_key() -> None:
+    text = "image: a.pgm\nnegate: 0\nfree_thresh: 0.2\n"
+    with pytest.raises(MapYamlError) as err:
+        parse_map_yaml(text)
+    for key in ("resolution", "origin", "occupied_thresh"):
+        assert f"'{key}'" in str(err.value)
+    assert "'free_thresh'" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        (("origin: [1.0, -2.0, 0.0]", "origin: [1.0, 2.0]"), "'origin'"),
+        (("resolution: 0.1", "resolution: -0.1"), "'resolution' must be positive"),
+        (("resolution: 0.1", "resolution: fine"), "'resolution' must be a finite number"),
+        (("negate: 0", "negate: 2"), "'negate'"),
+        (("free_thresh: 0.25", "free_thresh: 0.9"), "'free_thresh' 0.9 is above"),
+        (("occupied_thresh: 0.65", "occupied_thresh: 1.5"), "'occupied_thresh' must be in"),
+        (("image: room.pgm", "image: 3"), "'image' must be a file name"),
+        (("negate: 0", "mode: fancy"), "'mode' must be one of"),
+    ],
+)
+def test_parse_yaml_rejects_bad_values(edit: tuple[str, str], words: str) -> None:
+    with pytest.raises(MapYamlError, match=words):
+        parse_map_yaml(YAML.replace(*edit))
+
+
+def test_parse_yaml_rejects_non_mappings_and_syntax_errors() -> None:
+    with pytest.raises(MapYamlError, match="expected a mapping"):
+        parse_map_yaml("- 1\n- 2\n")
+    with pytest.raises(MapYamlError, match="cannot parse"):
+        parse_map_yaml("image: [unclosed\n")
+
+
+def test_trinary_thresholds_follow_map_server() -> None:
+    # Row 0 of the image is the top of the map.
+    pixels = np.array([[254, 205, 0], [128, 254, 254]])
+    depot = grid_from_image(pgm(pixels), meta(free_thresh=0.25))
+    # 205 is p = 50/255 = 0.196: free under 0.25, unknown under 0.196 (tb3_sandbox).
+    assert depot.free.tolist() == [[False, True, True], [True, True, False]]
+    assert depot.occupied.tolist() == [[False, False, False], [False, False, True]]
+    assert depot.data.tolist() == [[-1, 0, 0], [0, 0, 100]]
+    tb3 = grid_from_image(pgm(pixels), meta(free_thresh=0.196))
+    assert tb3.free.tolist() == [[False, True, True], [True, False, False]]
+
+
+def test_negate_swaps_black_and_white() -> None:
+    grid = grid_from_image(pgm(np.array([[0, 255]])), meta(negate=True))
+    assert grid.free.tolist() == [[True, False]]
+    assert grid.occupied.tolist() == [[False, True]]
+
+
+def test_scale_mode_keeps_intermediate_values_and_transparency_is_unknown() -> None:
+    grey = np.array([[254, 115, 0, 254]])  # 115: p = 0.549, between the thresholds
+    alpha = np.array([[255, 255, 255, 128]])
+    grid = grid_from_image(png(np.stack([grey, alpha], axis=-1), "LA"), meta(mode="scale"))
+    expected = round((140 / 255 - 0.25) / 0.4 * 100)
+    assert grid.data.tolist() == [[0, expected, 100, -1]]
+    assert grid.free.tolist() == [[True, False, False, False]]
+
+
+def test_trinary_averages_alpha_in_like_map_server() -> None:
+    # A transparent white pixel: shade (3 * 254 + 0) / 4 / 255, p = 0.253: not free at 0.25.
+    rgba = np.array([[[254, 254, 254, 255], [254, 254, 254, 0]]])
+    grid = grid_from_image(png(rgba, "RGBA"), meta())
+    assert grid.free.tolist() == [[True, False]]
+    rgb = np.array([[[255, 0, 0], [254, 254, 254]]])  # red: shade 1/3, p = 0.667: occupied
+    grid = grid_from_image(png(rgb, "RGB"), meta())
+    assert grid.occupied.tolist() == [[True, False]]
+
+
+def test_raw_mode_uses_values_as_percent() -> None:
+    grid = grid_from_image(pgm(np.array([[0, 20, 50, 100, 255]])), meta(mode="raw", negate=True))
+    assert grid.data.tolist() == [[0, 20, 50, 100, -1]]
+    assert grid.free.tolist() == [[True, True, False, False, False]]
+    assert grid.occupied.tolist() == [[False, False, False, True, False]]
+
+
+def test_unreadable_image_raises() -> None:
+    with pytest.raises(MapFileError, match=r"room\.pgm: cannot decode the image"):
+        grid_from_image(b"P5 not really an image", meta(), name="room.pgm")
+
+
+def write_map(folder: Path, pixels: np.ndarray, yaml_text: str = YAML) -> Path:
+    (folder / "room.pgm").write_bytes(pgm(pixels))
+    path = folder / "room.yaml"
+    path.write_text(yaml_text)
+    return path
+
+
+def test_load_grid_resolves_the_image_beside_the_yaml(tmp_path: Path) -> None:
+    pixels = np.full((4, 6), 254)
+    pixels[0, :] = 0
+    grid = load_grid(write_map(tmp_path, pixels))
+    assert grid.shape == (4, 6)
+    assert grid.resolution == 0.1
+    assert grid.origin == (1.0, -2.0, 0.0)
+    assert grid.occupied[3].all()  # the image's top row is the grid's last row
+    assert grid.free_cells == 18
+
+
+def test_load_grid_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(MapFileError, match=r"nowhere\.yaml"):
+        load_grid(tmp_path / "nowhere.yaml")
+    (tmp_path / "lonely.yaml").write_text(YAML)
+    with pytest.raises(MapFileError, match=r"image file .*room.pgm' \(named by 'image'"):
+        load_grid(tmp_path / "lonely.yaml")
+    path = write_map(tmp_path, np.full((2, 2), 254))
+    (tmp_path / "room.pgm").write_bytes(b"garbage")
+    with pytest.raises(MapFileError, match="cannot decode"):
+        load_grid(path)
+    path.write_text(YAML.replace("resolution: 0.1\n", ""))
+    with pytest.raises(MapYamlError, match=r"room.yaml: .*missing required key\(s\) 'resolution'"):
+        load_grid(path)
+
+
+def test_save_and_load_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    state = rng.integers(0, 3, size=(7, 9))
+    grid = OccupancyGrid(
+        data=np.where(state == 0, 0, np.where(state == 1, 100, -1)).astype(np.int8),
+        free=state == 0,
+        occupied=state == 1,
+        resolution=0.05,
+        origin=(-3.5, 2.25, 0.4),
+    )
+    image = save_grid(grid, tmp_path / "saved.yaml")
+    assert image.read_bytes() == encode_pgm(grid)
+    back = load_grid(tmp_path / "saved.yaml")
+    assert np.array_equal(back.free, grid.free)
+    assert np.array_equal(back.occupied, grid.occupied)
+    assert np.array_equal(back.data, grid.data)
+    assert back.origin == grid.origin
+    assert back.resolution == grid.resolution
+
+
+def box_grid(
+    rows: int, cols: int, resolution: float, origin: tuple[float, float, float]
+) -> OccupancyGrid:
+    free = np.zeros((rows, cols), dtype=bool)
+    free[1:-1, 1:-1] = True
+    return OccupancyGrid(free.astype(np.int8), free, ~free, resolution, origin)
+
+
+def test_march_rays_hits_cell_edges_exactly() -> None:
+    grid = box_grid(12, 22, 0.5, (0.0, 0.0, 0.0))  # free space [0.5, 10.5] x [0.5, 5.5]
+    pose = [3.0, 2.0, 0.0]
+    angles = [0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi, math.atan2(3.5, 7.5)]
+    got = march_rays(grid, pose, angles, 100.0)[0]
+    assert got[:4] == pytest.approx([7.5, 3.5, 2.5, 1.5])
+    assert got[4] == pytest.approx(math.hypot(7.5, 3.5))
+    assert np.isinf(march_rays(grid, pose, [0.0], 7.0)).all()
+
+
+def test_march_rays_honours_origin_yaw() -> None:
+    yaw = 0.7
+    grid = box_grid(12, 22, 0.5, (2.0, -1.0, yaw))
+    local = np.array([3.0, 2.0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    world = np.array([2.0 + c * local[0] - s * local[1], -1.0 + s * local[0] + c * local[1]])
+    got = march_rays(grid, [*world, yaw], [0.0, 0.5 * math.pi], 100.0)[0]
+    assert got == pytest.approx([7.5, 3.5])
+
+
+def test_grid_rejects_inconsistent_arrays() -> None:
+    with pytest.raises(ValueError, match="shape"):
+        OccupancyGrid(
+            np.zeros((2, 2), np.int8), np.zeros((2, 3), bool), np.zeros((2, 2), bool), 1.0
+        )
+    with pytest.raises(ValueError, match="resolution"):
+        OccupancyGrid(
+            np.zeros((2, 2), np.int8), np.zeros((2, 2), bool), np.zeros((2, 2), bool), 0.0
+        )
+    assert issubclass(MapFileError, MapImportError)
