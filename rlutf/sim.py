@@ -123,6 +123,7 @@ def make_trajectory(
         ``2 rad/s``.
     """
     inner = world.geometry.buffer(-clearance)
+    shapely.prepare(inner)
     pos = random_free_point(world, rng, clearance + 0.05)
     target = pos
     heading = rng.uniform(-math.pi, math.pi)
@@ -130,21 +131,49 @@ def make_trajectory(
     step = speed * dt
     max_turn = 2.0 * dt
     for i in range(steps):
-        for _ in range(200):
-            if np.hypot(*(target - pos)) > step:
-                break
-            cand = pos + rng.uniform(-6.0, 6.0, 2)
-            if inner.contains(LineString([pos, cand])):
-                target = cand
+        if np.hypot(*(target - pos)) <= step:
+            target = _next_waypoint(inner, rng, pos, heading, target)
         want = math.atan2(target[1] - pos[1], target[0] - pos[0])
         turn = wrap_scalar(want - heading)
         heading = wrap_scalar(heading + max(-max_turn, min(max_turn, turn)))
         if abs(turn) < 0.5:
             move = pos + step * np.array([math.cos(heading), math.sin(heading)])
-            if inner.contains(shapely.Point(move)):
+            # Moving along the heading (not the chord) bends the leg: the straight way from
+            # the new position to the waypoint must still be clear, or the robot would stop at
+            # a wall for good. A blocked move picks a new waypoint from here instead.
+            if inner.contains(LineString([move, target])):
                 pos = move
+            else:
+                target = _next_waypoint(inner, rng, pos, heading, pos)
         out[i] = (pos[0], pos[1], heading)
     return out
+
+
+def _next_waypoint(
+    inner: shapely.Geometry,
+    rng: np.random.Generator,
+    pos: FloatArray,
+    heading: float,
+    fallback: FloatArray,
+    choices: int = 3,
+) -> FloatArray:
+    """A waypoint in straight view of ``pos`` within 6 m, at least 1 m off when possible.
+
+    Of the first ``choices`` visible candidates the one needing the least turn wins, so the
+    robot spends little time turning in place; ``fallback`` when none is found.
+    """
+    found: list[FloatArray] = []
+    for _ in range(200):
+        cand = pos + rng.uniform(-6.0, 6.0, 2)
+        if np.hypot(*(cand - pos)) < 1.0 or not inner.contains(LineString([pos, cand])):
+            continue
+        found.append(cand)
+        if len(found) >= choices:
+            break
+    if not found:
+        return fallback
+    turns = [abs(wrap_scalar(math.atan2(c[1] - pos[1], c[0] - pos[0]) - heading)) for c in found]
+    return found[int(np.argmin(turns))]
 
 
 @dataclass(frozen=True)

@@ -48,3 +48,21 @@ def test_odometry_drifts_but_follows_motion() -> None:
     step = relative(odom[10], odom[11])
     true_step = relative(truth[10], truth[11])
     assert abs(step[0] - true_step[0]) < 0.02
+
+
+def test_long_paths_keep_moving_with_their_clearance() -> None:
+    # The old path stalled after about 220 steps: bent legs left the waypoint out of sight.
+    import shapely
+
+    steps, dt, speed, clearance = 2000, 0.1, 0.8, 0.45
+    for seed, (w, h, rx, ry) in ((1, (18.0, 12.0, 2, 2)), (3, (24.0, 14.0, 3, 2))):
+        world = make_building(np.random.default_rng(seed), w, h, rx, ry)
+        path = make_trajectory(
+            world, np.random.default_rng([seed, 1]), steps, dt=dt, speed=speed, clearance=clearance
+        )
+        moved = np.hypot(*np.diff(path[:, :2], axis=0).T)
+        assert moved.sum() >= 0.8 * speed * dt * steps
+        # Still moving at the end: no stall in the last quarter.
+        assert moved[-steps // 4 :].sum() >= 0.5 * speed * dt * steps / 4
+        inner = world.geometry.buffer(-clearance + 1e-6)
+        assert shapely.contains_xy(inner, path[:, 0], path[:, 1]).all()
