@@ -30,6 +30,7 @@ _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 #: Edges shorter than this (metres) carry no direction and inherit the previous edge's.
 _MIN_EDGE = 1e-9
+_NO_CAP = np.empty(0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,18 +177,34 @@ class PolarArea:
             weights[0] += wrap
             weights[-1] += wrap
         weights *= 0.25 / max(perimeter, _MIN_EDGE)
-        self._real_sq = real_ranges * real_ranges
-        self._weights = weights
-        self._cap = None if cap is None else (2.0 * cap) * real_ranges
+        self._ranges = np.ascontiguousarray(real_ranges, dtype=np.float64)
+        self.real_sq = self._ranges * self._ranges
+        self.weights = weights
+        self._cap = cap
+        self._bands: dict[float, FloatArray] = {}
 
-    def __call__(self, virtual_ranges: FloatArray) -> FloatArray:
-        """``(K,)`` mean distances of ``(K, n)`` virtual ranges from the real ones, metres."""
+    def band(self, cap: float | None) -> FloatArray:
+        """``(n,)`` the most each beam's ``|rho_v^2 - rho_r^2|`` counts, ``2 cap rho_r``; empty
+        for no cap."""
+        if cap is None:
+            return _NO_CAP
+        found = self._bands.get(cap)
+        if found is None:
+            found = (2.0 * cap) * self._ranges
+            self._bands[cap] = found
+        return found
+
+    def __call__(self, virtual_ranges: FloatArray, cap: float | None = None) -> FloatArray:
+        """``(K,)`` mean distances of ``(K, n)`` virtual ranges from the real ones, metres.
+
+        ``cap`` replaces the cap given at construction."""
         diff = virtual_ranges * virtual_ranges
-        diff -= self._real_sq
+        diff -= self.real_sq
         np.abs(diff, out=diff)
-        if self._cap is not None:
-            np.minimum(diff, self._cap, out=diff)
-        return np.asarray(diff.dot(self._weights), dtype=np.float64)
+        use = self._cap if cap is None else cap
+        if use is not None:
+            np.minimum(diff, self.band(use), out=diff)
+        return np.asarray(diff.dot(self.weights), dtype=np.float64)
 
 
 def polar_area(

@@ -9,9 +9,9 @@ where.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import shapely
@@ -24,6 +24,9 @@ from rlutf.errors import MapError
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+#: ``(segments, x0, y0, cell, nx, ny, cell_start, cell_walls)``: see :attr:`Map.grid`.
+Grid = tuple[FloatArray, float, float, float, int, int, IntArray, IntArray]
+T = TypeVar("T")
 
 #: Default side of a cell of the wall index, metres.
 DEFAULT_CELL_SIZE = 1.0
@@ -196,6 +199,7 @@ class Map:
     wall_start: NDArray[np.complex128] = field(repr=False, init=False)
     wall_direction: NDArray[np.complex128] = field(repr=False, init=False)
     wall_length: FloatArray = field(repr=False, init=False)
+    _derived: dict[str, object] = field(repr=False, init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         # Walls as complex numbers (start, end - start), for the ray caster.
@@ -240,6 +244,31 @@ class Map:
     def to_geojson(self) -> dict[str, Any]:
         """The map's geometry as a GeoJSON mapping."""
         return geometry_to_geojson(self.geometry)
+
+    @property
+    def grid(self) -> Grid:
+        """The walls and their grid index as the compiled kernels take them (see
+        :mod:`rlutf._kernels`)."""
+        ix = self.index
+        return (
+            self.segments,
+            ix.origin[0],
+            ix.origin[1],
+            ix.cell_size,
+            ix.nx,
+            ix.ny,
+            ix.cell_start,
+            ix.cell_walls,
+        )
+
+    def derived(self, key: str, make: Callable[[Map], T]) -> T:
+        """A structure derived from the map (a distance field, say), made on first use and kept
+        with the map, so that it is made once per map version."""
+        found = self._derived.get(key)
+        if found is None:
+            found = make(self)
+            self._derived[key] = found
+        return cast(T, found)
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
