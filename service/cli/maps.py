@@ -50,6 +50,15 @@ def register(sub: Any) -> None:
         "--max-range", type=float, default=50.0, help="longer ranges are no return, m (default 50)"
     )
     build.add_argument(
+        "--surface-offset",
+        type=float,
+        default=None,
+        metavar="M",
+        help="move the walls this far into the occupied cells, m (default 0.4 cell: a surface "
+        "a scanner hit lies inside its cell, half a cell deep on average; 0 traces the cell "
+        "edges, as map import does)",
+    )
+    build.add_argument(
         "--save-grid",
         type=Path,
         metavar="YAML",
@@ -157,6 +166,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_build(args: argparse.Namespace) -> int:
     """``rlutf map build``."""
     from service.maps.mapimport import (
+        BUILT_SURFACE_CELLS,
         MapImportError,
         build_from_carmen,
         build_grid,
@@ -176,7 +186,10 @@ def cmd_build(args: argparse.Namespace) -> int:
             save_grid(grid, args.save_grid)
             print(f"wrote {args.save_grid}")
         mid = args.map_id or map_id_from_name(args.log.name)
-        result = grid_to_map(grid, map_id=mid, **_options(args))
+        offset = args.surface_offset
+        if offset is None:
+            offset = BUILT_SURFACE_CELLS * grid.resolution
+        result = grid_to_map(grid, map_id=mid, surface_offset=offset, **_options(args))
     except (MapImportError, OSError, ValueError) as err:
         print(f"rlutf map build: {err}", file=sys.stderr)
         return EXIT_FAILURE

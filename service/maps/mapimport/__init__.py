@@ -43,6 +43,7 @@ from service.maps.mapimport.grid import (
     save_grid,
 )
 from service.maps.mapimport.importer import (
+    BUILT_SURFACE_CELLS,
     ImportResult,
     grid_to_map,
     import_grid,
@@ -62,6 +63,7 @@ from service.maps.mapimport.raymarch import march_rays, traverse
 from service.maps.mapimport.render import render_map
 
 __all__ = [
+    "BUILT_SURFACE_CELLS",
     "DEFAULT_MAX_RANGE",
     "DEFAULT_MIN_AREA",
     "DEFAULT_MIN_HOLE_AREA",

@@ -21,10 +21,15 @@ from service.maps.mapimport.polygonize import (
     DEFAULT_MIN_HOLE_AREA,
     ComponentSpec,
     Polygonized,
+    polygonal,
     polygonize,
 )
 
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+#: ``surface_offset`` of maps built from scans, in cells: a surface hit lies half a cell deep in
+#: its cell on average (measured on the CARMEN logs: ranges cast on a map traced at the cell
+#: edges were 3.4 cm short at 5 cm cells); 0.4 keeps a one-cell obstacle 0.2 cells thick.
+BUILT_SURFACE_CELLS = 0.4
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +93,7 @@ def grid_to_map(
     min_area: float = DEFAULT_MIN_AREA,
     min_hole_area: float = DEFAULT_MIN_HOLE_AREA,
     simplify: float | None = None,
+    surface_offset: float = 0.0,
 ) -> ImportResult:
     """Polygonize a grid into a wire Map dict.
 
@@ -99,6 +105,11 @@ def grid_to_map(
         min_area: with ``component="all"``, smaller components are dropped (square metres).
         min_hole_area: smaller obstacles are filled in (square metres).
         simplify: Douglas-Peucker tolerance in metres; None for half a cell.
+        surface_offset: move the walls this far into the occupied cells, metres (the free
+            space grows by it). The traced boundary runs along the edges of the free cells,
+            but a surface that a scanner hit lies inside its cell, half a cell deep on
+            average: maps built from scans (:data:`BUILT_SURFACE_CELLS`) set it, so that ranges
+            cast on the map are not short by half a cell.
 
     Returns:
         The map and the report.
@@ -118,8 +129,19 @@ def grid_to_map(
         min_hole_area=min_hole_area,
         simplify=simplify,
     )
+    if not 0.0 <= surface_offset < 0.5 * grid.resolution:
+        raise MapImportError(
+            f"surface_offset: must be within [0, half a cell = {0.5 * grid.resolution:g} m), "
+            f"got {surface_offset!r}"
+        )
+    geometry = result.geometry
+    if surface_offset > 0.0:
+        # Mitred joins keep square corners square; under half a cell, an obstacle one cell
+        # thick keeps some thickness, so no two free regions merge.
+        grown = geometry.buffer(surface_offset, join_style="mitre", mitre_limit=2.0)
+        geometry = polygonal(grown)
     try:
-        checked = Map.from_shapely(result.geometry)
+        checked = Map.from_shapely(geometry)
     except MapError as err:
         raise MapImportError(f"the traced map is not a valid map: {err}") from err
     wire = {

@@ -284,10 +284,10 @@ def trace_free_space(free: BoolArray, resolution: float) -> Polygon | MultiPolyg
         if depth[i] % 2 == 1 and depth[j] == depth[i] - 1:
             holes.setdefault(j, []).append(rings[i])
     shells = [Polygon(rings[j], holes.get(int(j), [])) for j in np.flatnonzero(depth % 2 == 0)]
-    return _polygonal(shells[0] if len(shells) == 1 else MultiPolygon(shells))
+    return polygonal(shells[0] if len(shells) == 1 else MultiPolygon(shells))
 
 
-def _polygonal(geom: shapely.Geometry) -> Polygon | MultiPolygon:
+def polygonal(geom: shapely.Geometry) -> Polygon | MultiPolygon:
     """Make a geometry valid and keep its polygonal parts."""
     if not geom.is_valid:
         geom = shapely.make_valid(geom)
@@ -342,9 +342,9 @@ def polygonize(
     )
     local = trace_free_space(free, grid.resolution)
     if tolerance > 0:
-        local = _polygonal(shapely.simplify(local, tolerance, preserve_topology=True))
-    geom = _polygonal(shapely.affinity.affine_transform(local, list(grid.affine)))
-    geom = _polygonal(shapely.orient_polygons(geom))
+        local = polygonal(shapely.simplify(local, tolerance, preserve_topology=True))
+    geom = polygonal(shapely.affinity.affine_transform(local, list(grid.affine)))
+    geom = polygonal(shapely.orient_polygons(geom))
     return Polygonized(
         geometry=geom,
         free=free,

@@ -11,11 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
+import shapely.affinity
 from shapely.geometry import Polygon, box
 
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
 from service.maps.mapimport import (
+    BUILT_SURFACE_CELLS,
     CarmenError,
     EmptyMapError,
     MapFileError,
@@ -33,14 +35,16 @@ ROOM = box(0.0, 0.0, 6.0, 4.0).difference(box(2.5, 1.5, 3.0, 2.0))
 NO_RETURN = 81.83
 
 
-def room_log(scans_without_return: int = 0) -> str:
-    """A CARMEN log of scans in ROOM (6 x 4 m with a 0.5 m pillar), exact ranges."""
-    world = Map.from_shapely(ROOM)
+def room_log(scans_without_return: int = 0, shift: float = 0.0) -> str:
+    """A CARMEN log of scans in ROOM (6 x 4 m with a 0.5 m pillar), exact ranges; the room
+    and the poses moved by ``shift`` metres along x and y."""
+    world = Map.from_shapely(shapely.affinity.translate(ROOM, shift, shift))
     angles = carmen_angles(180)
     lines = ["# synthetic", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
     spots = [(1.0, 1.0), (1.0, 3.0), (3.0, 0.8), (5.0, 1.0), (5.0, 3.0), (3.0, 3.2), (1.8, 2.0)]
     stamp = 0.0
-    for x, y in spots:
+    for x0, y0 in spots:
+        x, y = x0 + shift, y0 + shift
         for theta in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
             ranges = cast_rays(world, [x, y, theta], angles, 40.0)[0]
             if scans_without_return:
@@ -168,3 +172,49 @@ def test_build_real_logs(name: str, area: tuple[float, float]) -> None:
     poses = read_carmen(path).poses
     inside = Map.from_geojson(result.map["geometry"]).contains(poses[:, :2])
     assert inside.mean() > 0.98
+
+
+def test_surface_offset_puts_the_walls_where_the_scanner_saw_them(tmp_path: Path) -> None:
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    short, fixed = [], []
+    # Walls at several depths inside their cells (a wall on a cell edge is a special case).
+    for shift in (0.005, 0.015, 0.025, 0.035, 0.045):
+        path = tmp_path / f"room-{shift}.log.gz"
+        path.write_bytes(gzip.compress(room_log(shift=shift).encode()))
+        grid = build_from_carmen(path, resolution=0.05)
+        edges = Map.from_geojson(grid_to_map(grid, map_id="room").map["geometry"])
+        offset = BUILT_SURFACE_CELLS * grid.resolution
+        built = Map.from_geojson(
+            grid_to_map(grid, map_id="room", surface_offset=offset).map["geometry"]
+        )
+        truth = Map.from_shapely(shapely.affinity.translate(ROOM, shift, shift))
+        for x, y, th in ([1.5, 1.2, 0.2], [4.2, 2.8, -1.0], [1.2, 3.1, 2.0]):
+            pose = [x + shift, y + shift, th]
+            want = cast_rays(truth, pose, angles, 20.0)[0]
+            short.append(np.median(want - cast_rays(edges, pose, angles, 20.0)[0]))
+            fixed.append(np.median(want - cast_rays(built, pose, angles, 20.0)[0]))
+        # The pillar is still there.
+        assert not built.contains_point(2.75 + shift, 1.75 + shift)
+    # Traced at the cell edges, cast ranges are short by about half a cell on average; with
+    # the offset, by a fraction of one.
+    assert np.mean(short) > 0.35 * 0.05
+    assert abs(np.mean(fixed)) < 0.15 * 0.05
+    with pytest.raises(MapImportError, match="surface_offset"):
+        grid_to_map(grid, map_id="room", surface_offset=0.5 * grid.resolution)
+
+
+def test_surface_offset_keeps_a_wall_one_cell_thick() -> None:
+    angles = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    # Two rooms split by a wall 5 cm thick (one cell at 5 cm), with no door.
+    left, right = box(0.0, 0.0, 2.0, 2.0), box(2.05, 0.0, 4.05, 2.0)
+    world = Map.from_shapely(shapely.MultiPolygon([left, right]))
+    scans = [
+        (np.array([x, 1.0, 0.0]), cast_rays(world, [x, 1.0, 0.0], angles, 10.0)[0], angles, 10.0)
+        for x in (0.5, 1.5, 2.6, 3.5)
+    ]
+    grid = build_grid(scans, resolution=0.05)
+    built = grid_to_map(
+        grid, map_id="split", surface_offset=BUILT_SURFACE_CELLS * 0.05, component="all"
+    )
+    geom = Map.from_geojson(built.map["geometry"]).geometry
+    assert isinstance(geom, shapely.MultiPolygon) and len(geom.geoms) == 2
