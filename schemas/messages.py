@@ -121,14 +121,16 @@ class PoseEstimate(WireModel):
     theta: FiniteFloat = Field(description="Heading in the map, radians.")
     status: PoseStatus = Field(
         description="tracking: accepted without search; corrected: the search moved the pose; "
-        "lost: no pose under the acceptance threshold (the best one is still given)."
+        "lost: the scan does not fit the map at the best pose (the best one is still given)."
     )
     discrepancy: NonNegativeFloat = Field(
         description="Turning-function difference at the returned pose."
     )
     iterations: NonNegativeInt = Field(description="Search rounds used.")
     covariance: Covariance | None = Field(
-        default=None, description="Optional 3x3 covariance of x, y, theta, row-major (9 numbers)."
+        default=None,
+        description="Optional 3x3 covariance of x, y, theta, row-major (9 numbers): m^2, m rad, "
+        "rad^2.",
     )
 
 

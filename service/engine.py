@@ -279,7 +279,9 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 self.keys.pose(robot.robot_id),
-                f"no pose under the acceptance threshold (discrepancy {result.discrepancy:.4g})",
+                f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
+                f"{self.config.fit_distance:g} m of the map at the best pose (at least "
+                f"{100 * self.config.min_fit:.0f} % needed); searching wider at the next scan",
             )
         return out
 
@@ -297,6 +299,9 @@ class FleetEngine:
             status=result.status,
             discrepancy=float(result.discrepancy),
             iterations=int(result.iterations),
+            covariance=None
+            if result.covariance is None
+            else tuple(float(v) for v in result.covariance.ravel()),
         )
         payload = encode(msg)
         robot.last_pose = payload

@@ -68,6 +68,7 @@ class RobotView:
     latencies_ms: list[float] = field(default_factory=list)
     statuses: dict[str, int] = field(default_factory=dict)
     last_status: str = "-"
+    last_sigma: tuple[float, float] = (math.nan, math.nan)
     last_dr_error: float = 0.0
     sent: int = 0
 
@@ -182,6 +183,7 @@ class Fleet:
                 view.latencies_ms.append((now - sent) / 1e6)
             view.statuses[pose.status] = view.statuses.get(pose.status, 0) + 1
             view.last_status = pose.status
+            view.last_sigma = _sigma_cm(pose.covariance)
             view.last_dr_error = dr or 0.0
 
     def table(self, title: str) -> Table:
@@ -193,7 +195,9 @@ class Fleet:
             "poses",
             "status",
             "error cm",
+            "1-sigma cm",
             "heading deg",
+            "1-sigma deg",
             "odometry-only error cm",
             "latency p50 ms",
             "p99 ms",
@@ -210,7 +214,9 @@ class Fleet:
                     str(len(v.errors)),
                     v.last_status,
                     f"{last:.1f}",
+                    f"{v.last_sigma[0]:.2f}",
                     f"{head:.2f}",
+                    f"{v.last_sigma[1]:.3f}",
                     f"{v.last_dr_error * 100:.1f}",
                     f"{lat[0]:.1f}",
                     f"{lat[1]:.1f}",
@@ -253,6 +259,15 @@ class Fleet:
                     statuses,
                 )
         return t
+
+
+def _sigma_cm(covariance: tuple[float, ...] | None) -> tuple[float, float]:
+    """One-sigma position (cm, the root of the position covariance's trace) and heading (deg)
+    of a PoseEstimate's covariance; NaN without one."""
+    if covariance is None:
+        return (math.nan, math.nan)
+    position = math.sqrt(max(covariance[0] + covariance[4], 0.0)) * 100
+    return (position, math.degrees(math.sqrt(max(covariance[8], 0.0))))
 
 
 def run_demo(args: argparse.Namespace) -> int:

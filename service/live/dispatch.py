@@ -27,6 +27,7 @@ from typing import Any
 
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map as World
+from rlutf.warmup import warm_up
 from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
 from service.keys import MODELS, InputKind, Keys, Message
@@ -271,6 +272,7 @@ def tune_gc() -> None:
 
 def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interval: int) -> None:
     """Entry point of a worker process: apply batches until told to stop."""
+    warm_up()
     engine = FleetEngine(Keys(prefix), config, interval)
     tune_gc()
     while True:

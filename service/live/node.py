@@ -22,6 +22,7 @@ from typing import Any
 
 import zenoh
 
+from rlutf.warmup import warm_up
 from schemas import (
     SCHEMA_NAMES,
     Event,
@@ -143,6 +144,9 @@ class LocalizationService:
     def start(self) -> LocalizationService:
         """Start workers, open the session and declare everything."""
         s = self.settings
+        # Compile the localizer's kernels (or load them from numba's cache) now, not at the
+        # first scan; worker processes do the same as they start.
+        warm_up()
         self.recorder.set_config(s.effective())
         if hasattr(self.recorder, "on_overflow"):
             # Already in the log; published so operators see it live.

@@ -12,7 +12,7 @@ from mcaplog_fixtures import T0, payloads, read_all, simulated_inputs, write_log
 
 from rlutf.localizer import LocalizerConfig
 from rlutf.motion import compose
-from schemas import Event, EventCode, decode, encode
+from schemas import Event, EventCode, PoseEstimate, decode, encode
 from service.cli.main import main
 from service.engine import FleetEngine
 from service.keys import Keys
@@ -215,3 +215,18 @@ def test_cli_replay_writes_plots(
     assert main([*argv, "--set", "localizer.bogus=1"]) == 2
     assert "unknown parameter" in capsys.readouterr().err
     assert main(["replay", str(inputs_log), "--out", str(inputs_log), "--quiet"]) == 2
+
+
+def test_every_pose_carries_its_covariance(inputs_log: Path, tmp_path: Path) -> None:
+    result = replay([inputs_log], tmp_path / "out.mcap")
+    poses = [
+        decode(PoseEstimate, p.payload) for records in result.recomputed.values() for p in records
+    ]
+    assert poses
+    for pose in poses:
+        assert pose.covariance is not None and len(pose.covariance) == 9
+        cov = np.array(pose.covariance).reshape(3, 3)
+        np.testing.assert_array_equal(cov, cov.T)
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+        # 120 beams: millimetres to a centimetre
+        assert 1e-4 < np.sqrt(cov[0, 0] + cov[1, 1]) < 0.02
