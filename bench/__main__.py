@@ -1,10 +1,11 @@
 """Accuracy and speed benchmarks of RLuTF against the bound and the usual alternatives.
 
-Run: ``python -m bench`` (full, about 12 minutes on two idle cores) or ``python -m bench
---quick`` (a smoke test under two minutes). Both rewrite the ``accuracy`` and ``speed``
-sections of ``BENCHMARKS.md`` (``--output``; ``--no-write`` only prints) and the figures in
-``docs/bench/`` (``--plots``). ``python -m bench --write-logs DIR`` writes each scenario's first
-run as an MCAP input log with its ground truth (see :mod:`bench.logs`) and exits.
+Run: ``python -m bench`` (full, about 25 minutes on two idle cores) or ``python -m bench
+--quick`` (a smoke test under two minutes). Both rewrite the ``accuracy``, ``speed`` and
+``priors`` sections of ``BENCHMARKS.md`` (``--output``; ``--no-write`` only prints) and the
+figures in ``docs/bench/`` (``--plots``). ``python -m bench --write-logs DIR`` writes each
+scenario's first run as an MCAP input log with its ground truth (see :mod:`bench.logs`) and
+exits.
 """
 
 from __future__ import annotations
@@ -25,13 +26,15 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from bench import plots as figures
 from bench.accuracy import FULL, QUICK, Profile, build_runs, run_accuracy, total_updates
 from bench.logs import write_run_files
-from bench.methods import DEFAULT_METHOD, Method, all_methods
+from bench.methods import DEFAULT_METHOD, Method, table_methods
+from bench.priors import priors_section
 from bench.report import replace_section
 from bench.speed import growth, latency_vs_beams, latency_vs_map, speed_methods, sweep_maps
 from bench.tables import overview_table, scenario_table, speed_tables, targets
 
 ACCURACY = "accuracy"
 SPEED = "speed"
+PRIORS = "priors"
 
 
 def machine() -> str:
@@ -105,8 +108,44 @@ def accuracy_section(
     for res in results:
         path = figures.trajectories(res, plots / f"trajectories-{res.name}.png")
         images.append(f"![{res.name}]({(rel / path.name).as_posix()})")
-    err = figures.error_panels(results, [n for n in names if n != "turning"], plots / "errors.png")
+    err = figures.error_panels(results, names, plots / "errors.png")
     bars = figures.rmse_bars(results, names, plots / "rmse.png")
+    log_figures = []
+    for log in dict.fromkeys(r.runs[0].map_id for r in results if r.real):
+        variants = [r for r in results if r.real and r.runs[0].map_id == log]
+        fig = figures.log_errors(
+            variants, names, plots / f"log-errors-{log}.png", f"{log}: position error per scan"
+        )
+        log_figures.append(f"![{log}: error over time]({(rel / fig.name).as_posix()})")
+    ellipse_lines: list[str] = []
+    shown = next(
+        (
+            r
+            for r in results
+            if not r.real and (t := r.traces.get(DEFAULT_METHOD)) and t[0].covariances is not None
+        ),
+        None,
+    )
+    if shown is not None:
+        covs = shown.traces[DEFAULT_METHOD][0].covariances
+        assert covs is not None
+        scale = figures.ellipse_scale(covs)
+        fig = figures.ellipses(shown, plots / f"ellipses-{shown.name}.png")
+        size = (
+            "at true size"
+            if scale == 1.0
+            else f"ellipse and error (estimate minus truth) both enlarged {scale:g} times to "
+            "be seen, so the black dot (the true position) falls inside when the covariance "
+            "covers the error"
+        )
+        ellipse_lines = [
+            f"Covariance along a run ({shown.name}, seed {shown.runs[0].seed}): the true path, "
+            f"the default's poses and every 10th update's 3-sigma position ellipse from its "
+            f"covariance, {size}:",
+            "",
+            f"![covariance ellipses]({(rel / fig.name).as_posix()})",
+            "",
+        ]
     lines = [
         "## Accuracy against the bound and the alternatives",
         "",
@@ -117,16 +156,22 @@ def accuracy_section(
         "",
         f"Machine: {machine()}",
         "",
-        "Methods: dead reckoning (odometry only); RLuTF `LocalizerConfig.paper()`; RLuTF "
-        '`LocalizerConfig()` (the default, `discrepancy="area"`) and with '
-        '`discrepancy="turning"` and `"combined"`; point-to-line ICP against the map '
-        "(`bench/baselines/icp.py`); an AMCL likelihood-field particle filter with Nav2's "
-        "default parameters (`bench/baselines/amcl.py`: 500 to 2000 particles, alpha1..4 0.2, "
-        "z_hit 0.5, z_rand 0.5, sigma_hit 0.2 m, 60 beams, updates after 0.25 m or 0.2 rad, "
-        "KLD pf_err 0.05 pf_z 0.99; between filter updates its pose follows odometry, as AMCL's "
-        "map->odom transform does). The bound is Censi's Cramer-Rao bound of each scan against "
-        "the map at the true pose (`bench/crb.py`), RMS over the scans; divergence means an "
-        "update over 0.5 m off; latency is one `update` call.",
+        "Methods: dead reckoning (odometry only); RLuTF `LocalizerConfig.paper()` (the paper read"
+        " literally: turning functions), `LocalizerConfig.paper_area()` (the paper with the area "
+        "between polygons), `LocalizerConfig(refine=False)` (the default without the "
+        "least-squares refinement) and `LocalizerConfig()` (the default); point-to-line ICP "
+        "against the map (`bench/baselines/icp.py`); an AMCL likelihood-field particle filter "
+        "with Nav2's default parameters (`bench/baselines/amcl.py`: 500 to 2000 particles, "
+        "alpha1..4 0.2, z_hit 0.5, z_rand 0.5, sigma_hit 0.2 m, 60 beams, updates after 0.25 m or"
+        " 0.2 rad, KLD pf_err 0.05 pf_z 0.99; between filter updates its pose follows odometry, "
+        "as AMCL's map->odom transform does). The bound is Censi's Cramer-Rao bound of each scan "
+        "against the map at the true pose (`bench/crb.py`), RMS over the scans; divergence means "
+        "an update over 0.5 m off; max error is the largest position error of any update; NEES is"
+        " the mean over the updates of e^T P^-1 e, e = (dx, dy, wrap(dtheta)) the pose minus the "
+        "truth and P the covariance the method returns (3 for a consistent covariance, chi-square"
+        " with 3 dof); latency is one `update` call. The real logs are run twice: with the log's "
+        "own odometry, and (`-odom5`) with odometry made from the SLAM poses' increments plus 5 %"
+        " noise and a 0.02 rad/m heading bias.",
         "",
         "Translation RMSE, cm:",
         "",
@@ -139,12 +184,20 @@ def accuracy_section(
     ]
     for res in results:
         lines += [*scenario_table(res, methods), ""]
+    if log_figures:
+        lines += [
+            "Position error per scan on the real logs, every method, both odometry variants:",
+            "",
+            "\n\n".join(log_figures),
+            "",
+        ]
+    lines += ellipse_lines
     lines += ["Trajectories of the first run of each scenario:", "", "\n\n".join(images)]
     return "\n".join(lines), results
 
 
-def speed_section(profile: Profile, plots: Path, rel: Path, command: str) -> tuple[str, list]:
-    """Run the speed sweeps; return their Markdown and the points by beams."""
+def speed_section(profile: Profile, plots: Path, rel: Path, command: str) -> tuple[str, list, list]:
+    """Run the speed sweeps; return their Markdown and the points by beams and by map."""
 
     methods = speed_methods()
     labels = {m.name: m.label for m in methods}
@@ -172,7 +225,7 @@ def speed_section(profile: Profile, plots: Path, rel: Path, command: str) -> tup
         "",
         f"![latency against map size]({(rel / fig2.name).as_posix()})",
     ]
-    return "\n".join(lines), by_beams
+    return "\n".join(lines), by_beams, by_map
 
 
 def write_logs(directory: Path, profile: Profile, only: Sequence[str] | None) -> None:
@@ -199,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="print only: leave --output alone (figures go to a temporary directory)",
     )
-    parser.add_argument("--only", choices=("accuracy", "speed"), help="run one part")
+    parser.add_argument("--only", choices=("accuracy", "speed", "priors"), help="run one part")
     parser.add_argument("--scenarios", help="comma-separated scenario names (default: all)")
     parser.add_argument("--methods", help="comma-separated method names (default: all)")
     parser.add_argument(
@@ -214,10 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_logs is not None:
         write_logs(args.write_logs, profile, only)
         return 0
-    methods = all_methods()
-    if args.methods:
-        wanted = set(args.methods.split(",")) | {DEFAULT_METHOD}
-        methods = [m for m in methods if m.name in wanted]
+    methods = table_methods(args.methods.split(",") if args.methods else None)
     if args.plots is not None:
         plots = args.plots
     elif args.no_write:
@@ -230,15 +280,32 @@ def main(argv: list[str] | None = None) -> int:
     sections: list[tuple[str, str]] = []
     results: list = []
     by_beams: list = []
+    by_map: list = []
     if args.only in (None, "accuracy"):
         text, results = accuracy_section(profile, methods, plots, rel, only, command)
         sections.append((ACCURACY, text))
     if args.only in (None, "speed"):
-        text, by_beams = speed_section(profile, plots, rel, command)
+        text, by_beams, by_map = speed_section(profile, plots, rel, command)
         sections.append((SPEED, text))
+    if args.only in (None, "priors"):
+        with _progress() as bar:
+
+            def progress(total: int):  # type: ignore[no-untyped-def]
+                task = bar.add_task("priors", total=total)
+                return lambda: bar.advance(task)
+
+            text = priors_section(profile, command, machine(), progress)
+        sections.append((PRIORS, text))
     if results:
+        rows = targets(results, by_beams, by_map)
         check = "\n".join(
-            ["", "Issue targets for the default localizer:", "", *targets(results, by_beams)]
+            [
+                "",
+                "Issue targets for the default localizer (speed rows from the speed section of "
+                "this run):",
+                "",
+                *rows,
+            ]
         )
         sections[0] = (
             ACCURACY,

@@ -11,10 +11,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from bench.carmen import LOGS, carmen_run
+from bench.carmen import LOGS, REAL_RUNS, carmen_run
 from bench.crb import run_bounds
 from bench.measures import Summary, summarise
-from bench.methods import Method, Trace, track
+from bench.methods import Method, Trace, track, warm_up
 from bench.scenarios import DATA, FloatArray, Run, Scenario, named_scenarios, simulate
 
 
@@ -66,11 +66,17 @@ QUICK = Profile(
 )
 
 #: Descriptions of the real runs, by log name.
+_ODOM5 = (
+    "odometry made from the SLAM poses' increments, 5 % noise and a heading bias of "
+    "0.02 rad/m (seeded)"
+)
 REAL = {
-    "intel": "Intel lab (CARMEN log): map built from the corrected scans, raw odometry, "
-    "180 beams over 180 degrees",
-    "aces": "ACES building (CARMEN log): map built from the corrected scans, raw odometry, "
-    "180 beams over 180 degrees",
+    "intel": "Intel lab (CARMEN log): map built from the corrected scans, the log's own "
+    "odometry, 180 beams over 180 degrees",
+    "intel-odom5": f"Intel lab (CARMEN log), same scans and map, {_ODOM5}",
+    "aces": "ACES building (CARMEN log): map built from the corrected scans, the log's own "
+    "odometry, 180 beams over 180 degrees",
+    "aces-odom5": f"ACES building (CARMEN log), same scans and map, {_ODOM5}",
 }
 
 
@@ -102,8 +108,10 @@ class ScenarioResult:
 
 def has_data(world: str) -> bool:
     """Whether the shared data a world needs is there (procedural buildings need none)."""
-    if world == "building":
+    if world in ("building", "rooms"):
         return True
+    if world in REAL_RUNS:
+        world = REAL_RUNS[world][0]
     if world in LOGS:
         return (DATA / "carmen" / f"{world}-corrected.log.gz").exists()
     return (DATA / "maps" / f"{world}.yaml").exists()
@@ -136,8 +144,8 @@ def build_runs(
             out.append(ScenarioResult(sc.name, sc.description, runs))
     if real:
         out += [
-            ScenarioResult(name, REAL[name], [carmen_run(name, profile.carmen_limit)])
-            for name in LOGS
+            ScenarioResult(name, REAL[name], [carmen_run(log, profile.carmen_limit, kind)])
+            for name, (log, kind) in REAL_RUNS.items()
             if (only is None or name in only) and has_data(name)
         ]
     return out
@@ -155,6 +163,8 @@ def run_accuracy(
         methods: the methods, in table order.
         on_update: called after every update of every method (progress).
     """
+    if results and results[0].runs:
+        warm_up(methods, results[0].runs[0])
     for res in results:
         res.bounds = [run_bounds(r.world, r.truth, r.scans, r.sigma) for r in res.runs]
         for m in methods:
@@ -166,6 +176,7 @@ def run_accuracy(
                 [t.status for t in traces],
                 [t.seconds for t in traces],
                 res.bounds,
+                [t.covariances for t in traces],
             )
     return results
 

@@ -7,6 +7,11 @@ is the raw wheel odometry of the ``ODOM`` lines at each scan's stamp (see
 reference is the corrected pose of the ``FLASER`` lines (the SLAM method's
 estimate, itself off by about 1 to 3 cm). The laser sits at the robot base (the logs'
 ``robot_frontlaser_offset`` is 0).
+
+Each log is also run with made-up odometry (``odometry="odom5"``, see :data:`ODOM5`): the
+SLAM poses' increments with 5 % relative noise on translation and rotation (one sigma) and a
+heading bias of 0.02 rad per metre, seeded. It separates what the localizers do from what
+the logs' own odometry does to them.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from bench.scenarios import DATA, FloatArray, IntArray, Run
 from rlutf.map import Map
 from rlutf.motion import compose, relative
 from rlutf.scan import Scan
+from rlutf.sim import OdometryModel, drift_odometry
 
 #: The logs' no-return value is 50 m (ACES) or 81.83 m (Intel): ranges from here are no return.
 RANGE_MAX = 49.9
@@ -29,6 +35,18 @@ RANGE_MAX = 49.9
 #: logs is indicative only.
 SIGMA = 0.02
 LOGS = ("intel", "aces")
+#: The made-up odometry of the ``-odom5`` runs: 5 % relative noise per increment on
+#: translation and rotation, heading bias 0.02 rad/m.
+ODOM5 = OdometryModel(trans_noise=0.05, rot_noise=0.05, rot_per_metre=0.0, heading_bias=0.02)
+#: Seed of the made-up odometry.
+ODOM5_SEED = 5
+#: The real runs: name -> (log, odometry kind).
+REAL_RUNS = {
+    "intel": ("intel", "log"),
+    "intel-odom5": ("intel", "odom5"),
+    "aces": ("aces", "log"),
+    "aces-odom5": ("aces", "odom5"),
+}
 #: Epoch the logs' stamps (seconds since the logger started) are shifted to, ns.
 BASE_NS = 1_600_000_000_000_000_000
 
@@ -36,10 +54,11 @@ BASE_NS = 1_600_000_000_000_000_000
 @cache
 def carmen_world(name: str) -> Map:
     """The map built from a log's corrected scans (5 cm cells, largest free component)."""
-    from service.maps.mapimport import build_from_carmen, grid_to_map
+    from service.maps.mapimport import BUILT_SURFACE_CELLS, build_from_carmen, grid_to_map
 
     grid = build_from_carmen(DATA / "carmen" / f"{name}-corrected.log.gz")
-    return Map.from_geojson(grid_to_map(grid, map_id=name).map["geometry"])
+    offset = BUILT_SURFACE_CELLS * grid.resolution  # as rlutf map build does
+    return Map.from_geojson(grid_to_map(grid, map_id=name, surface_offset=offset).map["geometry"])
 
 
 def raw_odometry(text: str) -> tuple[FloatArray, IntArray]:
@@ -81,12 +100,21 @@ def raw_odometry(text: str) -> tuple[FloatArray, IntArray]:
     return out, np.maximum(np.asarray(before, dtype=np.int64), 0)
 
 
-def carmen_run(name: str, limit: int | None = None) -> Run:
+def slam_odometry(
+    truth: FloatArray, model: OdometryModel = ODOM5, seed: int = ODOM5_SEED
+) -> FloatArray:
+    """Odometry made from the reference poses' increments with ``model``'s noise and bias."""
+    return drift_odometry(truth, model, np.random.default_rng([seed, 2]))
+
+
+def carmen_run(name: str, limit: int | None = None, odometry: str = "log") -> Run:
     """A real run from ``shared/data/carmen/{name}-corrected.log.gz``.
 
     Args:
         name: ``"intel"`` or ``"aces"``.
         limit: keep only the first ``limit`` scans (quick runs).
+        odometry: ``"log"`` (the log's wheel odometry) or ``"odom5"`` (:func:`slam_odometry`);
+            the run's scenario is ``name`` or ``f"{name}-odom5"``.
 
     Returns:
         The run. ``odometry`` holds the raw odometry at each scan: the reading logged just
@@ -115,14 +143,20 @@ def carmen_run(name: str, limit: int | None = None) -> Run:
     stamps_ns = BASE_NS + np.round(log.stamps[:count] * 1e9).astype(np.int64)
     truth = log.poses[:count].copy()
     truth[:, 2] = (truth[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
+    if odometry == "log":
+        odom = stream[at_scan[:count], 1:].copy()
+    elif odometry == "odom5":
+        odom = slam_odometry(truth)
+    else:
+        raise ValueError(f"odometry: 'log' or 'odom5', got {odometry!r}")
     return Run(
-        name,
+        name if odometry == "log" else f"{name}-{odometry}",
         0,
         name,
         carmen_world(name),
         stamps_ns,
         truth,
-        stream[at_scan[:count], 1:].copy(),
+        odom,
         scans,
         SIGMA,
     )

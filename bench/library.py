@@ -1,4 +1,4 @@
-"""Speed of the algorithm library on one core (issue targets: update <= 1 ms, turning <= 2 ms).
+"""Speed of the algorithm library on one core (targets: update <= 0.3 ms, turning <= 2 ms).
 
 Run: ``python -m bench.library [--updates N] [--write]``. Prints a Markdown table; ``--write``
 replaces the library section of ``BENCHMARKS.md``. Times are wall-clock medians, 99th
@@ -19,10 +19,11 @@ import numpy as np
 
 from bench import bench_turning
 from bench.report import section_main
+from rlutf.field import DistanceField, WideSearch, wide_search
 from rlutf.localizer import Localizer, LocalizerConfig
 from rlutf.motion import relative, wrap_angle
 from rlutf.raycast import Beams, cast_rays
-from rlutf.region import RegionCaster
+from rlutf.refine import RefineSettings, refine_pose
 from rlutf.sim import (
     LidarModel,
     OdometryModel,
@@ -102,45 +103,74 @@ def bench_raycast(poses: int, repetitions: int = 500) -> dict[str, float]:
     return {"median_ms": med, "p99_ms": p99, "mean_ms": mean, "faults": faults / repetitions}
 
 
-def bench_region(poses: int, repetitions: int = 500) -> dict[str, float]:
-    """``RegionCaster``: preparing one (2 cm, 10 mrad region) and casting ``poses`` poses."""
+def bench_refine(repetitions: int = 300) -> dict[str, float]:
+    """``refine_pose`` of a 360-beam scan from a pose 2 cm and 0.5 deg off."""
     rng = np.random.default_rng(0)
     world = make_building(rng)
-    centre = make_trajectory(world, rng, 1)[0]
-    p = centre + rng.normal(0.0, [0.005, 0.005, 0.003], (poses, 3))
-    beams = Beams.of(np.linspace(-math.pi, math.pi, 360, endpoint=False))
-    setup, cast = [], []
-    pairs = 0
+    truth = make_trajectory(world, rng, 1)[0]
+    scan = simulate_scan(world, truth, LidarModel(beams=360), rng)
+    valid = scan.valid()
+    beams = Beams.of(scan.angles).select(valid)
+    start = truth + np.array([0.02, -0.01, math.radians(0.5)])
+    settings = RefineSettings()
+    times, casts, errors = [], [], []
     for _ in range(repetitions):
         t0 = time.perf_counter()
-        caster = RegionCaster(world, beams, centre, 0.02, 0.01, 12.0)
-        t1 = time.perf_counter()
-        caster.cast(p)
-        cast.append(time.perf_counter() - t1)
-        setup.append(t1 - t0)
-        pairs = caster.pairs
-    s_med, s_p99, _ = _percentiles(setup)
-    c_med, c_p99, _ = _percentiles(cast)
+        fit = refine_pose(
+            world, start, beams, scan.ranges[valid], scan.sensor_offset, 12.0, settings
+        )
+        times.append(time.perf_counter() - t0)
+        casts.append(fit.casts)
+        errors.append(math.hypot(*(fit.pose[:2] - truth[:2])))
+    med, p99, mean = _percentiles(times)
     return {
-        "setup_ms": s_med,
-        "setup_p99_ms": s_p99,
-        "cast_ms": c_med,
-        "cast_p99_ms": c_p99,
-        "pairs": float(pairs),
+        "median_ms": med,
+        "p99_ms": p99,
+        "mean_ms": mean,
+        "casts": float(np.mean(casts)),
+        "error_mm": 1e3 * float(np.mean(errors)),
+    }
+
+
+def bench_wide(repetitions: int = 50) -> dict[str, float]:
+    """The distance field of a building (made once per map) and one wide search."""
+    rng = np.random.default_rng(0)
+    world = make_building(rng)
+    truth = make_trajectory(world, rng, 1)[0]
+    scan = simulate_scan(world, truth, LidarModel(beams=360), rng)
+    valid = scan.valid()
+    a = scan.angles[valid]
+    points = np.column_stack([scan.ranges[valid] * np.cos(a), scan.ranges[valid] * np.sin(a)])
+    t0 = time.perf_counter()
+    field = DistanceField.of(world)
+    build = time.perf_counter() - t0
+    centre = truth + np.array([0.3, -0.3, math.radians(10.0)])
+    times = []
+    for _ in range(repetitions):
+        t0 = time.perf_counter()
+        wide_search(world, centre, points, 0.5, math.radians(15.0), WideSearch())[0]
+        times.append(time.perf_counter() - t0)
+    med, p99, _ = _percentiles(times)
+    return {
+        "field_ms": build * 1e3,
+        "cells": float(field.values.size),
+        "median_ms": med,
+        "p99_ms": p99,
     }
 
 
 def render(updates: int) -> str:
     """Run every library benchmark and return the Markdown section."""
     rows = []
-    for name, cfg in (
-        ("Localizer.update, default mode", LocalizerConfig()),
-        ("Localizer.update, mode=paper", LocalizerConfig.paper()),
+    for name, cfg, target in (
+        ("Localizer.update, default mode", LocalizerConfig(), "0.3"),
+        ("Localizer.update, default without refinement", LocalizerConfig(refine=False), ""),
+        ("Localizer.update, mode=paper (turning functions)", LocalizerConfig.paper(), ""),
     ):
         r = bench_localizer(updates, cfg)
         rows.append(
             f"| {name} (360 beams, {int(r['walls'])} walls, {updates} updates) "
-            f"| {r['median_ms']:.2f} | {r['p99_ms']:.2f} | {r['mean_ms']:.2f} | 1.0 "
+            f"| {r['median_ms']:.2f} | {r['p99_ms']:.2f} | {r['mean_ms']:.2f} | {target} "
             f"| {r['mean_evaluations']:.1f} poses scored per update; "
             f"RMSE {r['rmse_m'] * 100:.2f} cm, {r['heading_rmse_deg']:.3f} deg; "
             f"{r['faults']:.1f} page faults per update |"
@@ -151,13 +181,18 @@ def render(updates: int) -> str:
             f"| cast_rays, {k} pose(s) x 360 beams | {r['median_ms']:.3f} | {r['p99_ms']:.3f} "
             f"| {r['mean_ms']:.3f} | | {r['faults']:.1f} page faults per call |"
         )
-    for k in (1, 9):
-        r = bench_region(k)
-        rows.append(
-            f"| RegionCaster: prepare (2 cm, 10 mrad region) + cast {k} pose(s) x 360 beams "
-            f"| {r['setup_ms']:.3f} + {r['cast_ms']:.3f} | {r['setup_p99_ms']:.3f} + "
-            f"{r['cast_p99_ms']:.3f} | | | {int(r['pairs'])} (wall, beam) pairs |"
-        )
+    r = bench_refine()
+    rows.append(
+        f"| refine_pose, 360 beams, from 2 cm and 0.5 deg off | {r['median_ms']:.3f} "
+        f"| {r['p99_ms']:.3f} | {r['mean_ms']:.3f} | | {r['casts']:.1f} casts of the scan; "
+        f"ends {r['error_mm']:.2f} mm from the truth |"
+    )
+    r = bench_wide()
+    rows.append(
+        f"| wide_search, 0.5 m and 15 deg, 180 points | {r['median_ms']:.2f} | {r['p99_ms']:.2f} "
+        f"| | | distance field of the map ({r['cells'] / 1e3:.0f} k cells): "
+        f"{r['field_ms']:.0f} ms, once per map version |"
+    )
     t = bench_turning.run()
     rows.append(
         f"| turning_distance, two {t['vertices']}-vertex polygons (exact) | {t['median_ms']:.2f} "

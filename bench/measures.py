@@ -56,6 +56,10 @@ class Summary:
         median_ms: median update latency, milliseconds.
         p99_ms: 99th percentile update latency, milliseconds.
         mean_ms: mean update latency (CPU per scan), milliseconds.
+        max_error: largest position error of any update, metres.
+        nees: mean normalised estimation error squared over the updates with a covariance
+            (NaN for a method that gives none); 3 for a consistent covariance.
+        nees_updates: updates the NEES is taken over.
     """
 
     updates: int
@@ -72,11 +76,42 @@ class Summary:
     median_ms: float
     p99_ms: float
     mean_ms: float
+    max_error: float = math.nan
+    nees: float = math.nan
+    nees_updates: int = 0
 
     @property
     def ratio(self) -> float:
         """Translation RMSE over the bound (NaN without a bound)."""
         return self.rmse / self.bound if self.bound > 0 else math.nan
+
+
+def nees(poses: FloatArray, truth: FloatArray, covariances: FloatArray) -> FloatArray:
+    """Per-update normalised estimation error squared ``e^T P^-1 e``.
+
+    ``e = (dx, dy, wrap(dtheta))`` is the estimate minus the truth and ``P`` its ``(3, 3)``
+    covariance. For an unbiased estimator with a consistent covariance it is chi-square
+    distributed with 3 degrees of freedom (mean 3).
+
+    Args:
+        poses: ``(U, 3)`` estimates.
+        truth: ``(U, 3)`` reference poses.
+        covariances: ``(U, 3, 3)``; NaN (or singular) where there is none.
+
+    Returns:
+        ``(U,)``; NaN where the pose or covariance is missing or singular.
+    """
+    e = np.asarray(poses, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
+    e[:, 2] = wrap_angle(e[:, 2])
+    cov = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    out = np.full(len(e), math.nan)
+    ok = np.isfinite(e).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+    for i in np.nonzero(ok)[0]:
+        try:
+            out[i] = float(e[i] @ np.linalg.solve(cov[i], e[i]))
+        except np.linalg.LinAlgError:
+            continue
+    return out
 
 
 def rms(values: FloatArray) -> float:
@@ -91,6 +126,7 @@ def summarise(
     statuses: Sequence[Sequence[str]],
     seconds: Sequence[FloatArray],
     bounds: Sequence[FloatArray] | None = None,
+    covariances: Sequence[FloatArray | None] | None = None,
 ) -> Summary:
     """Pool the runs of one method on one scenario.
 
@@ -100,6 +136,7 @@ def summarise(
         statuses: per run, the status of each update.
         seconds: per run, ``(U,)`` update latencies.
         bounds: per run, ``(U,)`` per-scan bounds (optional).
+        covariances: per run, ``(U, 3, 3)`` covariances or ``None`` (optional): the NEES.
     """
     trans_all, head_all = [], []
     diverged = 0
@@ -119,6 +156,13 @@ def summarise(
     bound = math.nan
     if bounds is not None:
         bound = rms(np.concatenate(list(bounds)))
+    scores = [
+        nees(p, t, c)
+        for p, t, c in zip(poses, truths, covariances or [None] * len(poses), strict=True)
+        if c is not None
+    ]
+    graded_nees = np.concatenate(scores) if scores else np.empty(0)
+    graded_nees = graded_nees[np.isfinite(graded_nees)]
     return Summary(
         updates=len(trans),
         runs=len(poses),
@@ -134,6 +178,9 @@ def summarise(
         median_ms=float(np.median(ms)),
         p99_ms=float(np.percentile(ms, 99)),
         mean_ms=float(np.mean(ms)),
+        max_error=float(np.max(trans[graded])) if graded.any() else math.nan,
+        nees=float(np.mean(graded_nees)) if len(graded_nees) else math.nan,
+        nees_updates=len(graded_nees),
     )
 
 

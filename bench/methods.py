@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -65,15 +65,31 @@ class DeadReckoning:
 
 
 class RlutfTracker:
-    """:class:`rlutf.Localizer` behind the tracker interface."""
+    """:class:`rlutf.Localizer` behind the tracker interface.
 
-    def __init__(self, world: Map, pose: FloatArray, config: LocalizerConfig, seed: int) -> None:
-        self._localizer = Localizer(world, pose, config, seed=seed)
+    Args:
+        world: the map.
+        pose: initial pose.
+        config: the localizer's parameters.
+        seed: the localizer's seed.
+        spread: ``(metres, radians)``: how far off ``pose`` may be (``None``: the config's
+            default for an operator's pose).
+    """
+
+    def __init__(
+        self,
+        world: Map,
+        pose: FloatArray,
+        config: LocalizerConfig,
+        seed: int,
+        spread: tuple[float, float] | None = None,
+    ) -> None:
+        self._localizer = Localizer(world, pose, config, seed=seed, spread=spread)
 
     def update(self, motion: FloatArray, scan: Scan) -> Estimate:
         """One RLuTF update."""
         result = self._localizer.update(motion, scan)
-        return Estimate(result.pose, result.status)
+        return Estimate(result.pose, result.status, result.covariance)
 
 
 def _rlutf(config: LocalizerConfig) -> Factory:
@@ -81,6 +97,32 @@ def _rlutf(config: LocalizerConfig) -> Factory:
         return RlutfTracker(world, pose, config, seed)
 
     return make
+
+
+def rlutf_configs() -> dict[str, LocalizerConfig]:
+    """The RLuTF configurations compared, by method name."""
+    return {
+        "paper": LocalizerConfig.paper(),
+        "paper-area": LocalizerConfig.paper_area(),
+        "norefine": LocalizerConfig(refine=False),
+        "default": LocalizerConfig(),
+        "turning": LocalizerConfig(discrepancy="turning"),
+        "combined": LocalizerConfig(discrepancy="combined"),
+    }
+
+
+#: Labels of the RLuTF methods.
+RLUTF_LABELS = {
+    "paper": "RLuTF mode=paper (turning functions)",
+    "paper-area": "RLuTF mode=paper, area",
+    "norefine": "RLuTF default, no refinement",
+    "default": "RLuTF default",
+    "turning": "RLuTF turning",
+    "combined": "RLuTF combined",
+}
+#: Methods of the accuracy tables when none are named (``turning`` and ``combined`` only on
+#: request, with ``--methods``).
+TABLE_METHODS = ("odometry", "paper", "paper-area", "norefine", "default", "icp", "amcl")
 
 
 def _prepare_icp(world: Map) -> object:
@@ -97,14 +139,12 @@ def _prepare_amcl(world: Map) -> object:
 
 
 def all_methods(amcl: AmclConfig | None = None) -> list[Method]:
-    """Every method of the comparison, dead reckoning first."""
+    """Every method there is, dead reckoning first (see :data:`TABLE_METHODS` for the default
+    selection)."""
     amcl_cfg = amcl or AmclConfig()
-    return [
-        Method("odometry", "dead reckoning", lambda w, p, s: DeadReckoning(p)),
-        Method("paper", "RLuTF mode=paper", _rlutf(LocalizerConfig.paper())),
-        Method("area", "RLuTF default (area)", _rlutf(LocalizerConfig(discrepancy="area"))),
-        Method("turning", "RLuTF turning", _rlutf(LocalizerConfig(discrepancy="turning"))),
-        Method("combined", "RLuTF combined", _rlutf(LocalizerConfig(discrepancy="combined"))),
+    out = [Method("odometry", "dead reckoning", lambda w, p, s: DeadReckoning(p))]
+    out += [Method(n, RLUTF_LABELS[n], _rlutf(c)) for n, c in rlutf_configs().items()]
+    out += [
         Method("icp", "ICP point-to-line", lambda w, p, s: PointToLineIcp(w, p), _prepare_icp),
         Method(
             "amcl",
@@ -113,10 +153,18 @@ def all_methods(amcl: AmclConfig | None = None) -> list[Method]:
             _prepare_amcl,
         ),
     ]
+    return out
+
+
+def table_methods(names: Sequence[str] | None = None) -> list[Method]:
+    """The methods named (``None``: :data:`TABLE_METHODS`), in table order; the default
+    always included."""
+    wanted = set(TABLE_METHODS if names is None else names) | {DEFAULT_METHOD}
+    return [m for m in all_methods() if m.name in wanted]
 
 
 #: The method the issue's targets are about.
-DEFAULT_METHOD = "area"
+DEFAULT_METHOD = "default"
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,16 +176,23 @@ class Trace:
         poses: ``(U, 3)`` the pose after each update (NaN where none was given).
         status: ``(U,)`` the status of each update.
         seconds: ``(U,)`` wall-clock time of each update.
+        covariances: ``(U, 3, 3)`` the covariance given with each pose (NaN where none was),
+            or ``None`` for a method that gives none.
     """
 
     method: str
     poses: FloatArray
     status: tuple[str, ...]
     seconds: FloatArray
+    covariances: FloatArray | None = None
 
 
 def track(
-    method: Method, run: Run, seed: int = 0, on_update: Callable[[], None] | None = None
+    method: Method,
+    run: Run,
+    seed: int = 0,
+    on_update: Callable[[], None] | None = None,
+    start: FloatArray | None = None,
 ) -> Trace:
     """Run ``method`` over ``run`` and time each update.
 
@@ -146,12 +201,16 @@ def track(
         run: the run.
         seed: seed of the method's generator.
         on_update: called after every update (progress bars).
+        start: the initial pose given to the method (default: the run's ``truth[0]``).
     """
     if method.prepare is not None:
         method.prepare(run.world)
-    tracker = method.make(run.world, run.truth[0].copy(), seed)
+    pose0 = run.truth[0] if start is None else np.asarray(start, dtype=np.float64)
+    tracker = method.make(run.world, pose0.copy(), seed)
     count = run.updates
     poses = np.full((count, 3), math.nan)
+    covs = np.full((count, 3, 3), math.nan)
+    any_cov = False
     seconds = np.empty(count)
     status: list[str] = []
     clock = time.perf_counter
@@ -163,7 +222,30 @@ def track(
         seconds[k - 1] = clock() - t0
         if est.pose is not None and np.isfinite(est.pose).all():
             poses[k - 1] = est.pose
+        if est.covariance is not None:
+            covs[k - 1] = est.covariance
+            any_cov = True
         status.append(est.status)
         if on_update is not None:
             on_update()
-    return Trace(method.name, poses, tuple(status), seconds)
+    return Trace(method.name, poses, tuple(status), seconds, covs if any_cov else None)
+
+
+_WARM: set[str] = set()
+
+
+def warm_up(methods: Sequence[Method], run: Run, updates: int = 3) -> None:
+    """Run each method (once per process) over the first ``updates`` updates of ``run``,
+    untimed, so that compiling or loading its kernels (numba) is not timed as an update."""
+    short = replace(
+        run,
+        stamps_ns=run.stamps_ns[: updates + 1],
+        truth=run.truth[: updates + 1],
+        odometry=run.odometry[: updates + 1],
+        scans=run.scans[: updates + 1],
+        people=None if run.people is None else run.people[: updates + 1],
+    )
+    for m in methods:
+        if m.name not in _WARM:
+            track(m, short, seed=run.seed)
+            _WARM.add(m.name)

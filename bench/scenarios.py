@@ -17,7 +17,9 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
+import shapely
 from numpy.typing import NDArray
+from shapely.geometry import Polygon, box
 
 from rlutf.map import Map
 from rlutf.scan import Scan
@@ -50,7 +52,8 @@ class Scenario:
         name: short id, used in tables, file names and map ids.
         description: one line for the tables.
         world: ``"building"`` (a procedural building per seed, size cycled over
-            :data:`BUILDING_SIZES`) or the stem of a map in ``shared/data/maps``.
+            :data:`BUILDING_SIZES`), ``"rooms"`` (small rooms off a corridor per seed,
+            :func:`make_rooms`) or the stem of a map in ``shared/data/maps``.
         lidar: the sensor.
         odometry: the odometry drift model.
         people: people walking, not on the map.
@@ -134,6 +137,32 @@ def named_scenarios(steps: int = 300) -> list[Scenario]:
             lidar=LidarModel(beams=181, fov=math.pi),
             steps=steps,
         ),
+        Scenario(
+            "range-4m",
+            "nominal with a 4 m maximum range",
+            lidar=LidarModel(max_range=4.0),
+            steps=steps,
+        ),
+        Scenario(
+            "lidar-270",
+            "1080 beams over 270 degrees (0.25 degree steps)",
+            lidar=LidarModel(beams=1080, fov=1.5 * math.pi),
+            steps=steps,
+        ),
+        Scenario(
+            "noise-3cm",
+            "3 cm range noise and 10 % of beams without a return",
+            lidar=LidarModel(noise=0.03, dropout=0.1),
+            steps=steps,
+        ),
+        Scenario(
+            "rooms",
+            "ten small rooms off a corridor, 1.3 m doors; the path goes room to room "
+            "(0.3 m clearance)",
+            "rooms",
+            steps=steps,
+            clearance=0.3,
+        ),
         Scenario("depot", "Nav2 depot map (imported grid), nominal sensor", "depot", steps=steps),
         Scenario(
             "tb3-sandbox",
@@ -145,6 +174,50 @@ def named_scenarios(steps: int = 300) -> list[Scenario]:
             clearance=0.3,
         ),
     ]
+
+
+def make_rooms(
+    rng: np.random.Generator,
+    rooms: int = 5,
+    depth: float = 4.0,
+    corridor: float = 2.4,
+    door: float = 1.3,
+    wall: float = 0.15,
+) -> Map:
+    """A corridor along x with ``rooms`` small rooms on each side, one door per room.
+
+    Room widths are drawn in [3.2, 4.8] m and each door's place along its wall at random, so
+    the rooms are alike but not identical (as in an office). The only way between two rooms
+    is through the corridor.
+
+    Args:
+        rng: random generator.
+        rooms: rooms on each side of the corridor.
+        depth: depth of a room (across the corridor), metres.
+        corridor: corridor width, metres.
+        door: door width, metres.
+        wall: wall thickness, metres.
+    """
+    widths = rng.uniform(3.2, 4.8, rooms)
+    xs = np.concatenate([[0.0], np.cumsum(widths + wall)])
+    length = float(xs[-1]) - wall
+    height = 2.0 * depth + corridor + 2.0 * wall
+    walls = []
+    for wy, (ya, yb) in (
+        (depth, (0.0, depth)),
+        (depth + wall + corridor, (height - depth, height)),
+    ):
+        for i in range(rooms):
+            x0, x1 = float(xs[i]), float(xs[i] + widths[i])
+            d = rng.uniform(x0 + 0.3, x1 - 0.3 - door)
+            walls.append(box(x0 - wall, wy, d, wy + wall))
+            walls.append(box(d + door, wy, x1 + wall, wy + wall))
+            if i > 0:
+                walls.append(box(x0 - wall, ya, x0, yb))
+    free = box(0.0, 0.0, length, height).difference(shapely.union_all(walls))
+    if not isinstance(free, Polygon):
+        free = max(free.geoms, key=lambda g: g.area)
+    return Map.from_shapely(shapely.set_precision(free, 1e-6))
 
 
 @cache
@@ -168,6 +241,8 @@ def world_of(scenario: Scenario, seed: int) -> tuple[str, Map]:
         rng = np.random.default_rng(seed)
         world = make_building(rng, width, height, rooms_x, rooms_y)
         return f"building-{seed}", world
+    if scenario.world == "rooms":
+        return f"rooms-{seed}", make_rooms(np.random.default_rng([seed, 5]))
     return scenario.world.replace("_", "-"), imported_map(scenario.world)
 
 

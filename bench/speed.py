@@ -19,24 +19,24 @@ import numpy as np
 from bench.accuracy import Profile, has_data
 from bench.baselines import AmclConfig, ParticleFilter
 from bench.measures import fit_power, rms
-from bench.methods import Method, all_methods, track
+from bench.methods import Method, all_methods, track, warm_up
 from bench.scenarios import Run, Scenario, imported_map, named_scenarios, simulate, with_beams
 from rlutf.map import Map
 from rlutf.sim import make_building
 
 #: Methods of the sweeps, by name (see :func:`speed_methods`).
-SPEED_METHODS = ("area", "paper", "icp", "amcl-60", "amcl-all")
+SPEED_METHODS = ("default", "norefine", "paper", "icp", "amcl-60", "amcl-all")
 
 
 def speed_methods() -> list[Method]:
-    """RLuTF default and paper, ICP, and AMCL updating on every scan (60 beams; all beams)."""
+    """RLuTF default, without refinement and paper, ICP, and AMCL updating on every scan (60
+    beams; all beams)."""
     by_name = {m.name: m for m in all_methods()}
     every = AmclConfig(update_min_d=-1.0, update_min_a=-1.0)
     every_all = replace(every, max_beams=100_000)
     prepare = by_name["amcl"].prepare
     return [
-        by_name["area"],
-        by_name["paper"],
+        *(by_name[n] for n in ("default", "norefine", "paper") if n in by_name),
         by_name["icp"],
         Method(
             "amcl-60",
@@ -77,6 +77,7 @@ class Point:
 def _measure(
     run: Run, methods: Sequence[Method], x: int, label: str, on_update: Callable[[], None] | None
 ) -> list[Point]:
+    warm_up(methods, run)
     out = []
     for m in methods:
         t = track(m, run, seed=run.seed, on_update=on_update)

@@ -9,8 +9,10 @@ from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map
 from rlutf.motion import compose, interpolate, inverse, relative, wrap_angle
 from rlutf.raycast import Beams, cast_rays
+from rlutf.refine import Refinement, RefineSettings, refine_pose
 from rlutf.scan import Scan
 from rlutf.turning import TurningMatch, turning_distance, turning_function, turning_match
+from rlutf.warmup import warm_up
 
 __all__ = [
     "Beams",
@@ -21,6 +23,8 @@ __all__ = [
     "LocalizerConfig",
     "Map",
     "MapError",
+    "RefineSettings",
+    "Refinement",
     "RlutfError",
     "Scan",
     "TurningMatch",
@@ -30,10 +34,12 @@ __all__ = [
     "interpolate",
     "inverse",
     "polar_area",
+    "refine_pose",
     "relative",
     "turning_distance",
     "turning_function",
     "turning_match",
     "turning_steps",
+    "warm_up",
     "wrap_angle",
 ]

@@ -149,6 +149,9 @@ class LocalizerConfig:
         wide_step: position step of the wide search's grid, metres.
         wide_cap: the wide search's per-point cap, metres.
         wide_keep: poses of the wide search refined and compared.
+        select_scale: scale of the Cauchy cost that compares refined candidates, metres (about
+            three times a good scanner's range noise: fine enough to tell two nearby basins
+            apart, coarse enough that map errors do not decide).
         seed: base seed of the random generator.
     """
 
@@ -193,6 +196,7 @@ class LocalizerConfig:
     wide_step: float = 0.1
     wide_cap: float = 0.3
     wide_keep: int = 6
+    select_scale: float = 0.03
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -218,6 +222,7 @@ class LocalizerConfig:
             "spread_heading",
             "wide_step",
             "wide_cap",
+            "select_scale",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -561,7 +566,7 @@ class Localizer:
                     problem, predicted, (cfg.spread, cfg.spread_heading)
                 )
                 evaluations += e2
-                if _better(other_fit, fit, cfg.fit_distance):
+                if _better(other_fit, fit, cfg.select_scale):
                     best, fit, rounds = other, other_fit, rounds + r2
         pose = fit.pose if cfg.refine else best
         share = fit.fit
@@ -680,7 +685,7 @@ class Localizer:
         best = predicted
         for start in starts:
             fit = self._fit(problem, start)
-            if best_fit is None or _better(fit, best_fit, cfg.fit_distance):
+            if best_fit is None or _better(fit, best_fit, cfg.select_scale):
                 best_fit, best = fit, (fit.pose if cfg.refine else start)
         assert best_fit is not None
         return best, 1, scored + len(starts), best_fit

@@ -18,10 +18,13 @@ class Estimate(NamedTuple):
             gave none.
         status: ``tracking``, ``corrected``, ``lost``, or ``predicted`` (a method that did not
             use the scan, e.g. AMCL between filter updates).
+        covariance: ``(3, 3)`` covariance of ``(x, y, theta)`` (m^2, m rad, rad^2), if the
+            method gives one.
     """
 
     pose: FloatArray | None
     status: str
+    covariance: FloatArray | None = None
 
 
 def scan_points(ranges: FloatArray, angles: FloatArray, sensor_offset: FloatArray) -> FloatArray:
