@@ -287,6 +287,20 @@ def test_dockerfile_runtime_settings() -> None:
     assert base and "python:3.11" in base[0] and "slim" in base[0]
 
 
+def test_dockerfile_compiles_the_kernels_into_a_cache_the_service_can_write() -> None:
+    env = dockerfile_env()
+    cache = env.get("NUMBA_CACHE_DIR")
+    assert cache, "numba's cache must be writable by the service's user: set NUMBA_CACHE_DIR"
+    stage = _final_stage(DOCKERFILE)
+    runs = " ".join(rest for w, rest in stage if w == "RUN")
+    assert "warm_up()" in runs, "compile the kernels at build time (rlutf.warmup.warm_up)"
+    assert f"chown -R rlutf:rlutf {cache.rsplit('/', 1)[0]}" in runs
+    # ...before the service's user takes over
+    words = [w for w, _ in stage]
+    last_run = max(i for i, w in enumerate(words) if w == "RUN")
+    assert last_run < words.index("USER")
+
+
 def test_build_context_holds_the_package_and_nothing_else() -> None:
     files = build_context_files()
     assert "pyproject.toml" in files
@@ -352,6 +366,8 @@ def test_image_entry_command_runs_outside_the_container(tmp_path: Path) -> None:
     port = free_port()
     env = dict(os.environ)
     for key, value in dockerfile_env().items():
+        if key == "NUMBA_CACHE_DIR":
+            continue  # the kernels this environment compiled already serve (see below)
         env[key] = str(tmp_path / value.lstrip("/")) if value.startswith("/data") else value
     env["RLUTF_LISTEN"] = f"tcp/127.0.0.1:{port}"
     env["RLUTF_HEALTH_ARGS"] = f"--connect tcp/127.0.0.1:{port}"
