@@ -38,6 +38,7 @@ from bench.methods import (
     warm_up,
 )
 from bench.scenarios import FloatArray, Run, named_scenarios, simulate
+from bench.tables import cm, deg, pct
 
 #: "Within" for this section: under both (metres, radians).
 WITHIN_M = 0.05
@@ -289,18 +290,6 @@ def run_basin(
     return [BasinResult(sc, m, tuple(found[sc, m])) for sc, m in keys]
 
 
-def _cm(v: float) -> str:
-    return "-" if not math.isfinite(v) else f"{100 * v:.2f}" if v < 0.1 else f"{100 * v:.1f}"
-
-
-def _deg(v: float) -> str:
-    return "-" if not math.isfinite(v) else f"{math.degrees(v):.2f}"
-
-
-def _pct(v: float) -> str:
-    return "-" if not math.isfinite(v) else f"{100 * v:.0f} %"
-
-
 def _pctl(v: FloatArray, q: float) -> float:
     """Percentile with a missing answer counted as infinitely wrong."""
     return float(np.percentile(np.where(np.isfinite(v), v, np.inf), q)) if len(v) else math.nan
@@ -326,9 +315,9 @@ def prior_tables(results: Sequence[PriorResult]) -> list[str]:
             ]
             for r in rows:
                 lines.append(
-                    f"| {labels.get(r.method, r.method)} | {_cm(_pctl(r.trans, 50))} "
-                    f"| {_cm(_pctl(r.trans, 90))} | {_deg(_pctl(r.heading, 50))} "
-                    f"| {_deg(_pctl(r.heading, 90))} | {_pct(r.within)} "
+                    f"| {labels.get(r.method, r.method)} | {cm(_pctl(r.trans, 50))} "
+                    f"| {cm(_pctl(r.trans, 90))} | {deg(_pctl(r.heading, 50))} "
+                    f"| {deg(_pctl(r.heading, 90))} | {pct(r.within)} "
                     f"| {1e3 * float(np.median(r.seconds)):.2f} |"
                 )
             lines.append("")
@@ -340,12 +329,12 @@ def prior_tables(results: Sequence[PriorResult]) -> list[str]:
                 a, b = _pctl(d.trans, 50), _pctl(icp.trans, 50)
                 checks.append(
                     f"| (a) default's median error at most ICP's, {log}, {prior.label} "
-                    f"| {_cm(a)} vs {_cm(b)} cm | {'yes' if a <= b else 'no'} |"
+                    f"| {cm(a)} vs {cm(b)} cm | {'yes' if a <= b else 'no'} |"
                 )
             if prior is WIDE:
                 checks.append(
                     f"| (b) default at least {WITHIN_TARGET:.0%} within 5 cm and 1 deg, {log}, "
-                    f"{prior.label} | {_pct(d.within)} "
+                    f"{prior.label} | {pct(d.within)} "
                     f"| {'yes' if d.within >= WITHIN_TARGET else 'no'} |"
                 )
     if checks:
@@ -367,13 +356,13 @@ def basin_table(results: Sequence[BasinResult]) -> list[str]:
         worst = f"{max(done)}" if done else "-"
         lines.append(
             f"| {r.scenario} | {labels.get(r.method, r.method)} | {len(r.scans)} "
-            f"| {_pct(r.converged)} | {med} | {worst} |"
+            f"| {pct(r.converged)} | {med} | {worst} |"
         )
         if r.method == DEFAULT_METHOD:
             ok = bool(done) and r.converged == 1.0 and max(done) <= BASIN_SCANS
             checks.append(
                 f"| default converges within {BASIN_SCANS} scans in every run, {r.scenario} "
-                f"| {_pct(r.converged)} converged, worst {worst} | {'yes' if ok else 'no'} |"
+                f"| {pct(r.converged)} converged, worst {worst} | {'yes' if ok else 'no'} |"
             )
     return [*lines, "", "| target | result | met |", "| --- | --- | --- |", *checks]
 

@@ -22,15 +22,18 @@ from bench.methods import DEFAULT_METHOD, Method
 from bench.speed import Point
 
 
-def _cm(v: float) -> str:
+def cm(v: float) -> str:
+    """Metres as centimetres for a table ("-" for none)."""
     return "-" if not math.isfinite(v) else f"{100 * v:.2f}" if v < 0.1 else f"{100 * v:.1f}"
 
 
-def _deg(v: float) -> str:
+def deg(v: float) -> str:
+    """Radians as degrees for a table."""
     return "-" if not math.isfinite(v) else f"{math.degrees(v):.2f}"
 
 
-def _pct(v: float) -> str:
+def pct(v: float) -> str:
+    """A share as a percentage for a table."""
     return "-" if not math.isfinite(v) else f"{100 * v:.0f} %"
 
 
@@ -66,9 +69,9 @@ def scenario_table(res: ScenarioResult, methods: Sequence[Method]) -> list[str]:
         if s is None:
             continue
         lines.append(
-            f"| {m.label} | {_cm(s.rmse)} | {_deg(s.heading_rmse)} | {_cm(s.p95)} "
-            f"| {_pct(s.within)} | {s.diverged_runs}/{s.runs} | {_pct(s.diverged_share)} "
-            f"| {_cm(s.max_error)} | {s.missing} | {_pct(s.lost)} | {s.ratio:.1f} "
+            f"| {m.label} | {cm(s.rmse)} | {deg(s.heading_rmse)} | {cm(s.p95)} "
+            f"| {pct(s.within)} | {s.diverged_runs}/{s.runs} | {pct(s.diverged_share)} "
+            f"| {cm(s.max_error)} | {s.missing} | {pct(s.lost)} | {s.ratio:.1f} "
             f"| {_nees(s.nees)} | {_ms(s.median_ms)} | {_ms(s.p99_ms)} | {_ms(s.mean_ms)} |"
         )
     return lines
@@ -83,7 +86,7 @@ def overview_table(results: Sequence[ScenarioResult], methods: Sequence[Method])
         s0 = res.summaries.get(DEFAULT_METHOD)
         bound = s0.bound if s0 else math.nan
         cells = [
-            _cm(res.summaries[m.name].rmse) if m.name in res.summaries else "-" for m in methods
+            cm(res.summaries[m.name].rmse) if m.name in res.summaries else "-" for m in methods
         ]
         ratio = f"{s0.ratio:.1f}" if s0 else "-"
         lines.append(f"| {res.name} | {1000 * bound:.2f} | " + " | ".join(cells) + f" | {ratio} |")
@@ -139,7 +142,7 @@ def targets(
                 continue
             fine = s.rmse <= o.rmse
             ok &= fine
-            text = f"{r.name} {_cm(s.rmse)} vs {_cm(o.rmse)} cm{'' if fine else ' (no)'}"
+            text = f"{r.name} {cm(s.rmse)} vs {cm(o.rmse)} cm{'' if fine else ' (no)'}"
             beaten = [
                 m for m, t in r.summaries.items() if m != "odometry" and t.max_error <= DIVERGED_M
             ]
@@ -148,7 +151,7 @@ def targets(
             parts.append(text)
         row(f"RMSE at most ICP's on every {label}", parts, ok)
     everywhere = sim + real
-    worst = [f"{r.name} {_cm(s.max_error)}" for r, s in everywhere]
+    worst = [f"{r.name} {cm(s.max_error)}" for r, s in everywhere]
     row(
         f"no divergence: no update over {DIVERGED_M:g} m anywhere (largest error, cm)",
         worst,
@@ -201,7 +204,7 @@ def speed_tables(
             for n in names:
                 p = next((q for q in points if q.method == n and q.x == x), None)
                 cells.append(
-                    "-" if p is None else f"{_ms(p.median_ms)} / {_ms(p.p99_ms)} ({_cm(p.rmse)})"
+                    "-" if p is None else f"{_ms(p.median_ms)} / {_ms(p.p99_ms)} ({cm(p.rmse)})"
                 )
             lines.append(f"| {label} | {x} | " + " | ".join(cells) + " |")
         lines.append("")

@@ -698,3 +698,60 @@ def score_field_grid(
                     total += cap2
             out[h, j] = total / n
     return out
+
+
+@njit(cache=True, nogil=True)
+def scan_terms(
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    cos_a: np.ndarray,
+    sin_a: np.ndarray,
+    range_min: float,
+    range_max: float,
+    full_circle: bool,
+    max_gap: float,
+) -> tuple[np.ndarray, bool, np.ndarray]:
+    """What one scan's comparison needs, in one pass: the beams with a return, whether the
+    polygons close through the sensor (:func:`rlutf.scan.needs_origin`), and each kept beam's
+    polar-area weight (:class:`rlutf.discrepancy.PolarArea`, trapezoid rule over the real
+    polygon's perimeter). Returns ``(kept indices, closing, weights)``."""
+    n_all = len(ranges)
+    keep = np.empty(n_all, dtype=np.int64)
+    n = 0
+    for i in range(n_all):
+        r = ranges[i]
+        if r >= range_min and r <= range_max:  # NaN fails both
+            keep[n] = i
+            n += 1
+    keep = keep[:n]
+    weights = np.zeros(n)
+    if n == 0:
+        return keep, True, weights
+    widest = 0.0
+    perimeter = 0.0
+    for k in range(n - 1):
+        i, j = keep[k], keep[k + 1]
+        gap = abs(angles[j] - angles[i])
+        widest = max(widest, gap)
+        weights[k + 1] += gap
+        weights[k] += gap
+        dx = ranges[j] * cos_a[j] - ranges[i] * cos_a[i]
+        dy = ranges[j] * sin_a[j] - ranges[i] * sin_a[i]
+        perimeter += math.hypot(dx, dy)
+    first, last = keep[0], keep[n - 1]
+    closing = True
+    if n >= 2 and widest <= max_gap and full_circle:
+        closing = 2.0 * math.pi - abs(angles[last] - angles[first]) > max_gap
+    if not closing and n > 1:
+        wrap = 2.0 * math.pi - abs(angles[last] - angles[first])
+        weights[0] += wrap
+        weights[n - 1] += wrap
+        dx = ranges[first] * cos_a[first] - ranges[last] * cos_a[last]
+        dy = ranges[first] * sin_a[first] - ranges[last] * sin_a[last]
+        perimeter += math.hypot(dx, dy)
+    else:
+        perimeter += ranges[first] + ranges[last]
+    scale = 0.25 / max(perimeter, 1e-9)
+    for k in range(n):
+        weights[k] *= scale
+    return keep, closing, weights

@@ -183,6 +183,20 @@ class PolarArea:
         self._cap = cap
         self._bands: dict[float, FloatArray] = {}
 
+    @classmethod
+    def of_terms(
+        cls, real_ranges: FloatArray, weights: FloatArray, cap: float | None = None
+    ) -> PolarArea:
+        """The area against ``real_ranges`` with per-beam ``weights`` computed already (by
+        :func:`rlutf._kernels.scan_terms`, say)."""
+        area = cls.__new__(cls)
+        area._ranges = np.ascontiguousarray(real_ranges, dtype=np.float64)
+        area.real_sq = area._ranges * area._ranges
+        area.weights = weights
+        area._cap = cap
+        area._bands = {}
+        return area
+
     def band(self, cap: float | None) -> FloatArray:
         """``(n,)`` the most each beam's ``|rho_v^2 - rho_r^2|`` counts, ``2 cap rho_r``; empty
         for no cap."""

@@ -48,7 +48,7 @@ from rlutf.map import Map
 from rlutf.motion import compose, wrap_scalar
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, RefineSettings, refine_pose
-from rlutf.scan import Scan, beam_points, needs_origin, simplify_ring
+from rlutf.scan import Scan, beam_points, simplify_ring
 from rlutf.search import RandomSearch
 
 FloatArray = NDArray[np.float64]
@@ -363,29 +363,32 @@ class _Problem:
     """What one update compares against: the real scan, its polygon and the beams to cast."""
 
     def __init__(self, world: Map, scan: Scan, config: LocalizerConfig, beams: Beams) -> None:
-        valid = scan.valid()
-        self.count = int(np.count_nonzero(valid))
         self.world = world
         self.config = config
         self.offset = np.ascontiguousarray(scan.sensor_offset, dtype=np.float64)
         self.scan_range = scan.range_max
         self.range_max = scan.range_max
+        keep, self.closing, weights = _kernels.scan_terms(
+            scan.ranges,
+            beams.angles,
+            beams.cos,
+            beams.sin,
+            scan.range_min,
+            scan.range_max,
+            scan.covers_full_circle(),
+            config.max_gap,
+        )
+        self.count = len(keep)
         if self.count < config.min_returns:
             return
-        self.beams = beams.select(valid)
-        angles = self.beams.angles
-        self.real_ranges = np.ascontiguousarray(scan.ranges[valid])
-        gaps = angles[1:] - angles[:-1]
-        np.abs(gaps, out=gaps)
-        self.closing = needs_origin(angles, scan.covers_full_circle(), config.max_gap, gaps)
+        self.beams = beams.take(keep)
+        self.real_ranges = scan.ranges[keep]
         kind = config.discrepancy
         self.cap = config.area_cap if kind == "area" else None
         if kind != "turning":
             # The combined discrepancy keeps the exact area: capped, its turning term (which
             # people and grazed edges disturb the most) would dominate.
-            self.area = PolarArea(
-                self.real_ranges, angles, self.closing, self.cap, unit=self.beams.unit, gaps=gaps
-            )
+            self.area = PolarArea.of_terms(self.real_ranges, weights, self.cap)
         if self.cap is not None:
             # A virtual range past the real one plus the cap counts as the cap, so no beam needs
             # casting farther than the longest return plus the widest cap of a search.
@@ -493,6 +496,7 @@ class Localizer:
         self._typical = math.inf
         self._previous: _Problem | None = None
         self._spread: tuple[float, float] | None = self._spread_of(spread)
+        self._refine_settings = self.config.refine_settings()
 
     @property
     def pose(self) -> FloatArray:
@@ -624,7 +628,7 @@ class Localizer:
             problem.real_ranges,
             problem.offset,
             problem.scan_range,
-            cfg.refine_settings(),
+            self._refine_settings,
             fit_distance=cfg.fit_distance,
             iterations=None if cfg.refine else 1,
             area=problem.area_terms(),

@@ -46,6 +46,12 @@ class Beams:
     def __len__(self) -> int:
         return len(self.angles)
 
+    def take(self, index: NDArray[np.int64]) -> Beams:
+        """The beams at ``index``, in that order."""
+        if len(index) == len(self.angles):
+            return self
+        return Beams(self.angles[index], self.cos[index], self.sin[index], self.unit[index])
+
     def select(self, mask: NDArray[np.bool_]) -> Beams:
         """The beams where ``(N,)`` ``mask`` is true, in their order."""
         keep = np.asarray(mask, dtype=bool)

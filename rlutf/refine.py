@@ -60,6 +60,12 @@ class RefineSettings:
     prior_position: float = 0.5
     prior_heading: float = 0.5
 
+    @property
+    def prior_information(self) -> FloatArray:
+        """``(3,)`` the prior's information per unit variance, ``1 / sigma^2`` per axis."""
+        p, h = self.prior_position**-2, self.prior_heading**-2
+        return np.array([p, p, h])
+
 
 @dataclass(frozen=True, eq=False)
 class Refinement:
@@ -136,13 +142,7 @@ def refine_pose(
     ranges = np.empty(n)
     residuals = np.empty(n)
     covariance = np.empty((3, 3))
-    prior = np.array(
-        [
-            settings.prior_position**-2,
-            settings.prior_position**-2,
-            settings.prior_heading**-2,
-        ]
-    )
+    prior = settings.prior_information
     weights, real_sq, band, limit = area if area is not None else (_EMPTY, _EMPTY, _EMPTY, 0.0)
     casts, sigma, used, fitted, ok, d_start, d_final, gated = _kernels.refine(
         np.ascontiguousarray(pose, dtype=np.float64),
