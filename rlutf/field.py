@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _kernels
+from rlutf import _grid
 from rlutf.map import Map
 
 FloatArray = NDArray[np.float64]
@@ -58,9 +58,7 @@ class DistanceField:
         x0, y0 = minx - truncation, miny - truncation
         width = math.ceil((maxx - minx + 2 * truncation) / resolution)
         height = math.ceil((maxy - miny + 2 * truncation) / resolution)
-        values = _kernels.distance_field(
-            world.segments, x0, y0, resolution, width, height, truncation
-        )
+        values = _grid.distance_field(world.segments, x0, y0, resolution, width, height, truncation)
         values.flags.writeable = False
         return cls(values, (x0, y0), resolution, truncation)
 
@@ -139,7 +137,7 @@ def wide_search(
     offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= radius + 0.5 * step]
     turns = math.ceil(heading_radius / heading_step)
     headings = np.arange(-turns, turns + 1) * heading_step
-    scores = _kernels.score_field_grid(
+    scores = _grid.score_field_grid(
         float(centre[0]),
         float(centre[1]),
         float(centre[2]),

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _kernels
+from rlutf import _lm
 from rlutf.map import Map
 from rlutf.raycast import Beams
 
@@ -144,7 +144,7 @@ def refine_pose(
     covariance = np.empty((3, 3))
     prior = settings.prior_information
     weights, real_sq, band, limit = area if area is not None else (_EMPTY, _EMPTY, _EMPTY, 0.0)
-    casts, sigma, used, fitted, ok, d_start, d_final, gated = _kernels.refine(
+    casts, sigma, used, fitted, ok, d_start, d_final, gated = _lm.refine(
         np.ascontiguousarray(pose, dtype=np.float64),
         np.ascontiguousarray(sensor_offset, dtype=np.float64),
         beams.cos,

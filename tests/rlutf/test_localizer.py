@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from rlutf.errors import ConfigError
-from rlutf.localizer import Localizer, LocalizerConfig, _Problem
+from rlutf.localizer import Localizer, LocalizerConfig
 from rlutf.motion import compose, relative, wrap_angle
+from rlutf.problem import Problem as _Problem
 from rlutf.raycast import Beams, cast_rays
 from rlutf.scan import Scan
 from rlutf.search import RandomSearch

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from shapely.geometry import box
 
-from rlutf import _kernels
+from rlutf import _lm
 from rlutf.map import Map
 from rlutf.motion import compose, wrap_angle
 from rlutf.raycast import Beams, cast_rays
@@ -58,7 +58,7 @@ def test_range_jacobian_matches_finite_differences() -> None:
     ranges, residual, jac = np.empty(n), np.empty(n), np.zeros((n, 3))
     used = np.zeros(n, dtype=np.bool_)
     real = np.full(n, 5.0)
-    _kernels._linearise(
+    _lm._linearise(
         *truth, offset, beams.cos, beams.sin, real, 30.0, 0.17, *world.grid,
         ranges, residual, jac, used,
     )  # fmt: skip

@@ -1,0 +1,85 @@
+"""Compiled distance fields and scores of scans on grids (see :mod:`rlutf.field`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def distance_field(
+    segments: np.ndarray, fx0: float, fy0: float, resolution: float, width: int, height: int,
+    truncation: float,
+) -> np.ndarray:  # fmt: skip
+    """``(height, width)`` distances from cell centres to the nearest wall, truncated."""
+    field = np.full((height, width), truncation, dtype=np.float32)
+    for w in range(segments.shape[0]):
+        ax = segments[w, 0]
+        ay = segments[w, 1]
+        ex = segments[w, 2] - ax
+        ey = segments[w, 3] - ay
+        ee = ex * ex + ey * ey
+        c0 = max(int(math.floor((min(ax, ax + ex) - truncation - fx0) / resolution)), 0)
+        c1 = min(int(math.floor((max(ax, ax + ex) + truncation - fx0) / resolution)), width - 1)
+        r0 = max(int(math.floor((min(ay, ay + ey) - truncation - fy0) / resolution)), 0)
+        r1 = min(int(math.floor((max(ay, ay + ey) + truncation - fy0) / resolution)), height - 1)
+        for r in range(r0, r1 + 1):
+            py = fy0 + (r + 0.5) * resolution - ay
+            for c in range(c0, c1 + 1):
+                px = fx0 + (c + 0.5) * resolution - ax
+                s = (px * ex + py * ey) / ee if ee > 0.0 else 0.0
+                s = min(max(s, 0.0), 1.0)
+                d = math.hypot(px - s * ex, py - s * ey)
+                field[r, c] = min(field[r, c], d)
+    return field
+
+
+@njit(cache=True, nogil=True)
+def score_field_grid(
+    cx: float,
+    cy: float,
+    ct: float,
+    offsets_xy: np.ndarray,
+    headings: np.ndarray,
+    px: np.ndarray,
+    py: np.ndarray,
+    field: np.ndarray,
+    fx0: float,
+    fy0: float,
+    resolution: float,
+    cap: float,
+) -> np.ndarray:
+    """Mean capped squared distance field at the scan's points for every pose of a grid.
+
+    The poses are ``(cx, cy) + offsets_xy[j]`` with heading ``ct + headings[h]``; the scan's
+    points are ``(px, py)`` in the base frame. Points off the field count as ``cap``. Returns
+    ``(H, J)`` scores (metres squared)."""
+    height, width = field.shape
+    n = len(px)
+    out = np.empty((len(headings), offsets_xy.shape[0]))
+    wx = np.empty(n)
+    wy = np.empty(n)
+    cap2 = cap * cap
+    inv = 1.0 / resolution
+    for h in range(len(headings)):
+        c = math.cos(ct + headings[h])
+        s = math.sin(ct + headings[h])
+        for i in range(n):
+            wx[i] = (c * px[i] - s * py[i] + cx - fx0) * inv
+            wy[i] = (s * px[i] + c * py[i] + cy - fy0) * inv
+        for j in range(offsets_xy.shape[0]):
+            ox = offsets_xy[j, 0] * inv
+            oy = offsets_xy[j, 1] * inv
+            total = 0.0
+            for i in range(n):
+                col = int(math.floor(wx[i] + ox))
+                row = int(math.floor(wy[i] + oy))
+                if 0 <= col < width and 0 <= row < height:
+                    d = float(field[row, col])
+                    total += min(d * d, cap2)
+                else:
+                    total += cap2
+            out[h, j] = total / n
+    return out
