@@ -1,4 +1,4 @@
-"""Wire schemas of the RLuTF localization service (WIRE.md, v1).
+"""Wire schemas of the RLuTF localization service (WIRE.md, v1.1).
 
 Pydantic models of every message, their validation, JSON encode/decode and JSON Schema
 documents. Typical use at a boundary::
@@ -36,6 +36,7 @@ from schemas.messages import (
     EventCode,
     EventLevel,
     Health,
+    Hypothesis,
     InitialPose,
     LaserScan,
     LatencyPercentiles,
@@ -43,6 +44,8 @@ from schemas.messages import (
     Odometry,
     PoseEstimate,
     PoseStatus,
+    Region,
+    Relocalize,
     SensorOffset,
 )
 from schemas.names import MODELS_BY_SCHEMA_NAME, SCHEMA_NAMES, json_schema, schema_name
@@ -62,6 +65,7 @@ __all__ = [
     "FieldIssue",
     "Geometry",
     "Health",
+    "Hypothesis",
     "InitialPose",
     "InvalidMessage",
     "InvalidUtf8",
@@ -77,6 +81,8 @@ __all__ = [
     "PoseEstimate",
     "PoseStatus",
     "Position",
+    "Region",
+    "Relocalize",
     "SchemaError",
     "SensorOffset",
     "WireModel",

@@ -71,6 +71,12 @@ FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
 NonNegativeFloat = Annotated[FiniteFloat, Field(ge=0.0)]
 """A finite JSON number >= 0."""
 
+PositiveFloat = Annotated[FiniteFloat, Field(gt=0.0)]
+"""A finite JSON number > 0."""
+
+UnitFloat = Annotated[FiniteFloat, Field(ge=0.0, le=1.0)]
+"""A finite JSON number in [0, 1]."""
+
 NonNegativeInt = Annotated[int, Strict(), Field(ge=0)]
 """A JSON integer >= 0 (``3.0`` is not an integer)."""
 

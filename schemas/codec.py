@@ -103,7 +103,8 @@ def to_jsonable(message: BaseModel) -> dict[str, Any]:
 
     An optional field whose default is ``None`` is left out while it is ``None``: a decoder
     reads absence and ``null`` alike, and WIRE.md calls such fields optional, e.g.
-    ``PoseEstimate.covariance``. Nested messages become dicts; free-form dicts get sorted keys.
+    ``PoseEstimate.covariance``. Nested messages, alone or in a sequence, become dicts;
+    free-form dicts get sorted keys.
 
     Args:
         message: Any model of this package.
@@ -118,6 +119,8 @@ def to_jsonable(message: BaseModel) -> dict[str, Any]:
             continue
         if isinstance(value, BaseModel):
             value = to_jsonable(value)
+        elif isinstance(value, tuple) and value and isinstance(value[0], BaseModel):
+            value = [to_jsonable(item) for item in value]
         elif isinstance(value, dict):
             value = _sorted_keys(value)
         out[name] = value

@@ -20,8 +20,10 @@ from schemas._types import (
     NonNegativeFloat,
     NonNegativeInt,
     NumberOrNull,
+    PositiveFloat,
     StampNs,
     Text,
+    UnitFloat,
     WireModel,
     check_finite_json,
 )
@@ -106,6 +108,37 @@ class InitialPose(WireModel):
     theta: FiniteFloat = Field(description="Heading in the map, radians.")
 
 
+class Region(WireModel):
+    """A circle in map coordinates: where a robot to relocalize is known to be."""
+
+    x: FiniteFloat = Field(description="Centre x in the map, metres.")
+    y: FiniteFloat = Field(description="Centre y in the map, metres.")
+    radius: PositiveFloat = Field(description="Radius, metres; > 0.")
+
+
+class Relocalize(WireModel):
+    """The robot is somewhere on map map_id (inside region when given): find it from its scans.
+
+    WIRE.md v1.1. The service forgets the robot's pose and localizes it globally from its next
+    scans and the odometry between them, then tracks it as usual.
+    """
+
+    stamp_ns: StampNs = Field(description="Time of the request, ns since the Unix epoch.")
+    map_id: Identifier = Field(description="Map the robot is on.")
+    region: Region | None = Field(
+        default=None, description="Optional circle in map coordinates the robot is inside."
+    )
+
+
+class Hypothesis(WireModel):
+    """One candidate pose of a robot being relocalized."""
+
+    x: FiniteFloat = Field(description="Position x in the map, metres.")
+    y: FiniteFloat = Field(description="Position y in the map, metres.")
+    theta: FiniteFloat = Field(description="Heading in the map, radians.")
+    score: UnitFloat = Field(description="How well the scans fit at this pose, 0 to 1.")
+
+
 Covariance = Annotated[tuple[FiniteFloat, ...], Field(min_length=9, max_length=9)]
 """A 3x3 covariance of (x, y, theta), row-major."""
 
@@ -132,6 +165,11 @@ class PoseEstimate(WireModel):
         description="Optional 3x3 covariance of x, y, theta, row-major (9 numbers): m^2, m rad, "
         "rad^2.",
     )
+    hypotheses: tuple[Hypothesis, ...] | None = Field(
+        default=None,
+        description="While a robot is being relocalized (v1.1): the distinct candidate poses, "
+        "best first; absent otherwise.",
+    )
 
 
 class Map(WireModel):
@@ -154,7 +192,7 @@ class EventCode:
     INVALID_KEY: Final = "invalid_key"
     """A key with a robot id or map id that does not match the id pattern."""
     MAP_NOT_FOUND: Final = "map_not_found"
-    """An InitialPose names a map no storage answers for."""
+    """An InitialPose or Relocalize names a map no storage answers for."""
     INVALID_MAP: Final = "invalid_map"
     """A map failed validation (schema or geometry)."""
     NOT_INITIALIZED: Final = "not_initialized"
@@ -167,6 +205,12 @@ class EventCode:
     """The MCAP recorder's queue was full and messages were not logged."""
     MAP_UPDATED: Final = "map_updated"
     """A newer map version replaced the one robots were localized on."""
+    RELOCALIZING: Final = "relocalizing"
+    """A global relocalization of a robot started (on request or by itself when lost)."""
+    RELOCALIZED: Final = "relocalized"
+    """A relocalization ended: one hypothesis won clearly and the robot is tracked again."""
+    AMBIGUOUS: Final = "ambiguous"
+    """A relocalization found several near-equal hypotheses; it follows them until one wins."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(
@@ -183,7 +227,7 @@ class Event(WireModel):
     code: NonEmptyStr = Field(
         description="What happened, machine-readable: invalid_message, invalid_key, "
         "map_not_found, invalid_map, not_initialized, lost, scan_dropped, recorder_overflow, "
-        "map_updated; more may be added."
+        "map_updated, relocalizing, relocalized, ambiguous; more may be added."
     )
     key: Text = Field(
         default="", description="The key involved, e.g. where a bad message came from."

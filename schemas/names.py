@@ -11,7 +11,16 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from schemas._types import WireModel
-from schemas.messages import Event, Health, InitialPose, LaserScan, Map, Odometry, PoseEstimate
+from schemas.messages import (
+    Event,
+    Health,
+    InitialPose,
+    LaserScan,
+    Map,
+    Odometry,
+    PoseEstimate,
+    Relocalize,
+)
 
 JSON_SCHEMA_DIALECT: Final = "https://json-schema.org/draft/2020-12/schema"
 
@@ -20,6 +29,7 @@ SCHEMA_NAMES: Final[MappingProxyType[type[WireModel], str]] = MappingProxyType(
         LaserScan: "rlutf.LaserScan",
         Odometry: "rlutf.Odometry",
         InitialPose: "rlutf.InitialPose",
+        Relocalize: "rlutf.Relocalize",
         PoseEstimate: "rlutf.PoseEstimate",
         Map: "rlutf.Map",
         Event: "rlutf.Event",

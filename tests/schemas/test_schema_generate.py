@@ -21,6 +21,7 @@ from schemas import (
     Map,
     Odometry,
     PoseEstimate,
+    Relocalize,
     json_schema,
     schema_name,
 )
@@ -30,6 +31,7 @@ MCAP_SCHEMA_NAMES = {
     "rlutf.LaserScan",
     "rlutf.Odometry",
     "rlutf.InitialPose",
+    "rlutf.Relocalize",
     "rlutf.PoseEstimate",
     "rlutf.Map",
     "rlutf.Event",
@@ -50,7 +52,7 @@ def _walk(node: Any) -> list[Any]:
 def test_schema_names_are_the_wire_md_ones() -> None:
     assert set(SCHEMA_NAMES.values()) == MCAP_SCHEMA_NAMES | {"rlutf.Health"}
     assert schema_name(LaserScan) == "rlutf.LaserScan"
-    for model in (LaserScan, Odometry, InitialPose, PoseEstimate, Map, Event, Health):
+    for model in (LaserScan, Odometry, InitialPose, Relocalize, PoseEstimate, Map, Event, Health):
         assert SCHEMA_NAMES[model] == f"rlutf.{model.__name__}"
         assert MODELS_BY_SCHEMA_NAME[SCHEMA_NAMES[model]] is model
     with pytest.raises(KeyError):
