@@ -10,6 +10,7 @@ from rlutf.map import Map
 from rlutf.motion import compose, interpolate, inverse, relative, wrap_angle
 from rlutf.raycast import Beams, cast_rays
 from rlutf.refine import Refinement, RefineSettings, refine_pose
+from rlutf.relocalize import Hypothesis, Relocalization, RelocalizeSettings, relocalize
 from rlutf.scan import Scan
 from rlutf.turning import TurningMatch, turning_distance, turning_function, turning_match
 from rlutf.warmup import warm_up
@@ -18,6 +19,7 @@ __all__ = [
     "Beams",
     "ConfigError",
     "GeometryError",
+    "Hypothesis",
     "LocalizeResult",
     "Localizer",
     "LocalizerConfig",
@@ -25,6 +27,8 @@ __all__ = [
     "MapError",
     "RefineSettings",
     "Refinement",
+    "Relocalization",
+    "RelocalizeSettings",
     "RlutfError",
     "Scan",
     "TurningMatch",
@@ -36,6 +40,7 @@ __all__ = [
     "polar_area",
     "refine_pose",
     "relative",
+    "relocalize",
     "turning_distance",
     "turning_function",
     "turning_match",

@@ -100,7 +100,11 @@ class LocalizerConfig:
             radians from the wall's normal.
         fit_distance: a beam fits the map when its measured range is within this of the range
             cast from the pose, metres.
-        min_fit: status ``lost`` when fewer than this share of the returns fit.
+        min_fit: status ``lost`` when fewer than this share of the returns fit ...
+        fit_margin: ... or when the share falls more than this under the robot's running typical
+            share (of its updates that were not lost): a pose that fits the scan far worse than
+            this robot's poses usually do is not to be trusted (after a kidnapping, the best
+            pose near the old one may still fit half of the beams).
         wide_search: search a wide region on the distance field when the pose is uncertain:
             the first update, after :meth:`Localizer.reset`, after a ``lost`` update, and when
             the prediction does not fit (default mode only).
@@ -113,6 +117,16 @@ class LocalizerConfig:
         select_scale: scale of the Cauchy cost that compares refined candidates, metres (about
             three times a good scanner's range noise: fine enough to tell two nearby basins
             apart, coarse enough that map errors do not decide).
+        relocalize_after: after this many ``lost`` updates in a row the localizer relocalizes
+            by itself (:meth:`Localizer.relocalize` on the whole map); 0 never.
+        relocalize_resolution: cell side of the relocalization's search grid, metres.
+        relocalize_fit: a relocalization's answer must fit at least this share of the scan's
+            returns (within ``fit_distance``) to be taken; and the first scan's answer only
+            if no other distinct pose fits within 5 points of it.
+        follow_scans: scans an ambiguous relocalization follows its hypotheses before it
+            searches the map again.
+        win_margin: a followed hypothesis wins when its summed unfit share over the scans
+            followed is at least this much under every other's.
         seed: base seed of the random generator.
     """
 
@@ -151,6 +165,7 @@ class LocalizerConfig:
     max_incidence: float = math.radians(80.0)
     fit_distance: float = 0.1
     min_fit: float = 0.5
+    fit_margin: float = 0.25
     wide_search: bool = True
     spread: float = 0.5
     spread_heading: float = math.radians(15.0)
@@ -158,6 +173,11 @@ class LocalizerConfig:
     wide_cap: float = 0.3
     wide_keep: int = 6
     select_scale: float = 0.03
+    relocalize_after: int = 5
+    relocalize_resolution: float = 0.1
+    relocalize_fit: float = 0.8
+    follow_scans: int = 10
+    win_margin: float = 0.3
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -184,6 +204,8 @@ class LocalizerConfig:
             "wide_step",
             "wide_cap",
             "select_scale",
+            "relocalize_resolution",
+            "win_margin",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -205,6 +227,7 @@ class LocalizerConfig:
             "delta_per_correction",
             "simplify_tolerance",
             "cap_per_radius",
+            "fit_margin",
         )
         for name in non_negative:
             if not getattr(self, name) >= 0:
@@ -221,6 +244,12 @@ class LocalizerConfig:
             raise ConfigError(
                 f"refine_iterations: must be at least 1, got {self.refine_iterations}"
             )
+        if self.relocalize_after < 0:
+            raise ConfigError(f"relocalize_after: must be >= 0, got {self.relocalize_after}")
+        if self.follow_scans < 1:
+            raise ConfigError(f"follow_scans: must be at least 1, got {self.follow_scans}")
+        if not 0.0 < self.relocalize_fit <= 1.0:
+            raise ConfigError(f"relocalize_fit: must be within (0, 1], got {self.relocalize_fit}")
         if self.wide_keep < 1:
             raise ConfigError(f"wide_keep: must be at least 1, got {self.wide_keep}")
         if not 0.0 <= self.min_fit <= 1.0:
@@ -268,6 +297,7 @@ class LocalizerConfig:
             area_cap=None,
             refine=False,
             wide_search=False,
+            relocalize_after=0,
         )
         return replace(base, **overrides)  # type: ignore[arg-type]
 

@@ -46,6 +46,7 @@ from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, refine_pose
+from rlutf.relocalize import Follower, FollowSettings, Hypothesis, RelocalizeSettings
 from rlutf.scan import Scan
 from rlutf.search import RandomSearch
 
@@ -68,6 +69,10 @@ class LocalizeResult:
         fit: share of the scan's returns within ``fit_distance`` of the map at ``pose``.
         sigma: the range noise estimated from the scan at ``pose``, metres (NaN if none).
         refine_casts: casts of the scan made by the refinement.
+        hypotheses: while a relocalization cannot decide, the places the robot may be, best
+            first (``pose`` is the first); empty otherwise.
+        relocalizing: this update belongs to a relocalization (the map was searched or its
+            hypotheses followed); the one where a hypothesis wins has status ``corrected``.
     """
 
     pose: FloatArray
@@ -79,6 +84,8 @@ class LocalizeResult:
     fit: float = math.nan
     sigma: float = math.nan
     refine_casts: int = 0
+    hypotheses: tuple[Hypothesis, ...] = ()
+    relocalizing: bool = False
 
     @property
     def inliers(self) -> float:
@@ -120,6 +127,11 @@ class Localizer:
         self._previous: Problem | None = None
         self._spread: tuple[float, float] | None = self._spread_of(spread)
         self._refine_settings = self.config.refine_settings()
+        # A relocalization under way, and the lost updates in a row that may start one.
+        self._follower: Follower | None = None
+        self._lost_run = 0
+        # Running typical share of the returns that fit, over the updates that were not lost.
+        self._typical_fit = math.nan
 
     @property
     def pose(self) -> FloatArray:
@@ -137,11 +149,48 @@ class Localizer:
         self._pose = _pose3(pose)
         self._correction = (0.0, 0.0)
         self._typical = math.inf
+        self._typical_fit = math.nan
         self._spread = self._spread_of(spread)
+        self._follower = None
+        self._lost_run = 0
 
     def set_map(self, world: Map) -> None:
         """Switch to a new version of the map, keeping the pose."""
         self._map = world
+        if self._follower is not None:
+            self._follower.world = world
+
+    def relocalize(self, region: tuple[float, float, float] | None = None) -> None:
+        """Forget the pose: the next updates find the robot on the whole map (or in the circle
+        ``region = (x, y, radius)``), following several hypotheses over the next scans while
+        the place is ambiguous (:mod:`rlutf.relocalize`)."""
+        cfg = self.config
+        if region is not None:
+            x, y, radius = (float(v) for v in region)
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(radius)) or radius <= 0:
+                raise ValueError(f"region: expected finite x, y and radius > 0, got {region}")
+            region = (x, y, radius)
+        search = RelocalizeSettings(
+            resolution=cfg.relocalize_resolution,
+            accept_fit=cfg.relocalize_fit,
+            fit_distance=cfg.fit_distance,
+            select_scale=cfg.select_scale,
+        )
+        follow = FollowSettings(
+            min_fit=cfg.min_fit,
+            accept_fit=cfg.relocalize_fit,
+            win_margin=cfg.win_margin,
+            follow_scans=cfg.follow_scans,
+        )
+        self._follower = Follower(self._map, region, search, follow, self._refine_settings)
+        self._spread = None
+        self._lost_run = 0
+        self._typical_fit = math.nan
+
+    @property
+    def relocalizing(self) -> bool:
+        """A relocalization is under way."""
+        return self._follower is not None
 
     def _spread_of(self, spread: tuple[float, float] | None) -> tuple[float, float]:
         cfg = self.config
@@ -169,7 +218,16 @@ class Localizer:
         if problem.count < cfg.min_returns:
             inside = bool(self._map.contains(predicted[None, :2])[0])
             self._pose = predicted if inside else self._pose
-            return LocalizeResult(self._pose.copy(), math.inf, 0, "lost", 0)
+            return LocalizeResult(
+                self._pose.copy(),
+                math.inf,
+                0,
+                "lost",
+                0,
+                relocalizing=self._follower is not None,
+            )
+        if self._follower is not None:
+            return self._relocalizing(problem, predicted, mot, scan)
 
         wide = cfg.wide_search and cfg.mode != "paper"
         spread, self._spread = self._spread, None
@@ -215,14 +273,26 @@ class Localizer:
             math.hypot(float(pose[0] - predicted[0]), float(pose[1] - predicted[1])),
             abs(wrap_scalar(float(pose[2] - predicted[2]))),
         )
-        if share < cfg.min_fit:
+        floor = cfg.min_fit
+        if math.isfinite(self._typical_fit):
+            floor = max(floor, self._typical_fit - cfg.fit_margin)
+        if share < floor:
             status: Status = "lost"
-            # Look wider at the next scan (default mode): a lost robot comes back by itself.
+            # Look wider at the next scan (default mode): a lost robot comes back by itself,
+            # and one still lost after relocalize_after updates searches the whole map.
             self._spread = (cfg.spread, cfg.spread_heading) if wide else None
-        elif rounds == 0:
-            status = "tracking"
+            self._lost_run += 1
+            if cfg.relocalize_after and self._lost_run >= cfg.relocalize_after:
+                self.relocalize()
         else:
-            status = "corrected"
+            status = "tracking" if rounds == 0 else "corrected"
+            self._lost_run = 0
+            rate = cfg.typical_rate
+            self._typical_fit = (
+                share
+                if not math.isfinite(self._typical_fit)
+                else (1.0 - rate) * self._typical_fit + rate * share
+            )
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
         # Free the previous update's arrays only now that this one has made its own: freed
         # first, they would leave free memory at the top of the heap, which malloc gives back to
@@ -238,6 +308,54 @@ class Localizer:
             share,
             fit.sigma,
             fit.casts if cfg.refine else 0,
+        )
+
+    def _relocalizing(
+        self, problem: Problem, predicted: FloatArray, mot: FloatArray, scan: Scan
+    ) -> LocalizeResult:
+        """An update of a relocalization: the map searched, or its hypotheses followed."""
+        follower = self._follower
+        assert follower is not None
+        step = follower.step(mot, scan, lambda pose: self._fit(problem, pose))
+        fit = step.best
+        hypotheses: tuple[Hypothesis, ...] = ()
+        if step.winner is not None:
+            self._follower = None
+            status: Status = "corrected"
+        else:
+            status = "lost"
+            hypotheses = step.hypotheses
+        if fit is None:
+            # Nothing fits anywhere: carry the pose by odometry and search again next scan.
+            self._pose = predicted
+            at = float(problem.score(predicted[None])[0])
+            return LocalizeResult(
+                predicted.copy(),
+                at if math.isfinite(at) else 1e9,
+                0,
+                "lost",
+                step.nodes,
+                fit=0.0,
+                relocalizing=True,
+            )
+        pose = fit.pose
+        self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
+        self._correction = (0.0, 0.0)
+        self._typical = math.inf
+        self._lost_run = 0
+        discrepancy = float(problem.of_ranges(fit.ranges[None])[0])
+        return LocalizeResult(
+            self._pose.copy(),
+            discrepancy if math.isfinite(discrepancy) else math.inf,
+            0,
+            status,
+            step.nodes + len(step.hypotheses),
+            fit.covariance,
+            fit.fit,
+            fit.sigma,
+            fit.casts,
+            hypotheses,
+            True,
         )
 
     def _fit(self, problem: Problem, pose: FloatArray, gate: bool = False) -> Refinement:

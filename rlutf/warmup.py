@@ -37,3 +37,7 @@ def warm_up() -> None:
         loc = Localizer(world, pose, config, spread=(0.1, 0.05))
         loc.update(np.zeros(3), scan)
         loc.update(slip, scan)
+    # A relocalization: the map's search grid and the branch and bound.
+    loc = Localizer(world, pose)
+    loc.relocalize()
+    loc.update(np.zeros(3), scan)

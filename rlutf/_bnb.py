@@ -1,0 +1,221 @@
+"""Compiled branch and bound over a multi-resolution grid (see :mod:`rlutf.relocalize`).
+
+Level ``k`` of a pyramid holds, at cell ``(row, col)``, the maximum of the base grid over the
+``2^k`` by ``2^k`` window that starts there (Cartographer's FastCorrelativeScanMatcher2D), so the
+sum of a scan's points looked up at level ``k`` bounds from above the score of every translation
+of the node's window: pruning on it is exact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def pyramid(base: np.ndarray, depth: int) -> np.ndarray:
+    """``(depth, H, W)``: level ``k`` is the maximum of ``base`` over ``2^k``-wide windows."""
+    height, width = base.shape
+    out = np.zeros((depth, height, width), dtype=base.dtype)
+    out[0] = base
+    for k in range(1, depth):
+        s = 1 << (k - 1)
+        prev = out[k - 1]
+        cur = out[k]
+        for y in range(height):
+            for x in range(width):
+                m = prev[y, x]
+                if x + s < width and prev[y, x + s] > m:
+                    m = prev[y, x + s]
+                if y + s < height:
+                    m = max(m, prev[y + s, x])
+                    if x + s < width and prev[y + s, x + s] > m:
+                        m = prev[y + s, x + s]
+                cur[y, x] = m
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _bound(level: np.ndarray, cx: np.ndarray, cy: np.ndarray, i: int, j: int, span: int) -> int:
+    """Sum over the points of the level's value at their window ``[col, col + span)``. A window
+    that starts left of or below the grid but reaches into it is read at the grid's edge: that
+    window's maximum covers the part inside, so the bound stays an upper bound."""
+    height, width = level.shape
+    total = 0
+    for p in range(len(cx)):
+        col = i + cx[p]
+        row = j + cy[p]
+        if col < 0 < col + span:
+            col = 0
+        if row < 0 < row + span:
+            row = 0
+        if 0 <= col < width and 0 <= row < height:
+            total += level[row, col]
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _in_region(i: int, j: int, span: int, region: np.ndarray) -> bool:
+    """Whether the window of cells ``[i, i + span) x [j, j + span)`` meets the circle
+    ``region = (col, row, radius)`` (cells; radius < 0: no region)."""
+    if region[2] < 0.0:
+        return True
+    dx = max(i - region[0], 0.0, region[0] - (i + span - 1))
+    dy = max(j - region[1], 0.0, region[1] - (j + span - 1))
+    return bool(dx * dx + dy * dy <= region[2] * region[2])
+
+
+@njit(cache=True, nogil=True)
+def search(
+    levels: np.ndarray,
+    valid: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    region: np.ndarray,
+    min_total: int,
+    keep: int,
+    apart_cells: int,
+    apart_turns: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The ``keep`` best distinct translations and rotations of a scan, exactly.
+
+    Args:
+        levels: ``(D, H, W)`` uint8 score pyramid.
+        valid: ``(D, H, W)`` uint8 pyramid of the cells where the robot may stand.
+        cx: ``(R, n)`` int column offsets of the scan's points for each rotation.
+        cy: ``(R, n)`` the same for rows.
+        region: ``(col, row, radius)`` in cells; a negative radius for the whole map.
+        min_total: leaves scoring under this sum are not kept.
+        keep: how many distinct poses to return.
+        apart_cells: poses closer than this in both columns and rows ...
+        apart_turns: ... and this in rotation steps are the same pose (the better kept).
+
+    Returns:
+        ``(totals, rotations, cols, rows, nodes scored)``, best first, ``keep`` long; entries
+        past the found ones have total -1.
+    """
+    depth, height, width = levels.shape
+    turns = cx.shape[0]
+    top = depth - 1
+    stride = 1 << top
+    n_cols = (width + stride - 1) // stride
+    n_rows = (height + stride - 1) // stride
+    # Every top node of every rotation, bounded.
+    count = 0
+    nodes = np.empty((turns * n_cols * n_rows, 3), dtype=np.int64)
+    bounds = np.empty(turns * n_cols * n_rows, dtype=np.int64)
+    scored = 0
+    for r in range(turns):
+        for a in range(n_cols):
+            for b in range(n_rows):
+                i, j = a * stride, b * stride
+                if valid[top, j, i] == 0 or not _in_region(i, j, stride, region):
+                    continue
+                bounds[count] = _bound(levels[top], cx[r], cy[r], i, j, stride)
+                nodes[count, 0] = r
+                nodes[count, 1] = i
+                nodes[count, 2] = j
+                count += 1
+    scored += count
+    order = np.argsort(-bounds[:count], kind="mergesort")
+    totals = np.full(keep, -1, dtype=np.int64)
+    rots = np.zeros(keep, dtype=np.int64)
+    cols = np.zeros(keep, dtype=np.int64)
+    rows = np.zeros(keep, dtype=np.int64)
+    found = 0
+    threshold = min_total - 1
+    # Depth-first below each top node, best child first.
+    stack = np.empty((4 * depth + 4, 5), dtype=np.int64)
+    child = np.empty((4, 5), dtype=np.int64)
+    for t in range(count):
+        node = order[t]
+        if bounds[node] <= threshold:
+            break
+        sp = 0
+        stack[0, 0] = top
+        stack[0, 1] = nodes[node, 0]
+        stack[0, 2] = nodes[node, 1]
+        stack[0, 3] = nodes[node, 2]
+        stack[0, 4] = bounds[node]
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            k, r, i, j, b = stack[sp, 0], stack[sp, 1], stack[sp, 2], stack[sp, 3], stack[sp, 4]
+            if b <= threshold:
+                continue
+            if k == 0:
+                if valid[0, j, i] == 0 or not _in_region(i, j, 1, region):
+                    continue
+                # A leaf's bound is its score. Same pose as a kept one: keep the better.
+                same = -1
+                for q in range(found):
+                    dr = abs(rots[q] - r)
+                    dr = min(dr, turns - dr)
+                    if (
+                        abs(cols[q] - i) < apart_cells
+                        and abs(rows[q] - j) < apart_cells
+                        and dr < apart_turns
+                    ):
+                        same = q
+                        break
+                if same >= 0:
+                    if b <= totals[same]:
+                        continue
+                    for q in range(same, found - 1):
+                        totals[q] = totals[q + 1]
+                        rots[q] = rots[q + 1]
+                        cols[q] = cols[q + 1]
+                        rows[q] = rows[q + 1]
+                    found -= 1
+                # Insert in order.
+                at = found
+                while at > 0 and totals[at - 1] < b:
+                    at -= 1
+                if at >= keep:
+                    continue
+                last = min(found, keep - 1)
+                for q in range(last, at, -1):
+                    totals[q] = totals[q - 1]
+                    rots[q] = rots[q - 1]
+                    cols[q] = cols[q - 1]
+                    rows[q] = rows[q - 1]
+                totals[at] = b
+                rots[at] = r
+                cols[at] = i
+                rows[at] = j
+                found = min(found + 1, keep)
+                if found == keep:
+                    threshold = max(threshold, totals[keep - 1])
+                continue
+            s = 1 << (k - 1)
+            m = 0
+            for d in range(4):
+                ci = i + (s if d & 1 else 0)
+                cj = j + (s if d & 2 else 0)
+                if ci >= width or cj >= height or valid[k - 1, cj, ci] == 0:
+                    continue
+                if not _in_region(ci, cj, s, region):
+                    continue
+                cb = _bound(levels[k - 1], cx[r], cy[r], ci, cj, s)
+                scored += 1
+                if cb <= threshold:
+                    continue
+                child[m, 0] = k - 1
+                child[m, 1] = r
+                child[m, 2] = ci
+                child[m, 3] = cj
+                child[m, 4] = cb
+                m += 1
+            # Sort the children by bound (insertion sort of at most four) and push the worst
+            # first, so that the best is explored first.
+            for q in range(1, m):
+                for z in range(q, 0, -1):
+                    if child[z, 4] < child[z - 1, 4]:
+                        for c in range(5):
+                            tmp = child[z, c]
+                            child[z, c] = child[z - 1, c]
+                            child[z - 1, c] = tmp
+            for q in range(m):
+                stack[sp] = child[q]
+                sp += 1
+    return totals, rots, cols, rows, scored

@@ -1,0 +1,138 @@
+import math
+
+import numpy as np
+import pytest
+import shapely
+import shapely.affinity
+from shapely.geometry import box
+
+from rlutf import _bnb
+from rlutf.localizer import Localizer
+from rlutf.map import Map
+from rlutf.motion import relative, wrap_angle
+from rlutf.relocalize import RelocalizeSettings, relocalize, search_grid
+from rlutf.sim import LidarModel, make_building, make_trajectory, random_free_point, simulate_scan
+
+
+def _close(pose: np.ndarray, truth: np.ndarray, metres: float, degrees: float) -> bool:
+    turn = abs(float(wrap_angle(pose[2] - truth[2])))
+    return math.hypot(*(pose[:2] - truth[:2])) < metres and turn < math.radians(degrees)
+
+
+def test_branch_and_bound_equals_brute_force_on_the_grid() -> None:
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 256, (40, 50)).astype(np.uint8)
+    free = (rng.random((40, 50)) < 0.7).astype(np.uint8)
+    depth = 4
+    levels, valid = _bnb.pyramid(base, depth), _bnb.pyramid(free, depth)
+    # level k is the maximum over the window of 2^k cells that starts at the cell
+    assert levels[2, 5, 7] == base[5:9, 7:11].max()
+    cx = rng.integers(-12, 12, (6, 15))
+    cy = rng.integers(-12, 12, (6, 15))
+    totals, rots, cols, rows, _ = _bnb.search(
+        levels, valid, cx, cy, np.array([0.0, 0.0, -1.0]), 0, 1, 1, 1
+    )
+    best = -1
+    where = None
+    for r in range(6):
+        for j in range(40):
+            for i in range(50):
+                if not free[j, i]:
+                    continue
+                c, w = i + cx[r], j + cy[r]
+                ok = (c >= 0) & (c < 50) & (w >= 0) & (w < 40)
+                total = int(base[w[ok], c[ok]].astype(np.int64).sum())
+                if total > best:
+                    best, where = total, (r, i, j)
+    assert totals[0] == best
+    r, i, j = rots[0], cols[0], rows[0]
+    c, w = i + cx[r], j + cy[r]
+    ok = (c >= 0) & (c < 50) & (w >= 0) & (w < 40)
+    assert int(base[w[ok], c[ok]].astype(np.int64).sum()) == best and where is not None
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_one_scan_finds_the_robot_anywhere(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    world = make_building(rng, 30.0, 16.0, 4, 2)
+    right = 0
+    for _ in range(8):
+        p = random_free_point(world, rng, 0.3)
+        truth = np.array([p[0], p[1], rng.uniform(-math.pi, math.pi)])
+        result = relocalize(world, simulate_scan(world, truth, LidarModel(), rng))
+        best = result.best
+        assert best is not None
+        if result.found and not result.ambiguous:
+            # never confidently wrong
+            assert _close(best.pose, truth, 0.05, 1.0), (best.pose, truth)
+            right += 1
+        else:
+            assert any(_close(h.pose, truth, 0.1, 2.0) for h in result.hypotheses)
+    assert right >= 7
+
+
+def test_identical_rooms_are_ambiguous_and_hold_the_truth() -> None:
+    room = box(0.0, 0.0, 6.0, 4.0).difference(box(1.0, 1.0, 1.6, 1.6))
+    twin = shapely.affinity.translate(room, 10.0, 0.0)
+    world = Map.from_shapely(shapely.MultiPolygon([room, twin]))
+    truth = np.array([3.5, 2.5, 0.4])
+    result = relocalize(world, simulate_scan(world, truth, LidarModel(), np.random.default_rng(4)))
+    assert result.ambiguous
+    assert len(result.hypotheses) >= 2
+    assert any(_close(h.pose, truth, 0.05, 1.0) for h in result.hypotheses)
+    twin_pose = truth + np.array([10.0, 0.0, 0.0])
+    assert any(_close(h.pose, twin_pose, 0.05, 1.0) for h in result.hypotheses)
+    # A region around one of them decides it.
+    near = relocalize(
+        world,
+        simulate_scan(world, truth, LidarModel(), np.random.default_rng(4)),
+        region=(3.0, 2.0, 2.5),
+    )
+    assert near.found and not near.ambiguous and near.best is not None
+    assert _close(near.best.pose, truth, 0.05, 1.0)
+
+
+def test_the_search_grid_is_made_once_per_map() -> None:
+    world = make_building(np.random.default_rng(5))
+    cfg = RelocalizeSettings()
+    grid = search_grid(world, cfg)
+    assert search_grid(world, cfg) is grid
+    assert grid.levels.shape[0] == cfg.depth and grid.nbytes > 0
+
+
+def test_a_kidnapped_robot_comes_back_without_a_confident_wrong_pose() -> None:
+    rng = np.random.default_rng(6)
+    world = make_building(rng, 30.0, 16.0, 4, 2)
+    before, after = make_trajectory(world, rng, 20), make_trajectory(world, rng, 30)
+    truth = np.vstack([before, after])
+    loc = Localizer(world, truth[0], spread=(0.0, 0.0))
+    back = None
+    for k in range(1, len(truth)):
+        # carried away at scan 20: the odometry says it did not move
+        motion = np.zeros(3) if k == 20 else relative(truth[k - 1], truth[k])
+        res = loc.update(motion, simulate_scan(world, truth[k], LidarModel(), rng))
+        if k < 20:
+            continue
+        if res.status != "lost":
+            assert _close(res.pose, truth[k], 0.05, 1.0), (k, res.status, res.pose, truth[k])
+            back = k - 20 if back is None else back
+    assert back is not None and back <= 10
+
+
+def test_relocalize_on_request_and_bad_regions() -> None:
+    rng = np.random.default_rng(7)
+    world = make_building(rng)
+    truth = make_trajectory(world, rng, 3)
+    loc = Localizer(world, np.zeros(3))
+    loc.relocalize()
+    assert loc.relocalizing
+    res = loc.update(np.zeros(3), simulate_scan(world, truth[1], LidarModel(), rng))
+    assert res.relocalizing and res.status == "corrected" and not res.hypotheses
+    assert _close(res.pose, truth[1], 0.05, 1.0)
+    nxt = loc.update(
+        relative(truth[1], truth[2]), simulate_scan(world, truth[2], LidarModel(), rng)
+    )
+    assert not nxt.relocalizing and nxt.status != "lost"
+    for bad in ((1.0, 2.0, 0.0), (math.nan, 0.0, 1.0), (0.0, 0.0, -3.0)):
+        with pytest.raises(ValueError, match="region"):
+            loc.relocalize(bad)
