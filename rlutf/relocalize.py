@@ -26,11 +26,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rlutf import _bnb, _grid
+from rlutf.errors import GeometryError
 from rlutf.map import Map
 from rlutf.motion import compose
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, RefineSettings, refine_pose
-from rlutf.scan import Scan, beam_points
+from rlutf.scan import Scan, beam_points, simplify_ring
+from rlutf.turning import turning_distance
 
 FloatArray = NDArray[np.float64]
 
@@ -57,6 +59,12 @@ class RelocalizeSettings:
         ambiguity: another pose whose fit is within this of the best's (and which is ``apart``
             from it) makes the answer ambiguous.
         select_scale: Cauchy scale of the robust cost that ranks the refined poses, metres.
+        turning_rank: among the poses that fit about as well as the best (``ambiguity``), rank
+            by the exact turning distance (Arkin et al.) between the scan's polygon and the
+            polygon cast from the pose, and call the answer ambiguous only if their turning
+            distances are within ``turning_ambiguity`` too. Off by default: ``BENCHMARKS.md``
+            measures what it buys.
+        turning_ambiguity: see ``turning_rank``.
     """
 
     resolution: float = 0.1
@@ -73,6 +81,8 @@ class RelocalizeSettings:
     fit_distance: float = 0.1
     ambiguity: float = 0.05
     select_scale: float = 0.03
+    turning_rank: bool = False
+    turning_ambiguity: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -246,28 +256,62 @@ def relocalize(
                 fit_distance=cfg.fit_distance,
             )
         )
-    return rank(fits, cfg, int(nodes))
+    shapes = None
+    if cfg.turning_rank:
+        shapes = [_turning(beams, ranges, f.ranges, scan) for f in fits]
+    return rank(fits, cfg, int(nodes), shapes)
 
 
-def rank(fits: list[Refinement], cfg: RelocalizeSettings, nodes: int = 0) -> Relocalization:
+def _turning(beams: Beams, real: FloatArray, virtual: FloatArray, scan: Scan) -> float:
+    """Exact turning distance between the scan's polygon and the one cast from a pose (both
+    through the sensor, simplified at 3 cm); ``inf`` where either is degenerate."""
+    cast = np.where(np.isfinite(virtual), virtual, scan.range_max)
+    rings = []
+    for r in (real, cast):
+        pts = beam_points(r, beams.cos, beams.sin, np.zeros(3))
+        ring = simplify_ring(np.vstack([pts, np.zeros((1, 2))]), 0.03)
+        rings.append(ring)
+    try:
+        return float(turning_distance(rings[0], rings[1]))
+    except GeometryError:
+        return math.inf
+
+
+def rank(
+    fits: list[Refinement],
+    cfg: RelocalizeSettings,
+    nodes: int = 0,
+    shapes: list[float] | None = None,
+) -> Relocalization:
     """Hypotheses from refined poses: duplicates merged, best (lowest robust cost) first, and
-    whether the best is found and unambiguous."""
+    whether the best is found and unambiguous; with ``shapes`` (each fit's turning distance,
+    ``turning_rank``), near-equal fits are ordered and told apart by it."""
     scored = sorted(
         ((robust_cost(f.residuals, cfg.select_scale), k, f) for k, f in enumerate(fits)),
         key=lambda t: (t[0], t[1]),
     )
-    kept: list[tuple[float, Refinement]] = []
-    for cost, _, fit in scored:
-        if not any(_same(fit.pose, other.pose, 0.1, math.radians(2.0)) for _, other in kept):
-            kept.append((cost, fit))
-    hypotheses = tuple(Hypothesis(f.pose.copy(), f.fit, cost) for cost, f in kept)
+    kept: list[tuple[float, int, Refinement]] = []
+    for cost, k, fit in scored:
+        if not any(_same(fit.pose, other.pose, 0.1, math.radians(2.0)) for _, _, other in kept):
+            kept.append((cost, k, fit))
+    if shapes is not None and kept:
+        # Near-equal fits: the one whose polygon's shape is nearest the scan's goes first.
+        top = kept[0][2].fit
+        near = [t for t in kept if t[2].fit >= top - cfg.ambiguity]
+        rest = [t for t in kept if t[2].fit < top - cfg.ambiguity]
+        kept = sorted(near, key=lambda t: (shapes[t[1]], t[0])) + rest
+    hypotheses = tuple(Hypothesis(f.pose.copy(), f.fit, cost) for cost, _, f in kept)
     found = bool(hypotheses) and hypotheses[0].score >= cfg.accept_fit
-    ambiguous = any(
-        h.score >= hypotheses[0].score - cfg.ambiguity
-        and not _same(h.pose, hypotheses[0].pose, cfg.apart, cfg.apart_heading)
-        for h in hypotheses[1:]
-    )
-    return Relocalization(hypotheses, found, ambiguous, nodes, tuple(f for _, f in kept))
+    ambiguous = False
+    for _, k, fit in kept[1:]:
+        if fit.fit < hypotheses[0].score - cfg.ambiguity:
+            continue
+        if _same(fit.pose, hypotheses[0].pose, cfg.apart, cfg.apart_heading):
+            continue
+        if shapes is not None and shapes[k] - shapes[kept[0][1]] > cfg.turning_ambiguity:
+            continue
+        ambiguous = True
+    return Relocalization(hypotheses, found, ambiguous, nodes, tuple(f for _, _, f in kept))
 
 
 def robust_cost(residuals: FloatArray, scale: float) -> float:
