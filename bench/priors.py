@@ -48,7 +48,7 @@ from rlutf.relocalize import robust_cost
 WITHIN_M = 0.05
 WITHIN_RAD = math.radians(1.0)
 #: Methods of this section, in table order.
-PRIOR_METHODS = ("default", "norefine", "paper", "icp")
+PRIOR_METHODS = ("default", "nowide", "fixedcap", "norefine", "paper", "icp")
 #: Scenarios of the wide-basin table.
 BASIN_SCENARIOS = ("nominal", "rooms")
 #: Target of the wide-basin table: the default converges within this many scans.
