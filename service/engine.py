@@ -9,12 +9,18 @@ Maps are registered with the time they were received; a robot uses, for each of 
 newest version of its map received no later than that input. This makes the live service (maps
 reach worker processes a moment after they are received) and replay (maps are read from the log
 in order) see the same map at the same point of every robot's input.
+
+An InitialPose or Relocalize waits for its map without taking the robot off the map it is
+localized on (:mod:`service.relocalization`). Different robots may be handled on different
+threads at once (one robot's inputs never are): the robots' states are apart, and the maps are
+registered and looked up under a lock.
 """
 
 from __future__ import annotations
 
 import bisect
 import math
+import threading
 import zlib
 from dataclasses import dataclass, field
 from typing import Literal
@@ -25,8 +31,18 @@ from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
 from rlutf.motion import interpolate, relative
 from rlutf.scan import Scan
-from schemas import Event, EventCode, InitialPose, LaserScan, Odometry, PoseEstimate, encode
+from schemas import (
+    Event,
+    EventCode,
+    InitialPose,
+    LaserScan,
+    Odometry,
+    PoseEstimate,
+    Relocalize,
+    encode,
+)
 from service.keys import Keys
+from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
 OutKind = Literal["pose", "event", "need_map", "skipped"]
@@ -81,7 +97,8 @@ class _Robot:
     seed: int
     map_id: str | None = None
     map_version: int = -1
-    start: FloatArray | None = None  # initial pose waiting for its map
+    pending: Request | None = None  # an InitialPose or Relocalize waiting for its map
+    episode: Episode | None = None  # the relocalization under way
     localizer: Localizer | None = None
     odom_stamps: list[int] = field(default_factory=list)
     odom_poses: list[FloatArray] = field(default_factory=list)
@@ -107,19 +124,26 @@ class FleetEngine:
         self.config = config
         self.event_interval_ns = event_interval_ns
         self._maps: dict[str, _MapVersions] = {}
+        self._maps_lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
 
     # ----------------------------------------------------------------------------- maps
     def register_map(self, map_id: str, version: int, world: World, received_ns: int) -> None:
         """Make a map version available to inputs received at or after ``received_ns``."""
-        book = self._maps.setdefault(map_id, _MapVersions())
-        if book.versions and version <= book.versions[-1]:
-            return
-        book.received.append(received_ns)
-        book.versions.append(version)
-        book.worlds.append(world)
-        if len(book.worlds) > _MAP_VERSIONS_KEPT:
-            del book.received[0], book.versions[0], book.worlds[0]
+        with self._maps_lock:
+            book = self._maps.setdefault(map_id, _MapVersions())
+            if book.versions and version <= book.versions[-1]:
+                return
+            book.received.append(received_ns)
+            book.versions.append(version)
+            book.worlds.append(world)
+            if len(book.worlds) > _MAP_VERSIONS_KEPT:
+                del book.received[0], book.versions[0], book.worlds[0]
+
+    def _map_at(self, map_id: str, received_ns: int) -> tuple[int, World] | None:
+        with self._maps_lock:
+            book = self._maps.get(map_id)
+            return book.at(received_ns) if book else None
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -135,15 +159,14 @@ class FleetEngine:
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
         if r is None:
-            r = _Robot(robot_id, zlib.crc32(robot_id.encode()))
-            self._robots[robot_id] = r
+            r = self._robots.setdefault(robot_id, _Robot(robot_id, zlib.crc32(robot_id.encode())))
         return r
 
     # ----------------------------------------------------------------------------- inputs
     def handle(
         self,
         robot_id: str,
-        message: LaserScan | Odometry | InitialPose,
+        message: LaserScan | Odometry | InitialPose | Relocalize,
         received_ns: int,
     ) -> list[Outbound]:
         """Apply one input of one robot and return what to publish."""
@@ -151,8 +174,8 @@ class FleetEngine:
         if isinstance(message, Odometry):
             self._add_odometry(robot, message)
             return []
-        if isinstance(message, InitialPose):
-            return self._initial_pose(robot, message, received_ns)
+        if isinstance(message, InitialPose | Relocalize):
+            return self._request(robot, message, received_ns)
         return self._scan(robot, message, received_ns)
 
     def _add_odometry(self, robot: _Robot, msg: Odometry) -> None:
@@ -163,7 +186,7 @@ class FleetEngine:
         if len(robot.odom_stamps) > 4096:  # a robot that sends odometry but no scans
             del robot.odom_stamps[:2048], robot.odom_poses[:2048]
 
-    def _odometry_at(self, robot: _Robot, stamp_ns: int) -> FloatArray | None:
+    def _odometry_at(self, robot: _Robot, stamp_ns: int, trim: bool = True) -> FloatArray | None:
         """Odometry pose at ``stamp_ns``: interpolated, else the latest before; never ahead."""
         stamps = robot.odom_stamps
         if not stamps:
@@ -177,19 +200,33 @@ class FleetEngine:
             at = interpolate(before, robot.odom_poses[i], frac) if frac > 0 else before
         else:
             at = before
-        # Keep the last reading at or before the stamp as the base of the next interpolation.
-        del stamps[: i - 1], robot.odom_poses[: i - 1]
+        if trim:
+            # Keep the last reading at or before the stamp as the base of the next interpolation.
+            del stamps[: i - 1], robot.odom_poses[: i - 1]
         return at
 
-    def _initial_pose(self, robot: _Robot, msg: InitialPose, received_ns: int) -> list[Outbound]:
-        robot.map_id = msg.map_id
-        robot.start = np.array([msg.x, msg.y, msg.theta], dtype=np.float64)
-        robot.anchor = self._odometry_at(robot, msg.stamp_ns)
-        robot.start_stamp = msg.stamp_ns
-        robot.localizer = None
-        robot.map_version = -1
-        out = []
-        if self._world_for(robot, received_ns) is None:
+    def _request(
+        self, robot: _Robot, msg: InitialPose | Relocalize, received_ns: int
+    ) -> list[Outbound]:
+        """Take an InitialPose or Relocalize: applied now if its map is loaded, else it waits."""
+        # Not trimmed: the robot may keep tracking from older odometry while the request waits.
+        anchor = self._odometry_at(robot, msg.stamp_ns, trim=False)
+        if isinstance(msg, InitialPose):
+            pose = np.array([msg.x, msg.y, msg.theta], dtype=np.float64)
+            robot.pending = Request(
+                "initialpose", msg.map_id, msg.stamp_ns, received_ns, pose, None, anchor
+            )
+        else:
+            r = msg.region
+            region = None if r is None else (r.x, r.y, r.radius)
+            centre = np.array([r.x, r.y, 0.0] if r is not None else [0.0, 0.0, 0.0])
+            robot.pending = Request(
+                "relocalize", msg.map_id, msg.stamp_ns, received_ns, centre, region, anchor
+            )
+        out = self._apply(robot, received_ns)
+        if robot.pending is not None:
+            if robot.localizer is None:
+                robot.map_id = msg.map_id  # a robot with no pose yet waits for this map
             out.append(
                 Outbound(
                     "need_map",
@@ -202,26 +239,61 @@ class FleetEngine:
             )
         return out
 
+    def _apply(self, robot: _Robot, received_ns: int) -> list[Outbound]:
+        """Apply the robot's waiting request if its map is loaded at ``received_ns``."""
+        req = robot.pending
+        if req is None:
+            return []
+        key = self.keys.robot(robot.robot_id, req.kind)
+        found = self._map_at(req.map_id, received_ns)
+        if found is None:
+            if robot.localizer is None or received_ns - req.received_ns <= REQUEST_WAIT_NS:
+                return []
+            robot.pending = None
+            return self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"{req.kind} abandoned: map {req.map_id!r} was not loaded within "
+                f"{REQUEST_WAIT_NS / 1e9:g} s; the robot stays on map {robot.map_id!r}",
+            )
+        robot.pending = None
+        version, world = found
+        if req.kind == "relocalize" and robot.localizer is not None and robot.map_id == req.map_id:
+            if version != robot.map_version:
+                robot.localizer.set_map(world)
+        else:
+            robot.localizer = Localizer(world, req.pose, self.config, seed=robot.seed)
+            if req.kind == "initialpose" or robot.anchor is None:
+                robot.anchor = req.anchor
+                robot.start_stamp = req.stamp_ns
+        robot.map_id, robot.map_version = req.map_id, version
+        if req.kind == "initialpose":
+            robot.episode = None
+            return []
+        robot.localizer.relocalize(req.region)
+        robot.episode = Episode(f"requested on {req.describe()}")
+        return self._events(robot, received_ns, key, robot.episode.start())
+
     def _world_for(self, robot: _Robot, received_ns: int) -> World | None:
         """Bring the robot's localizer up to the map version current at ``received_ns``."""
-        if robot.map_id is None:
+        if robot.map_id is None or robot.localizer is None:
             return None
-        book = self._maps.get(robot.map_id)
-        found = book.at(received_ns) if book else None
+        found = self._map_at(robot.map_id, received_ns)
         if found is None:
             return None
         version, world = found
-        if robot.localizer is None and robot.start is not None:
-            robot.localizer = Localizer(world, robot.start, self.config, seed=robot.seed)
-            robot.start = None
-        elif robot.localizer is not None and version != robot.map_version:
+        if version != robot.map_version:
             robot.localizer.set_map(world)
         robot.map_version = version
         return world
 
     def _scan(self, robot: _Robot, msg: LaserScan, received_ns: int) -> list[Outbound]:
         key = self.keys.robot(robot.robot_id, "scan")
-        skipped = [Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        applied = self._apply(robot, received_ns)
+        skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
         if robot.map_id is None:
             return skipped + self._event(
                 robot,
@@ -262,28 +334,55 @@ class FleetEngine:
             (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
         )
         result = robot.localizer.update(motion, scan)
+        episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
-            return skipped + self._event(
-                robot,
-                received_ns,
-                "warning",
-                EventCode.LOST,
-                key,
-                "scan has too few returns to compare; pose kept by odometry",
+            return (
+                skipped
+                + self._events(robot, received_ns, key, episode)
+                + self._event(
+                    robot,
+                    received_ns,
+                    "warning",
+                    EventCode.LOST,
+                    key,
+                    "scan has too few returns to compare; pose kept by odometry",
+                )
             )
-        out = [self._pose(robot, msg.stamp_ns, result, received_ns)]
-        if result.status == "lost":
+        pose_key = self.keys.pose(robot.robot_id)
+        out = [*applied, self._pose(robot, msg.stamp_ns, result, received_ns)]
+        out += self._events(robot, received_ns, pose_key, episode)
+        if result.status == "lost" and not result.hypotheses:  # ambiguous: said once above
             out += self._event(
                 robot,
                 received_ns,
                 "warning",
                 EventCode.LOST,
-                self.keys.pose(robot.robot_id),
+                pose_key,
                 f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
                 f"{self.config.fit_distance:g} m of the map at the best pose (at least "
-                f"{100 * self.config.min_fit:.0f} % needed); searching wider at the next scan",
+                f"{100 * self.config.min_fit:.0f} % needed); "
+                + (
+                    "relocalizing on the whole map"
+                    if result.relocalizing
+                    else "searching wider at the next scan"
+                ),
             )
         return out
+
+    def _follow(self, robot: _Robot, result: LocalizeResult) -> list[EventSpec]:
+        """The relocalization events of a result; an automatic relocalization starts here."""
+        if not result.relocalizing:
+            robot.episode = None
+            return []
+        if robot.episode is None:
+            robot.episode = Episode(
+                f"lost for {self.config.relocalize_after} scans in a row; searching the map "
+                f"{robot.map_id!r} for the scan"
+            )
+        events, ended = robot.episode.follow(result)
+        if ended:
+            robot.episode = None
+        return events
 
     def _pose(
         self, robot: _Robot, stamp_ns: int, result: LocalizeResult, received_ns: int
@@ -302,6 +401,7 @@ class FleetEngine:
             covariance=None
             if result.covariance is None
             else tuple(float(v) for v in result.covariance.ravel()),
+            hypotheses=wire_hypotheses(result),
         )
         payload = encode(msg)
         robot.last_pose = payload
@@ -316,6 +416,15 @@ class FleetEngine:
             received_ns,
         )
 
+    def _events(
+        self, robot: _Robot, now_ns: int, key: str, specs: list[EventSpec]
+    ) -> list[Outbound]:
+        """Events that happen once per episode: never held back by the event interval."""
+        out: list[Outbound] = []
+        for level, code, message in specs:
+            out += self._event(robot, now_ns, level, code, key, message, limited=False)
+        return out
+
     def _event(
         self,
         robot: _Robot,
@@ -324,9 +433,10 @@ class FleetEngine:
         code: str,
         key: str,
         message: str,
+        limited: bool = True,
     ) -> list[Outbound]:
         last = robot.last_event.get(code)
-        if last is not None and now_ns - last < self.event_interval_ns:
+        if limited and last is not None and now_ns - last < self.event_interval_ns:
             return []
         robot.last_event[code] = now_ns
         ev = Event(stamp_ns=now_ns, level=level, code=code, key=key, message=message)

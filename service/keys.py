@@ -5,15 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from schemas import InitialPose, LaserScan, Odometry, valid_id
+from schemas import InitialPose, LaserScan, Odometry, Relocalize, valid_id
 
-InputKind = Literal["scan", "odom", "initialpose"]
-INPUT_KINDS: tuple[InputKind, ...] = ("scan", "odom", "initialpose")
-Message = LaserScan | Odometry | InitialPose
+InputKind = Literal["scan", "odom", "initialpose", "relocalize"]
+INPUT_KINDS: tuple[InputKind, ...] = ("scan", "odom", "initialpose", "relocalize")
+Message = LaserScan | Odometry | InitialPose | Relocalize
 MODELS: dict[str, type[Message]] = {
     "scan": LaserScan,
     "odom": Odometry,
     "initialpose": InitialPose,
+    "relocalize": Relocalize,
 }
 
 

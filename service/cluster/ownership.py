@@ -14,7 +14,9 @@ operator's InitialPose newer than the last pose, which the old owner never local
 used instead, as it was received.) Both go through the same path as received inputs and are
 recorded like them: **handover seeds are recorded as initial poses** on the robot's
 ``initialpose`` topic (and the tail on its ``odom`` topic), so replaying the instance's log
-reproduces the handover. Seeds are never published.
+reproduces the handover. Seeds are never published. A last pose that carries ``hypotheses`` (a
+relocalization that had not decided between places) is no place to start from: the seed is then
+a Relocalize on its map, recorded on the ``relocalize`` topic, and the new owner decides anew.
 
 With no pose in memory (every instance restarted), the pose is fetched with a Zenoh get on a
 thread of its own (a storage on the pose keys answers); the robot's inputs are held meanwhile
@@ -31,7 +33,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from schemas import InitialPose, Odometry, PoseEstimate, SchemaError, decode, encode
+from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
 from service.cluster.membership import Membership
 from service.keys import MODELS, InputKind, Message
 
@@ -152,7 +154,7 @@ class Ownership:
             self.ignored_not_owner += 1
             if robot in self._active or robot in self._held:
                 self._release(robot)  # moved away just now; rebalance may not have run yet
-        if kind == "scan":
+        if kind in ("scan", "relocalize"):  # a relocalization is its owner's to run
             return
         try:
             msg = decode(MODELS[kind], payload, max_bytes=max_bytes)
@@ -226,6 +228,9 @@ class Ownership:
         placed = self._placed.pop(robot, None)
         if placed is not None and (pose is None or placed[1].stamp_ns > pose.stamp_ns):
             self._seed(robot, placed[1].stamp_ns, placed)  # placed, not localized since
+        elif pose is not None and pose.hypotheses:  # ambiguous: its best guess may be wrong
+            again = Relocalize(stamp_ns=pose.stamp_ns, map_id=pose.map_id)
+            self._seed(robot, pose.stamp_ns, (encode(again), again))
         elif pose is not None:
             seed = InitialPose(
                 stamp_ns=pose.stamp_ns, map_id=pose.map_id, x=pose.x, y=pose.y, theta=pose.theta
@@ -235,7 +240,10 @@ class Ownership:
             self._seed(robot, None, None)
 
     def _seed(
-        self, robot: str, anchor_ns: int | None, seed: tuple[bytes, InitialPose] | None
+        self,
+        robot: str,
+        anchor_ns: int | None,
+        seed: tuple[bytes, InitialPose | Relocalize] | None,
     ) -> None:
         """Hand the odometry tail and the seed to the engine; the robot is localized here."""
         tail = sorted(self._tails.pop(robot, ()), key=lambda o: o.stamp_ns)
@@ -246,7 +254,8 @@ class Ownership:
             self._pass(robot, "odom", o.payload, o.message, self._clock())
         self._active.add(robot)
         if seed is not None:
-            self._pass(robot, "initialpose", seed[0], seed[1], self._clock())
+            kind: InputKind = "relocalize" if isinstance(seed[1], Relocalize) else "initialpose"
+            self._pass(robot, kind, seed[0], seed[1], self._clock())
             self.seeded += 1
             log.info("%s: seeded from its pose at %d", robot, seed[1].stamp_ns)
 

@@ -6,7 +6,13 @@ reported), odometry and initial poses are never dropped. A robot is given, when 
 the shard with the fewest robots; a shard runs one batch per robot at a time, so one robot's
 updates are sequential while different robots run in parallel. A shard is a worker process (the
 default: numpy work holds the GIL, so threads would cap the service at one core) or, with
-``workers=0``, a thread.
+``workers=0``, threads in this process.
+
+Inside a shard, the batches in flight (up to :data:`_IN_FLIGHT`, each of a different robot) run
+on as many threads: a relocalization (0.1 to 2 s of compiled search, which releases the GIL) then
+holds one thread while the shard's other robots keep being updated on the others. A robot's
+batches still run one after another, and the robots share nothing but the maps (looked up under
+a lock), so each robot's poses are the same as in replay whatever the threads do.
 """
 
 from __future__ import annotations
@@ -17,10 +23,12 @@ import logging
 import multiprocessing as mp
 import os
 import pickle
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
@@ -35,8 +43,14 @@ from service.maps.book import LoadedMap
 
 log = logging.getLogger(__name__)
 
-#: Batches a shard may have in flight at once (for different robots), so it never waits idle.
+#: Batches a shard may have in flight at once (for different robots), so it never waits idle;
+#: a shard runs them on as many threads, so a long update holds up only its own robot.
 _IN_FLIGHT = 4
+#: The GIL's switch interval in the service's processes, seconds (Python's default: 0.005). An
+#: update waits this long for the GIL at worst each time it gets it back from a compiled kernel
+#: while a relocalization's Python code holds it; a few dozen times per update at 5 ms would
+#: stall the other robots for tens of milliseconds.
+_SWITCH_INTERVAL_S = 0.0005
 #: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
 _GC_THRESHOLDS = (20_000, 20, 20)
 
@@ -93,12 +107,17 @@ class _Shard:
         for t in self.threads:
             t.join(timeout)
 
-    def next_work(self) -> tuple[str, tuple[Any, ...] | list[_Entry]] | None:
-        """Block until there is a control message or a ready robot (lock held by caller)."""
+    def next_work(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
+        """Block until there is a control message or a ready robot (lock held by caller).
+
+        Returns:
+            ``(None, message)`` for a control message, ``(robot, entries)`` for a batch, or
+            ``None`` when the dispatcher stops and nothing is left.
+        """
         d = self.dispatcher
         while True:
             if self.control:
-                return "control", self.control.popleft()
+                return None, self.control.popleft()
             if self.ready and self.in_flight < _IN_FLIGHT:
                 robot = self.ready.popleft()
                 box = d.boxes[robot]
@@ -131,27 +150,34 @@ class _ThreadShard(_Shard):
         self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
 
     def start(self) -> None:
-        t = threading.Thread(target=self._run, name=f"rlutf-shard-{self.index}", daemon=True)
-        self.threads.append(t)
-        t.start()
+        sys.setswitchinterval(_SWITCH_INTERVAL_S)
+        for i in range(_IN_FLIGHT):
+            t = threading.Thread(
+                target=self._run, name=f"rlutf-shard-{self.index}-{i}", daemon=True
+            )
+            self.threads.append(t)
+            t.start()
 
     def _run(self) -> None:
         d = self.dispatcher
         while True:
             with d.lock:
                 work = self.next_work()
+                if work is not None and work[0] is None:
+                    # Under the lock: no batch handed out after this map can run before it.
+                    _apply_control(self.engine, work[1])  # type: ignore[arg-type]
+                    continue
             if work is None:
                 return
             robot, item = work
-            if robot == "control":
-                _apply_control(self.engine, item)  # type: ignore[arg-type]
-                continue
+            assert robot is not None
             t0 = time.perf_counter()
             outputs = _run_batch(self.engine, robot, item)  # type: ignore[arg-type]
-            done = Done(robot, outputs, time.perf_counter() - t0)
+            # Published before the robot's next batch may start on another thread: its poses
+            # go out (and into the log) in order.
+            d.deliver(Done(robot, outputs, time.perf_counter() - t0))
             with d.lock:
                 self.finish(robot)
-            d.deliver(done)
 
 
 class _ProcessShard(_Shard):
@@ -185,7 +211,7 @@ class _ProcessShard(_Shard):
             if work is None:
                 break
             robot, item = work
-            if robot == "control":
+            if robot is None:
                 msg: tuple[Any, ...] = item  # type: ignore[assignment]
             else:
                 batch = [(e.kind, e.payload, e.received_ns) for e in item]
@@ -271,27 +297,45 @@ def tune_gc() -> None:
 
 
 def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interval: int) -> None:
-    """Entry point of a worker process: apply batches until told to stop."""
+    """Entry point of a worker process: apply batches until told to stop.
+
+    This thread reads the pipe and applies maps in pipe order; batches (never two of one robot
+    at once: the shard sends a robot's next batch after its ``done``) run on a pool of
+    :data:`_IN_FLIGHT` threads. A map is registered before any batch sent after it is read.
+    """
     warm_up()
     engine = FleetEngine(Keys(prefix), config, interval)
     tune_gc()
-    while True:
-        try:
-            msg = _recv(conn)
-        except (EOFError, OSError, KeyboardInterrupt):
-            return
-        kind = msg[0]
-        if kind == "stop":
-            _send(conn, ("stopped",))
-            return
-        if kind == "map":
-            _apply_control(engine, msg)
-            continue
-        _, robot, batch = msg
+    sys.setswitchinterval(_SWITCH_INTERVAL_S)
+    send_lock = threading.Lock()
+
+    def run(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:
         entries = [_Entry(k, p, None, r) for k, p, r in batch]
         t0 = time.perf_counter()
         outputs = _run_batch(engine, robot, entries)
-        _send(conn, ("done", robot, outputs, time.perf_counter() - t0))
+        try:
+            with send_lock:
+                _send(conn, ("done", robot, outputs, time.perf_counter() - t0))
+        except (OSError, ValueError):
+            log.warning("results of %s not sent: the service is gone", robot)
+
+    with ThreadPoolExecutor(_IN_FLIGHT, thread_name_prefix="rlutf-update") as pool:
+        while True:
+            try:
+                msg = _recv(conn)
+            except (EOFError, OSError, KeyboardInterrupt):
+                return
+            kind = msg[0]
+            if kind == "stop":
+                pool.shutdown(wait=True)
+                with send_lock:
+                    _send(conn, ("stopped",))
+                return
+            if kind == "map":
+                _apply_control(engine, msg)
+                continue
+            _, robot, batch = msg
+            pool.submit(run, robot, batch)
 
 
 class Dispatcher:

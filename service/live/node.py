@@ -31,6 +31,7 @@ from schemas import (
     LaserScan,
     Odometry,
     PoseEstimate,
+    Relocalize,
     SchemaError,
     decode,
     encode,
@@ -53,6 +54,7 @@ SCHEMA_OF_LEAF = {
     "scan": SCHEMA_NAMES[LaserScan],
     "odom": SCHEMA_NAMES[Odometry],
     "initialpose": SCHEMA_NAMES[InitialPose],
+    "relocalize": SCHEMA_NAMES[Relocalize],
     "pose": SCHEMA_NAMES[PoseEstimate],
     "events": SCHEMA_NAMES[Event],
 }

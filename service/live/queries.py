@@ -1,12 +1,23 @@
-"""Client tools over Zenoh for a running fleet: query poses and instances' health."""
+"""Client tools over Zenoh for a running fleet: query poses and instances' health, relocalize."""
 
 from __future__ import annotations
 
+import queue
 import sys
 
 import zenoh
 
-from schemas import Health, PoseEstimate, SchemaError, decode, encode, valid_id
+from schemas import (
+    Event,
+    EventCode,
+    Health,
+    PoseEstimate,
+    Relocalize,
+    SchemaError,
+    decode,
+    encode,
+    valid_id,
+)
 from service.keys import Keys
 
 
@@ -50,3 +61,73 @@ def query_health(session: zenoh.Session, prefix: str, instance: str, timeout: fl
         print("rlutf health: no instance answered", file=sys.stderr)
         return 1
     return 0
+
+
+#: Event codes that end ``rlutf relocalize --wait``: success, and the failures of the request.
+_DONE = {EventCode.RELOCALIZED: 0, EventCode.MAP_NOT_FOUND: 1, EventCode.INVALID_MESSAGE: 1}
+
+
+def request_relocalize(
+    session: zenoh.Session,
+    prefix: str,
+    robot: str,
+    request: Relocalize,
+    wait: float,
+) -> int:
+    """Put a Relocalize for ``robot``; with ``wait`` > 0, follow its events until it ends.
+
+    Prints each Event about the robot (and, while hypotheses remain, their count) as it comes,
+    one JSON per line.
+
+    Returns:
+        0 when the request was put (``wait`` = 0) or the robot was relocalized; 1 when the
+        service answered ``map_not_found`` or ``invalid_message``, or nothing ended the episode
+        within ``wait`` seconds.
+    """
+    keys = Keys(prefix)
+    key = keys.robot(robot, "relocalize")
+    if wait <= 0:
+        session.put(key, encode(request), encoding=zenoh.Encoding.APPLICATION_JSON)
+        print(f"put {key}: {encode(request).decode()}")
+        return 0
+    ended: queue.Queue[int] = queue.Queue()
+    seen: dict[str, str] = {"status": "", "hypotheses": ""}
+
+    def on_event(sample: zenoh.Sample) -> None:
+        try:
+            ev = decode(Event, sample.payload.to_bytes())
+        except SchemaError:
+            return
+        print(encode(ev).decode(), flush=True)
+        code = _DONE.get(ev.code)
+        about_request = ev.code != EventCode.INVALID_MESSAGE or ev.key == key
+        if code is not None and about_request and ev.stamp_ns >= request.stamp_ns:
+            ended.put(code)
+
+    def on_pose(sample: zenoh.Sample) -> None:
+        try:
+            pose = decode(PoseEstimate, sample.payload.to_bytes())
+        except SchemaError:
+            return
+        seen["status"] = pose.status
+        seen["hypotheses"] = f", {len(pose.hypotheses)} hypotheses" if pose.hypotheses else ""
+
+    subs = [
+        session.declare_subscriber(keys.robot_events(robot), on_event),
+        session.declare_subscriber(keys.pose(robot), on_pose),
+    ]
+    try:
+        session.put(key, encode(request), encoding=zenoh.Encoding.APPLICATION_JSON)
+        try:
+            return ended.get(timeout=wait)
+        except queue.Empty:
+            last = seen["status"] or "no pose received"
+            print(
+                f"rlutf relocalize: {robot} not relocalized within {wait:g} s "
+                f"(last status: {last}{seen['hypotheses']})",
+                file=sys.stderr,
+            )
+            return 1
+    finally:
+        for s in subs:
+            s.undeclare()

@@ -3,10 +3,10 @@
 The inputs of any file in the WIRE.md layout, whoever wrote it, are fed in ``log_time`` order
 through the same code the live service runs: :class:`service.maps.book.MapBook` takes the maps
 (schema ``rlutf.Map`` on ``{prefix}/maps/{map_id}``) and registers the accepted ones with
-:class:`service.engine.FleetEngine`, which takes the initial poses, odometry and scans (schemas
-``rlutf.InitialPose``, ``rlutf.Odometry``, ``rlutf.LaserScan``; the robot id is read from the
-topic) with their ``log_time`` as receive time. The same inputs and configuration give the same
-pose payloads, byte for byte.
+:class:`service.engine.FleetEngine`, which takes the initial poses, relocalize requests,
+odometry and scans (schemas ``rlutf.InitialPose``, ``rlutf.Relocalize``, ``rlutf.Odometry``,
+``rlutf.LaserScan``; the robot id is read from the topic) with their ``log_time`` as receive
+time. The same inputs and configuration give the same pose payloads, byte for byte.
 
 Overload: under load the live service drops a robot's unprocessed scan when a newer one arrives,
 and records an Event ``scan_dropped`` (``stamp_ns`` = the dropped scan's stamp) on
@@ -36,6 +36,7 @@ from schemas import (
     LaserScan,
     Odometry,
     PoseEstimate,
+    Relocalize,
     SchemaError,
     decode,
 )
@@ -49,10 +50,11 @@ from service.maps.book import MapBook, MapRejected
 
 log = logging.getLogger(__name__)
 
-INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose]] = {
+INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose | Relocalize]] = {
     "rlutf.LaserScan": LaserScan,
     "rlutf.Odometry": Odometry,
     "rlutf.InitialPose": InitialPose,
+    "rlutf.Relocalize": Relocalize,
 }
 MAP_SCHEMA = "rlutf.Map"
 POSE_SCHEMA = "rlutf.PoseEstimate"
@@ -221,7 +223,7 @@ class _Run:
             self.result.initial_poses[robot].append(
                 (msg.stamp_ns, msg.map_id, msg.x, msg.y, msg.theta)
             )
-        elif self.drops[(robot, msg.stamp_ns)] > 0:
+        elif isinstance(msg, LaserScan) and self.drops[(robot, msg.stamp_ns)] > 0:
             self.drops[(robot, msg.stamp_ns)] -= 1
             self.result.dropped += 1
             return

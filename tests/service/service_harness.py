@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -13,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from sim_inputs import wire_scan
 
 from rlutf.map import Map as World
 from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
@@ -83,14 +83,7 @@ class SimRobot:
 
     def scan_msg(self, i: int) -> LaserScan:
         s = simulate_scan(self.world, self.truth[i], LidarModel(beams=180), self.rng)
-        return LaserScan(
-            stamp_ns=self.stamp(i),
-            angle_min=s.angle_min,
-            angle_increment=s.angle_increment,
-            range_min=s.range_min,
-            range_max=s.range_max,
-            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-        )
+        return wire_scan(s, self.stamp(i))
 
     def advance(self) -> int:
         """Publish the next odometry and scan; returns the step index."""

@@ -17,12 +17,13 @@ SERVICE = Path(__file__).resolve().parents[2] / "service"
 ALLOWED: dict[str, set[str]] = {
     "keys": set(),
     "config": set(),
-    "engine": {"keys"},
+    "relocalization": set(),
+    "engine": {"keys", "relocalization"},
     "maps": {"keys"},
     "cluster": {"keys"},
-    "logs": {"keys", "config", "engine", "maps"},
-    "live": {"keys", "config", "engine", "maps", "logs", "cluster"},
-    "cli": {"keys", "config", "engine", "maps", "logs", "cluster", "live"},
+    "logs": {"keys", "config", "engine", "relocalization", "maps"},
+    "live": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster"},
+    "cli": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster", "live"},
     "__main__": {"cli"},
 }
 

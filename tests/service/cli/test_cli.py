@@ -8,7 +8,7 @@ import pytest
 
 from service.cli.main import build_parser, main
 
-COMMANDS = ["serve", "config", "demo", "map", "pose", "health", "replay", "log"]
+COMMANDS = ["serve", "config", "demo", "map", "pose", "relocalize", "health", "replay", "log"]
 ACTIONS = {"map": ["put", "get", "import", "build", "show"], "log": ["info", "recover"]}
 
 
@@ -50,3 +50,40 @@ def test_log_without_an_action_prints_its_help_and_exits_2(
 ) -> None:
     assert main(["log"]) == 2
     assert "usage: rlutf log" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("near", "says"),
+    [
+        ("1,2", "three numbers"),
+        ("1,2,3,4", "three numbers"),
+        ("a,b,c", "three numbers"),
+        ("1,2,0", "RADIUS must be > 0"),
+        ("1,2,-1", "RADIUS must be > 0"),
+        ("nan,2,1", "finite"),
+        ("1,inf,1", "finite"),
+    ],
+)
+def test_relocalize_rejects_a_bad_region(
+    near: str, says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["relocalize", "r1", "--map", "m", "--near", near])
+    assert exit_.value.code == 2
+    assert says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["r 1", "--map", "m"], ["r1", "--map", "m/2"]])
+def test_relocalize_rejects_bad_ids_before_connecting(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The connect endpoint is unreachable: an id error must be reported before any connection.
+    assert main(["relocalize", *argv, "--connect", "tcp/127.0.0.1:1"]) == 2
+    assert "invalid" in capsys.readouterr().err
+
+
+def test_relocalize_needs_a_map(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["relocalize", "r1"])
+    assert exit_.value.code == 2
+    assert "--map" in capsys.readouterr().err

@@ -7,7 +7,7 @@ import time
 
 from scaleout_harness import wait_until
 
-from schemas import InitialPose, Odometry, PoseEstimate, encode
+from schemas import Hypothesis, InitialPose, Odometry, PoseEstimate, Relocalize, encode
 from service.cluster.membership import Membership, owner_of
 from service.cluster.ownership import Ownership
 from service.keys import InputKind, Message
@@ -102,6 +102,25 @@ def test_takeover_seeds_from_the_last_pose_with_the_odometry_tail() -> None:
     fig = own.figures()
     assert fig["owned"] == [robot] and fig["handover_seeds"] == 1
     assert fig["ignored_not_owner"] == 5 + 5  # offers refused and ignore() calls
+
+
+def test_a_robot_taken_over_while_ambiguous_is_relocalized_again() -> None:
+    m = Membership("a")
+    m.update("b", alive=True)
+    own, admitted = _ownership(m)
+    robot = _robot_of("b", ["a", "b"])
+    guesses = (
+        Hypothesis(x=1.0, y=2.0, theta=0.3, score=0.9),
+        Hypothesis(x=9, y=2, theta=3, score=0.9),
+    )
+    ambiguous = _pose(robot, 3_000).model_copy(update={"status": "lost", "hypotheses": guesses})
+    own.follow_pose(robot, encode(ambiguous), LIMIT)
+    m.update("b", alive=False)
+    payload, msg = _odom(4_000)
+    own.offer(robot, "odom", payload, msg, 10)
+    # Not seeded at the best guess (which may be the wrong place): relocalized on its map.
+    assert [k for _, k, _, _ in admitted] == ["relocalize", "odom"]
+    assert admitted[0][2] == Relocalize(stamp_ns=3_000, map_id="m1")
 
 
 def test_an_initial_pose_its_dead_owner_never_used_is_replayed_on_takeover() -> None:

@@ -1,0 +1,142 @@
+"""Operator requests that place a robot on a map, and the events of a relocalization episode.
+
+An InitialPose or a Relocalize names a map. A robot that is already localized keeps its pose and
+map until that map is loaded (WIRE.md v1.1: an operator's typo must not take a tracking robot off
+its map); the request waits as a :class:`Request` and applies at the robot's first input for
+which the map is loaded, or is abandoned :data:`REQUEST_WAIT_NS` after it was received. Both
+rules read only receive times, so replay decides as the live service did.
+
+A relocalization *episode* starts with a Relocalize, or with a localizer result that relocalizes
+after ``lost`` updates (automatic recovery: ``LocalizerConfig.relocalize_after``), and ends at
+the result that is ``corrected`` with no hypotheses left. :class:`Episode` turns the results into
+the Events ``relocalizing`` (once, at the start), ``ambiguous`` (once, the first time several
+hypotheses remain) and ``relocalized`` (once, at the end).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from rlutf.localizer import LocalizeResult
+from schemas import EventCode, Hypothesis
+
+FloatArray = np.ndarray
+Level = Literal["info", "warning", "error"]
+
+#: How long a request waits for its map (by receive time) when the robot is localized elsewhere;
+#: far longer than a map get takes, short enough that a typo'd id cannot move the robot later.
+REQUEST_WAIT_NS = 30_000_000_000
+
+#: Hypotheses named in the message of an Event ``ambiguous``.
+_NAMED = 3
+
+
+@dataclass(frozen=True)
+class Request:
+    """An InitialPose or Relocalize waiting for its map.
+
+    Attributes:
+        kind: ``initialpose`` or ``relocalize``.
+        map_id: the map it names.
+        stamp_ns: its stamp.
+        received_ns: when it was received.
+        pose: ``(3,)`` the InitialPose's pose; for a Relocalize the region's centre (or zero),
+            only the localizer's starting point before its global search.
+        region: ``(x, y, radius)`` of a Relocalize, if given.
+        anchor: the robot's odometry pose at ``stamp_ns`` when the request was received.
+    """
+
+    kind: Literal["initialpose", "relocalize"]
+    map_id: str
+    stamp_ns: int
+    received_ns: int
+    pose: FloatArray
+    region: tuple[float, float, float] | None = None
+    anchor: FloatArray | None = None
+
+    def describe(self) -> str:
+        """``map M`` or ``map M within R m of (X, Y)``, for messages."""
+        if self.region is None:
+            return f"map {self.map_id!r}"
+        x, y, r = self.region
+        return f"map {self.map_id!r} within {r:g} m of ({x:g}, {y:g})"
+
+
+EventSpec = tuple[Level, str, str]
+"""An Event to publish: level, code, message."""
+
+
+class Episode:
+    """One relocalization of one robot, from its start to the result that ends it.
+
+    Args:
+        reason: why it started, for the ``relocalizing`` message.
+    """
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        self.announced = False
+        self.ambiguous = False
+        self.updates = 0
+
+    def start(self) -> list[EventSpec]:
+        """The ``relocalizing`` event, the first time it is asked for."""
+        if self.announced:
+            return []
+        self.announced = True
+        return [("info", EventCode.RELOCALIZING, f"relocalizing: {self.reason}")]
+
+    def follow(self, result: LocalizeResult) -> tuple[list[EventSpec], bool]:
+        """The events of one result of the episode, and whether the episode ended with it."""
+        events = self.start()
+        self.updates += 1
+        hyps = result.hypotheses
+        if len(hyps) > 1 and not self.ambiguous:
+            self.ambiguous = True
+            named = ", ".join(
+                f"({h.pose[0]:.2f}, {h.pose[1]:.2f}, {h.pose[2]:.2f}) score {h.score:.2f}"
+                for h in hyps[:_NAMED]
+            )
+            events.append(
+                (
+                    "warning",
+                    EventCode.AMBIGUOUS,
+                    f"{len(hyps)} places fit the scan about equally: {named}; following them "
+                    "with odometry and the next scans until one wins (status lost meanwhile)",
+                )
+            )
+        if result.status == "corrected" and not hyps:
+            x, y, theta = (float(v) for v in result.pose)
+            events.append(
+                (
+                    "info",
+                    EventCode.RELOCALIZED,
+                    f"relocalized at ({x:.3f}, {y:.3f}, {theta:.3f}) after {self.updates} "
+                    f"scan(s){' (was ambiguous)' if self.ambiguous else ''}",
+                )
+            )
+            return events, True
+        return events, False
+
+
+def wire_hypotheses(result: LocalizeResult) -> tuple[Hypothesis, ...] | None:
+    """``PoseEstimate.hypotheses`` of a result: ``None`` when it has none."""
+    if not result.hypotheses:
+        return None
+    return tuple(
+        Hypothesis(
+            x=float(h.pose[0]),
+            y=float(h.pose[1]),
+            theta=float(h.pose[2]),
+            score=_unit(float(h.score)),
+        )
+        for h in result.hypotheses
+    )
+
+
+def _unit(score: float) -> float:
+    return min(max(score, 0.0), 1.0) if math.isfinite(score) else 0.0

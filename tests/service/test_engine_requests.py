@@ -1,0 +1,142 @@
+"""FleetEngine: an InitialPose or Relocalize naming a map that is not loaded (WIRE.md v1.1).
+
+A robot localized on a map keeps its pose and map while the request waits for its map; the
+request applies at the first input for which the map is loaded, or is abandoned (Event
+``map_not_found``) ``REQUEST_WAIT_NS`` after it was received. A robot with no pose waits.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+from sim_inputs import Run
+
+from rlutf.localizer import LocalizerConfig
+from rlutf.sim import make_building
+from schemas import InitialPose, Relocalize
+from service.engine import FleetEngine, Outbound
+from service.keys import Keys
+from service.relocalization import REQUEST_WAIT_NS
+
+WORLD = make_building(np.random.default_rng(11))
+OTHER = make_building(np.random.default_rng(12))
+STEPS = 12
+
+
+def _engine() -> FleetEngine:
+    engine = FleetEngine(Keys(), LocalizerConfig(), event_interval_ns=0)
+    engine.register_map("m1", 1, WORLD, Run.received(0) - 10)
+    return engine
+
+
+def _placed(engine: FleetEngine, run: Run, robot: str = "r1") -> None:
+    t = run.truth[0]
+    engine.handle(robot, run.odometry(0), Run.received(0))
+    start = InitialPose(
+        stamp_ns=Run.stamp(0), map_id="m1", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    assert engine.handle(robot, start, Run.received(0) + 1) == []
+
+
+def _step(engine: FleetEngine, run: Run, i: int, robot: str = "r1", at: int = 0) -> list[Outbound]:
+    received = at or Run.received(i)
+    engine.handle(robot, run.odometry(i), received)
+    return engine.handle(robot, run.scan(i), received + 1)
+
+
+def _pose(out: list[Outbound]) -> dict[str, object]:
+    poses = [json.loads(o.payload) for o in out if o.kind == "pose"]
+    assert len(poses) == 1, out
+    return poses[0]
+
+
+def _events(out: list[Outbound]) -> list[dict[str, object]]:
+    return [json.loads(o.payload) for o in out if o.kind == "event"]
+
+
+def _error(pose: dict[str, object], truth: np.ndarray) -> float:
+    return math.hypot(float(pose["x"]) - truth[0], float(pose["y"]) - truth[1])  # type: ignore[arg-type]
+
+
+def test_unknown_map_keeps_a_tracking_robot_on_its_map_until_abandoned() -> None:
+    run = Run.make(WORLD, 1, STEPS)
+    engine = _engine()
+    _placed(engine, run)
+    for i in range(1, 4):
+        _pose(_step(engine, run, i))
+    wrong = InitialPose(stamp_ns=Run.stamp(4), map_id="typo", x=1.0, y=1.0, theta=0.0)
+    out = engine.handle("r1", wrong, Run.received(4))
+    assert [(o.kind, o.map_id) for o in out] == [("need_map", "typo")]
+    for i in range(4, 8):
+        pose = _pose(_step(engine, run, i))
+        assert pose["map_id"] == "m1"
+        assert _error(pose, run.truth[i]) < 0.1
+    # Past the wait, the request is dropped with an Event; the map appearing later changes nothing.
+    late = Run.received(4) + REQUEST_WAIT_NS + 1
+    out = _step(engine, run, 8, at=late)
+    assert [e["code"] for e in _events(out)] == ["map_not_found"]
+    assert "abandoned" in str(_events(out)[0]["message"])
+    assert _pose(out)["map_id"] == "m1"
+    engine.register_map("typo", 1, OTHER, late + 10)
+    pose = _pose(_step(engine, run, 9, at=late + 100_000_000))
+    assert pose["map_id"] == "m1"
+    assert _error(pose, run.truth[9]) < 0.1
+
+
+def test_a_relocalize_on_an_unknown_map_changes_nothing() -> None:
+    run = Run.make(WORLD, 2, STEPS)
+    engine = _engine()
+    _placed(engine, run)
+    reference = _engine()
+    _placed(reference, run)
+    ask = Relocalize(stamp_ns=Run.stamp(3), map_id="nowhere")
+    for i in range(1, 8):
+        if i == 3:
+            out = engine.handle("r1", ask, Run.received(3) - 1)
+            assert [o.kind for o in out] == ["need_map"]
+        # Same poses, bit for bit, as a robot that was never asked: nothing was reset.
+        rng_state = run.rng.bit_generator.state
+        got = _pose(_step(engine, run, i))
+        run.rng.bit_generator.state = rng_state
+        assert got == _pose(_step(reference, run, i))
+
+
+def test_a_request_applies_once_its_map_is_loaded() -> None:
+    run = Run.make(WORLD, 3, STEPS)
+    engine = _engine()
+    _placed(engine, run)
+    _pose(_step(engine, run, 1))
+    t = run.truth[2]
+    moved = InitialPose(
+        stamp_ns=Run.stamp(2), map_id="m2", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    engine.handle("r1", run.odometry(2), Run.received(2) - 10)
+    assert [o.kind for o in engine.handle("r1", moved, Run.received(2) - 5)] == ["need_map"]
+    assert _pose(_step(engine, run, 2))["map_id"] == "m1"
+    engine.register_map("m2", 1, WORLD, Run.received(3) - 100)  # the same building, as m2
+    for i in range(3, 7):
+        pose = _pose(_step(engine, run, i))
+        assert pose["map_id"] == "m2"
+        assert _error(pose, run.truth[i]) < 0.1
+
+
+def test_a_robot_with_no_pose_waits_for_its_map() -> None:
+    run = Run.make(WORLD, 4, STEPS)
+    engine = FleetEngine(Keys(), LocalizerConfig(), event_interval_ns=0)
+    t = run.truth[0]
+    engine.handle("r1", run.odometry(0), Run.received(0))
+    start = InitialPose(
+        stamp_ns=Run.stamp(0), map_id="m1", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    assert [o.kind for o in engine.handle("r1", start, Run.received(0) + 1)] == ["need_map"]
+    late = Run.received(1) + 2 * REQUEST_WAIT_NS  # never abandoned: it has no other map
+    out = _step(engine, run, 1, at=late)
+    assert [o.kind for o in out] == ["skipped", "event"]
+    assert [e["code"] for e in _events(out)] == ["map_not_found"]
+    assert "not loaded yet" in str(_events(out)[0]["message"])
+    engine.register_map("m1", 1, WORLD, late + 10)
+    pose = _pose(_step(engine, run, 2, at=late + 100_000_000))
+    assert pose["map_id"] == "m1"
+    assert _error(pose, run.truth[2]) < 0.1
