@@ -1,4 +1,4 @@
-"""FleetEngine: an InitialPose or Relocalize naming a map that is not loaded (WIRE.md v1.1).
+"""FleetEngine: requests that name a map that is not loaded, and ambiguous places (WIRE.md v1.1).
 
 A robot localized on a map keeps its pose and map while the request waits for its map; the
 request applies at the first input for which the map is loaded, or is abandoned (Event
@@ -14,6 +14,7 @@ import numpy as np
 from sim_inputs import Run
 
 from rlutf.localizer import LocalizerConfig
+from rlutf.map import Map as World
 from rlutf.sim import make_building
 from schemas import InitialPose, Relocalize
 from service.engine import FleetEngine, Outbound
@@ -140,3 +141,54 @@ def test_a_robot_with_no_pose_waits_for_its_map() -> None:
     pose = _pose(_step(engine, run, 2, at=late + 100_000_000))
     assert pose["map_id"] == "m1"
     assert _error(pose, run.truth[2]) < 0.1
+
+
+#: A corridor that looks the same after a half turn about its centre, but for a block on one
+#: wall at mid-length: from one end, two places fit, until the block comes into view.
+CORRIDOR = World.from_geojson(
+    {
+        "type": "Polygon",
+        "coordinates": [
+            [[0, 0], [40, 0], [40, 6], [0, 6], [0, 0]],
+            [[19, 0.8], [21, 0.8], [21, 1.8], [19, 1.8], [19, 0.8]],
+        ],
+    }
+)
+
+
+def test_an_ambiguous_place_says_lost_with_hypotheses_until_one_wins() -> None:
+    steps = 110
+    truth = np.zeros((steps + 1, 3))
+    truth[:, 0] = np.linspace(5.0, 16.0, steps + 1)
+    truth[:, 1] = 3.0
+    run = Run(CORRIDOR, truth, truth.copy(), np.random.default_rng(0), 360)
+    engine = FleetEngine(Keys(), LocalizerConfig(), event_interval_ns=0)
+    engine.register_map("c", 1, CORRIDOR, 0)
+    engine.handle("r1", run.odometry(0), Run.received(0))
+    out = engine.handle("r1", Relocalize(stamp_ns=Run.stamp(0), map_id="c"), Run.received(0) + 1)
+    codes = [e["code"] for e in _events(out)]
+    poses = []
+    for i in range(1, steps + 1):
+        out = _step(engine, run, i)
+        codes += [e["code"] for e in _events(out)]
+        poses.append(_pose(out))
+    assert codes.count("relocalizing") == codes.count("ambiguous") == 1
+    assert codes.count("relocalized") == 1 and "lost" not in codes
+    assert codes.index("relocalizing") < codes.index("ambiguous") < codes.index("relocalized")
+    won = next(i for i, p in enumerate(poses) if p["status"] != "lost")
+    assert won >= 1  # the first scan cannot tell the two ends apart
+    for p in poses[:won]:
+        hyps = p["hypotheses"]
+        assert isinstance(hyps, list) and len(hyps) >= 2
+        assert (p["x"], p["y"]) == (hyps[0]["x"], hyps[0]["y"])
+        assert abs(math.remainder(p["theta"] - hyps[0]["theta"], math.tau)) < 1e-9
+        assert all(0.0 <= h["score"] <= 1.0 for h in hyps)
+        # Both ends are candidates all along: the true place and its half-turn image.
+        i = poses.index(p) + 1
+        image = (40.0 - truth[i, 0], 6.0 - truth[i, 1])
+        assert min(_error(h, truth[i]) for h in hyps) < 0.1
+        assert min(math.hypot(h["x"] - image[0], h["y"] - image[1]) for h in hyps) < 0.1
+    assert poses[won]["status"] == "corrected" and "hypotheses" not in poses[won]
+    # Never a confident wrong answer: every pose that is not lost is at the truth.
+    for i, p in enumerate(poses[won:], start=won + 1):
+        assert p["status"] != "lost" and _error(p, truth[i]) < 0.05
