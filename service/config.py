@@ -76,6 +76,14 @@ class Settings(BaseSettings):
     record_queue: int = Field(20000, gt=0, description="Recorder queue length, messages.")
 
     workers: int = Field(-1, ge=-1, description="Worker processes; -1: one per core; 0: threads.")
+    worker_threads: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description="Threads per worker that update different robots at once (one robot's "
+        "updates always run in order), so that a long update, a relocalization, holds up only "
+        "its own robot; 1: one update at a time per worker.",
+    )
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     event_interval_s: float = Field(

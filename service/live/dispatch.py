@@ -8,11 +8,12 @@ updates are sequential while different robots run in parallel. A shard is a work
 default: numpy work holds the GIL, so threads would cap the service at one core) or, with
 ``workers=0``, threads in this process.
 
-Inside a shard, the batches in flight (up to :data:`_IN_FLIGHT`, each of a different robot) run
-on as many threads: a relocalization (0.1 to 2 s of compiled search, which releases the GIL) then
-holds one thread while the shard's other robots keep being updated on the others. A robot's
-batches still run one after another, and the robots share nothing but the maps (looked up under
-a lock), so each robot's poses are the same as in replay whatever the threads do.
+Inside a shard, the batches in flight (each of a different robot) run on a few threads
+(``threads``, :data:`_IN_FLIGHT` by default): a relocalization (0.1 to 2 s of compiled search,
+which releases the GIL) then holds one thread while the shard's other robots keep being updated
+on the others. A robot's batches still run one after another, and the robots share nothing but
+the maps (looked up under a lock), so each robot's poses are the same as in replay whatever the
+threads do.
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ class _Shard:
         self.control: deque[tuple[Any, ...]] = deque()
         self.cond = threading.Condition(dispatcher.lock)
         self.in_flight = 0
+        self.max_in_flight = max(_IN_FLIGHT, dispatcher.threads)
         self.robots = 0  # robots assigned to this shard
         self.threads: list[threading.Thread] = []
 
@@ -118,7 +120,7 @@ class _Shard:
         while True:
             if self.control:
                 return None, self.control.popleft()
-            if self.ready and self.in_flight < _IN_FLIGHT:
+            if self.ready and self.in_flight < self.max_in_flight:
                 robot = self.ready.popleft()
                 box = d.boxes[robot]
                 box.queued = False
@@ -151,7 +153,7 @@ class _ThreadShard(_Shard):
 
     def start(self) -> None:
         sys.setswitchinterval(_SWITCH_INTERVAL_S)
-        for i in range(_IN_FLIGHT):
+        for i in range(self.dispatcher.threads):
             t = threading.Thread(
                 target=self._run, name=f"rlutf-shard-{self.index}-{i}", daemon=True
             )
@@ -188,7 +190,7 @@ class _ProcessShard(_Shard):
         d = dispatcher
         self.process = ctx.Process(
             target=_worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns),
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
             name=f"rlutf-worker-{index}",
             daemon=True,
         )
@@ -296,12 +298,14 @@ def tune_gc() -> None:
     gc.set_threshold(*_GC_THRESHOLDS)
 
 
-def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interval: int) -> None:
+def _worker_main(
+    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
+) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
     This thread reads the pipe and applies maps in pipe order; batches (never two of one robot
     at once: the shard sends a robot's next batch after its ``done``) run on a pool of
-    :data:`_IN_FLIGHT` threads. A map is registered before any batch sent after it is read.
+    ``threads`` threads. A map is registered before any batch sent after it is read.
     """
     warm_up()
     engine = FleetEngine(Keys(prefix), config, interval)
@@ -319,7 +323,7 @@ def _worker_main(conn: Connection, prefix: str, config: LocalizerConfig, interva
         except (OSError, ValueError):
             log.warning("results of %s not sent: the service is gone", robot)
 
-    with ThreadPoolExecutor(_IN_FLIGHT, thread_name_prefix="rlutf-update") as pool:
+    with ThreadPoolExecutor(threads, thread_name_prefix="rlutf-update") as pool:
         while True:
             try:
                 msg = _recv(conn)
@@ -348,6 +352,7 @@ class Dispatcher:
         event_interval_ns: least time between two events of one code for one robot.
         on_done: called (from a shard's thread) with each finished batch.
         on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
+        threads: threads per shard running different robots' batches at once.
     """
 
     def __init__(
@@ -358,8 +363,10 @@ class Dispatcher:
         event_interval_ns: int,
         on_done: OnDone,
         on_drop: OnDrop,
+        threads: int = _IN_FLIGHT,
     ) -> None:
         self.keys = keys
+        self.threads = max(1, threads)
         self.config = config
         self.event_interval_ns = event_interval_ns
         self.on_done = on_done

@@ -114,6 +114,7 @@ class LocalizationService:
             int(settings.event_interval_s * 1e9),
             self._on_done,
             self._on_drop,
+            threads=settings.worker_threads,
         )
         self.mapfeed = MapFeed(
             self.keys,

@@ -234,3 +234,37 @@ def test_a_relocalization_does_not_stall_the_other_robots(tmp_path: Path) -> Non
     assert max(during) < min(0.25, searched / 2), (searched, during)
     latency = sorted(got_at[k] - put_at[k] for k in put_at if k[0] == "steady" and k not in before)
     assert len(latency) >= 10 and latency[int(0.9 * len(latency))] < 0.1, latency
+
+
+def test_the_cli_relocalizes_and_reports(
+    watched: tuple[Bench, Collector], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from service.cli.main import main
+
+    bench, col = watched
+    robot = _tracking(bench, col, "r1", 13)
+    codes: list[int] = []
+
+    def ask(*argv: str) -> threading.Thread:
+        args = ["relocalize", "r1", "--connect", bench.endpoint, "--wait", "8", *argv]
+        t = threading.Thread(target=lambda: codes.append(main(args)))
+        t.start()
+        return t
+
+    t = ask("--map", "nowhere")
+    _drive(col, robot, 10)
+    t.join(15)
+    assert codes == [1]
+    assert '"code":"map_not_found"' in capsys.readouterr().out
+    t = ask(
+        "--map",
+        "m1",
+        "--near",
+        f"{robot.truth[robot.step][0]:.2f},{robot.truth[robot.step][1]:.2f},2",
+    )
+    time.sleep(0.5)  # the command subscribes before it puts
+    _drive(col, robot, 10)
+    t.join(15)
+    out = capsys.readouterr().out
+    assert codes == [1, 0], out
+    assert out.index('"code":"relocalizing"') < out.index('"code":"relocalized"')
