@@ -105,6 +105,13 @@ class LocalizerConfig:
             share (of its updates that were not lost): a pose that fits the scan far worse than
             this robot's poses usually do is not to be trusted (after a kidnapping, the best
             pose near the old one may still fit half of the beams).
+        fit_deviations: ... the margin is this many times the robot's running mean deviation of
+            the share from its typical share, between 0.05 and ``fit_margin``: a simulated scan
+            fits within a point of its typical share, a real log's within several, so a fall
+            of 20 points means little on one and everything on the other.
+        probation_margin: after a ``lost`` update, the updates stay ``lost`` until one fits
+            within this of the typical share again: a robot that lost its place and found one
+            that fits a little worse than usual (a room like its own) has not found its place.
         wide_search: search a wide region on the distance field when the pose is uncertain:
             the first update, after :meth:`Localizer.reset`, after a ``lost`` update, and when
             the prediction does not fit (default mode only).
@@ -166,6 +173,8 @@ class LocalizerConfig:
     fit_distance: float = 0.1
     min_fit: float = 0.5
     fit_margin: float = 0.25
+    fit_deviations: float = 8.0
+    probation_margin: float = 0.1
     wide_search: bool = True
     spread: float = 0.5
     spread_heading: float = math.radians(15.0)
@@ -228,6 +237,8 @@ class LocalizerConfig:
             "simplify_tolerance",
             "cap_per_radius",
             "fit_margin",
+            "probation_margin",
+            "fit_deviations",
         )
         for name in non_negative:
             if not getattr(self, name) >= 0:

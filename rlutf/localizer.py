@@ -130,8 +130,11 @@ class Localizer:
         # A relocalization under way, and the lost updates in a row that may start one.
         self._follower: Follower | None = None
         self._lost_run = 0
-        # Running typical share of the returns that fit, over the updates that were not lost.
+        # Running typical share of the returns that fit, over the updates that were not lost;
+        # and whether the robot is on probation after a lost update.
         self._typical_fit = math.nan
+        self._fit_deviation = 0.0
+        self._probation = False
 
     @property
     def pose(self) -> FloatArray:
@@ -150,6 +153,8 @@ class Localizer:
         self._correction = (0.0, 0.0)
         self._typical = math.inf
         self._typical_fit = math.nan
+        self._fit_deviation = 0.0
+        self._probation = False
         self._spread = self._spread_of(spread)
         self._follower = None
         self._lost_run = 0
@@ -186,6 +191,8 @@ class Localizer:
         self._spread = None
         self._lost_run = 0
         self._typical_fit = math.nan
+        self._fit_deviation = 0.0
+        self._probation = False
 
     @property
     def relocalizing(self) -> bool:
@@ -246,11 +253,14 @@ class Localizer:
                 fit = self._fit(problem, best)
             if wide and fit.fit < cfg.min_fit:
                 # The prediction's basin does not fit the scan: odometry slipped or jumped.
-                # Look wider before calling the robot lost.
+                # Look wider before calling the robot lost; a pose found so is on probation
+                # (it must fit about as well as this robot's poses usually do), as a robot
+                # carried off may find a place like its own near where it was.
                 other, r2, e2, other_fit = self._wide(
                     problem, predicted, (cfg.spread, cfg.spread_heading)
                 )
                 evaluations += e2
+                self._probation = True
                 if _better(other_fit, fit, cfg.select_scale):
                     best, fit, rounds = other, other_fit, rounds + r2
         pose = fit.pose if cfg.refine else best
@@ -275,24 +285,29 @@ class Localizer:
         )
         floor = cfg.min_fit
         if math.isfinite(self._typical_fit):
-            floor = max(floor, self._typical_fit - cfg.fit_margin)
+            margin = min(max(cfg.fit_deviations * self._fit_deviation, 0.05), cfg.fit_margin)
+            if self._probation:
+                margin = min(margin, cfg.probation_margin)
+            floor = max(floor, self._typical_fit - margin)
         if share < floor:
             status: Status = "lost"
             # Look wider at the next scan (default mode): a lost robot comes back by itself,
             # and one still lost after relocalize_after updates searches the whole map.
             self._spread = (cfg.spread, cfg.spread_heading) if wide else None
+            self._probation = True
             self._lost_run += 1
             if cfg.relocalize_after and self._lost_run >= cfg.relocalize_after:
                 self.relocalize()
         else:
             status = "tracking" if rounds == 0 else "corrected"
             self._lost_run = 0
+            self._probation = False
             rate = cfg.typical_rate
-            self._typical_fit = (
-                share
-                if not math.isfinite(self._typical_fit)
-                else (1.0 - rate) * self._typical_fit + rate * share
-            )
+            if math.isfinite(self._typical_fit):
+                self._fit_deviation += rate * (abs(share - self._typical_fit) - self._fit_deviation)
+                self._typical_fit += rate * (share - self._typical_fit)
+            else:
+                self._typical_fit = share
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
         # Free the previous update's arrays only now that this one has made its own: freed
         # first, they would leave free memory at the top of the heap, which malloc gives back to

@@ -49,7 +49,9 @@ class RelocalizeSettings:
         max_points: the scan is thinned to at most this many points.
         max_point_range: points farther than this are left out, metres (they set the heading
             step: a far point moves a cell for a small turn).
-        keep: distinct poses the search returns, verified and refined.
+        keep: distinct poses the search returns, verified and refined (a building of many alike
+            rooms can hold more near-copies of the right place than a few, and the grid's
+            discretisation may rank the right one below several of them).
         apart: poses closer than this (metres) and ``apart_heading`` are one pose.
         apart_heading: radians.
         min_score: the search keeps no pose whose mean score is under this (0 to 1).
@@ -73,7 +75,7 @@ class RelocalizeSettings:
     clearance: float = 0.15
     max_points: int = 120
     max_point_range: float = 15.0
-    keep: int = 8
+    keep: int = 16
     apart: float = 0.5
     apart_heading: float = math.radians(10.0)
     min_score: float = 0.3
