@@ -1,11 +1,11 @@
 """Accuracy and speed benchmarks of RLuTF against the bound and the usual alternatives.
 
 Run: ``python -m bench`` (full, about 25 minutes on two idle cores) or ``python -m bench
---quick`` (a smoke test under two minutes). Both rewrite the ``accuracy``, ``speed`` and
-``priors`` sections of ``BENCHMARKS.md`` (``--output``; ``--no-write`` only prints) and the
-figures in ``docs/bench/`` (``--plots``). ``python -m bench --write-logs DIR`` writes each
-scenario's first run as an MCAP input log with its ground truth (see :mod:`bench.logs`) and
-exits.
+--quick`` (a smoke test under two minutes). Both rewrite the ``accuracy``, ``speed``,
+``priors`` and ``relocalize`` sections of ``BENCHMARKS.md`` (``--output``; ``--no-write`` only
+prints) and the figures in ``docs/bench/`` (``--plots``). ``python -m bench --write-logs DIR``
+writes each scenario's first run as an MCAP input log with its ground truth (see
+:mod:`bench.logs`) and exits.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ from bench.accuracy import FULL, QUICK, Profile, build_runs, run_accuracy, total
 from bench.logs import write_run_files
 from bench.methods import DEFAULT_METHOD, Method, table_methods
 from bench.priors import priors_section
+from bench.relocalize import FULL as RELOC_FULL
+from bench.relocalize import QUICK as RELOC_QUICK
+from bench.relocalize import relocalize_section
 from bench.report import replace_section
 from bench.speed import growth, latency_vs_beams, latency_vs_map, speed_methods, sweep_maps
 from bench.tables import overview_table, scenario_table, speed_tables, targets
@@ -35,6 +38,7 @@ from bench.tables import overview_table, scenario_table, speed_tables, targets
 ACCURACY = "accuracy"
 SPEED = "speed"
 PRIORS = "priors"
+RELOCALIZE = "relocalize"
 
 
 def machine() -> str:
@@ -252,7 +256,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="print only: leave --output alone (figures go to a temporary directory)",
     )
-    parser.add_argument("--only", choices=("accuracy", "speed", "priors"), help="run one part")
+    parser.add_argument(
+        "--only", choices=("accuracy", "speed", "priors", "relocalize"), help="run one part"
+    )
     parser.add_argument("--scenarios", help="comma-separated scenario names (default: all)")
     parser.add_argument("--methods", help="comma-separated method names (default: all)")
     parser.add_argument(
@@ -296,6 +302,22 @@ def main(argv: list[str] | None = None) -> int:
 
             text = priors_section(profile, command, machine(), progress)
         sections.append((PRIORS, text))
+    if args.only in (None, "relocalize"):
+        with _progress() as bar:
+
+            def reloc_progress(total: int):  # type: ignore[no-untyped-def]
+                task = bar.add_task("relocalize", total=total)
+                return lambda: bar.advance(task)
+
+            text = relocalize_section(
+                RELOC_QUICK if args.quick else RELOC_FULL,
+                plots,
+                rel,
+                command,
+                machine(),
+                reloc_progress,
+            )
+        sections.append((RELOCALIZE, text))
     if results:
         rows = targets(results, by_beams, by_map)
         check = "\n".join(
