@@ -306,10 +306,12 @@ def render(robots: int, duration: float, every: float, workers: int, threads: li
             *notes,
             "",
             "With one thread per worker, a search holds every robot of its worker behind it "
-            "(their scans are superseded and dropped meanwhile, or wait); with several, one "
-            "robot's updates still run strictly in order and the compiled search releases the "
-            "GIL, so it holds up only its own robot. Scans dropped are superseded while their "
-            "robot's update ran.",
+            "(their scans are superseded and dropped meanwhile, or wait). With several, a "
+            "worker runs the batches of robots that may take long (relocalizing or lost) on "
+            "threads of their own beside the one that runs all the others; one robot's updates "
+            "still run strictly in order and the compiled search releases the GIL, so a search "
+            "holds up only its own robot. Scans dropped are superseded while their robot's "
+            "update ran (most are the kidnapped robot's, during its searches).",
         ]
     )
 

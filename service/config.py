@@ -80,9 +80,9 @@ class Settings(BaseSettings):
         4,
         ge=1,
         le=64,
-        description="Threads per worker that update different robots at once (one robot's "
-        "updates always run in order), so that a long update, a relocalization, holds up only "
-        "its own robot; 1: one update at a time per worker.",
+        description="Threads per worker: one updates the robots, the others those that may "
+        "take long (relocalizing or lost), so that a relocalization holds up only its own "
+        "robot; one robot's updates always run in order; 1: one update at a time per worker.",
     )
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")

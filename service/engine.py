@@ -105,6 +105,7 @@ class _Robot:
     anchor: FloatArray | None = None  # odometry pose at the last processed scan
     start_stamp: int = 0  # stamp of the initial pose
     last_pose: bytes | None = None
+    last_status: str = ""  # of the last pose: a lost robot's next updates search wide
     last_event: dict[str, int] = field(default_factory=dict)
 
 
@@ -155,6 +156,22 @@ class FleetEngine:
         """The last PoseEstimate published for a robot, encoded."""
         r = self._robots.get(robot_id)
         return r.last_pose if r else None
+
+    def expects_long_update(self, robot_id: str, kinds: list[str]) -> bool:
+        """Whether the robot's next inputs (of these kinds) may take long to handle.
+
+        True while it relocalizes or is lost (its updates search the map or widely), and for a
+        Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
+        are. Call it while none of the robot's inputs is being handled.
+        """
+        if "relocalize" in kinds:
+            return True
+        r = self._robots.get(robot_id)
+        if r is None:
+            return False
+        if r.pending is not None and r.pending.kind == "relocalize":
+            return True
+        return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
 
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
@@ -405,6 +422,7 @@ class FleetEngine:
         )
         payload = encode(msg)
         robot.last_pose = payload
+        robot.last_status = result.status
         return Outbound(
             "pose",
             self.keys.pose(robot.robot_id),

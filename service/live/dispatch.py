@@ -8,12 +8,14 @@ updates are sequential while different robots run in parallel. A shard is a work
 default: numpy work holds the GIL, so threads would cap the service at one core) or, with
 ``workers=0``, threads in this process.
 
-Inside a shard, the batches in flight (each of a different robot) run on a few threads
-(``threads``, :data:`_IN_FLIGHT` by default): a relocalization (0.1 to 2 s of compiled search,
-which releases the GIL) then holds one thread while the shard's other robots keep being updated
-on the others. A robot's batches still run one after another, and the robots share nothing but
-the maps (looked up under a lock), so each robot's poses are the same as in replay whatever the
-threads do.
+Inside a worker process, the batches of robots that may take long (relocalizing or lost:
+:meth:`FleetEngine.expects_long_update`) run on a pool of ``threads - 1`` threads beside the one
+thread that runs every other batch, as before: a relocalization (0.1 to 2 s of compiled search,
+which releases the GIL) then holds up only its own robot, and ordinary updates do not contend
+for the GIL with each other. With ``workers=0``, the shard's ``threads`` threads take any batch.
+A robot's batches still run one after another, and the robots share nothing but the maps
+(looked up under a lock), so each robot's poses are the same as in replay whatever the threads
+do.
 """
 
 from __future__ import annotations
@@ -47,10 +49,10 @@ log = logging.getLogger(__name__)
 #: Batches a shard may have in flight at once (for different robots), so it never waits idle;
 #: a shard runs them on as many threads, so a long update holds up only its own robot.
 _IN_FLIGHT = 4
-#: The GIL's switch interval in the service's processes, seconds (Python's default: 0.005). An
-#: update waits this long for the GIL at worst each time it gets it back from a compiled kernel
-#: while a relocalization's Python code holds it; a few dozen times per update at 5 ms would
-#: stall the other robots for tens of milliseconds.
+#: The GIL's switch interval in worker processes, seconds (Python's default: 0.005). While a
+#: long update runs beside the ordinary ones, an ordinary update that comes back from a compiled
+#: kernel waits up to this long for the GIL each time; at 5 ms the other robots' p99 latency
+#: doubled in ``bench.relocalize_fleet``. Without a long update only one thread computes.
 _SWITCH_INTERVAL_S = 0.0005
 #: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
 _GC_THRESHOLDS = (20_000, 20, 20)
@@ -152,7 +154,6 @@ class _ThreadShard(_Shard):
         self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
 
     def start(self) -> None:
-        sys.setswitchinterval(_SWITCH_INTERVAL_S)
         for i in range(self.dispatcher.threads):
             t = threading.Thread(
                 target=self._run, name=f"rlutf-shard-{self.index}-{i}", daemon=True
@@ -304,8 +305,9 @@ def _worker_main(
     """Entry point of a worker process: apply batches until told to stop.
 
     This thread reads the pipe and applies maps in pipe order; batches (never two of one robot
-    at once: the shard sends a robot's next batch after its ``done``) run on a pool of
-    ``threads`` threads. A map is registered before any batch sent after it is read.
+    at once: the shard sends a robot's next batch after its ``done``) run on one thread, those
+    that may take long on a pool of ``threads - 1`` (all on one when ``threads`` is 1). A map is
+    registered before any batch sent after it is read.
     """
     warm_up()
     engine = FleetEngine(Keys(prefix), config, interval)
@@ -323,7 +325,11 @@ def _worker_main(
         except (OSError, ValueError):
             log.warning("results of %s not sent: the service is gone", robot)
 
-    with ThreadPoolExecutor(threads, thread_name_prefix="rlutf-update") as pool:
+    slow_lane = max(threads - 1, 0)
+    with (
+        ThreadPoolExecutor(1, thread_name_prefix="rlutf-update") as pool,
+        ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow,
+    ):
         while True:
             try:
                 msg = _recv(conn)
@@ -332,6 +338,7 @@ def _worker_main(
             kind = msg[0]
             if kind == "stop":
                 pool.shutdown(wait=True)
+                slow.shutdown(wait=True)
                 with send_lock:
                     _send(conn, ("stopped",))
                 return
@@ -339,7 +346,8 @@ def _worker_main(
                 _apply_control(engine, msg)
                 continue
             _, robot, batch = msg
-            pool.submit(run, robot, batch)
+            long = slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch])
+            (slow if long else pool).submit(run, robot, batch)
 
 
 class Dispatcher:

@@ -192,3 +192,22 @@ def test_an_ambiguous_place_says_lost_with_hypotheses_until_one_wins() -> None:
     # Never a confident wrong answer: every pose that is not lost is at the truth.
     for i, p in enumerate(poses[won:], start=won + 1):
         assert p["status"] != "lost" and _error(p, truth[i]) < 0.05
+
+
+def test_long_updates_are_foreseen_for_scheduling() -> None:
+    run = Run.make(WORLD, 5, STEPS)
+    engine = _engine()
+    assert not engine.expects_long_update("r1", ["odom", "scan"])  # unknown robot
+    _placed(engine, run)
+    _pose(_step(engine, run, 1))
+    assert not engine.expects_long_update("r1", ["odom", "scan"])  # tracking
+    assert engine.expects_long_update("r1", ["relocalize", "odom", "scan"])
+    engine.handle("r1", Relocalize(stamp_ns=Run.stamp(2), map_id="m1"), Run.received(2) - 5)
+    assert engine.expects_long_update("r1", ["odom", "scan"])  # its next scan searches the map
+    assert _pose(_step(engine, run, 2))["status"] == "corrected"
+    assert not engine.expects_long_update("r1", ["odom", "scan"])  # found: tracking again
+    elsewhere = Run(OTHER, run.truth, run.odom, run.rng)  # a scan of another building
+    engine.handle("r1", run.odometry(3), Run.received(3))
+    out = engine.handle("r1", elsewhere.scan(3), Run.received(3) + 1)
+    assert _pose(out)["status"] == "lost"
+    assert engine.expects_long_update("r1", ["odom", "scan"])
