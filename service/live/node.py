@@ -59,6 +59,12 @@ SCHEMA_OF_LEAF = {
     "events": SCHEMA_NAMES[Event],
 }
 EVENT_SCHEMA = SCHEMA_NAMES[Event]
+#: Events counted in health, by how their code reads in an encoded Event.
+COUNTED_EVENTS = {
+    f'"code":"{EventCode.RELOCALIZING}"'.encode(): "relocalizations",
+    f'"code":"{EventCode.RELOCALIZED}"'.encode(): "relocalized",
+    f'"code":"{EventCode.AMBIGUOUS}"'.encode(): "ambiguous",
+}
 JSON = zenoh.Encoding.APPLICATION_JSON
 
 
@@ -299,6 +305,9 @@ class LocalizationService:
             else:
                 self._publish(out.key, out.payload)
                 self.recorder.record(out.key, EVENT_SCHEMA, out.payload, self.clock(), out.stamp_ns)
+                for code, counter in COUNTED_EVENTS.items():
+                    if code in out.payload:
+                        self.stats.add(counter)
 
     def _on_drop(self, robot: str, stamp_ns: int, received_ns: int) -> None:
         # Recorded (not published: under overload that would add load) so replay drops the

@@ -26,6 +26,9 @@ class Stats:
         self.processed = 0
         self.lost = 0
         self.skipped = 0
+        self.relocalizations = 0
+        self.relocalized = 0
+        self.ambiguous = 0
         self._latency_ms: deque[float] = deque(maxlen=_WINDOW)
         self._compute_ms: deque[float] = deque(maxlen=_WINDOW)
 
@@ -63,6 +66,11 @@ class Stats:
             lat = list(self._latency_ms)
             comp = list(self._compute_ms)
             counts = (self.received, self.rejected, self.processed, self.lost, self.skipped)
+            reloc = {
+                "relocalizations": self.relocalizations,
+                "relocalized": self.relocalized,
+                "ambiguous": self.ambiguous,
+            }
         compute = self._percentiles(comp)
         return Health(
             instance=self.instance,
@@ -78,6 +86,7 @@ class Stats:
                 "lost": counts[3],
                 "scans_not_processed": counts[4],
                 "compute_ms": compute.model_dump(),
+                **reloc,
                 **extra,
             },
         )

@@ -92,6 +92,8 @@ def test_a_relocalize_finds_the_robot(watched: tuple[Bench, Collector], near: bo
     for p in poses[won:]:
         assert p["map_id"] == "m1" and p["status"] != "lost"
         assert _error(p, robot.truth[step[p["stamp_ns"]]]) < 0.05
+    extra = json.loads(bench.service.health())["extra"]
+    assert (extra["relocalizations"], extra["relocalized"]) == (1, 1)
 
 
 def test_a_robot_placed_wrong_relocalizes_by_itself(watched: tuple[Bench, Collector]) -> None:
