@@ -63,10 +63,6 @@ def query_health(session: zenoh.Session, prefix: str, instance: str, timeout: fl
     return 0
 
 
-#: Event codes that end ``rlutf relocalize --wait``: success, and the failures of the request.
-_DONE = {EventCode.RELOCALIZED: 0, EventCode.MAP_NOT_FOUND: 1, EventCode.INVALID_MESSAGE: 1}
-
-
 def request_relocalize(
     session: zenoh.Session,
     prefix: str,
@@ -92,6 +88,12 @@ def request_relocalize(
         return 0
     ended: queue.Queue[int] = queue.Queue()
     seen: dict[str, str] = {"status": "", "hypotheses": ""}
+    # What ends the wait: success, or a failure of this request (the map's or the request's key).
+    failures = {
+        (EventCode.MAP_NOT_FOUND, keys.map(request.map_id)),
+        (EventCode.MAP_NOT_FOUND, key),
+        (EventCode.INVALID_MESSAGE, key),
+    }
 
     def on_event(sample: zenoh.Sample) -> None:
         try:
@@ -99,10 +101,10 @@ def request_relocalize(
         except SchemaError:
             return
         print(encode(ev).decode(), flush=True)
-        code = _DONE.get(ev.code)
-        about_request = ev.code != EventCode.INVALID_MESSAGE or ev.key == key
-        if code is not None and about_request and ev.stamp_ns >= request.stamp_ns:
-            ended.put(code)
+        if ev.code == EventCode.RELOCALIZED:
+            ended.put(0)
+        elif (ev.code, ev.key) in failures:
+            ended.put(1)
 
     def on_pose(sample: zenoh.Sample) -> None:
         try:
