@@ -356,7 +356,8 @@ class Dispatcher:
     Args:
         keys: key layout.
         config: localizer parameters.
-        workers: worker processes; 0 runs one shard in a thread; -1 one process per core.
+        workers: worker processes; 0 runs one shard on threads of this process; -1 one process
+            per core.
         event_interval_ns: least time between two events of one code for one robot.
         on_done: called (from a shard's thread) with each finished batch.
         on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
