@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from rlutf import _bnb, _grid
 from rlutf.errors import GeometryError
 from rlutf.map import Map
-from rlutf.motion import compose
+from rlutf.motion import compose, wrap_scalar
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, RefineSettings, refine_pose
 from rlutf.scan import Scan, beam_points, simplify_ring
@@ -302,7 +302,7 @@ def rank(
         near = [t for t in kept if t[2].fit >= top - cfg.ambiguity]
         rest = [t for t in kept if t[2].fit < top - cfg.ambiguity]
         kept = sorted(near, key=lambda t: (shapes[t[1]], t[0])) + rest
-    hypotheses = tuple(Hypothesis(f.pose.copy(), f.fit, cost) for cost, _, f in kept)
+    hypotheses = tuple(Hypothesis(_wrapped(f.pose), f.fit, cost) for cost, _, f in kept)
     found = bool(hypotheses) and hypotheses[0].score >= cfg.accept_fit
     ambiguous = False
     for _, k, fit in kept[1:]:
@@ -321,6 +321,11 @@ def robust_cost(residuals: FloatArray, scale: float) -> float:
     counts as off by ``4 scale``."""
     u = np.nan_to_num(residuals, nan=4.0 * scale) / scale
     return float(np.log1p(u * u).sum())
+
+
+def _wrapped(pose: FloatArray) -> FloatArray:
+    """A copy of ``pose`` with its heading in ``[-pi, pi)``."""
+    return np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
 
 
 def _same(a: FloatArray, b: FloatArray, distance: float, heading: float) -> bool:
@@ -458,6 +463,6 @@ class Follower:
     def _hypotheses(self) -> tuple[Hypothesis, ...]:
         scale = self._search.select_scale
         return tuple(
-            Hypothesis(h.pose.copy(), h.fit.fit, robust_cost(h.fit.residuals, scale))
+            Hypothesis(_wrapped(h.pose), h.fit.fit, robust_cost(h.fit.residuals, scale))
             for h in self._followed
         )

@@ -136,3 +136,14 @@ def test_relocalize_on_request_and_bad_regions() -> None:
     for bad in ((1.0, 2.0, 0.0), (math.nan, 0.0, 1.0), (0.0, 0.0, -3.0)):
         with pytest.raises(ValueError, match="region"):
             loc.relocalize(bad)
+
+
+def test_hypotheses_headings_are_wrapped() -> None:
+    room = box(0.0, 0.0, 6.0, 4.0).difference(box(1.0, 1.0, 1.6, 1.6))
+    twin = shapely.affinity.translate(room, 10.0, 0.0)
+    world = Map.from_shapely(shapely.MultiPolygon([room, twin]))
+    truth = np.array([3.5, 2.5, math.pi - 0.001])
+    result = relocalize(world, simulate_scan(world, truth, LidarModel(), np.random.default_rng(8)))
+    assert result.hypotheses
+    for h in result.hypotheses:
+        assert -math.pi <= h.pose[2] < math.pi
