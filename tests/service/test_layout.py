@@ -21,8 +21,9 @@ ALLOWED: dict[str, set[str]] = {
     "maps": {"keys"},
     "cluster": {"keys"},
     "logs": {"keys", "config", "engine", "maps"},
-    "live": {"keys", "config", "engine", "maps", "logs", "cluster"},
-    "cli": {"keys", "config", "engine", "maps", "logs", "cluster", "live"},
+    "ros2": {"keys", "config", "engine", "maps", "logs"},
+    "live": {"keys", "config", "engine", "maps", "logs", "cluster", "ros2"},
+    "cli": {"keys", "config", "engine", "maps", "logs", "cluster", "live", "ros2"},
     "__main__": {"cli"},
 }
 

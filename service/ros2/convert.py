@@ -1,0 +1,242 @@
+"""CDR to WIRE.md messages and back, with rosbags' type store (no CDR written by hand).
+
+Inputs (``sensor_msgs/msg/LaserScan``, ``nav_msgs/msg/Odometry``, the ``odom`` -> base transform
+of a ``tf2_msgs/msg/TFMessage``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` on
+``initialpose``) become the same validated :mod:`schemas` messages the JSON front door makes, so
+the engine, the log and replay cannot tell them apart. Outputs are ``amcl_pose``
+(``PoseWithCovarianceStamped``) and the ``map`` -> ``odom`` transform, as Nav2 AMCL publishes
+them.
+
+A range that is NaN or infinite is no return (REP 117), like ``null`` in JSON.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import cache
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
+
+from schemas import InitialPose, InvalidMessage, LaserScan, Odometry, PoseEstimate, SchemaError
+from schemas._issues import issues_from_errors
+
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+class CdrError(SchemaError):
+    """A CDR payload that does not decode as its type, or decodes to an invalid message."""
+
+
+@cache
+def typestore() -> Typestore:
+    """The message definitions (the types used here are the same from Humble to Rolling)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def deserialize(raw: bytes, msgtype: str) -> Any:
+    """One CDR message as rosbags' dataclass.
+
+    Raises:
+        CdrError: the bytes are not a ``msgtype``.
+    """
+    try:
+        return typestore().deserialize_cdr(raw, msgtype)
+    except Exception as err:  # rosbags raises struct, index, unicode and value errors
+        raise CdrError(f"malformed CDR for {msgtype} ({len(raw)} bytes): {err}") from err
+
+
+def serialize(msg: Any, msgtype: str) -> bytes:
+    """One message as CDR (little endian, with its 4-byte encapsulation header)."""
+    return bytes(typestore().serialize_cdr(msg, msgtype))
+
+
+def stamp_ns(header: Any) -> int:
+    """A ``std_msgs/Header``'s stamp in ns since the epoch."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def frame(name: str) -> str:
+    """A frame id without its leading slash (tf2 and AMCL compare them so)."""
+    return name.lstrip("/")
+
+
+def yaw(q: Any) -> float:
+    """The heading of a quaternion (rotation about z)."""
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def _validate(model: type[Any], data: dict[str, Any]) -> Any:
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise InvalidMessage(model.__name__, issues_from_errors(err.errors())) from err
+
+
+# ------------------------------------------------------------------------------- inputs
+def laser_scan(raw: bytes, sensor_offset: Sequence[float] = (0.0, 0.0, 0.0)) -> LaserScan:
+    """A ``sensor_msgs/msg/LaserScan`` as a LaserScan.
+
+    Raises:
+        SchemaError: malformed CDR, or a field the wire contract rejects.
+    """
+    m = deserialize(raw, LASER_SCAN)
+    ranges = np.asarray(m.ranges, dtype=np.float64)
+    values: list[float | None] = ranges.tolist()
+    if not np.isfinite(ranges).all():
+        for i in np.flatnonzero(~np.isfinite(ranges)).tolist():
+            values[i] = None
+    data = {
+        "stamp_ns": stamp_ns(m.header),
+        "angle_min": float(m.angle_min),
+        "angle_increment": float(m.angle_increment),
+        "range_min": float(m.range_min),
+        "range_max": float(m.range_max),
+        "ranges": values,
+        "sensor_offset": dict(zip(("x", "y", "theta"), sensor_offset, strict=True)),
+    }
+    return _validate(LaserScan, data)  # type: ignore[no-any-return]
+
+
+def odometry(raw: bytes) -> Odometry:
+    """A ``nav_msgs/msg/Odometry``'s pose as an Odometry.
+
+    Raises:
+        SchemaError: malformed CDR, or a field the wire contract rejects.
+    """
+    m = deserialize(raw, ODOMETRY)
+    p = m.pose.pose
+    data = {
+        "stamp_ns": stamp_ns(m.header),
+        "x": float(p.position.x),
+        "y": float(p.position.y),
+        "theta": yaw(p.orientation),
+    }
+    return _validate(Odometry, data)  # type: ignore[no-any-return]
+
+
+def odometry_from_tf(raw: bytes, odom_frame: str, base_frame: str) -> list[Odometry]:
+    """The ``odom_frame`` -> ``base_frame`` transforms of a ``tf2_msgs/msg/TFMessage``.
+
+    Other transforms (the ``map`` -> ``odom`` we publish, the robot's links) are left out.
+
+    Raises:
+        SchemaError: malformed CDR, or a wanted transform the wire contract rejects.
+    """
+    m = deserialize(raw, TF_MESSAGE)
+    out = []
+    for t in m.transforms:
+        if frame(t.header.frame_id) != odom_frame or frame(t.child_frame_id) != base_frame:
+            continue
+        tr = t.transform
+        data = {
+            "stamp_ns": stamp_ns(t.header),
+            "x": float(tr.translation.x),
+            "y": float(tr.translation.y),
+            "theta": yaw(tr.rotation),
+        }
+        out.append(_validate(Odometry, data))
+    return out
+
+
+def initial_pose(raw: bytes, map_id: str, global_frame: str = "map") -> InitialPose:
+    """A ``geometry_msgs/msg/PoseWithCovarianceStamped`` (RViz's "2D Pose Estimate").
+
+    As AMCL does, the pose must be in ``global_frame``.
+
+    Raises:
+        SchemaError: malformed CDR, another frame, or a field the wire contract rejects.
+    """
+    m = deserialize(raw, POSE_COV)
+    got = frame(m.header.frame_id)
+    if got != global_frame:
+        raise CdrError(
+            f"header.frame_id: the initial pose must be in {global_frame!r}, not {got!r}"
+        )
+    p = m.pose.pose
+    data = {
+        "stamp_ns": stamp_ns(m.header),
+        "map_id": map_id,
+        "x": float(p.position.x),
+        "y": float(p.position.y),
+        "theta": yaw(p.orientation),
+    }
+    return _validate(InitialPose, data)  # type: ignore[no-any-return]
+
+
+# ------------------------------------------------------------------------------- outputs
+def _header(stamp: int, frame_id: str) -> Any:
+    t = typestore().types
+    sec, nanosec = divmod(stamp, 1_000_000_000)
+    return t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+
+
+def _quaternion(theta: float) -> Any:
+    return typestore().types["geometry_msgs/msg/Quaternion"](
+        x=0.0, y=0.0, z=math.sin(theta / 2.0), w=math.cos(theta / 2.0)
+    )
+
+
+def pose_covariance(covariance: Sequence[float] | None) -> np.ndarray:
+    """The 6x6 row-major covariance (x, y, z, roll, pitch, yaw) of a 3x3 (x, y, theta) one.
+
+    The x, y and yaw rows and columns hold the estimate's covariance; z, roll and pitch are
+    zero, as AMCL leaves them.
+    """
+    out = np.zeros(36, dtype=np.float64)
+    if covariance is not None:
+        c = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+        idx = (0, 1, 5)
+        for i in range(3):
+            for j in range(3):
+                out[6 * idx[i] + idx[j]] = c[i, j]
+    return out
+
+
+def amcl_pose(pose: PoseEstimate, frame_id: str = "map") -> bytes:
+    """A PoseEstimate as ``amcl_pose`` (PoseWithCovarianceStamped in ``frame_id``), CDR."""
+    t = typestore().types
+    msg = t[POSE_COV](
+        header=_header(pose.stamp_ns, frame_id),
+        pose=t["geometry_msgs/msg/PoseWithCovariance"](
+            pose=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=pose.x, y=pose.y, z=0.0),
+                orientation=_quaternion(pose.theta),
+            ),
+            covariance=pose_covariance(pose.covariance),
+        ),
+    )
+    return serialize(msg, POSE_COV)
+
+
+def transform(
+    pose: Sequence[float] | np.ndarray, stamp: int, parent: str = "map", child: str = "odom"
+) -> bytes:
+    """A TFMessage holding one transform ``parent`` -> ``child`` (x, y, theta), CDR."""
+    t = typestore().types
+    msg = t[TF_MESSAGE](
+        transforms=[
+            t["geometry_msgs/msg/TransformStamped"](
+                header=_header(stamp, parent),
+                child_frame_id=child,
+                transform=t["geometry_msgs/msg/Transform"](
+                    translation=t["geometry_msgs/msg/Vector3"](
+                        x=float(pose[0]), y=float(pose[1]), z=0.0
+                    ),
+                    rotation=_quaternion(float(pose[2])),
+                ),
+            )
+        ]
+    )
+    return serialize(msg, TF_MESSAGE)

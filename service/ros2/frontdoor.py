@@ -1,0 +1,366 @@
+"""The live ROS 2 front door: rmw_zenoh robots on the service's Zenoh session.
+
+A Zenoh callback parses the key (topic, type, hash naming), maps the namespace to a robot,
+decodes and validates the CDR into a WIRE.md message and hands it to the service's ``offer``
+(the path JSON inputs take: ownership, recording as JSON, the robot's mailbox). Bad input (a
+malformed payload, a wrong type on a topic, a namespace that is not a robot id, an initial pose
+in another frame) is dropped with an Event through ``reject``; nothing else is touched.
+
+Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
+transient-local, depth 1: an advanced publisher with a one-sample cache, as rmw_zenoh declares
+it) and as the ``map`` -> ``odom`` transform on the robot's ``tf`` (map -> base composed with the
+inverse of the robot's odometry at the scan's stamp, stamped ahead by the transform tolerance),
+each sample with rmw_zenoh's attachment, on the key the robot's own distribution listens on.
+Liveliness tokens announce the node and its topics, so ``ros2 node list`` and ``ros2 topic
+list`` show them.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Literal
+
+import numpy as np
+import zenoh
+import zenoh.ext
+
+from rlutf.motion import compose, interpolate, inverse
+from schemas import PoseEstimate, SchemaError, decode, encode
+from service.config import Ros2Settings
+from service.keys import InputKind, Message
+from service.ros2 import convert, names
+from service.ros2.attachment import Sequencer, gid_of
+from service.ros2.names import Distro
+
+log = logging.getLogger(__name__)
+
+Offer = Callable[[str, InputKind, bytes, Message, int], None]
+"""Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
+Reject = Callable[[str | None, str, str, int], None]
+"""Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
+Clock = Callable[[], int]
+
+#: Odometry readings kept per robot to compose map -> odom.
+_ODOM_KEPT = 512
+
+Leaf = Literal["scan", "odom", "initialpose", "tf"]
+
+
+@dataclass
+class _Publisher:
+    key: str
+    publisher: Any
+    sequencer: Sequencer
+
+
+@dataclass
+class _Robot:
+    robot_id: str
+    namespace: str
+    map_id: str | None
+    distro: Distro | None
+    forced: bool
+    odom_stamps: list[int] = field(default_factory=list)
+    odom_poses: list[np.ndarray] = field(default_factory=list)
+    publishers: dict[str, _Publisher] = field(default_factory=dict)
+    tokens: list[Any] = field(default_factory=list)
+
+    def add_odometry(self, stamp: int, pose: np.ndarray) -> None:
+        i = bisect.bisect_right(self.odom_stamps, stamp)
+        self.odom_stamps.insert(i, stamp)
+        self.odom_poses.insert(i, pose)
+        if len(self.odom_stamps) > _ODOM_KEPT:
+            del self.odom_stamps[: _ODOM_KEPT // 2], self.odom_poses[: _ODOM_KEPT // 2]
+
+    def odometry_at(self, stamp: int) -> np.ndarray | None:
+        s = self.odom_stamps
+        if not s:
+            return None
+        i = bisect.bisect_right(s, stamp)
+        if i == 0:
+            return self.odom_poses[0]
+        if i == len(s) or s[i] == s[i - 1]:
+            return self.odom_poses[i - 1]
+        frac = (stamp - s[i - 1]) / (s[i] - s[i - 1])
+        return interpolate(self.odom_poses[i - 1], self.odom_poses[i], frac)
+
+
+class Ros2FrontDoor:
+    """ROS 2 robots in, ``amcl_pose`` and ``map`` -> ``odom`` out.
+
+    Args:
+        settings: the ``ros2`` settings.
+        offer: where validated inputs go.
+        reject: where bad input is reported.
+        clock: receive times (ns since the epoch, increasing).
+        max_payload_bytes: largest payload accepted.
+    """
+
+    def __init__(
+        self,
+        settings: Ros2Settings,
+        offer: Offer,
+        reject: Reject,
+        clock: Clock,
+        max_payload_bytes: int = 1_000_000,
+    ) -> None:
+        self.settings = settings
+        self.offer = offer
+        self.reject = reject
+        self.clock = clock
+        self.max_payload_bytes = max_payload_bytes
+        self._robots: dict[str, _Robot] = {}
+        self._by_id: dict[str, _Robot] = {}
+        self._lock = threading.Lock()
+        self._session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._entity = 1  # entity ids of the tokens; 0 is the node
+        self._zid = ""
+        overrides = {ns: r.robot_id for ns, r in settings.robots.items() if r.robot_id}
+        self._overrides = overrides
+        topics: dict[str, Leaf] = {
+            settings.scan_topic: "scan",
+            settings.initialpose_topic: "initialpose",
+        }
+        if settings.odom_source == "odom":
+            topics[settings.odom_topic] = "odom"
+        else:
+            topics[settings.tf_topic] = "tf"
+        self._topics = topics
+
+    # ------------------------------------------------------------------------- lifecycle
+    def start(self, session: zenoh.Session) -> None:
+        """Declare the node's token and the subscriptions."""
+        s = self.settings
+        self._session = session
+        self._zid = str(session.zid())
+        liveliness = session.liveliness()
+        self._declared.append(liveliness.declare_token(names.node_token(s.domain_id, self._zid, 0)))
+        for name, leaf in self._topics.items():
+            key = names.subscription_key(s.domain_id, name)
+            self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
+        log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
+
+    def close(self) -> None:
+        """Undeclare publishers, tokens and subscriptions."""
+        with self._lock:
+            robots = list(self._robots.values())
+            self._robots.clear()
+            self._by_id.clear()
+        for r in robots:
+            for p in r.publishers.values():
+                _undeclare(p.publisher)
+            for t in r.tokens:
+                _undeclare(t)
+        for d in reversed(self._declared):
+            _undeclare(d)
+        self._declared.clear()
+
+    def robots(self) -> dict[str, str]:
+        """Robot id to namespace of the ROS robots seen."""
+        with self._lock:
+            return {r.robot_id: r.namespace for r in self._robots.values()}
+
+    # ------------------------------------------------------------------------- inputs
+    def _on(self, leaf: Leaf, sample: zenoh.Sample) -> None:
+        try:
+            self._handle(str(sample.key_expr), sample.payload.to_bytes(), leaf)
+        except Exception:  # a callback must never raise into zenoh
+            log.exception("ROS 2 input on %s failed", sample.key_expr)
+
+    def _handle(self, key: str, raw: bytes, leaf: Leaf) -> None:
+        s = self.settings
+        received = self.clock()
+        dk = names.parse_data_key(key, s.domain_id)
+        if dk is None:
+            return  # not an rmw_zenoh data key (another tool's key under the domain)
+        try:
+            robot_id = names.robot_of_namespace(dk.namespace, s.root_robot, self._overrides)
+        except names.NamespaceError as err:
+            self.reject(None, key, str(err), received)
+            return
+        robot = self._robot(robot_id, dk.namespace, dk.distro)
+        expected = _EXPECTED[leaf]
+        if dk.msgtype != expected:
+            self.reject(
+                robot_id, key, f"{dk.topic} carries {dk.msgtype}, expected {expected}", received
+            )
+            return
+        if len(raw) > self.max_payload_bytes:
+            self.reject(
+                robot_id,
+                key,
+                f"payload too large: {len(raw)} bytes, limit {self.max_payload_bytes}",
+                received,
+            )
+            return
+        try:
+            messages = self._decode(robot, raw, leaf)
+        except SchemaError as err:
+            self.reject(robot_id, key, str(err), received)
+            return
+        for kind, msg in messages:
+            if kind == "odom":
+                pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
+                with self._lock:
+                    robot.add_odometry(msg.stamp_ns, pose)
+            self.offer(robot_id, kind, encode(msg), msg, received)
+
+    def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
+        s = self.settings
+        if leaf == "scan":
+            return [("scan", convert.laser_scan(raw))]
+        if leaf == "odom":
+            return [("odom", convert.odometry(raw))]
+        if leaf == "tf":
+            found = convert.odometry_from_tf(raw, s.odom_frame, s.base_frame)
+            return [("odom", m) for m in found]
+        if robot.map_id is None:
+            raise convert.CdrError(
+                "no map for ROS 2 robots: give ros2.map_id (--ros-map) or ros2.robots."
+                f"{robot.namespace.strip('/') or '/'}.map_id"
+            )
+        return [("initialpose", convert.initial_pose(raw, robot.map_id, s.global_frame))]
+
+    def _robot(self, robot_id: str, namespace: str, distro: Distro) -> _Robot:
+        with self._lock:
+            r = self._robots.get(namespace)
+            if r is not None:
+                if not r.forced and r.distro != distro:
+                    log.info("ROS robot %s now uses %s key naming", robot_id, distro)
+                    self._redeclare(r, distro)
+                return r
+            over = self.settings.robot(namespace)
+            chosen = over.distro or self.settings.distro
+            forced = chosen != "auto"
+            r = _Robot(
+                robot_id,
+                namespace,
+                over.map_id or self.settings.map_id,
+                chosen if chosen != "auto" else distro,
+                forced,
+            )
+            self._robots[namespace] = r
+            self._by_id[robot_id] = r
+            self._declare(r)
+            return r
+
+    # ------------------------------------------------------------------------- outputs
+    def _declare(self, r: _Robot) -> None:
+        """Tokens of the robot's topics and its publishers (lock held)."""
+        session = self._session
+        if session is None or r.distro is None:
+            return
+        s = self.settings
+        qos = {
+            "scan": names.SENSOR_QOS,
+            "odom": names.ODOM_QOS,
+            "initialpose": names.INITIALPOSE_QOS,
+        }
+        entities: list[tuple[Literal["MP", "MS"], str, str, names.Qos]] = [
+            ("MS", name, _EXPECTED[leaf], qos.get(leaf, names.TF_QOS))
+            for name, leaf in self._topics.items()
+        ]
+        entities.append(("MP", s.pose_topic, convert.POSE_COV, names.AMCL_POSE_QOS))
+        if s.publish_tf:
+            entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
+        liveliness = session.liveliness()
+        for kind, name, msgtype, q in entities:
+            topic = names.join_topic(r.namespace, name)
+            token = names.entity_token(
+                s.domain_id, self._zid, 0, self._entity, kind, topic, msgtype, r.distro, q
+            )
+            self._entity += 1
+            r.tokens.append(liveliness.declare_token(token))
+            if kind == "MP":
+                key = names.data_key(s.domain_id, topic, msgtype, r.distro)
+                r.publishers[msgtype] = _Publisher(
+                    key, self._publisher(session, key, q), Sequencer(gid_of(token))
+                )
+
+    @staticmethod
+    def _publisher(session: zenoh.Session, key: str, qos: names.Qos) -> Any:
+        common: dict[str, Any] = {
+            "congestion_control": zenoh.CongestionControl.DROP,
+            "allowed_destination": zenoh.Locality.REMOTE,  # not to our own tf subscriber
+        }
+        if qos.transient_local:
+            # rmw_zenoh's transient-local publisher: a cache late subscribers query.
+            return zenoh.ext.declare_advanced_publisher(
+                session,
+                key,
+                cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
+                publisher_detection=True,
+                **common,
+            )
+        return session.declare_publisher(key, **common)
+
+    def _redeclare(self, r: _Robot, distro: Distro) -> None:
+        for p in r.publishers.values():
+            _undeclare(p.publisher)
+        for t in r.tokens:
+            _undeclare(t)
+        r.publishers.clear()
+        r.tokens.clear()
+        r.distro = distro
+        self._declare(r)
+
+    def on_pose(self, robot_id: str, payload: bytes) -> None:
+        """Publish a PoseEstimate of a ROS robot as ``amcl_pose`` and ``map`` -> ``odom``."""
+        with self._lock:
+            r = self._by_id.get(robot_id)
+            if r is None:
+                return  # a robot of the JSON front door
+            pubs = dict(r.publishers)
+            odom = None
+        try:
+            pose = decode(PoseEstimate, payload, max_bytes=self.max_payload_bytes)
+        except SchemaError:
+            log.exception("a pose of %s does not decode", robot_id)
+            return
+        s = self.settings
+        now = self.clock()
+        self._put(pubs.get(convert.POSE_COV), convert.amcl_pose(pose, s.global_frame), now)
+        if not s.publish_tf:
+            return
+        with self._lock:
+            odom = r.odometry_at(pose.stamp_ns)
+        if odom is None:
+            return  # no odometry yet: no map -> odom (AMCL waits for odom -> base too)
+        map_base = np.array([pose.x, pose.y, pose.theta])
+        map_odom = compose(map_base, inverse(odom))
+        stamp = pose.stamp_ns + int(s.transform_tolerance_s * 1e9)
+        self._put(
+            pubs.get(convert.TF_MESSAGE),
+            convert.transform(map_odom, stamp, s.global_frame, s.odom_frame),
+            now,
+        )
+
+    @staticmethod
+    def _put(pub: _Publisher | None, payload: bytes, now: int) -> None:
+        if pub is None:
+            return
+        try:
+            pub.publisher.put(payload, attachment=pub.sequencer.next(now))
+        except zenoh.ZError:
+            log.warning("could not publish on %s", pub.key, exc_info=True)
+
+
+_EXPECTED: dict[Leaf, str] = {
+    "scan": convert.LASER_SCAN,
+    "odom": convert.ODOMETRY,
+    "initialpose": convert.POSE_COV,
+    "tf": convert.TF_MESSAGE,
+}
+
+
+def _undeclare(entity: Any) -> None:
+    try:
+        entity.undeclare()
+    except Exception:  # already gone with the session
+        log.debug("undeclare failed", exc_info=True)
