@@ -17,7 +17,6 @@ list`` show them.
 
 from __future__ import annotations
 
-import bisect
 import logging
 import threading
 from collections.abc import Callable
@@ -29,13 +28,13 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
-from rlutf.motion import compose, interpolate, inverse
 from schemas import PoseEstimate, SchemaError, decode, encode
 from service.config import Ros2Settings
 from service.keys import InputKind, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
 from service.ros2.names import Distro
+from service.ros2.trail import OdometryTrail, map_to_odom
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +43,6 @@ Offer = Callable[[str, InputKind, bytes, Message, int], None]
 Reject = Callable[[str | None, str, str, int], None]
 """Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
 Clock = Callable[[], int]
-
-#: Odometry readings kept per robot to compose map -> odom.
-_ODOM_KEPT = 512
 
 Leaf = Literal["scan", "odom", "initialpose", "tf"]
 
@@ -65,29 +61,9 @@ class _Robot:
     map_id: str | None
     distro: Distro | None
     forced: bool
-    odom_stamps: list[int] = field(default_factory=list)
-    odom_poses: list[np.ndarray] = field(default_factory=list)
+    odometry: OdometryTrail = field(default_factory=OdometryTrail)
     publishers: dict[str, _Publisher] = field(default_factory=dict)
     tokens: list[Any] = field(default_factory=list)
-
-    def add_odometry(self, stamp: int, pose: np.ndarray) -> None:
-        i = bisect.bisect_right(self.odom_stamps, stamp)
-        self.odom_stamps.insert(i, stamp)
-        self.odom_poses.insert(i, pose)
-        if len(self.odom_stamps) > _ODOM_KEPT:
-            del self.odom_stamps[: _ODOM_KEPT // 2], self.odom_poses[: _ODOM_KEPT // 2]
-
-    def odometry_at(self, stamp: int) -> np.ndarray | None:
-        s = self.odom_stamps
-        if not s:
-            return None
-        i = bisect.bisect_right(s, stamp)
-        if i == 0:
-            return self.odom_poses[0]
-        if i == len(s) or s[i] == s[i - 1]:
-            return self.odom_poses[i - 1]
-        frac = (stamp - s[i - 1]) / (s[i] - s[i - 1])
-        return interpolate(self.odom_poses[i - 1], self.odom_poses[i], frac)
 
 
 class Ros2FrontDoor:
@@ -208,7 +184,7 @@ class Ros2FrontDoor:
             if kind == "odom":
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
                 with self._lock:
-                    robot.add_odometry(msg.stamp_ns, pose)
+                    robot.odometry.add(msg.stamp_ns, pose)
             self.offer(robot_id, kind, encode(msg), msg, received)
 
     def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
@@ -329,11 +305,10 @@ class Ros2FrontDoor:
         if not s.publish_tf:
             return
         with self._lock:
-            odom = r.odometry_at(pose.stamp_ns)
+            odom = r.odometry.at(pose.stamp_ns)
         if odom is None:
             return  # no odometry yet: no map -> odom (AMCL waits for odom -> base too)
-        map_base = np.array([pose.x, pose.y, pose.theta])
-        map_odom = compose(map_base, inverse(odom))
+        map_odom = map_to_odom([pose.x, pose.y, pose.theta], odom)
         stamp = pose.stamp_ns + int(s.transform_tolerance_s * 1e9)
         self._put(
             pubs.get(convert.TF_MESSAGE),
