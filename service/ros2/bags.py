@@ -31,7 +31,6 @@ from schemas import (
     PoseEstimate,
     SchemaError,
     decode,
-    encode,
 )
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
@@ -201,7 +200,13 @@ def _write(
 ) -> None:
     leaf = {LaserScan: "scan", Odometry: "odom", InitialPose: "initialpose"}[type(msg)]
     writer.write(
-        Record(keys.robot(robot, leaf), SCHEMA_NAMES[type(msg)], encode(msg), t, msg.stamp_ns)
+        Record(
+            keys.robot(robot, leaf),
+            SCHEMA_NAMES[type(msg)],
+            convert.wire_json(msg),
+            t,
+            msg.stamp_ns,
+        )
     )
 
 

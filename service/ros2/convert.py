@@ -173,6 +173,18 @@ def initial_pose(raw: bytes, map_id: str, global_frame: str = "map") -> InitialP
     return _validate(InitialPose, data)  # type: ignore[no-any-return]
 
 
+def wire_json(message: LaserScan | Odometry | InitialPose) -> bytes:
+    """A converted input as the JSON the log records (pydantic's serializer).
+
+    Not :func:`schemas.encode`: Python's float ``repr`` costs about a microsecond a number
+    here, so encoding a 720-beam scan took ~0.9 ms in the service's main process, ten times the
+    decode. pydantic-core writes the same fields in the same order with shortest round-trip
+    floats, so the payload decodes to the same message, bit for bit (tested), and equal
+    messages give equal bytes.
+    """
+    return message.model_dump_json().encode()
+
+
 # ------------------------------------------------------------------------------- outputs
 def _header(stamp: int, frame_id: str) -> Any:
     t = typestore().types

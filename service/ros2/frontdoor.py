@@ -28,7 +28,7 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
-from schemas import PoseEstimate, SchemaError, decode, encode
+from schemas import PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
 from service.keys import InputKind, Message
 from service.ros2 import convert, names
@@ -185,7 +185,7 @@ class Ros2FrontDoor:
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
                 with self._lock:
                     robot.odometry.add(msg.stamp_ns, pose)
-            self.offer(robot_id, kind, encode(msg), msg, received)
+            self.offer(robot_id, kind, convert.wire_json(msg), msg, received)
 
     def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
         s = self.settings

@@ -6,9 +6,11 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from ros_client import TS, initialpose_msg, odom_msg, tf_msg, yaw
 
-from schemas import PoseEstimate, SchemaError
+from schemas import LaserScan, Odometry, PoseEstimate, SchemaError, decode
 from service.ros2 import convert
 
 
@@ -101,3 +103,29 @@ def test_amcl_pose_and_transform_decode_with_rosbags() -> None:
     t = tf.transforms[0]
     assert (t.header.frame_id, t.child_frame_id, t.header.stamp.nanosec) == ("map", "odom", 10)
     assert yaw(t.transform.rotation) == pytest.approx(0.5)
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@given(
+    ranges=st.lists(st.one_of(st.none(), st.floats(0, 1e6, width=32)), min_size=1, max_size=50),
+    angle=finite,
+    stamp=st.integers(0, 2**62),
+)
+def test_the_recorded_json_decodes_to_the_same_message(
+    ranges: list[float | None], angle: float, stamp: int
+) -> None:
+    scan = LaserScan(
+        stamp_ns=stamp,
+        angle_min=angle,
+        angle_increment=1e-300 if angle == 0 else angle,
+        range_min=0.0,
+        range_max=1e7,
+        ranges=ranges,
+    )
+    payload = convert.wire_json(scan)
+    assert decode(LaserScan, payload) == scan
+    assert convert.wire_json(decode(LaserScan, payload)) == payload
+    odom = Odometry(stamp_ns=stamp, x=angle, y=-angle, theta=1e-7 * angle)
+    assert decode(Odometry, convert.wire_json(odom)) == odom
