@@ -144,6 +144,7 @@ class LocalizationService:
                 self._reject,
                 self.clock,
                 settings.max_payload_bytes,
+                self.keys,
             )
         self.closed = threading.Event()
 

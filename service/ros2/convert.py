@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from functools import cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import ValidationError
@@ -24,6 +24,9 @@ from rosbags.typesys.store import Typestore
 
 from schemas import InitialPose, InvalidMessage, LaserScan, Odometry, PoseEstimate, SchemaError
 from schemas._issues import issues_from_errors
+
+if TYPE_CHECKING:
+    from service.maps.mapimport import OccupancyGrid
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -183,6 +186,37 @@ def wire_json(message: LaserScan | Odometry | InitialPose) -> bytes:
     messages give equal bytes.
     """
     return message.model_dump_json().encode()
+
+
+def occupancy_grid(raw: bytes) -> tuple[OccupancyGrid, int]:
+    """A ``nav_msgs/msg/OccupancyGrid`` as the grid the map import takes, and its stamp.
+
+    As map_server reads a grid: free below 25 %, occupied above 65 %, unknown (-1) neither.
+
+    Raises:
+        SchemaError: malformed CDR, or a grid whose size does not match its data.
+    """
+    from service.maps.mapimport import OccupancyGrid  # scikit-image: only when a map comes
+
+    m = deserialize(raw, OCCUPANCY_GRID)
+    info = m.info
+    rows, cols = int(info.height), int(info.width)
+    data = np.asarray(m.data, dtype=np.int8)
+    if rows * cols == 0 or data.size != rows * cols:
+        raise CdrError(f"info: {cols} x {rows} cells, but {data.size} values in data")
+    grid = data.reshape(rows, cols)  # row 0 at the origin, the bottom, as the import wants
+    o = info.origin
+    try:
+        out = OccupancyGrid(
+            data=grid,
+            free=(grid >= 0) & (grid < 25),
+            occupied=grid > 65,
+            resolution=float(info.resolution),
+            origin=(float(o.position.x), float(o.position.y), yaw(o.orientation)),
+        )
+    except ValueError as err:
+        raise CdrError(f"info: {err}") from err
+    return out, stamp_ns(m.header)
 
 
 # ------------------------------------------------------------------------------- outputs

@@ -17,6 +17,7 @@ list`` show them.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from collections.abc import Callable
@@ -30,7 +31,7 @@ import zenoh.ext
 
 from schemas import PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
-from service.keys import InputKind, Message
+from service.keys import InputKind, Keys, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
 from service.ros2.names import Distro
@@ -75,6 +76,7 @@ class Ros2FrontDoor:
         reject: where bad input is reported.
         clock: receive times (ns since the epoch, increasing).
         max_payload_bytes: largest payload accepted.
+        keys: the key layout (maps from ``map_topic`` are put on its map keys).
     """
 
     def __init__(
@@ -84,8 +86,10 @@ class Ros2FrontDoor:
         reject: Reject,
         clock: Clock,
         max_payload_bytes: int = 1_000_000,
+        keys: Keys | None = None,
     ) -> None:
         self.settings = settings
+        self.keys = keys or Keys()
         self.offer = offer
         self.reject = reject
         self.clock = clock
@@ -120,6 +124,16 @@ class Ros2FrontDoor:
         for name, leaf in self._topics.items():
             key = names.subscription_key(s.domain_id, name)
             self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
+        if s.map_topic:
+            # Maps are transient local: a late joiner asks the publisher's cache for the last.
+            self._declared.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    session,
+                    names.subscription_key(s.domain_id, s.map_topic),
+                    self._on_map,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                )
+            )
         log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
 
     def close(self) -> None:
@@ -186,6 +200,40 @@ class Ros2FrontDoor:
                 with self._lock:
                     robot.odometry.add(msg.stamp_ns, pose)
             self.offer(robot_id, kind, convert.wire_json(msg), msg, received)
+
+    def _on_map(self, sample: zenoh.Sample) -> None:
+        key, raw = str(sample.key_expr), sample.payload.to_bytes()
+        received = self.clock()
+        dk = names.parse_data_key(key, self.settings.domain_id)
+        if dk is None:
+            return
+        # Polygonizing a grid takes a while: not on a Zenoh thread.
+        threading.Thread(
+            target=self._import_map, args=(key, dk, raw, received), daemon=True
+        ).start()
+
+    def _import_map(self, key: str, dk: names.DataKey, raw: bytes, received: int) -> None:
+        from service.maps.mapimport import MapImportError, grid_to_map
+
+        map_id = self.settings.robot(dk.namespace).map_id or self.settings.map_id
+        try:
+            if dk.msgtype != convert.OCCUPANCY_GRID:
+                raise convert.CdrError(f"{dk.topic} carries {dk.msgtype}, expected a grid")
+            if map_id is None:
+                raise convert.CdrError("no map id for ROS maps: give ros2.map_id (--ros-map)")
+            grid, stamp = convert.occupancy_grid(raw)
+            # Newer grids give newer versions: the stamp in ms (the receive time without one).
+            version = (stamp or received) // 1_000_000
+            result = grid_to_map(grid, map_id=map_id, version=version)
+        except (SchemaError, MapImportError, ValueError) as err:
+            self.reject(None, key, f"map not imported: {err}", received)
+            return
+        payload = json.dumps(result.map).encode()
+        log.info("map %s v%d imported from %s", map_id, version, dk.topic)
+        session = self._session
+        if session is not None:
+            # Into the store and to every instance, as `rlutf map put` does.
+            session.put(self.keys.map(map_id), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
         s = self.settings

@@ -16,9 +16,11 @@ from ros_client import (
     TS,
     RosListener,
     RosRobot,
+    header,
     initialpose_msg,
     key,
     pose_of_tf,
+    quat,
     scan_msg,
     yaw,
 )
@@ -281,3 +283,52 @@ def test_a_live_ros_run_is_recorded_as_json_and_replays_exactly(tmp_path: Path) 
     recorded = [p.payload for p in result.recorded["robot1"]]
     assert len(recorded) >= 5  # scans the busy worker dropped are dropped again by replay
     assert recorded == [p.payload for p in result.recomputed["robot1"]][: len(recorded)]
+
+
+@pytest.fixture
+def ros_bench_map(tmp_path: Path) -> Iterator[Bench]:
+    yield from _bench(tmp_path, map_topic="map")
+
+
+def _grid_msg(stamp_ns: int) -> bytes:
+    """A 5 m x 4 m room, walls two cells thick, a 1 m box inside, origin at (-1, -2)."""
+    res = 0.05
+    data = np.zeros((80, 100), dtype=np.int8)
+    data[:2, :] = data[-2:, :] = data[:, :2] = data[:, -2:] = 100
+    data[30:50, 40:60] = 100
+    data[0, 0] = -1
+    t = TS.types
+    msg = t["nav_msgs/msg/OccupancyGrid"](
+        header=header(stamp_ns, "map"),
+        info=t["nav_msgs/msg/MapMetaData"](
+            map_load_time=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
+            resolution=res,
+            width=100,
+            height=80,
+            origin=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=-1.0, y=-2.0, z=0.0),
+                orientation=quat(0.0),
+            ),
+        ),
+        data=data.ravel(),
+    )
+    return bytes(TS.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
+
+
+def test_maps_from_an_occupancy_grid_topic(ros_bench_map: Bench) -> None:
+    bench = ros_bench_map
+    events = Collector()
+    sub = bench.client.declare_subscriber("rlutf/events", events)
+    grid_key = (
+        f"0/map/nav_msgs::msg::dds_::OccupancyGrid_/{TS.hash_rihs01('nav_msgs/msg/OccupancyGrid')}"
+    )
+    bench.client.put(grid_key, b"\x00\x01\x00\x00broken")
+    bench.client.put(grid_key, _grid_msg(time.time_ns()))
+    assert _wait(lambda: "m1" in bench.service.maps_held(), 20.0)
+    stored = json.loads((bench.store / "m1.json").read_text())
+    ring = np.array(stored["geometry"]["coordinates"][0])
+    assert np.allclose(ring.min(axis=0), [-0.9, -1.9], atol=0.06)  # inside the walls
+    assert np.allclose(ring.max(axis=0), [3.9, 1.9], atol=0.06)
+    assert len(stored["geometry"]["coordinates"]) == 2  # the box is a hole
+    assert _wait(lambda: any("map not imported" in e["message"] for e in events.on("rlutf/events")))
+    sub.undeclare()
