@@ -174,9 +174,8 @@ class Ros2FrontDoor:
         except names.NamespaceError as err:
             self.reject(None, key, str(err), received)
             return
-        robot = self._robot(robot_id, dk.namespace, dk.distro)
         expected = _EXPECTED[leaf]
-        if dk.msgtype != expected:
+        if dk.msgtype != expected:  # before the robot is made: no tokens for a stray topic
             self.reject(
                 robot_id, key, f"{dk.topic} carries {dk.msgtype}, expected {expected}", received
             )
@@ -189,6 +188,7 @@ class Ros2FrontDoor:
                 received,
             )
             return
+        robot = self._robot(robot_id, dk.namespace, dk.distro)
         try:
             messages = self._decode(robot, raw, leaf)
         except SchemaError as err:
