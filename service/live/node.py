@@ -425,6 +425,8 @@ class LocalizationService:
             "maps": sorted(self.maps_held()),
             **self.ownership.figures(),
         }
+        if self.ros2 is not None:
+            extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
 
     def maps_held(self) -> list[str]:

@@ -215,6 +215,7 @@ def test_bad_ros_input_gets_an_event_and_loses_nothing_else(ros_bench: Bench) ->
         next(iter(bench.client.get("rlutf/service/*/health", timeout=2.0))).ok.payload.to_bytes()
     )
     assert health["rejected"] >= 5
+    assert health["extra"]["ros2_robots"] == {"robot1": "/robot1", "robot2": "/robot2"}
     for sub in subs:
         sub.undeclare()
 
