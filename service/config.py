@@ -86,6 +86,11 @@ class Ros2Settings(BaseModel):
     global_frame: str = Field("map", description="Frame of poses and initial poses.")
     odom_frame: str = Field("odom", description="The odometry frame.")
     base_frame: str = Field("base_footprint", description="The robot's base frame.")
+    odom_wait_s: float = Field(
+        0.1,
+        ge=0,
+        description="Longest a scan waits for the odometry at its stamp (as AMCL's tf filter), s.",
+    )
     publish_tf: bool = Field(True, description="Publish map -> odom on the robot's tf.")
     transform_tolerance_s: float = Field(
         1.0, ge=0, description="map -> odom is stamped this far ahead (AMCL's default), s."

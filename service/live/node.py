@@ -427,6 +427,8 @@ class LocalizationService:
         }
         if self.ros2 is not None:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
+            extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
+            extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
 
     def maps_held(self) -> list[str]:

@@ -171,6 +171,10 @@ def bag_inputs(
         writer.finish()
     if not summary.counts["LaserScan"]:
         raise BagError(f"{bag}: no valid scan on {topics.scan}")
+    if not summary.counts["initialpose"] and not summary.counts["InitialPose"]:
+        raise BagError(
+            f"{bag}: no initial pose: give --initial-pose X,Y,THETA (none on {pose_topic})"
+        )
     return summary
 
 

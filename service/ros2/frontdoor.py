@@ -34,6 +34,7 @@ from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
+from service.ros2.gate import OdometryGate
 from service.ros2.names import Distro
 from service.ros2.trail import OdometryTrail, map_to_odom
 
@@ -112,6 +113,9 @@ class Ros2FrontDoor:
         else:
             topics[settings.tf_topic] = "tf"
         self._topics = topics
+        self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
+        self._stop = threading.Event()
+        self._flusher: threading.Thread | None = None
 
     # ------------------------------------------------------------------------- lifecycle
     def start(self, session: zenoh.Session) -> None:
@@ -134,10 +138,20 @@ class Ros2FrontDoor:
                     history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
                 )
             )
+        self._flusher = threading.Thread(target=self._flush, name="rlutf-ros2-gate", daemon=True)
+        self._flusher.start()
         log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
+
+    def _flush(self) -> None:
+        period = max(min(self.settings.odom_wait_s / 4, 0.05), 0.005)
+        while not self._stop.wait(period):
+            self.gate.flush()
 
     def close(self) -> None:
         """Undeclare publishers, tokens and subscriptions."""
+        self._stop.set()
+        if self._flusher is not None:
+            self._flusher.join(1.0)
         with self._lock:
             robots = list(self._robots.values())
             self._robots.clear()
@@ -199,7 +213,7 @@ class Ros2FrontDoor:
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
                 with self._lock:
                     robot.odometry.add(msg.stamp_ns, pose)
-            self.offer(robot_id, kind, convert.wire_json(msg), msg, received)
+            self.gate.put(robot_id, kind, convert.wire_json(msg), msg)
 
     def _on_map(self, sample: zenoh.Sample) -> None:
         key, raw = str(sample.key_expr), sample.payload.to_bytes()

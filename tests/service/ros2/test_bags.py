@@ -197,6 +197,9 @@ def test_bag_errors_are_one_line_and_exit_2(run: dict, capsys: pytest.CaptureFix
     assert "--map" in capsys.readouterr().err
     assert main([*base, "--map", str(d / "m1.json"), "--scan-topic", "/nope"]) == 2
     assert "no topic /nope" in capsys.readouterr().err
+    topics = ["--scan-topic", "/robot1/scan", "--odom-topic", "/robot1/odom"]
+    assert main([*base, "--map", str(d / "m1.json"), *topics]) == 2
+    assert "no initial pose" in capsys.readouterr().err
     assert main([*base, "--map", "unknown-map", "--store", str(d / "store")]) == 2
     assert "no such map" in capsys.readouterr().err
 
