@@ -80,6 +80,9 @@ class Ros2Settings(BaseModel):
     initialpose_topic: str = Field("initialpose", description="Initial pose topic.")
     pose_topic: str = Field("amcl_pose", description="Output PoseWithCovarianceStamped topic.")
     tf_topic: str = Field("tf", description="TF topic (read for odom_source=tf, written).")
+    tf_static_topic: str | None = Field(
+        "tf_static", description="Static TF topic the laser's pose is read from (null: off)."
+    )
     map_topic: str | None = Field(
         None, description="OccupancyGrid topic to import maps from (off unless given)."
     )

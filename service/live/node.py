@@ -429,6 +429,7 @@ class LocalizationService:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
             extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
+            extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
 
     def maps_held(self) -> list[str]:

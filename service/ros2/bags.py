@@ -2,7 +2,8 @@
 
 In: a rosbag2 recording (a bag folder, or a bare ``.mcap`` with ``cdr`` channels and
 ``ros2msg`` schemas) is read with rosbags' ``AnyReader``; its scans, odometry (``Odometry`` or
-the ``odom`` -> base transform on ``tf``) and initial poses are converted as the live front
+the ``odom`` -> base transform on ``tf``) and initial poses are converted (the laser's pose
+from the bag's ``tf_static``, when it has one) as the live front
 door converts them (:mod:`service.ros2.convert`) and written, with the map and an optional
 initial pose, as an MCAP log in the WIRE.md layout, ``log_time`` the bag's receive time. That
 log is an ordinary replay input: ``rlutf replay --ros2`` replays it with the service's engine.
@@ -17,6 +18,7 @@ import logging
 from collections import Counter
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -35,6 +37,7 @@ from schemas import (
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.ros2 import convert, names
+from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
 
 log = logging.getLogger(__name__)
@@ -132,7 +135,14 @@ def bag_inputs(
     summary = BagSummary(robot, topics.namespace)
     odom_topic = topics.tf or topics.in_namespace("tf") if topics.odom_tf else topics.odom
     pose_topic = topics.initialpose or topics.in_namespace("initialpose")
-    wanted = {topics.scan: "scan", odom_topic: "odom", pose_topic: "initialpose"}
+    static_topic = topics.in_namespace("tf_static")
+    wanted = {
+        topics.scan: "scan",
+        odom_topic: "odom",
+        pose_topic: "initialpose",
+        static_topic: "tf_static",  # the laser's pose in the base frame
+    }
+    frames = StaticFrames()
     with _reader(bag) as reader:
         present = {c.topic for c in reader.connections}
         for t in (topics.scan, odom_topic):
@@ -152,7 +162,12 @@ def bag_inputs(
                     Record(keys.map(map_msg.map_id), "rlutf.Map", map_payload, t_ns - 2, t_ns - 2)
                 )
             try:
-                msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics)
+                if kind == "tf_static":
+                    _expect(conn.msgtype, convert.TF_MESSAGE)
+                    for parent, child, pose in convert.static_transforms(bytes(raw)):
+                        frames.add(parent, child, pose)
+                    continue
+                msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, frames)
             except SchemaError as err:
                 summary.rejected[f"{conn.topic}: {str(err)[:120]}"] += 1
                 continue
@@ -179,11 +194,11 @@ def bag_inputs(
 
 
 def _convert(
-    kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics
+    kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics, frames: StaticFrames
 ) -> list[LaserScan | Odometry | InitialPose]:
     if kind == "scan":
         _expect(msgtype, convert.LASER_SCAN)
-        return [convert.laser_scan(raw)]
+        return [convert.laser_scan(raw, offset_of=partial(frames.offset, topics.base_frame))]
     if kind == "initialpose":
         _expect(msgtype, convert.POSE_COV)
         return [convert.initial_pose(raw, map_id, topics.global_frame)]

@@ -13,7 +13,7 @@ A range that is NaN or infinite is no return (REP 117), like ``null`` in JSON.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import cache
 from typing import TYPE_CHECKING, Any
 
@@ -86,13 +86,26 @@ def _validate(model: type[Any], data: dict[str, Any]) -> Any:
 
 
 # ------------------------------------------------------------------------------- inputs
-def laser_scan(raw: bytes, sensor_offset: Sequence[float] = (0.0, 0.0, 0.0)) -> LaserScan:
+def laser_scan(
+    raw: bytes,
+    sensor_offset: Sequence[float] = (0.0, 0.0, 0.0),
+    offset_of: Callable[[str], Sequence[float] | None] | None = None,
+) -> LaserScan:
     """A ``sensor_msgs/msg/LaserScan`` as a LaserScan.
+
+    Args:
+        raw: the CDR payload.
+        sensor_offset: the laser's pose in the base frame, when ``offset_of`` does not know it.
+        offset_of: the pose in the base frame of a frame id (``header.frame_id``), or ``None``.
 
     Raises:
         SchemaError: malformed CDR, or a field the wire contract rejects.
     """
     m = deserialize(raw, LASER_SCAN)
+    if offset_of is not None:
+        found = offset_of(m.header.frame_id)
+        if found is not None:
+            sensor_offset = found
     ranges = np.asarray(m.ranges, dtype=np.float64)
     values: list[float | None] = ranges.tolist()
     if not np.isfinite(ranges).all():
@@ -148,6 +161,21 @@ def odometry_from_tf(raw: bytes, odom_frame: str, base_frame: str) -> list[Odome
             "theta": yaw(tr.rotation),
         }
         out.append(_validate(Odometry, data))
+    return out
+
+
+def static_transforms(raw: bytes) -> list[tuple[str, str, tuple[float, float, float]]]:
+    """The transforms of a ``tf2_msgs/msg/TFMessage``: ``(parent, child, (x, y, yaw))``.
+
+    Raises:
+        SchemaError: malformed CDR.
+    """
+    m = deserialize(raw, TF_MESSAGE)
+    out = []
+    for t in m.transforms:
+        tr = t.transform
+        pose = (float(tr.translation.x), float(tr.translation.y), yaw(tr.rotation))
+        out.append((frame(t.header.frame_id), frame(t.child_frame_id), pose))
     return out
 
 

@@ -36,6 +36,7 @@ from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
 from service.ros2.gate import OdometryGate
 from service.ros2.names import Distro
+from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,7 @@ class _Robot:
     odometry: OdometryTrail = field(default_factory=OdometryTrail)
     publishers: dict[str, _Publisher] = field(default_factory=dict)
     tokens: list[Any] = field(default_factory=list)
+    warned_frames: set[str] = field(default_factory=set)
 
 
 class Ros2FrontDoor:
@@ -113,6 +115,8 @@ class Ros2FrontDoor:
         else:
             topics[settings.tf_topic] = "tf"
         self._topics = topics
+        self._static: dict[str, StaticFrames] = {}
+        self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
@@ -128,16 +132,19 @@ class Ros2FrontDoor:
         for name, leaf in self._topics.items():
             key = names.subscription_key(s.domain_id, name)
             self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
-        if s.map_topic:
-            # Maps are transient local: a late joiner asks the publisher's cache for the last.
-            self._declared.append(
-                zenoh.ext.declare_advanced_subscriber(
-                    session,
-                    names.subscription_key(s.domain_id, s.map_topic),
-                    self._on_map,
-                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        # tf_static and maps are transient local: published once, maybe long ago, so a late
+        # joiner asks the publishers' caches for the last sample (as rmw_zenoh's subscribers).
+        cached = ((s.tf_static_topic, self._on_static), (s.map_topic, self._on_map))
+        for topic, callback in cached:
+            if topic:
+                self._declared.append(
+                    zenoh.ext.declare_advanced_subscriber(
+                        session,
+                        names.subscription_key(s.domain_id, topic),
+                        callback,
+                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                    )
                 )
-            )
         self._flusher = threading.Thread(target=self._flush, name="rlutf-ros2-gate", daemon=True)
         self._flusher.start()
         log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
@@ -215,6 +222,43 @@ class Ros2FrontDoor:
                     robot.odometry.add(msg.stamp_ns, pose)
             self.gate.put(robot_id, kind, convert.wire_json(msg), msg)
 
+    def _on_static(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        dk = names.parse_data_key(key, self.settings.domain_id)
+        if dk is None:
+            return
+        try:
+            if dk.msgtype != convert.TF_MESSAGE:
+                raise convert.CdrError(f"{dk.topic} carries {dk.msgtype}, expected a TFMessage")
+            found = convert.static_transforms(sample.payload.to_bytes())
+        except SchemaError as err:
+            self.reject(None, key, str(err), self.clock())
+            return
+        with self._lock:
+            frames = self._static.setdefault(dk.namespace, StaticFrames())
+        for parent, child, pose in found:
+            frames.add(parent, child, pose)
+
+    def _laser_offset(self, robot: _Robot, frame_id: str) -> tuple[float, float, float]:
+        """The laser's pose in the base frame, from the robot's tf_static (zero if unknown)."""
+        base = self.settings.base_frame
+        with self._lock:
+            frames = self._static.get(robot.namespace)
+        found = frames.offset(base, frame_id) if frames is not None else None
+        if found is None:
+            found = (0.0, 0.0, 0.0)
+            if frame_id.lstrip("/") not in ("", base):
+                self.laser_at_base += 1
+                if frame_id not in robot.warned_frames:
+                    robot.warned_frames.add(frame_id)
+                    log.warning(
+                        "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base",
+                        robot.robot_id,
+                        base,
+                        frame_id,
+                    )
+        return found
+
     def _on_map(self, sample: zenoh.Sample) -> None:
         key, raw = str(sample.key_expr), sample.payload.to_bytes()
         received = self.clock()
@@ -252,7 +296,8 @@ class Ros2FrontDoor:
     def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
         s = self.settings
         if leaf == "scan":
-            return [("scan", convert.laser_scan(raw))]
+            scan = convert.laser_scan(raw, offset_of=partial(self._laser_offset, robot))
+            return [("scan", scan)]
         if leaf == "odom":
             return [("odom", convert.odometry(raw))]
         if leaf == "tf":

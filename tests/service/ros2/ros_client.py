@@ -56,10 +56,17 @@ def yaw(q: Any) -> float:
     return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
 
 
-def scan_msg(world: World, pose: np.ndarray, stamp_ns: int, rng: np.random.Generator) -> Any:
+def scan_msg(
+    world: World,
+    pose: np.ndarray,
+    stamp_ns: int,
+    rng: np.random.Generator,
+    frame_id: str = "base_footprint",
+) -> Any:
+    """A scan from ``pose`` (the laser's pose in the map), in frame ``frame_id``."""
     s = simulate_scan(world, pose, LidarModel(beams=180), rng)
     return T["sensor_msgs/msg/LaserScan"](
-        header=header(stamp_ns, "base_scan"),
+        header=header(stamp_ns, frame_id),
         angle_min=s.angle_min,
         angle_max=s.angle_min + s.angle_increment * (len(s.ranges) - 1),
         angle_increment=s.angle_increment,
@@ -137,6 +144,7 @@ class RosRobot:
     domain: int = 0
     odom_tf: bool = False
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+    laser: np.ndarray | None = None  # the laser's pose in base_footprint, via base_link
     step: int = 0
     seq: int = 0
     gid: bytes = b"\x07" * 16
@@ -174,10 +182,21 @@ class RosRobot:
         msg = initialpose_msg(self.truth[0], self.stamp(0))
         self.put("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", msg)
 
+    def tf_static(self) -> None:
+        """base_footprint -> base_link (10 cm up: dropped) -> laser, as a URDF gives them."""
+        assert self.laser is not None
+        a = tf_msg(np.zeros(3), self.stamp(0), "base_footprint", "base_link")
+        b = tf_msg(self.laser, self.stamp(0), "base_link", "laser")
+        msg = T["tf2_msgs/msg/TFMessage"](transforms=[*a.transforms, *b.transforms])
+        self.put("tf_static", "tf2_msgs/msg/TFMessage", msg)
+
     def advance(self) -> int:
         self.step += 1
         self.odom(self.step)
-        msg = scan_msg(self.world, self.truth[self.step], self.stamp(self.step), self.rng)
+        pose, frame = self.truth[self.step], "base_footprint"
+        if self.laser is not None:
+            pose, frame = compose(pose, self.laser), "laser"
+        msg = scan_msg(self.world, pose, self.stamp(self.step), self.rng, frame)
         self.put("scan", "sensor_msgs/msg/LaserScan", msg)
         return self.step
 

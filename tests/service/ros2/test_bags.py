@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_client import TS, initialpose_msg, odom_msg, quat, scan_msg, yaw
+from ros_client import TS, initialpose_msg, odom_msg, quat, scan_msg, tf_msg, yaw
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -229,3 +229,30 @@ def test_map_build_from_a_bag_with_poses(run: dict, tmp_path: Path) -> None:
     built = json.loads(out.read_text())
     assert built["map_id"] == "built" and built["geometry"]["type"] in ("Polygon", "MultiPolygon")
     del d
+
+
+def test_the_laser_pose_comes_from_the_bags_tf_static(run: dict, tmp_path: Path) -> None:
+    truth, odom = run["truth"], run["odom"]
+    laser = np.array([0.3, -0.05, -0.2])
+    rng = np.random.default_rng(5)
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        tc = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=TS)
+        sc = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=TS)
+        oc = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=TS)
+        tf = tf_msg(laser, T0, "base_footprint", "laser")
+        w.write(tc, T0 - 10, TS.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
+        for i in range(STEPS):
+            t_odom, t_scan = _stamps(i)
+            w.write(
+                oc, t_odom, TS.serialize_cdr(odom_msg(odom[i], t_odom), "nav_msgs/msg/Odometry")
+            )
+            m = scan_msg(WORLD, compose(truth[i], laser), t_scan, rng, "laser")
+            w.write(sc, t_scan, TS.serialize_cdr(m, "sensor_msgs/msg/LaserScan"))
+    x, y, th = (float(v) for v in truth[0])
+    args = ["replay", str(tmp_path / "bag"), "--ros2", "--map", str(run["dir"] / "m1.json")]
+    args += [f"--initial-pose={x!r},{y!r},{th!r}", "--out", str(tmp_path / "out.mcap"), "--quiet"]
+    assert main(args) == 0
+    poses = replay([tmp_path / "out.mcap"]).recorded["robot"]
+    assert len(poses) == STEPS
+    err = [math.hypot(p.x - truth[i, 0], p.y - truth[i, 1]) for i, p in enumerate(poses)]
+    assert max(err) < 0.05, max(err)

@@ -333,3 +333,26 @@ def test_maps_from_an_occupancy_grid_topic(ros_bench_map: Bench) -> None:
     assert len(stored["geometry"]["coordinates"]) == 2  # the box is a hole
     assert _wait(lambda: any("map not imported" in e["message"] for e in events.on("rlutf/events")))
     sub.undeclare()
+
+
+def test_the_laser_pose_comes_from_tf_static(ros_bench: Bench) -> None:
+    bench = ros_bench
+    listener = RosListener()
+    laser = np.array([0.25, 0.05, 0.1])  # 25 cm ahead: ignoring it would miss by that much
+    r = _robot(bench, "/robot1", 8, humble=False, laser=laser)
+    pose_key = key(0, "/robot1/amcl_pose", POSE, False)
+    sub = bench.client.declare_subscriber(pose_key, listener)
+    r.tf_static()
+    _start(bench, [r])
+    _drive([r], 20)
+    assert _wait(lambda: len(listener.on(pose_key)) >= 15)
+    errors = []
+    for raw, _ in listener.on(pose_key)[-5:]:
+        m = TS.deserialize_cdr(raw, POSE)
+        i = round((m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec - r.t0) / 1e8)
+        p = m.pose.pose.position
+        errors.append(math.hypot(p.x - r.truth[i, 0], p.y - r.truth[i, 1]))
+    assert max(errors) < 0.05, errors
+    health = json.loads(bench.service.health())
+    assert health["extra"]["ros2_scans_laser_at_base"] == 0
+    sub.undeclare()
