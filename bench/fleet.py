@@ -79,6 +79,63 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def timed_publishing(
+    robots: int,
+    steps: int,
+    t0: int,
+    send: Any,
+    ready: Any,
+    go: Any,
+    began: Any,
+    ended: Any,
+) -> tuple[int, float, float]:
+    """The timed loop of a load generator: ``send(robot, step, stamp)`` at 10 Hz per robot.
+
+    Phases are staggered over the period. Sets ``ready``, waits for ``go``, and sets ``began``
+    and ``ended`` around the loop.
+
+    Returns:
+        Scans sent, how far the loop ended behind its schedule (s), and its CPU time (s).
+    """
+    import resource
+
+    ready.set()
+    go.wait()
+    time.sleep(1.0)
+    began.set()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    cpu0 = usage.ru_utime + usage.ru_stime
+    start = time.monotonic()
+    period = 1.0 / RATE_HZ
+    scans_sent = 0
+    events = sorted(
+        (k * period + (i / robots) * period, i, k) for i in range(robots) for k in range(steps - 1)
+    )
+    for when, i, k in events:
+        delay = start + when - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        send(i, k, t0 + int((k + 1) * period * 1e9))
+        scans_sent += 1
+    behind = time.monotonic() - (start + events[-1][0])
+    ended.set()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return scans_sent, behind, usage.ru_utime + usage.ru_stime - cpu0
+
+
+def generator_result(
+    scans_sent: int, poses: int, latencies: list[float], behind: float, cpu: float
+) -> dict[str, Any]:
+    """What a load generator hands back to :func:`run_size`."""
+    return {
+        "scans_sent": scans_sent,
+        "poses": poses,
+        "latencies": latencies,
+        "generator_behind_s": behind,
+        "generator_cpu_s": cpu,
+    }
+
+
 def _generator(
     endpoint: str,
     robots: int,
@@ -95,7 +152,6 @@ def _generator(
     Sets ``began`` and ``ended`` around the timed publishing, so that the parent can read the
     service's CPU time over the same interval.
     """
-    import resource
 
     import zenoh
 
@@ -196,52 +252,37 @@ def _generator(
                 )
             )
         encoded.append((rid, rows))
-    ready.set()
-    go.wait()
-    time.sleep(1.0)
-    began.set()
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    cpu0 = usage.ru_utime + usage.ru_stime
-    start = time.monotonic()
-    period = 1.0 / RATE_HZ
-    scans_sent = 0
-    events = sorted(
-        (k * period + (i / robots) * period, i, k) for i in range(robots) for k in range(steps - 1)
-    )
-    for when, i, k in events:
-        delay = start + when - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
+
+    def send(i: int, k: int, stamp: int) -> None:
         rid, rows = encoded[i]
-        stamp = t0 + int((k + 1) * period * 1e9)
         odom_rest, scan_rest = rows[k]
         head = f'{{"stamp_ns": {stamp}, '
         pubs[i][0].put(head + odom_rest)
         with lock:
             sent[(rid, stamp)] = time.time_ns()
         pubs[i][1].put(head + scan_rest)
-        scans_sent += 1
-    behind = time.monotonic() - (start + events[-1][0])
-    ended.set()
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    cpu = usage.ru_utime + usage.ru_stime - cpu0
-    time.sleep(2.0)
+
+    scans_sent, behind, cpu = timed_publishing(robots, steps, t0, send, ready, go, began, ended)
+    time.sleep(2.0)  # the last poses
     sub.undeclare()
     for s in sessions:
         s.close()
-    out.put(
-        {
-            "scans_sent": scans_sent,
-            "poses": poses,
-            "latencies": latencies,
-            "generator_behind_s": behind,
-            "generator_cpu_s": cpu,
-        }
-    )
+    out.put(generator_result(scans_sent, poses, latencies, behind, cpu))
 
 
-def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[str, Any]:
-    """One fleet size against a fresh service subprocess."""
+def run_size(
+    robots: int,
+    duration: float,
+    record: bool,
+    workers: int,
+    generator: Any = None,
+    serve_flags: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    """One fleet size against a fresh service subprocess.
+
+    ``generator`` (default: the JSON robots of :func:`_generator`, same arguments) and
+    ``serve_flags`` let another front door be measured the same way (:mod:`bench.ros2`).
+    """
     from service.live.sessions import free_port
 
     port = free_port()
@@ -261,11 +302,13 @@ def run_size(robots: int, duration: float, record: bool, workers: int) -> dict[s
         str(workers),
     ]
     cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
+    cmd += serve_flags
     proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
     ctx = mp.get_context("spawn")
     out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     gen = ctx.Process(
-        target=_generator, args=(endpoint, robots, duration, 7, out, ready, go, began, ended)
+        target=generator or _generator,
+        args=(endpoint, robots, duration, 7, out, ready, go, began, ended),
     )
     try:
         time.sleep(2.0)

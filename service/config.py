@@ -15,7 +15,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic_settings import (
     BaseSettings,
     JsonConfigSettingsSource,
@@ -35,6 +35,84 @@ ZenohMode = Literal["router", "peer", "client"]
 def _default_instance() -> str:
     host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
     return f"{host[:40] or 'rlutf'}-{os.getpid()}"
+
+
+def _ros_domain_id() -> int:
+    try:
+        return int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    except ValueError:
+        return 0
+
+
+class Ros2Robot(BaseModel):
+    """Per-namespace settings of the ROS 2 front door (``ros2.robots``, keyed by namespace)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    robot_id: str | None = Field(
+        None, pattern=f"^{ID_PATTERN}$", description="Robot id (default: the namespace)."
+    )
+    map_id: str | None = Field(
+        None, pattern=f"^{ID_PATTERN}$", description="Map of this robot (default: ros2.map_id)."
+    )
+    distro: Literal["auto", "humble", "jazzy"] | None = Field(
+        None, description="Key naming of this robot (default: ros2.distro)."
+    )
+
+
+class Ros2Settings(BaseModel):
+    """The ROS 2 front door (rmw_zenoh): ``--ros2``, ``ros2.*``, ``RLUTF_ROS2__*``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(False, description="Serve ROS 2 robots on rmw_zenoh's keys.")
+    domain_id: int = Field(
+        default_factory=_ros_domain_id, ge=0, le=232, description="ROS_DOMAIN_ID (default 0)."
+    )
+    map_id: str | None = Field(
+        None, pattern=f"^{ID_PATTERN}$", description="Map ROS robots are localized on."
+    )
+    odom_source: Literal["odom", "tf"] = Field(
+        "odom", description="Odometry from nav_msgs/Odometry (odom) or odom -> base on tf (tf)."
+    )
+    scan_topic: str = Field("scan", description="LaserScan topic, relative to the namespace.")
+    odom_topic: str = Field("odom", description="Odometry topic, relative to the namespace.")
+    initialpose_topic: str = Field("initialpose", description="Initial pose topic.")
+    pose_topic: str = Field("amcl_pose", description="Output PoseWithCovarianceStamped topic.")
+    tf_topic: str = Field("tf", description="TF topic (read for odom_source=tf, written).")
+    tf_static_topic: str | None = Field(
+        "tf_static", description="Static TF topic the laser's pose is read from (null: off)."
+    )
+    map_topic: str | None = Field(
+        None, description="OccupancyGrid topic to import maps from (off unless given)."
+    )
+    global_frame: str = Field("map", description="Frame of poses and initial poses.")
+    odom_frame: str = Field("odom", description="The odometry frame.")
+    base_frame: str = Field("base_footprint", description="The robot's base frame.")
+    odom_wait_s: float = Field(
+        0.1,
+        ge=0,
+        description="Longest a scan waits for the odometry at its stamp (as AMCL's tf filter), s.",
+    )
+    publish_tf: bool = Field(True, description="Publish map -> odom on the robot's tf.")
+    transform_tolerance_s: float = Field(
+        1.0, ge=0, description="map -> odom is stamped this far ahead (AMCL's default), s."
+    )
+    root_robot: str = Field(
+        "robot", pattern=f"^{ID_PATTERN}$", description="Robot id of topics with no namespace."
+    )
+    distro: Literal["auto", "humble", "jazzy"] = Field(
+        "auto",
+        description="Key naming to publish with: auto (learned from the robot's keys), humble "
+        "(TypeHashNotSupported) or jazzy (RIHS01, Jazzy and later).",
+    )
+    robots: dict[str, Ros2Robot] = Field(
+        default_factory=dict, description="Per-namespace overrides, keyed by namespace."
+    )
+
+    def robot(self, namespace: str) -> Ros2Robot:
+        """The overrides of a namespace (with or without slashes)."""
+        return self.robots.get(namespace.strip("/")) or Ros2Robot()
 
 
 class Settings(BaseSettings):
@@ -106,6 +184,9 @@ class Settings(BaseSettings):
         ge=0,
         description="When other instances are live at start: seconds to follow the fleet's "
         "poses and odometry before declaring the liveliness token and taking robots over.",
+    )
+    ros2: Ros2Settings = Field(
+        default_factory=Ros2Settings, description="The ROS 2 front door (rmw_zenoh)."
     )
     localizer: LocalizerConfig = Field(
         default_factory=LocalizerConfig, description="RLuTF parameters (see rlutf.LocalizerConfig)."

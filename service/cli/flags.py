@@ -70,6 +70,45 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
+def ros2_flags(p: argparse.ArgumentParser) -> None:
+    """Add the flags of the ROS 2 front door (``ros2.*`` settings)."""
+    g = p.add_argument_group("ROS 2 robots (rmw_zenoh)")
+    g.add_argument(
+        "--ros2", action="store_true", default=None, help="serve ROS 2 robots on rmw_zenoh's keys"
+    )
+    g.add_argument(
+        "--ros-domain-id",
+        type=int,
+        metavar="N",
+        help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
+    )
+    g.add_argument("--ros-map", metavar="ID", help="the map ROS robots are localized on")
+    g.add_argument(
+        "--ros-odom",
+        choices=["odom", "tf"],
+        help="odometry from nav_msgs/Odometry on odom (default) or odom -> base on tf",
+    )
+    g.add_argument("--ros-base-frame", metavar="FRAME", help="base frame (default base_footprint)")
+    g.add_argument("--ros-pose-topic", metavar="TOPIC", help="output topic (default amcl_pose)")
+    g.add_argument(
+        "--ros-map-topic", metavar="TOPIC", help="import maps from an OccupancyGrid topic"
+    )
+
+
+def _ros2_overrides(args: argparse.Namespace) -> dict[str, Any] | None:
+    given = {
+        "enabled": getattr(args, "ros2", None),
+        "domain_id": getattr(args, "ros_domain_id", None),
+        "map_id": getattr(args, "ros_map", None),
+        "odom_source": getattr(args, "ros_odom", None),
+        "base_frame": getattr(args, "ros_base_frame", None),
+        "pose_topic": getattr(args, "ros_pose_topic", None),
+        "map_topic": getattr(args, "ros_map_topic", None),
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    return given or None
+
+
 def load(args: argparse.Namespace) -> Any:
     """The effective settings of :func:`zenoh_flags` and :func:`settings_flags`.
 
@@ -94,6 +133,7 @@ def load(args: argparse.Namespace) -> Any:
             record_dir=args.record,
             no_record=args.no_record,
             workers=args.workers,
+            ros2=_ros2_overrides(args),
         )
     except ValidationError as err:
         raise SystemExit(f"rlutf: invalid configuration:\n{err}") from err

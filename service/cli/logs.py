@@ -90,6 +90,9 @@ def register(sub: Any) -> None:
         "--no-foxglove", action="store_true", help="leave the Foxglove views out of OUT"
     )
     replay.add_argument("--quiet", action="store_true", help="no progress bar")
+    from service.cli.ros2bags import replay_flags
+
+    replay_flags(replay)
     replay.set_defaults(func=cmd_replay)
 
     logs = sub.add_parser("log", help="inspect and repair MCAP logs")
@@ -156,10 +159,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
         transient=False,
     )
     task = progress.add_task("replay", total=None)
+    inputs, summary = list(args.inputs), None
+    if args.ros2:
+        from service.cli.ros2bags import bag_to_log
+
+        if len(inputs) != 1:
+            return _fail("replay", ValueError("--ros2 replays one bag"))
+        inputs = [out.with_name(out.name + ".inputs.mcap")]
+        try:
+            summary = bag_to_log(args, args.inputs[0], inputs[0])
+        except (ValueError, OSError) as err:
+            inputs[0].unlink(missing_ok=True)
+            return _fail("replay", err)
     try:
         with progress:
             result = replay(
-                args.inputs,
+                inputs,
                 out,
                 settings_file=args.settings,
                 assignments=args.assignments,
@@ -171,12 +186,25 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return _fail("replay", err)
     except OSError as err:
         return _fail("replay", ValueError(f"{err.filename or out}: {err.strerror or err}"))
+    finally:
+        if summary is not None:
+            inputs[0].unlink(missing_ok=True)
     console = _console()
+    if summary is not None:
+        console.print(_bag_report(summary))
     recomputed = sum(len(v) for v in result.recomputed.values())
     console.print(
         f"replayed {result.inputs} inputs ({result.dropped} scans dropped as live, "
         f"{result.rejected} rejected): {recomputed} poses -> {out}"
     )
+    if summary is not None and args.ros2_out is not None:
+        from service.cli.ros2bags import write_out
+
+        try:
+            n = write_out(args, result, summary)
+        except Exception as err:  # rosbags' writer raises its own errors
+            return _fail("replay", ValueError(f"{args.ros2_out}: {err}"))
+        console.print(f"wrote {n} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
     if args.plot is not None:
         from service.logs.plots import plot_all
 
@@ -196,6 +224,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         )
     console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
     return EXIT_OK if ok else EXIT_AUDIT_FAILED
+
+
+def _bag_report(summary: Any) -> str:
+    counts = ", ".join(f"{n} {k}" for k, n in sorted(summary.counts.items()))
+    text = f"bag: robot {summary.robot} ({summary.namespace}): {counts}"
+    for why, n in summary.rejected.most_common(5):
+        text += f"\n  rejected {n}: {why}"
+    return text
 
 
 def cmd_info(args: argparse.Namespace) -> int:

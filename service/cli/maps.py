@@ -44,7 +44,18 @@ def register(sub: Any) -> None:
         "corrected poses, .log or .log.gz, or an MCAP log in the WIRE.md layout with poses) "
         "and import it like `map import`.",
     )
-    build.add_argument("log", type=Path, help="CARMEN log (.log, .gz) or MCAP log (.mcap)")
+    build.add_argument(
+        "log", type=Path, help="CARMEN log (.log, .gz), MCAP log (.mcap) or, with --ros2, a bag"
+    )
+    build.add_argument(
+        "--ros2", action="store_true", help="LOG is a rosbag2 recording with scans and poses"
+    )
+    build.add_argument("--scan-topic", default="/scan", help="with --ros2: LaserScan topic")
+    build.add_argument(
+        "--pose-topic",
+        default="/amcl_pose",
+        help="with --ros2: PoseWithCovarianceStamped topic of the poses (default /amcl_pose)",
+    )
     build.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
     build.add_argument(
         "--max-range", type=float, default=50.0, help="longer ranges are no return, m (default 50)"
@@ -176,7 +187,16 @@ def cmd_build(args: argparse.Namespace) -> int:
     )
 
     try:
-        if args.log.suffix == ".mcap":
+        if args.ros2:
+            from service.ros2.bags import BagError
+            from service.ros2.bags import scans_with_poses as bag_scans
+
+            try:
+                posed = list(bag_scans(args.log, args.scan_topic, args.pose_topic))
+            except BagError as err:
+                raise ValueError(str(err)) from err
+            grid = build_grid(posed, resolution=args.resolution)
+        elif args.log.suffix == ".mcap":
             from service.logs.mcapmaps import scans_with_poses
 
             grid = build_grid(scans_with_poses(args.log), resolution=args.resolution)

@@ -11,7 +11,14 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, load, settings_flags, zenoh_flags
+from service.cli.flags import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    load,
+    ros2_flags,
+    settings_flags,
+    zenoh_flags,
+)
 
 
 def register(sub: Any) -> None:
@@ -25,6 +32,7 @@ def register(sub: Any) -> None:
     )
     zenoh_flags(serve, client=False)
     settings_flags(serve)
+    ros2_flags(serve)
     serve.set_defaults(func=cmd_serve)
 
     config = sub.add_parser(
@@ -35,6 +43,7 @@ def register(sub: Any) -> None:
     )
     zenoh_flags(config, client=False)
     settings_flags(config)
+    ros2_flags(config)
     config.set_defaults(func=cmd_config)
 
     demo = sub.add_parser(

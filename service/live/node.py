@@ -10,6 +10,10 @@ liveliness tokens (:mod:`service.cluster.membership`); each localizes, records, 
 answers pose queries for the robots it owns only, and seeds a robot it takes over from the
 robot's last published pose (:mod:`service.cluster.ownership`). A single instance owns every
 robot.
+
+ROS 2 robots (``settings.ros2.enabled``) come in through :class:`service.ros2.frontdoor.
+Ros2FrontDoor` on the same session: their inputs, once validated, take the JSON inputs' path
+from ownership on (recorded as the JSON messages), and their poses also go out as ROS messages.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from service.live.stats import Stats
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import MapBook
 from service.maps.store import FileMapStore, MapStorage
+from service.ros2.frontdoor import Ros2FrontDoor
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +145,16 @@ class LocalizationService:
             int(settings.handover_odom_s * 1e9),
             on_release=self._forget_pose,
         )
+        self.ros2: Ros2FrontDoor | None = None
+        if settings.ros2.enabled:
+            self.ros2 = Ros2FrontDoor(
+                settings.ros2,
+                self._offer,
+                self._reject,
+                self.clock,
+                settings.max_payload_bytes,
+                self.keys,
+            )
         self.closed = threading.Event()
 
     # ------------------------------------------------------------------------ lifecycle
@@ -182,6 +197,8 @@ class LocalizationService:
         ]
         # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        if self.ros2 is not None:
+            self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
         self.ownership.start(
             partial(fetch_last_pose, session, self.keys, timeout=timeout, max_bytes=limit)
@@ -208,6 +225,8 @@ class LocalizationService:
         if self._input_sub is not None:
             self._input_sub.undeclare()
         self.dispatcher.stop()
+        if self.ros2 is not None:
+            self.ros2.close()
         self.ownership.close()
         self.membership.close()
         self.mapfeed.close()
@@ -265,6 +284,25 @@ class LocalizationService:
             return
         self.ownership.offer(robot, leaf, payload, msg, received)
 
+    def _offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
+        """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
+        if not self.ownership.owns(robot):
+            self.ownership.ignore(robot, kind, payload, self.settings.max_payload_bytes)
+            return
+        self.stats.add("received")
+        self.ownership.offer(robot, kind, payload, msg, at)
+
+    def _reject(self, robot: str | None, key: str, message: str, at: int) -> None:
+        """Bad input from the ROS 2 front door: an Event, nothing else."""
+        if robot is not None and not self.ownership.owns(robot):
+            return  # its owner reports it
+        self.stats.add("received")
+        self.stats.add("rejected")
+        if robot is None:
+            self._global_event("error", EventCode.INVALID_KEY, key, message, at)
+        else:
+            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message, at)
+
     def _admit(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
         """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
         key = self.keys.robot(robot, kind)
@@ -293,6 +331,8 @@ class LocalizationService:
                 # follow our own here, for a robot that comes back after a handover.
                 self.ownership.follow_pose(done.robot, out.payload, self.settings.max_payload_bytes)
                 self._publish(out.key, out.payload, pose=True)
+                if self.ros2 is not None:
+                    self.ros2.on_pose(done.robot, out.payload)
                 now = self.clock()
                 self.recorder.record(
                     out.key, SCHEMA_OF_LEAF["pose"], out.payload, now, out.stamp_ns
@@ -397,6 +437,11 @@ class LocalizationService:
             "maps": sorted(self.maps_held()),
             **self.ownership.figures(),
         }
+        if self.ros2 is not None:
+            extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
+            extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
+            extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
+            extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
 
     def maps_held(self) -> list[str]:

@@ -6,20 +6,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import zenoh
-from service_harness import WORLD, Bench, start_service
-
-from service.live.sessions import client_config, free_port
+from service_harness import Bench, running_bench
 
 
 @pytest.fixture
 def bench(tmp_path: Path) -> Iterator[Bench]:
-    port = free_port()
-    service = start_service(tmp_path / "store", port)
-    endpoint = f"tcp/127.0.0.1:{port}"
-    client = zenoh.open(client_config(endpoint))
-    try:
-        yield Bench(service, client, endpoint, WORLD, tmp_path / "store")
-    finally:
-        client.close()
-        service.close()
+    with running_bench(tmp_path) as b:
+        yield b

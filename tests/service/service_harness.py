@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
 from schemas import InitialPose, LaserScan, Map, Odometry, encode
 from service.config import Settings
 from service.live.node import LocalizationService
+from service.live.sessions import client_config, free_port
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -133,3 +135,17 @@ def start_service(store: Path, port: int, workers: int = 0, **kw: Any) -> Locali
         **kw,
     )
     return LocalizationService(settings).start()
+
+
+@contextmanager
+def running_bench(tmp_path: Path, **kw: Any) -> Iterator[Bench]:
+    """A service (settings ``kw`` over the test defaults) and a client session to it."""
+    port = free_port()
+    service = start_service(tmp_path / "store", port, **kw)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    client = zenoh.open(client_config(endpoint))
+    try:
+        yield Bench(service, client, endpoint, WORLD, tmp_path / "store")
+    finally:
+        client.close()
+        service.close()

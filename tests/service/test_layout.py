@@ -22,8 +22,19 @@ ALLOWED: dict[str, set[str]] = {
     "maps": {"keys"},
     "cluster": {"keys"},
     "logs": {"keys", "config", "engine", "relocalization", "maps"},
-    "live": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster"},
-    "cli": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster", "live"},
+    "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs"},
+    "live": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster", "ros2"},
+    "cli": {
+        "keys",
+        "config",
+        "engine",
+        "relocalization",
+        "maps",
+        "logs",
+        "cluster",
+        "live",
+        "ros2",
+    },
     "__main__": {"cli"},
 }
 

@@ -1,0 +1,330 @@
+"""rosbag2 recordings in and out: a bag's inputs as a replay log, poses as a rosbag2 MCAP.
+
+In: a rosbag2 recording (a bag folder, or a bare ``.mcap`` with ``cdr`` channels and
+``ros2msg`` schemas) is read with rosbags' ``AnyReader``; its scans, odometry (``Odometry`` or
+the ``odom`` -> base transform on ``tf``) and initial poses are converted (the laser's pose
+from the bag's ``tf_static``, when it has one) as the live front
+door converts them (:mod:`service.ros2.convert`) and written, with the map and an optional
+initial pose, as an MCAP log in the WIRE.md layout, ``log_time`` the bag's receive time. That
+log is an ordinary replay input: ``rlutf replay --ros2`` replays it with the service's engine.
+
+Out: the poses of a replay as a rosbag2 MCAP (``amcl_pose`` and the ``map`` -> ``odom`` on
+``tf``, per robot namespace), which ``ros2 bag play`` and Foxglove open.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from schemas import (
+    SCHEMA_NAMES,
+    InitialPose,
+    LaserScan,
+    Map,
+    Odometry,
+    PoseEstimate,
+    SchemaError,
+    decode,
+)
+from service.keys import Keys
+from service.logs.mcapfile import LogWriter, Record
+from service.ros2 import convert, names
+from service.ros2.statictf import StaticFrames
+from service.ros2.trail import OdometryTrail, map_to_odom
+
+log = logging.getLogger(__name__)
+
+ScanAtPose = tuple[np.ndarray, np.ndarray, np.ndarray, float]
+
+
+class BagError(Exception):
+    """A bag that cannot be read, or that lacks what was asked for."""
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Where a bag's inputs are and how to read them.
+
+    Attributes:
+        scan: the LaserScan topic; its namespace names the robot.
+        odom: the Odometry topic (``odom_tf`` false).
+        odom_tf: read odometry from ``odom_frame`` -> ``base_frame`` on ``tf`` instead.
+        tf: the TF topic (default: ``tf`` in the scan's namespace).
+        initialpose: an initial pose topic to read too (default: ``initialpose`` in the
+            scan's namespace, when the bag has it).
+        global_frame, odom_frame, base_frame: the frames, as Nav2 names them by default.
+    """
+
+    scan: str = "/scan"
+    odom: str = "/odom"
+    odom_tf: bool = False
+    tf: str | None = None
+    initialpose: str | None = None
+    global_frame: str = "map"
+    odom_frame: str = "odom"
+    base_frame: str = "base_footprint"
+
+    @property
+    def namespace(self) -> str:
+        """The scan topic's namespace, ``/robot1`` (``/`` for none)."""
+        return "/" + "/".join(self.scan.strip("/").split("/")[:-1])
+
+    def in_namespace(self, name: str) -> str:
+        """``name`` in the scan's namespace."""
+        return names.join_topic(self.namespace, name)
+
+
+@dataclass
+class BagSummary:
+    """What a conversion read and left out."""
+
+    robot: str
+    namespace: str
+    counts: Counter[str] = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
+    first_ns: int = 0
+    last_ns: int = 0
+
+
+def _reader(bag: Path) -> Any:
+    from rosbags.highlevel import AnyReader
+
+    try:
+        return AnyReader([bag], default_typestore=convert.typestore())
+    except Exception as err:  # rosbags raises its own errors per storage
+        raise BagError(f"{bag}: not a readable rosbag2 recording: {err}") from err
+
+
+def bag_inputs(
+    bag: Path,
+    out: BinaryIO,
+    map_payload: bytes,
+    topics: BagTopics,
+    *,
+    initial: tuple[float, float, float] | None = None,
+    robot_id: str | None = None,
+    keys: Keys | None = None,
+    config: Mapping[str, Any] | None = None,
+) -> BagSummary:
+    """Write a bag's inputs to ``out`` as an MCAP log in the WIRE.md layout.
+
+    Args:
+        bag: the recording.
+        out: where the log goes.
+        map_payload: the Map the robot is localized on (written first).
+        topics: where the inputs are.
+        initial: ``(x, y, theta)`` of the robot in the map at the first scan.
+        robot_id: the robot's id (default: the scan topic's namespace, ``robot`` for none).
+        keys: the key layout.
+        config: the configuration to store in the log (``rlutf.config``).
+
+    Raises:
+        BagError: the bag is unreadable, or lacks the scan or odometry topic.
+    """
+    keys = keys or Keys()
+    map_msg = decode(Map, map_payload, max_bytes=10**9)
+    robot = robot_id or names.robot_of_namespace(topics.namespace, "robot")
+    summary = BagSummary(robot, topics.namespace)
+    odom_topic = topics.tf or topics.in_namespace("tf") if topics.odom_tf else topics.odom
+    pose_topic = topics.initialpose or topics.in_namespace("initialpose")
+    static_topic = topics.in_namespace("tf_static")
+    wanted = {
+        topics.scan: "scan",
+        odom_topic: "odom",
+        pose_topic: "initialpose",
+        static_topic: "tf_static",  # the laser's pose in the base frame
+    }
+    frames = StaticFrames()
+    with _reader(bag) as reader:
+        present = {c.topic for c in reader.connections}
+        for t in (topics.scan, odom_topic):
+            if t not in present:
+                raise BagError(f"{bag}: no topic {t} (topics: {', '.join(sorted(present))})")
+        conns = [c for c in reader.connections if c.topic in wanted]
+        writer = LogWriter(out, None)
+        if config is not None:
+            writer.write_config(config)
+        started = False
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            kind = wanted[conn.topic]
+            if not started:
+                started = True
+                summary.first_ns = t_ns
+                writer.write(
+                    Record(keys.map(map_msg.map_id), "rlutf.Map", map_payload, t_ns - 2, t_ns - 2)
+                )
+            try:
+                if kind == "tf_static":
+                    _expect(conn.msgtype, convert.TF_MESSAGE)
+                    for parent, child, pose in convert.static_transforms(bytes(raw)):
+                        frames.add(parent, child, pose)
+                    continue
+                msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, frames)
+            except SchemaError as err:
+                summary.rejected[f"{conn.topic}: {str(err)[:120]}"] += 1
+                continue
+            for m in msgs:
+                if initial is not None and isinstance(m, LaserScan):
+                    x, y, theta = initial
+                    ip = InitialPose(
+                        stamp_ns=m.stamp_ns, map_id=map_msg.map_id, x=x, y=y, theta=theta
+                    )
+                    _write(writer, keys, robot, ip, t_ns - 1)
+                    summary.counts["initialpose"] += 1
+                    initial = None
+                _write(writer, keys, robot, m, t_ns)
+                summary.counts[type(m).__name__] += 1
+            summary.last_ns = t_ns
+        writer.finish()
+    if not summary.counts["LaserScan"]:
+        raise BagError(f"{bag}: no valid scan on {topics.scan}")
+    if not summary.counts["initialpose"] and not summary.counts["InitialPose"]:
+        raise BagError(
+            f"{bag}: no initial pose: give --initial-pose X,Y,THETA (none on {pose_topic})"
+        )
+    return summary
+
+
+def _convert(
+    kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics, frames: StaticFrames
+) -> list[LaserScan | Odometry | InitialPose]:
+    if kind == "scan":
+        _expect(msgtype, convert.LASER_SCAN)
+        return [convert.laser_scan(raw, offset_of=partial(frames.offset, topics.base_frame))]
+    if kind == "initialpose":
+        _expect(msgtype, convert.POSE_COV)
+        return [convert.initial_pose(raw, map_id, topics.global_frame)]
+    if topics.odom_tf:
+        _expect(msgtype, convert.TF_MESSAGE)
+        return list(convert.odometry_from_tf(raw, topics.odom_frame, topics.base_frame))
+    _expect(msgtype, convert.ODOMETRY)
+    return [convert.odometry(raw)]
+
+
+def _expect(got: str, want: str) -> None:
+    if got != want:
+        raise convert.CdrError(f"carries {got}, expected {want}")
+
+
+def _write(
+    writer: LogWriter, keys: Keys, robot: str, msg: LaserScan | Odometry | InitialPose, t: int
+) -> None:
+    leaf = {LaserScan: "scan", Odometry: "odom", InitialPose: "initialpose"}[type(msg)]
+    writer.write(
+        Record(
+            keys.robot(robot, leaf),
+            SCHEMA_NAMES[type(msg)],
+            convert.wire_json(msg),
+            t,
+            msg.stamp_ns,
+        )
+    )
+
+
+# ------------------------------------------------------------------------------ out
+def write_pose_bag(
+    path: Path,
+    poses: Mapping[str, list[bytes]],
+    odometry: Mapping[str, list[tuple[int, float, float, float]]],
+    namespaces: Mapping[str, str],
+    *,
+    pose_topic: str = "amcl_pose",
+    tf_topic: str = "tf",
+    global_frame: str = "map",
+    odom_frame: str = "odom",
+    transform_tolerance_s: float = 0.0,
+) -> int:
+    """Write poses as a rosbag2 MCAP folder: ``amcl_pose`` and ``map`` -> ``odom`` per robot.
+
+    Args:
+        path: the bag folder to create (must not exist).
+        poses: PoseEstimate payloads per robot, in order.
+        odometry: ``(stamp_ns, x, y, theta)`` per robot, for ``map`` -> ``odom``.
+        namespaces: each robot's namespace (``/`` for none; default ``/{robot}``).
+        transform_tolerance_s: how far ahead ``map`` -> ``odom`` is stamped.
+
+    Returns:
+        The number of messages written.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = convert.typestore()
+    written = 0
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for robot, payloads in poses.items():
+            ns = namespaces.get(robot, f"/{robot}")
+            pc = writer.add_connection(
+                names.join_topic(ns, pose_topic), convert.POSE_COV, typestore=ts
+            )
+            tc = writer.add_connection(
+                names.join_topic(ns, tf_topic), convert.TF_MESSAGE, typestore=ts
+            )
+            trail = OdometryTrail(kept=1 << 62)
+            for stamp, x, y, theta in odometry.get(robot, []):
+                trail.add(stamp, (x, y, theta))
+            ahead = int(transform_tolerance_s * 1e9)
+            for payload in payloads:
+                pose = decode(PoseEstimate, payload)
+                writer.write(pc, pose.stamp_ns, convert.amcl_pose(pose, global_frame))
+                written += 1
+                odom = trail.at(pose.stamp_ns)
+                if odom is not None:
+                    m_o = map_to_odom([pose.x, pose.y, pose.theta], odom)
+                    raw = convert.transform(m_o, pose.stamp_ns + ahead, global_frame, odom_frame)
+                    writer.write(tc, pose.stamp_ns, raw)
+                    written += 1
+    return written
+
+
+def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[ScanAtPose]:
+    """``(sensor pose, ranges, angles, range_max)`` for each scan of a bag with poses.
+
+    Each scan takes the pose (a ``PoseWithCovarianceStamped``, e.g. ``amcl_pose``) at its
+    stamp, interpolated between the two around it; scans outside the poses' span, or with no
+    pose within half a second, are left out. The sensor is taken at the base.
+
+    Raises:
+        BagError: the bag is unreadable or has no scan with a pose.
+    """
+    trail = OdometryTrail(kept=1 << 62)
+    pose_stamps: list[int] = []
+    scans: list[LaserScan] = []
+    with _reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic in (scan_topic, pose_topic)]
+        for conn, _t, raw in reader.messages(connections=conns):
+            try:
+                if conn.topic == scan_topic:
+                    scans.append(convert.laser_scan(bytes(raw)))
+                else:
+                    m = convert.deserialize(bytes(raw), conn.msgtype)
+                    p = m.pose.pose
+                    stamp = convert.stamp_ns(m.header)
+                    trail.add(stamp, (p.position.x, p.position.y, convert.yaw(p.orientation)))
+                    pose_stamps.append(stamp)
+            except (SchemaError, AttributeError):
+                continue
+    pose_stamps.sort()
+    found = 0
+    for scan in scans:
+        i = int(np.searchsorted(pose_stamps, scan.stamp_ns))
+        near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
+        if not near or min(abs(s - scan.stamp_ns) for s in near) > 500_000_000:
+            continue
+        if scan.stamp_ns < pose_stamps[0] or scan.stamp_ns > pose_stamps[-1]:
+            continue
+        pose = trail.at(scan.stamp_ns)
+        assert pose is not None
+        ranges = np.array([np.nan if r is None else r for r in scan.ranges])
+        angles = scan.angle_min + scan.angle_increment * np.arange(len(ranges))
+        found += 1
+        yield pose, ranges, angles, scan.range_max
+    if not found:
+        raise BagError(f"{bag}: no scan on {scan_topic} has a pose on {pose_topic}")

@@ -1,0 +1,448 @@
+"""The live ROS 2 front door: rmw_zenoh robots on the service's Zenoh session.
+
+A Zenoh callback parses the key (topic, type, hash naming), maps the namespace to a robot,
+decodes and validates the CDR into a WIRE.md message and hands it to the service's ``offer``
+(the path JSON inputs take: ownership, recording as JSON, the robot's mailbox). Bad input (a
+malformed payload, a wrong type on a topic, a namespace that is not a robot id, an initial pose
+in another frame) is dropped with an Event through ``reject``; nothing else is touched.
+
+Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
+transient-local, depth 1: an advanced publisher with a one-sample cache, as rmw_zenoh declares
+it) and as the ``map`` -> ``odom`` transform on the robot's ``tf`` (map -> base composed with the
+inverse of the robot's odometry at the scan's stamp, stamped ahead by the transform tolerance),
+each sample with rmw_zenoh's attachment, on the key the robot's own distribution listens on.
+Liveliness tokens announce the node and its topics, so ``ros2 node list`` and ``ros2 topic
+list`` show them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Literal
+
+import numpy as np
+import zenoh
+import zenoh.ext
+
+from schemas import PoseEstimate, SchemaError, decode
+from service.config import Ros2Settings
+from service.keys import InputKind, Keys, Message
+from service.ros2 import convert, names
+from service.ros2.attachment import Sequencer, gid_of
+from service.ros2.gate import OdometryGate
+from service.ros2.names import Distro
+from service.ros2.statictf import StaticFrames
+from service.ros2.trail import OdometryTrail, map_to_odom
+
+log = logging.getLogger(__name__)
+
+Offer = Callable[[str, InputKind, bytes, Message, int], None]
+"""Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
+Reject = Callable[[str | None, str, str, int], None]
+"""Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
+Clock = Callable[[], int]
+
+Leaf = Literal["scan", "odom", "initialpose", "tf"]
+
+
+@dataclass
+class _Publisher:
+    key: str
+    publisher: Any
+    sequencer: Sequencer
+
+
+@dataclass
+class _Robot:
+    robot_id: str
+    namespace: str
+    map_id: str | None
+    distro: Distro | None
+    forced: bool
+    odometry: OdometryTrail = field(default_factory=OdometryTrail)
+    publishers: dict[str, _Publisher] = field(default_factory=dict)
+    tokens: list[Any] = field(default_factory=list)
+    warned_frames: set[str] = field(default_factory=set)
+
+
+class Ros2FrontDoor:
+    """ROS 2 robots in, ``amcl_pose`` and ``map`` -> ``odom`` out.
+
+    Args:
+        settings: the ``ros2`` settings.
+        offer: where validated inputs go.
+        reject: where bad input is reported.
+        clock: receive times (ns since the epoch, increasing).
+        max_payload_bytes: largest payload accepted.
+        keys: the key layout (maps from ``map_topic`` are put on its map keys).
+    """
+
+    def __init__(
+        self,
+        settings: Ros2Settings,
+        offer: Offer,
+        reject: Reject,
+        clock: Clock,
+        max_payload_bytes: int = 1_000_000,
+        keys: Keys | None = None,
+    ) -> None:
+        self.settings = settings
+        self.keys = keys or Keys()
+        self.offer = offer
+        self.reject = reject
+        self.clock = clock
+        self.max_payload_bytes = max_payload_bytes
+        self._robots: dict[str, _Robot] = {}
+        self._by_id: dict[str, _Robot] = {}
+        self._lock = threading.Lock()
+        self._session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._entity = 1  # entity ids of the tokens; 0 is the node
+        self._zid = ""
+        overrides = {ns: r.robot_id for ns, r in settings.robots.items() if r.robot_id}
+        self._overrides = overrides
+        topics: dict[str, Leaf] = {
+            settings.scan_topic: "scan",
+            settings.initialpose_topic: "initialpose",
+        }
+        if settings.odom_source == "odom":
+            topics[settings.odom_topic] = "odom"
+        else:
+            topics[settings.tf_topic] = "tf"
+        self._topics = topics
+        self._static: dict[str, StaticFrames] = {}
+        self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
+        self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
+        self._stop = threading.Event()
+        self._flusher: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------- lifecycle
+    def start(self, session: zenoh.Session) -> None:
+        """Declare the node's token and the subscriptions."""
+        s = self.settings
+        self._session = session
+        self._zid = str(session.zid())
+        liveliness = session.liveliness()
+        self._declared.append(liveliness.declare_token(names.node_token(s.domain_id, self._zid, 0)))
+        for name, leaf in self._topics.items():
+            key = names.subscription_key(s.domain_id, name)
+            self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
+        # tf_static and maps are transient local: published once, maybe long ago, so a late
+        # joiner asks the publishers' caches for the last sample (as rmw_zenoh's subscribers).
+        cached = ((s.tf_static_topic, self._on_static), (s.map_topic, self._on_map))
+        for topic, callback in cached:
+            if topic:
+                self._declared.append(
+                    zenoh.ext.declare_advanced_subscriber(
+                        session,
+                        names.subscription_key(s.domain_id, topic),
+                        callback,
+                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                    )
+                )
+        self._flusher = threading.Thread(target=self._flush, name="rlutf-ros2-gate", daemon=True)
+        self._flusher.start()
+        log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
+
+    def _flush(self) -> None:
+        period = max(min(self.settings.odom_wait_s / 4, 0.05), 0.005)
+        while not self._stop.wait(period):
+            self.gate.flush()
+
+    def close(self) -> None:
+        """Undeclare publishers, tokens and subscriptions."""
+        self._stop.set()
+        if self._flusher is not None:
+            self._flusher.join(1.0)
+        with self._lock:
+            robots = list(self._robots.values())
+            self._robots.clear()
+            self._by_id.clear()
+        for r in robots:
+            for p in r.publishers.values():
+                _undeclare(p.publisher)
+            for t in r.tokens:
+                _undeclare(t)
+        for d in reversed(self._declared):
+            _undeclare(d)
+        self._declared.clear()
+
+    def robots(self) -> dict[str, str]:
+        """Robot id to namespace of the ROS robots seen."""
+        with self._lock:
+            return {r.robot_id: r.namespace for r in self._robots.values()}
+
+    # ------------------------------------------------------------------------- inputs
+    def _on(self, leaf: Leaf, sample: zenoh.Sample) -> None:
+        try:
+            self._handle(str(sample.key_expr), sample.payload.to_bytes(), leaf)
+        except Exception:  # a callback must never raise into zenoh
+            log.exception("ROS 2 input on %s failed", sample.key_expr)
+
+    def _handle(self, key: str, raw: bytes, leaf: Leaf) -> None:
+        s = self.settings
+        received = self.clock()
+        dk = names.parse_data_key(key, s.domain_id)
+        if dk is None:
+            return  # not an rmw_zenoh data key (another tool's key under the domain)
+        try:
+            robot_id = names.robot_of_namespace(dk.namespace, s.root_robot, self._overrides)
+        except names.NamespaceError as err:
+            self.reject(None, key, str(err), received)
+            return
+        expected = _EXPECTED[leaf]
+        if dk.msgtype != expected:  # before the robot is made: no tokens for a stray topic
+            self.reject(
+                robot_id, key, f"{dk.topic} carries {dk.msgtype}, expected {expected}", received
+            )
+            return
+        if len(raw) > self.max_payload_bytes:
+            self.reject(
+                robot_id,
+                key,
+                f"payload too large: {len(raw)} bytes, limit {self.max_payload_bytes}",
+                received,
+            )
+            return
+        robot = self._robot(robot_id, dk.namespace, dk.distro)
+        try:
+            messages = self._decode(robot, raw, leaf)
+        except SchemaError as err:
+            self.reject(robot_id, key, str(err), received)
+            return
+        for kind, msg in messages:
+            if kind == "odom":
+                pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
+                with self._lock:
+                    robot.odometry.add(msg.stamp_ns, pose)
+            self.gate.put(robot_id, kind, convert.wire_json(msg), msg)
+
+    def _on_static(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        dk = names.parse_data_key(key, self.settings.domain_id)
+        if dk is None:
+            return
+        try:
+            if dk.msgtype != convert.TF_MESSAGE:
+                raise convert.CdrError(f"{dk.topic} carries {dk.msgtype}, expected a TFMessage")
+            found = convert.static_transforms(sample.payload.to_bytes())
+        except SchemaError as err:
+            self.reject(None, key, str(err), self.clock())
+            return
+        with self._lock:
+            frames = self._static.setdefault(dk.namespace, StaticFrames())
+        for parent, child, pose in found:
+            frames.add(parent, child, pose)
+
+    def _laser_offset(self, robot: _Robot, frame_id: str) -> tuple[float, float, float]:
+        """The laser's pose in the base frame, from the robot's tf_static (zero if unknown)."""
+        base = self.settings.base_frame
+        with self._lock:
+            frames = self._static.get(robot.namespace)
+        found = frames.offset(base, frame_id) if frames is not None else None
+        if found is None:
+            found = (0.0, 0.0, 0.0)
+            if frame_id.lstrip("/") not in ("", base):
+                self.laser_at_base += 1
+                if frame_id not in robot.warned_frames:
+                    robot.warned_frames.add(frame_id)
+                    log.warning(
+                        "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base",
+                        robot.robot_id,
+                        base,
+                        frame_id,
+                    )
+        return found
+
+    def _on_map(self, sample: zenoh.Sample) -> None:
+        key, raw = str(sample.key_expr), sample.payload.to_bytes()
+        received = self.clock()
+        dk = names.parse_data_key(key, self.settings.domain_id)
+        if dk is None:
+            return
+        # Polygonizing a grid takes a while: not on a Zenoh thread.
+        threading.Thread(
+            target=self._import_map, args=(key, dk, raw, received), daemon=True
+        ).start()
+
+    def _import_map(self, key: str, dk: names.DataKey, raw: bytes, received: int) -> None:
+        from service.maps.mapimport import MapImportError, grid_to_map
+
+        map_id = self.settings.robot(dk.namespace).map_id or self.settings.map_id
+        try:
+            if dk.msgtype != convert.OCCUPANCY_GRID:
+                raise convert.CdrError(f"{dk.topic} carries {dk.msgtype}, expected a grid")
+            if map_id is None:
+                raise convert.CdrError("no map id for ROS maps: give ros2.map_id (--ros-map)")
+            grid, stamp = convert.occupancy_grid(raw)
+            # Newer grids give newer versions: the stamp in ms (the receive time without one).
+            version = (stamp or received) // 1_000_000
+            result = grid_to_map(grid, map_id=map_id, version=version)
+        except (SchemaError, MapImportError, ValueError) as err:
+            self.reject(None, key, f"map not imported: {err}", received)
+            return
+        payload = json.dumps(result.map).encode()
+        log.info("map %s v%d imported from %s", map_id, version, dk.topic)
+        session = self._session
+        if session is not None:
+            # Into the store and to every instance, as `rlutf map put` does.
+            session.put(self.keys.map(map_id), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
+        s = self.settings
+        if leaf == "scan":
+            scan = convert.laser_scan(raw, offset_of=partial(self._laser_offset, robot))
+            return [("scan", scan)]
+        if leaf == "odom":
+            return [("odom", convert.odometry(raw))]
+        if leaf == "tf":
+            found = convert.odometry_from_tf(raw, s.odom_frame, s.base_frame)
+            return [("odom", m) for m in found]
+        if robot.map_id is None:
+            raise convert.CdrError(
+                "no map for ROS 2 robots: give ros2.map_id (--ros-map) or ros2.robots."
+                f"{robot.namespace.strip('/') or '/'}.map_id"
+            )
+        return [("initialpose", convert.initial_pose(raw, robot.map_id, s.global_frame))]
+
+    def _robot(self, robot_id: str, namespace: str, distro: Distro) -> _Robot:
+        with self._lock:
+            r = self._robots.get(namespace)
+            if r is not None:
+                if not r.forced and r.distro != distro:
+                    log.info("ROS robot %s now uses %s key naming", robot_id, distro)
+                    self._redeclare(r, distro)
+                return r
+            over = self.settings.robot(namespace)
+            chosen = over.distro or self.settings.distro
+            forced = chosen != "auto"
+            r = _Robot(
+                robot_id,
+                namespace,
+                over.map_id or self.settings.map_id,
+                chosen if chosen != "auto" else distro,
+                forced,
+            )
+            self._robots[namespace] = r
+            self._by_id[robot_id] = r
+            self._declare(r)
+            return r
+
+    # ------------------------------------------------------------------------- outputs
+    def _declare(self, r: _Robot) -> None:
+        """Tokens of the robot's topics and its publishers (lock held)."""
+        session = self._session
+        if session is None or r.distro is None:
+            return
+        s = self.settings
+        qos = {
+            "scan": names.SENSOR_QOS,
+            "odom": names.ODOM_QOS,
+            "initialpose": names.INITIALPOSE_QOS,
+        }
+        entities: list[tuple[Literal["MP", "MS"], str, str, names.Qos]] = [
+            ("MS", name, _EXPECTED[leaf], qos.get(leaf, names.TF_QOS))
+            for name, leaf in self._topics.items()
+        ]
+        entities.append(("MP", s.pose_topic, convert.POSE_COV, names.AMCL_POSE_QOS))
+        if s.publish_tf:
+            entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
+        liveliness = session.liveliness()
+        for kind, name, msgtype, q in entities:
+            topic = names.join_topic(r.namespace, name)
+            token = names.entity_token(
+                s.domain_id, self._zid, 0, self._entity, kind, topic, msgtype, r.distro, q
+            )
+            self._entity += 1
+            r.tokens.append(liveliness.declare_token(token))
+            if kind == "MP":
+                key = names.data_key(s.domain_id, topic, msgtype, r.distro)
+                r.publishers[msgtype] = _Publisher(
+                    key, self._publisher(session, key, q), Sequencer(gid_of(token))
+                )
+
+    @staticmethod
+    def _publisher(session: zenoh.Session, key: str, qos: names.Qos) -> Any:
+        common: dict[str, Any] = {
+            "congestion_control": zenoh.CongestionControl.DROP,
+            "allowed_destination": zenoh.Locality.REMOTE,  # not to our own tf subscriber
+        }
+        if qos.transient_local:
+            # rmw_zenoh's transient-local publisher: a cache late subscribers query.
+            return zenoh.ext.declare_advanced_publisher(
+                session,
+                key,
+                cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
+                publisher_detection=True,
+                **common,
+            )
+        return session.declare_publisher(key, **common)
+
+    def _redeclare(self, r: _Robot, distro: Distro) -> None:
+        for p in r.publishers.values():
+            _undeclare(p.publisher)
+        for t in r.tokens:
+            _undeclare(t)
+        r.publishers.clear()
+        r.tokens.clear()
+        r.distro = distro
+        self._declare(r)
+
+    def on_pose(self, robot_id: str, payload: bytes) -> None:
+        """Publish a PoseEstimate of a ROS robot as ``amcl_pose`` and ``map`` -> ``odom``."""
+        with self._lock:
+            r = self._by_id.get(robot_id)
+            if r is None:
+                return  # a robot of the JSON front door
+            pubs = dict(r.publishers)
+            odom = None
+        try:
+            pose = decode(PoseEstimate, payload, max_bytes=self.max_payload_bytes)
+        except SchemaError:
+            log.exception("a pose of %s does not decode", robot_id)
+            return
+        s = self.settings
+        now = self.clock()
+        self._put(pubs.get(convert.POSE_COV), convert.amcl_pose(pose, s.global_frame), now)
+        if not s.publish_tf:
+            return
+        with self._lock:
+            odom = r.odometry.at(pose.stamp_ns)
+        if odom is None:
+            return  # no odometry yet: no map -> odom (AMCL waits for odom -> base too)
+        map_odom = map_to_odom([pose.x, pose.y, pose.theta], odom)
+        stamp = pose.stamp_ns + int(s.transform_tolerance_s * 1e9)
+        self._put(
+            pubs.get(convert.TF_MESSAGE),
+            convert.transform(map_odom, stamp, s.global_frame, s.odom_frame),
+            now,
+        )
+
+    @staticmethod
+    def _put(pub: _Publisher | None, payload: bytes, now: int) -> None:
+        if pub is None:
+            return
+        try:
+            pub.publisher.put(payload, attachment=pub.sequencer.next(now))
+        except zenoh.ZError:
+            log.warning("could not publish on %s", pub.key, exc_info=True)
+
+
+_EXPECTED: dict[Leaf, str] = {
+    "scan": convert.LASER_SCAN,
+    "odom": convert.ODOMETRY,
+    "initialpose": convert.POSE_COV,
+    "tf": convert.TF_MESSAGE,
+}
+
+
+def _undeclare(entity: Any) -> None:
+    try:
+        entity.undeclare()
+    except Exception:  # already gone with the session
+        log.debug("undeclare failed", exc_info=True)
