@@ -18,7 +18,7 @@ from functools import cache
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -204,7 +204,7 @@ def initial_pose(raw: bytes, map_id: str, global_frame: str = "map") -> InitialP
     return _validate(InitialPose, data)  # type: ignore[no-any-return]
 
 
-def wire_json(message: LaserScan | Odometry | InitialPose) -> bytes:
+def wire_json(message: BaseModel) -> bytes:
     """A converted input as the JSON the log records (pydantic's serializer).
 
     Not :func:`schemas.encode`: Python's float ``repr`` costs about a microsecond a number
