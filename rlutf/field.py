@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _grid
 from rlutf.map import Map
 
 FloatArray = NDArray[np.float64]
@@ -54,6 +53,8 @@ class DistanceField:
         truncation: float = FIELD_TRUNCATION,
     ) -> DistanceField:
         """The field of ``world`` over its bounds plus ``truncation``."""
+        from rlutf import _grid
+
         minx, miny, maxx, maxy = world.bounds
         x0, y0 = minx - truncation, miny - truncation
         width = math.ceil((maxx - minx + 2 * truncation) / resolution)
@@ -123,6 +124,8 @@ def wide_search(
         distance, m^2) first, at least two grid steps apart in position or heading; and the
         number of poses scored.
     """
+    from rlutf import _grid
+
     field = distance_field(world)
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) > settings.max_points:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _kernels
 from rlutf.config import LocalizerConfig
 from rlutf.discrepancy import PolarArea, anchored_turning, turning_steps
 from rlutf.map import Map
@@ -22,6 +21,8 @@ class Problem:
     """What one update compares against: the real scan, its polygon and the beams to cast."""
 
     def __init__(self, world: Map, scan: Scan, config: LocalizerConfig, beams: Beams) -> None:
+        from rlutf import _kernels
+
         self.world = world
         self.config = config
         self.offset = np.ascontiguousarray(scan.sensor_offset, dtype=np.float64)
@@ -82,6 +83,8 @@ class Problem:
         return out
 
     def _discrepancy(self, poses: FloatArray, cap: float | None) -> FloatArray:
+        from rlutf import _kernels
+
         kind = self.config.discrepancy
         if kind == "area":
             area = self.area

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rlutf import _kernels
 from rlutf.map import Map
 
 FloatArray = NDArray[np.float64]
@@ -83,6 +82,8 @@ def cast_with_walls(
     world: Map, poses: ArrayLike, angles: ArrayLike | Beams, max_range: float
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     """:func:`cast_rays` and the index of the wall each beam hits (``-1`` for none)."""
+    from rlutf import _kernels
+
     beams = angles if isinstance(angles, Beams) else Beams.of(angles)
     p = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
     if not max_range > 0 or len(beams) == 0 or len(p) == 0:

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _lm
 from rlutf.map import Map
 from rlutf.raycast import Beams
 
@@ -137,6 +136,8 @@ def refine_pose(
     Returns:
         The refinement.
     """
+    from rlutf import _lm
+
     n = len(beams)
     out_pose = np.empty(3)
     ranges = np.empty(n)

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rlutf import _bnb, _grid
 from rlutf.errors import GeometryError
 from rlutf.map import Map
 from rlutf.motion import compose, wrap_scalar
@@ -156,6 +155,8 @@ def search_grid(world: Map, settings: RelocalizeSettings) -> SearchGrid:
 
 
 def _make_grid(world: Map, settings: RelocalizeSettings) -> SearchGrid:
+    from rlutf import _bnb, _grid
+
     res = settings.resolution
     margin = 3.0 * settings.sigma + res
     minx, miny, maxx, maxy = world.bounds
@@ -197,6 +198,8 @@ def relocalize(
     Returns:
         The hypotheses, best first, and whether the best one is found and unambiguous.
     """
+    from rlutf import _bnb
+
     cfg = settings or RelocalizeSettings()
     ref = refine or RefineSettings()
     valid = scan.valid()
