@@ -46,7 +46,13 @@ from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, refine_pose
-from rlutf.relocalize import Follower, FollowSettings, Hypothesis, RelocalizeSettings
+from rlutf.relocalize import (
+    Follower,
+    FollowSettings,
+    Hypothesis,
+    RelocalizeSettings,
+    robust_cost,
+)
 from rlutf.scan import Scan
 from rlutf.search import RandomSearch
 
@@ -86,11 +92,6 @@ class LocalizeResult:
     refine_casts: int = 0
     hypotheses: tuple[Hypothesis, ...] = ()
     relocalizing: bool = False
-
-    @property
-    def inliers(self) -> float:
-        """The same as :attr:`fit`."""
-        return self.fit
 
 
 class Localizer:
@@ -521,12 +522,7 @@ class Localizer:
 def _better(a: Refinement, b: Refinement, scale: float) -> bool:
     """Whether fit ``a`` explains the scan better than ``b``: the lower Cauchy cost of the
     residuals at one common ``scale`` (a beam that hits nothing counts as off by ``4 scale``)."""
-    return _robust_cost(a.residuals, scale) < _robust_cost(b.residuals, scale)
-
-
-def _robust_cost(residuals: FloatArray, scale: float) -> float:
-    u = np.nan_to_num(residuals, nan=4.0 * scale) / scale
-    return float(np.log1p(u * u).sum())
+    return robust_cost(a.residuals, scale) < robust_cost(b.residuals, scale)
 
 
 def _compose(a: FloatArray, b: FloatArray) -> FloatArray:

@@ -27,20 +27,18 @@ class Beams:
         angles: ``(N,)`` beam angles, radians, relative to the ray origin's heading.
         cos: ``(N,)`` cosines of ``angles``.
         sin: ``(N,)`` sines of ``angles``.
-        unit: ``(N,)`` beam directions as complex numbers ``cos + i sin``.
     """
 
     angles: FloatArray
     cos: FloatArray
     sin: FloatArray
-    unit: NDArray[np.complex128]
 
     @classmethod
     def of(cls, angles: ArrayLike) -> Beams:
         """Prepare beams from ``(N,)`` angles in radians."""
         a = np.array(angles, dtype=np.float64).reshape(-1)
         cos, sin = np.cos(a), np.sin(a)
-        return cls(a, cos, sin, cos + 1j * sin)
+        return cls(a, cos, sin)
 
     def __len__(self) -> int:
         return len(self.angles)
@@ -49,14 +47,14 @@ class Beams:
         """The beams at ``index``, in that order."""
         if len(index) == len(self.angles):
             return self
-        return Beams(self.angles[index], self.cos[index], self.sin[index], self.unit[index])
+        return Beams(self.angles[index], self.cos[index], self.sin[index])
 
     def select(self, mask: NDArray[np.bool_]) -> Beams:
         """The beams where ``(N,)`` ``mask`` is true, in their order."""
         keep = np.asarray(mask, dtype=bool)
         if keep.all():
             return self
-        return Beams(self.angles[keep], self.cos[keep], self.sin[keep], self.unit[keep])
+        return Beams(self.angles[keep], self.cos[keep], self.sin[keep])
 
 
 def cast_rays(

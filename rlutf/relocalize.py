@@ -381,13 +381,11 @@ class FollowStep:
         winner: the refinement of the hypothesis that won, if one did on this scan.
         hypotheses: the hypotheses still followed, best first (empty with a winner).
         best: the refinement of the best hypothesis (the winner's, with one).
-        searched: this scan ran a search of the map (else the hypotheses were followed).
         nodes: grid nodes scored by the search.
     """
 
     winner: Refinement | None
     hypotheses: tuple[Hypothesis, ...]
-    searched: bool
     nodes: int
     best: Refinement | None
 
@@ -446,22 +444,22 @@ class Follower:
                 clear = len(kept) == 1 or kept[1].miss - best.miss >= cfg.win_margin
                 if clear and best.fit.fit >= cfg.accept_fit:
                     self._followed = []
-                    return FollowStep(best.fit, (), False, 0, best.fit)
+                    return FollowStep(best.fit, (), 0, best.fit)
                 if self._scans < cfg.follow_scans:
-                    return FollowStep(None, self._hypotheses(), False, 0, kept[0].fit)
+                    return FollowStep(None, self._hypotheses(), 0, kept[0].fit)
         # Search the map: the first scan, or every hypothesis failed, or none won in time.
         found = relocalize(self.world, scan, self.region, self._search, self._refine)
         self._scans = 0
         if found.found and not found.ambiguous:
             self._followed = []
-            return FollowStep(found.refinements[0], (), True, found.nodes, found.refinements[0])
+            return FollowStep(found.refinements[0], (), found.nodes, found.refinements[0])
         self._followed = [
             _Followed(f.pose.copy(), f, 1.0 - f.fit)
             for f in found.refinements[: cfg.max_hypotheses]
             if f.fit >= cfg.min_fit
         ]
         best_fit = found.refinements[0] if found.refinements else None
-        return FollowStep(None, self._hypotheses(), True, found.nodes, best_fit)
+        return FollowStep(None, self._hypotheses(), found.nodes, best_fit)
 
     def _hypotheses(self) -> tuple[Hypothesis, ...]:
         scale = self._search.select_scale
