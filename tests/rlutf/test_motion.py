@@ -73,3 +73,19 @@ def test_interpolate_endpoints_and_middle() -> None:
     np.testing.assert_allclose(interpolate(a, b, 0.0), a, atol=1e-12)
     np.testing.assert_allclose(interpolate(a, b, 1.0), b, atol=1e-12)
     assert math.isclose(float(interpolate(a, b, 0.5)[2]), 0.2)
+
+
+@given(pose, pose, st.floats(0, 1))
+@settings(max_examples=300, deadline=None)
+def test_one_pose_path_gives_the_same_bits_as_the_batch_path(
+    a: np.ndarray, b: np.ndarray, f: float
+) -> None:
+    # One (3,) pose takes plain float arithmetic; a (1, 3) batch takes numpy's ufuncs. Poses
+    # must not change with the path (replay compares them bit for bit).
+    batch_a, batch_b = a[None, :], b[None, :]
+    assert compose(a, b).tobytes() == compose(batch_a, batch_b)[0].tobytes()
+    assert inverse(a).tobytes() == inverse(batch_a)[0].tobytes()
+    assert relative(a, b).tobytes() == relative(batch_a, batch_b)[0].tobytes()
+    fast = interpolate(a, b, f)
+    slow = compose(batch_a, relative(batch_a, batch_b) * f)[0]
+    assert fast.tobytes() == slow.tobytes()
