@@ -37,10 +37,10 @@ from schemas import (
     InitialPose,
     LaserScan,
     Odometry,
-    PoseEstimate,
     Relocalize,
     encode,
 )
+from schemas.fastpose import encode_pose
 from service.keys import Keys
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
@@ -405,22 +405,19 @@ class FleetEngine:
         self, robot: _Robot, stamp_ns: int, result: LocalizeResult, received_ns: int
     ) -> Outbound:
         assert robot.map_id is not None
-        msg = PoseEstimate(
-            stamp_ns=stamp_ns,
-            robot_id=robot.robot_id,
-            map_id=robot.map_id,
-            x=float(result.pose[0]),
-            y=float(result.pose[1]),
-            theta=float(result.pose[2]),
-            status=result.status,
-            discrepancy=float(result.discrepancy),
-            iterations=int(result.iterations),
-            covariance=None
-            if result.covariance is None
-            else tuple(float(v) for v in result.covariance.ravel()),
-            hypotheses=wire_hypotheses(result),
+        payload = encode_pose(
+            stamp_ns,
+            robot.robot_id,
+            robot.map_id,
+            float(result.pose[0]),
+            float(result.pose[1]),
+            float(result.pose[2]),
+            result.status,
+            float(result.discrepancy),
+            int(result.iterations),
+            None if result.covariance is None else result.covariance.ravel().tolist(),
+            wire_hypotheses(result),
         )
-        payload = encode(msg)
         robot.last_pose = payload
         robot.last_status = result.status
         return Outbound(
