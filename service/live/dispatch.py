@@ -20,7 +20,6 @@ do.
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import logging
 import multiprocessing as mp
@@ -111,30 +110,52 @@ class _Shard:
         for t in self.threads:
             t.join(timeout)
 
-    def next_work(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
-        """Block until there is a control message or a ready robot (lock held by caller).
+    def take(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
+        """The next control message or ready robot's batch, or ``None`` (lock held by caller).
 
         Returns:
-            ``(None, message)`` for a control message, ``(robot, entries)`` for a batch, or
-            ``None`` when the dispatcher stops and nothing is left.
+            ``(None, message)`` for a control message, ``(robot, entries)`` for a batch.
+        """
+        if self.control:
+            return None, self.control.popleft()
+        if self.ready and self.in_flight < self.max_in_flight:
+            robot = self.ready.popleft()
+            box = self.dispatcher.boxes[robot]
+            box.queued = False
+            entries = list(box.entries)
+            box.entries.clear()
+            box.scan = None
+            box.busy = True
+            self.in_flight += 1
+            return robot, entries
+        return None
+
+    def next_work(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
+        """Block until :meth:`take` has something (lock held by caller).
+
+        Returns:
+            What :meth:`take` returns, or ``None`` when the dispatcher stops and nothing is left.
         """
         d = self.dispatcher
         while True:
-            if self.control:
-                return None, self.control.popleft()
-            if self.ready and self.in_flight < self.max_in_flight:
-                robot = self.ready.popleft()
-                box = d.boxes[robot]
-                box.queued = False
-                entries = list(box.entries)
-                box.entries.clear()
-                box.scan = None
-                box.busy = True
-                self.in_flight += 1
-                return robot, entries
+            work = self.take()
+            if work is not None:
+                return work
             if d.stopping and not self.ready and self.in_flight == 0:
                 return None
             self.cond.wait(0.5)
+
+    def wake(self) -> bool:
+        """Something was queued for this shard (lock held by caller).
+
+        Returns:
+            Whether the caller must call :meth:`drain` once it has released the lock.
+        """
+        self.cond.notify_all()
+        return False
+
+    def drain(self) -> None:
+        """Send what :meth:`wake` found (called without the lock)."""
 
     def finish(self, robot: str) -> None:
         """Mark a robot's batch done and requeue it if more arrived (lock held by caller)."""
@@ -144,7 +165,6 @@ class _Shard:
         if box.entries and not box.queued:
             box.queued = True
             self.ready.append(robot)
-        self.cond.notify_all()
 
 
 class _ThreadShard(_Shard):
@@ -181,9 +201,21 @@ class _ThreadShard(_Shard):
             d.deliver(Done(robot, outputs, time.perf_counter() - t0))
             with d.lock:
                 self.finish(robot)
+                self.cond.notify_all()
 
 
 class _ProcessShard(_Shard):
+    """A worker process fed through a pipe.
+
+    No thread of its own sends: the thread that queues work (a Zenoh callback in
+    :meth:`Dispatcher.submit`, or this shard's receiving thread when a batch comes back) moves
+    what is ready into :attr:`outbox` under the dispatcher's lock and, unless another thread is
+    already sending, sends it after releasing the lock. A hop to a sending thread cost a thread
+    wake-up and a GIL hand-off per scan. The outbox keeps the order messages were taken in (a
+    map before the batches queued after it), and everything taken at once goes in one pipe
+    message. Writes never block for long: at most ``max_in_flight`` batches are in the pipe.
+    """
+
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         ctx = mp.get_context("spawn")
@@ -195,37 +227,45 @@ class _ProcessShard(_Shard):
             name=f"rlutf-worker-{index}",
             daemon=True,
         )
-        self.send_lock = threading.Lock()
+        self.outbox: list[tuple[Any, ...]] = []
+        self.sending = False
+        self.gone = False
 
     def start(self) -> None:
         self.process.start()
-        for name, target in (("send", self._send), ("recv", self._recv)):
-            t = threading.Thread(
-                target=target, name=f"rlutf-shard-{self.index}-{name}", daemon=True
-            )
-            self.threads.append(t)
-            t.start()
+        t = threading.Thread(target=self._recv, name=f"rlutf-shard-{self.index}-recv", daemon=True)
+        self.threads.append(t)
+        t.start()
 
-    def _send(self) -> None:
-        d = self.dispatcher
-        while True:
-            with d.lock:
-                work = self.next_work()
-            if work is None:
-                break
+    def wake(self) -> bool:
+        while (work := self.take()) is not None:
             robot, item = work
             if robot is None:
-                msg: tuple[Any, ...] = item  # type: ignore[assignment]
+                self.outbox.append(item)  # type: ignore[arg-type]
             else:
                 batch = [(e.kind, e.payload, e.received_ns) for e in item]
-                msg = ("batch", robot, batch)
+                self.outbox.append(("batch", robot, batch))
+        self.cond.notify_all()  # Dispatcher.stop may wait for the shard to empty
+        if self.outbox and not self.sending:
+            self.sending = True
+            return True
+        return False
+
+    def drain(self) -> None:
+        lock = self.dispatcher.lock
+        while True:
+            with lock:
+                if not self.outbox:
+                    self.sending = False
+                    return
+                out, self.outbox = self.outbox, []
+            if self.gone:
+                continue
             try:
-                _send(self.conn, msg)
+                _send(self.conn, out[0] if len(out) == 1 else ("many", out))
             except (OSError, ValueError):
                 log.exception("worker %d is gone", self.index)
-                return
-        with contextlib.suppress(OSError, ValueError):
-            _send(self.conn, ("stop",))
+                self.gone = True
 
     def _recv(self) -> None:
         d = self.dispatcher
@@ -236,10 +276,33 @@ class _ProcessShard(_Shard):
                 return
             if msg[0] == "stopped":
                 return
-            _, robot, outputs, compute_s = msg
+            results = msg[1] if msg[0] == "many" else [msg]
             with d.lock:
-                self.finish(robot)
-            d.deliver(Done(robot, outputs, compute_s))
+                for _, robot, _, _ in results:
+                    self.finish(robot)
+                send = self.wake()
+            if send:
+                self.drain()  # the worker gets its next batches before we publish these
+            for _, robot, outputs, compute_s in results:
+                d.deliver(Done(robot, outputs, compute_s))
+
+    def stop(self, deadline: float) -> None:
+        """Wait for what is queued and in flight, then tell the worker to stop."""
+        d = self.dispatcher
+        with d.lock:
+            send = self.wake()
+        if send:
+            self.drain()
+        with d.lock:
+            while (self.ready or self.in_flight) and not self.gone:
+                if time.monotonic() >= deadline:
+                    break
+                self.cond.wait(0.1)
+            self.outbox.append(("stop",))
+            send = not self.sending
+            self.sending = True
+        if send:
+            self.drain()
 
     def join(self, timeout: float) -> None:
         super().join(timeout)
@@ -304,10 +367,13 @@ def _worker_main(
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
-    This thread reads the pipe and applies maps in pipe order; batches (never two of one robot
-    at once: the shard sends a robot's next batch after its ``done``) run on one thread, those
-    that may take long on a pool of ``threads - 1`` (all on one when ``threads`` is 1). A map is
-    registered before any batch sent after it is read.
+    This thread reads the pipe, applies maps in pipe order and runs the batches (never two of
+    one robot at once: the shard sends a robot's next batch after its ``done``) itself, all of
+    one pipe message before answering them in one message; batches that may take long
+    (relocalizing or lost robots) run on a pool of ``threads - 1`` threads and answer alone
+    (with ``threads`` 1, everything runs here, one batch at a time). A map is registered before
+    any batch sent after it is read. Running batches here rather than on a pool thread saves a
+    thread hand-off per scan.
     """
     warm_up()
     engine = FleetEngine(Keys(prefix), config, interval)
@@ -315,39 +381,46 @@ def _worker_main(
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
 
-    def run(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:
+    def answer(msg: tuple[Any, ...]) -> None:
+        try:
+            with send_lock:
+                _send(conn, msg)
+        except (OSError, ValueError):
+            log.warning("results not sent: the service is gone")
+
+    def run(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> tuple[Any, ...]:
         entries = [_Entry(k, p, None, r) for k, p, r in batch]
         t0 = time.perf_counter()
         outputs = _run_batch(engine, robot, entries)
-        try:
-            with send_lock:
-                _send(conn, ("done", robot, outputs, time.perf_counter() - t0))
-        except (OSError, ValueError):
-            log.warning("results of %s not sent: the service is gone", robot)
+        return ("done", robot, outputs, time.perf_counter() - t0)
+
+    def run_and_answer(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:
+        answer(run(robot, batch))
 
     slow_lane = max(threads - 1, 0)
-    with (
-        ThreadPoolExecutor(1, thread_name_prefix="rlutf-update") as pool,
-        ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow,
-    ):
+    with ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow:
         while True:
             try:
                 msg = _recv(conn)
             except (EOFError, OSError, KeyboardInterrupt):
                 return
-            kind = msg[0]
-            if kind == "stop":
-                pool.shutdown(wait=True)
-                slow.shutdown(wait=True)
-                with send_lock:
-                    _send(conn, ("stopped",))
-                return
-            if kind == "map":
-                _apply_control(engine, msg)
-                continue
-            _, robot, batch = msg
-            long = slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch])
-            (slow if long else pool).submit(run, robot, batch)
+            done: list[tuple[Any, ...]] = []
+            for item in msg[1] if msg[0] == "many" else [msg]:
+                kind = item[0]
+                if kind == "stop":
+                    slow.shutdown(wait=True)
+                    answer(("stopped",))
+                    return
+                if kind == "map":
+                    _apply_control(engine, item)
+                    continue
+                _, robot, batch = item
+                if slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch]):
+                    slow.submit(run_and_answer, robot, batch)
+                else:
+                    done.append(run(robot, batch))
+            if done:
+                answer(done[0] if len(done) == 1 else ("many", done))
 
 
 class Dispatcher:
@@ -407,6 +480,7 @@ class Dispatcher:
         entry = _Entry(
             kind, payload, None if self.processes else message, received_ns, message.stamp_ns
         )
+        send = False
         with self.lock:
             if self.stopping:
                 return
@@ -428,7 +502,9 @@ class Dispatcher:
             if not box.busy and not box.queued:
                 box.queued = True
                 box.shard.ready.append(robot)
-                box.shard.cond.notify_all()
+                send = box.shard.wake()
+        if send:
+            box.shard.drain()  # on this thread: no hop to a sending thread
 
     def broadcast_map(self, loaded: LoadedMap) -> None:
         """Send a map version to every shard, ahead of any batch queued after this call.
@@ -441,6 +517,14 @@ class Dispatcher:
         for s in self.shards:
             s.control.append(msg)
             s.cond.notify_all()
+
+    def flush(self) -> None:
+        """Send what waits in the shards' queues (after :meth:`broadcast_map`, lock released)."""
+        for s in self.shards:
+            with self.lock:
+                send = s.wake()
+            if send:
+                s.drain()
 
     def deliver(self, done: Done) -> None:
         """Pass a finished batch on (from a shard thread)."""
@@ -461,5 +545,8 @@ class Dispatcher:
             for s in self.shards:
                 s.cond.notify_all()
         deadline = time.monotonic() + timeout
+        for s in self.shards:
+            if isinstance(s, _ProcessShard):
+                s.stop(deadline)
         for s in self.shards:
             s.join(max(deadline - time.monotonic(), 0.1))

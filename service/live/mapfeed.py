@@ -128,6 +128,7 @@ class MapFeed:
             if loaded is not None:
                 self._record(loaded)
                 self.dispatcher.broadcast_map(loaded)
+        self.dispatcher.flush()
         if error is not None:
             self._global_event("error", EventCode.INVALID_MAP, key, error, received)
             return False

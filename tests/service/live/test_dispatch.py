@@ -35,7 +35,10 @@ def test_robots_are_spread_evenly_over_worker_shards() -> None:
     assert sorted(s.robots for s in dispatcher.shards) == [3, 3, 4]
     for shard in dispatcher.shards:
         mine = {r for r in robots if dispatcher.boxes[r].shard is shard}
-        assert len(mine) == shard.robots and set(shard.ready) == mine
+        # handed to the worker (in its pipe, at most max_in_flight) or waiting their turn
+        sent = {r for r in mine if dispatcher.boxes[r].busy}
+        assert len(sent) == min(len(mine), shard.max_in_flight) == shard.in_flight
+        assert len(mine) == shard.robots and set(shard.ready) | sent == mine
 
 
 def _no_drop(robot: str, stamp_ns: int, received_ns: int) -> None:
