@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from bench.report import section_main
+from bench.threads import python_thread_names, task_cpu, thread_table
 
 SECTION = "fleet"
 RATE_HZ = 10.0
@@ -277,11 +278,14 @@ def run_size(
     workers: int,
     generator: Any = None,
     serve_flags: tuple[str, ...] = (),
+    threads: bool = False,
 ) -> dict[str, Any]:
     """One fleet size against a fresh service subprocess.
 
     ``generator`` (default: the JSON robots of :func:`_generator`, same arguments) and
     ``serve_flags`` let another front door be measured the same way (:mod:`bench.ros2`).
+    With ``threads``, the result's ``threads`` holds the service's CPU per scan sent by thread
+    (:mod:`bench.threads`), main process and workers apart.
     """
     from service.live.sessions import free_port
 
@@ -328,11 +332,20 @@ def run_size(
         workers_pids = _children(proc.pid)
         main0 = _cpu_seconds(proc.pid)
         workers0 = sum(_cpu_seconds(p) for p in workers_pids)
+        tasks0 = {p: task_cpu(p) for p in [proc.pid, *workers_pids]}
         ended.wait(duration + 120)
         main_cpu = _cpu_seconds(proc.pid) - main0
         workers_cpu = sum(_cpu_seconds(p) for p in workers_pids) - workers0
+        tasks1 = {p: task_cpu(p) for p in tasks0}
         result = out.get(timeout=60)
         health = _health(endpoint)
+        by_thread: dict[str, dict[str, float]] = {}
+        if threads:
+            for p, start in tasks0.items():
+                table = by_thread.setdefault("main" if p == proc.pid else "workers", {})
+                names = python_thread_names(p)
+                for name, ms in thread_table(start, tasks1[p], names, result["scans_sent"]):
+                    table[name] = table.get(name, 0.0) + ms
         stop.set()
         gen.join(10)
     finally:
@@ -366,6 +379,7 @@ def run_size(
         "cpu_workers": 1e3 * workers_cpu / max(result["scans_sent"], 1),
         "cpu_generator": 1e3 * result["generator_cpu_s"] / max(result["scans_sent"], 1),
         "processed": int(health.get("processed", -1)),
+        "threads": by_thread,
         # service CPU per scan it turned into a pose, ms (dropped scans cost little)
         "cpu_service_per_pose": 1e3
         * (main_cpu + workers_cpu)
@@ -385,14 +399,28 @@ def _health(endpoint: str) -> dict[str, Any]:
     return {}
 
 
-def render(sizes: list[int], duration: float, record: bool, workers: int) -> str:
+def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
+    """Markdown rows: CPU ms per scan sent by process and thread, largest first."""
+    rows = []
+    for process, table in by_thread.items():
+        for name, ms in sorted(table.items(), key=lambda item: -item[1]):
+            if ms >= 0.005:
+                rows.append(f"| {process} | {name} | {ms:.3f} |")
+    return rows
+
+
+def render(
+    sizes: list[int], duration: float, record: bool, workers: int, threads: bool = False
+) -> str:
     """Run every size and return the Markdown section."""
     rows = []
+    by_thread: dict[str, dict[str, float]] = {}
     held = 0
     load = os.getloadavg()[0]
     need: list[tuple[float, int, float, float]] = []
     for n in sizes:
-        r = run_size(n, duration, record, workers)
+        r = run_size(n, duration, record, workers, threads=threads)
+        by_thread = r["threads"] or by_thread
         need.append(
             (
                 r["cpu_service_per_pose"] + r["cpu_generator"],
@@ -415,6 +443,7 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
     best = min(need)
     sizes_arg = ",".join(str(s) for s in sizes)
     flags = ("" if record else " --no-record") + (f" --workers {workers}" if workers >= 0 else "")
+    flags += " --threads" if threads else ""
     return "\n".join(
         [
             f"Command: `python -m bench.fleet --robots {sizes_arg} --duration {duration:g}"
@@ -443,6 +472,21 @@ def render(sizes: list[int], duration: float, record: bool, workers: int) -> str
             f"{best[2]:.2f} ms of service CPU per pose published plus {best[3]:.2f} ms of the "
             f"generator per scan sent; at that cost 100 robots at 10 Hz need {best[0]:.1f} "
             f"cores, of the {os.cpu_count()} here.",
+            *(
+                [
+                    "",
+                    f"Where the service's CPU goes at {sizes[-1]} robots: CPU ms per scan sent, "
+                    "by thread (the kernel's per-thread counters over the publishing interval; "
+                    "Python thread names from `py-spy dump`; threads doing the same job added "
+                    "up, both workers added up).",
+                    "",
+                    "| process | thread | CPU ms per scan |",
+                    "| --- | --- | ---: |",
+                    *thread_rows(by_thread),
+                ]
+                if by_thread
+                else []
+            ),
         ]
     )
 
@@ -458,10 +502,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0, help="seconds per size")
     p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
     p.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    p.add_argument(
+        "--threads",
+        action="store_true",
+        help="also report the service's CPU per scan by thread (names need py-spy)",
+    )
 
     def run(args: argparse.Namespace) -> str:
         sizes = [int(s) for s in args.robots.split(",")]
-        return render(sizes, args.duration, not args.no_record, args.workers)
+        return render(sizes, args.duration, not args.no_record, args.workers, args.threads)
 
     return section_main(p, run, SECTION, argv)
 
