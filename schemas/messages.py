@@ -211,6 +211,8 @@ class EventCode:
     """A relocalization ended: one hypothesis won clearly and the robot is tracked again."""
     AMBIGUOUS: Final = "ambiguous"
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
+    STATE_UNREADABLE: Final = "state_unreadable"
+    """The durable pose state could not be read or its folder made; started without it."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(

@@ -15,7 +15,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     JsonConfigSettingsSource,
@@ -147,6 +147,20 @@ class Settings(BaseSettings):
 
     store_dir: Path = Field(Path("store"), description="Folder of the embedded map store.")
     no_store: bool = Field(False, description="Do not host the embedded map storage.")
+    state_dir: Path = Field(
+        Path("store/state"),
+        description="Folder of the durable pose state (default: 'state' in the store folder).",
+    )
+    no_state: bool = Field(False, description="Keep no durable pose state across restarts.")
+    state_interval_s: float = Field(
+        1.0, gt=0, description="Seconds between two writes of the pose state (when changed)."
+    )
+    resume_max_age_s: float = Field(
+        300.0,
+        gt=0,
+        description="A robot whose last pose before a restart is older than this is "
+        "relocalized globally on its map instead of resuming from it, seconds.",
+    )
     record_dir: Path = Field(Path("logs"), description="Folder of the MCAP recordings.")
     no_record: bool = Field(False, description="Do not record MCAP logs.")
     record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
@@ -201,6 +215,14 @@ class Settings(BaseSettings):
                 return json.loads(text)
             return [v.strip() for v in text.split(",") if v.strip()]
         return value
+
+    @model_validator(mode="before")
+    @classmethod
+    def _state_in_store(cls, data: Any) -> Any:
+        # The default follows store_dir, so the state lands on the store's volume.
+        if isinstance(data, dict) and data.get("state_dir") is None:
+            return {**data, "state_dir": Path(data.get("store_dir") or "store") / "state"}
+        return data
 
     @classmethod
     def settings_customise_sources(

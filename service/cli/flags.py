@@ -60,6 +60,12 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
         default=None,
         help="do not host the map storage (use zenohd's storage manager)",
     )
+    p.add_argument(
+        "--state", type=Path, metavar="DIR", help="pose state folder (default: STORE/state)"
+    )
+    p.add_argument(
+        "--no-state", action="store_true", default=None, help="keep no pose state across restarts"
+    )
     p.add_argument("--record", type=Path, metavar="DIR", help="MCAP log folder (default: logs)")
     p.add_argument("--no-record", action="store_true", default=None, help="do not record")
     p.add_argument(
@@ -130,6 +136,8 @@ def load(args: argparse.Namespace) -> Any:
             instance=args.instance,
             store_dir=args.store,
             no_store=args.no_store,
+            state_dir=args.state,
+            no_state=args.no_state,
             record_dir=args.record,
             no_record=args.no_record,
             workers=args.workers,

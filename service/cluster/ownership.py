@@ -18,10 +18,18 @@ reproduces the handover. Seeds are never published. A last pose that carries ``h
 relocalization that had not decided between places) is no place to start from: the seed is then
 a Relocalize on its map, recorded on the ``relocalize`` topic, and the new owner decides anew.
 
-With no pose in memory (every instance restarted), the pose is fetched with a Zenoh get on a
-thread of its own (a storage on the pose keys answers); the robot's inputs are held meanwhile
-and released in order after the seed, with receive times taken at release so the recorded order
-is the order the engine saw. An input that starts with the operator's InitialPose needs no seed.
+After a restart, the poses of the durable state (:mod:`service.cluster.posestate`) are handed
+in with :meth:`Ownership.restore`, with the odometry readings around their stamps: the robot is
+then seeded as on a handover, and its first live odometry brings the motion it made while the
+service was down. A restored pose published longer than ``resume_max_age_ns`` ago is no place to
+start from either (the robot may have been carried, or its odometry restarted): the seed is a
+Relocalize on the pose's map.
+
+With no pose in memory (every instance restarted, no durable state), the pose is fetched with a
+Zenoh get on a thread of its own (a storage on the pose keys answers); the robot's inputs are
+held meanwhile and released in order after the seed, with receive times taken at release so the
+recorded order is the order the engine saw. An input that starts with the operator's InitialPose
+needs no seed.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ import logging
 import queue
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
@@ -72,6 +80,8 @@ class Ownership:
         tail_ns: how much odometry (by stamp, before the newest reading) to keep per robot
             owned elsewhere, to anchor a seed at the last pose's stamp.
         on_release: called (lock held, keep it short) when a robot stops being localized here.
+        resume_max_age_ns: a pose handed in by :meth:`restore` and published longer ago than
+            this when the robot is acquired seeds a relocalization on its map instead.
     """
 
     def __init__(
@@ -81,6 +91,7 @@ class Ownership:
         clock: Callable[[], int],
         tail_ns: int,
         on_release: Callable[[str], None] | None = None,
+        resume_max_age_ns: int | None = None,
     ) -> None:
         self.membership = membership
         self._admit = admit
@@ -96,12 +107,16 @@ class Ownership:
         self._poses: dict[str, PoseEstimate] = {}
         self._tails: dict[str, deque[_Odom]] = {}
         self._placed: dict[str, tuple[bytes, InitialPose]] = {}
+        self._max_age_ns = resume_max_age_ns
+        self._restored: dict[str, tuple[int, int]] = {}  # robot: pose stamp, published at
         self._fetches: queue.Queue[str | None] = queue.Queue()
         self._thread: threading.Thread | None = None
         self.ignored_not_owner = 0
         self.seeded = 0
         self.fetched = 0
         self.held_dropped = 0
+        self.resumed = 0
+        self.resumed_relocalize = 0
         membership.on_change = self.rebalance
 
     # ------------------------------------------------------------------------ lifecycle
@@ -134,6 +149,24 @@ class Ownership:
                 held = self._poses.get(pose.robot_id)
                 if held is None or pose.stamp_ns >= held.stamp_ns:
                     self._poses[pose.robot_id] = pose
+
+    def restore(self, pose: PoseEstimate, odometry: Sequence[Odometry], published_ns: int) -> None:
+        """Hand in a robot's pose from the durable state, as read back at start.
+
+        Args:
+            pose: the last pose published for the robot before the restart.
+            odometry: its readings around the pose's stamp (they anchor the seed).
+            published_ns: when the pose was published (service clock), for its age.
+        """
+        robot = pose.robot_id
+        with self.lock:
+            self.remember(pose)
+            if self._poses[robot] is not pose:
+                return  # a newer pose is known already (followed on the bus)
+            self._restored[robot] = (pose.stamp_ns, published_ns)
+            tail = self._tails.setdefault(robot, deque(maxlen=TAIL_MAX))
+            for o in odometry:
+                tail.append(_Odom(o.stamp_ns, encode(o), o))
 
     def last_pose(self, robot: str) -> PoseEstimate | None:
         """The newest pose followed for ``robot``."""
@@ -226,6 +259,16 @@ class Ownership:
 
     def _start_from(self, robot: str, pose: PoseEstimate | None) -> None:
         placed = self._placed.pop(robot, None)
+        restored = self._restored.pop(robot, None)
+        if pose is not None and restored is not None and restored[0] == pose.stamp_ns:
+            self.resumed += 1  # the seed below is the pose from before the restart
+            age_ns = self._clock() - restored[1]
+            log.info("%s: resumed from the pose published %.1f s ago", robot, age_ns / 1e9)
+            if placed is None and self._max_age_ns is not None and age_ns > self._max_age_ns:
+                self.resumed_relocalize += 1
+                again = Relocalize(stamp_ns=pose.stamp_ns, map_id=pose.map_id)
+                self._seed(robot, pose.stamp_ns, (encode(again), again))
+                return
         if placed is not None and (pose is None or placed[1].stamp_ns > pose.stamp_ns):
             self._seed(robot, placed[1].stamp_ns, placed)  # placed, not localized since
         elif pose is not None and pose.hypotheses:  # ambiguous: its best guess may be wrong
@@ -327,4 +370,6 @@ class Ownership:
                 "handover_seeds": self.seeded,
                 "handover_fetched": self.fetched,
                 "handover_held_dropped": self.held_dropped,
+                "resumed": self.resumed,
+                "resumed_relocalize": self.resumed_relocalize,
             }

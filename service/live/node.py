@@ -42,6 +42,7 @@ from schemas import (
 )
 from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
+from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
 from service.live.dispatch import Dispatcher, Done
@@ -144,6 +145,18 @@ class LocalizationService:
             self.clock,
             int(settings.handover_odom_s * 1e9),
             on_release=self._forget_pose,
+            resume_max_age_ns=int(settings.resume_max_age_s * 1e9),
+        )
+        self.posestate: PoseKeeper = (  # restarts resume from it (service.cluster.posestate)
+            NullPoseState()
+            if settings.no_state
+            else PoseState(
+                settings.state_dir,
+                settings.instance,
+                settings.state_interval_s,
+                self.clock,
+                settings.max_payload_bytes,
+            )
         )
         self.ros2: Ros2FrontDoor | None = None
         if settings.ros2.enabled:
@@ -197,6 +210,13 @@ class LocalizationService:
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
         ]
+        restored, problems = self.posestate.open()  # the poses kept across a restart
+        for problem in problems:
+            self._global_event("warning", EventCode.STATE_UNREADABLE, self.keys.events, problem)
+        for r in restored:  # seed the robots at their first input (Ownership.restore)
+            self.ownership.restore(r.pose, r.odometry, r.published_ns)
+        for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
+            self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
         if self.ros2 is not None:
@@ -227,6 +247,7 @@ class LocalizationService:
         if self._input_sub is not None:
             self._input_sub.undeclare()
         self.dispatcher.stop()
+        self.posestate.close()  # after the last pose is out
         if self.ros2 is not None:
             self.ros2.close()
         self.ownership.close()
@@ -310,6 +331,8 @@ class LocalizationService:
         key = self.keys.robot(robot, kind)
         self.recorder.record(key, SCHEMA_OF_LEAF[kind], payload, at, msg.stamp_ns)
         self.dispatcher.submit(robot, kind, payload, msg, at)
+        if kind == "odom":
+            self.posestate.odom(robot, msg.stamp_ns, payload)
 
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
@@ -336,6 +359,7 @@ class LocalizationService:
                 if self.ros2 is not None:
                     self.ros2.on_pose(done.robot, out.payload)
                 now = self.clock()
+                self.posestate.pose(done.robot, out.payload, out.stamp_ns, now)
                 self.recorder.record(
                     out.key, SCHEMA_OF_LEAF["pose"], out.payload, now, out.stamp_ns
                 )
@@ -438,6 +462,7 @@ class LocalizationService:
             "recorder_overflow": self.recorder.overflowed,
             "maps": sorted(self.maps_held()),
             **self.ownership.figures(),
+            **self.posestate.figures(),
         }
         if self.ros2 is not None:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace

@@ -589,6 +589,9 @@ def test_compose_topology() -> None:
     assert command[0] == "serve" and "--no-store" in command
     assert command[command.index("--mode") + 1] == "client"
     assert any(v.startswith("logs:") for v in rlutf["volumes"]), "a log volume"
+    # The pose state (default state_dir: {store_dir}/state) on a named volume, for restarts.
+    assert "state:/data/store" in rlutf["volumes"] and "state" in doc["volumes"]
+    assert "--state" not in command and "--no-state" not in command
 
 
 @pytest.mark.parametrize("compose", COMPOSE_FILES, ids=lambda p: p.name)
@@ -685,6 +688,14 @@ def test_k8s_manifests() -> None:
     args = rlutf["spec"]["template"]["spec"]["containers"][0]["args"]
     assert args[0] == "serve" and "--no-store" in args
     assert args[args.index("--mode") + 1] == "client"
+    # The pose state (default state_dir: {store_dir}/state) is writable under the read-only
+    # root filesystem and outlives a container restart: a volume of the pod.
+    pod = rlutf["spec"]["template"]["spec"]
+    mounts = {m["mountPath"]: m["name"] for m in pod["containers"][0]["volumeMounts"]}
+    assert dockerfile_env()["RLUTF_STORE_DIR"] == "/data/store"
+    volume = {v["name"]: v for v in pod["volumes"]}[mounts["/data/store"]]
+    assert "emptyDir" in volume or "persistentVolumeClaim" in volume
+    assert "--state" not in args and "--no-state" not in args
 
 
 def _configmap_files(docs: list[dict[str, Any]]) -> dict[str, dict[str, str]]:

@@ -104,6 +104,27 @@ def test_a_relocalize_on_an_unknown_map_changes_nothing() -> None:
         assert got == _pose(_step(reference, run, i))
 
 
+def test_a_relocalize_on_an_unknown_map_is_abandoned_and_the_robot_kept() -> None:
+    run = Run.make(WORLD, 4, STEPS)
+    engine = _engine()
+    _placed(engine, run)
+    for i in range(1, 3):
+        _pose(_step(engine, run, i))
+    ask = Relocalize(stamp_ns=Run.stamp(3), map_id="nowhere")
+    assert [o.kind for o in engine.handle("r1", ask, Run.received(3))] == ["need_map"]
+    late = Run.received(3) + REQUEST_WAIT_NS + 1
+    out = _step(engine, run, 3, at=late)
+    assert [e["code"] for e in _events(out)] == ["map_not_found"]
+    assert "abandoned" in str(_events(out)[0]["message"])
+    pose = _pose(out)
+    assert pose["map_id"] == "m1" and pose["status"] != "lost" and "hypotheses" not in pose
+    assert _error(pose, run.truth[3]) < 0.1
+    engine.register_map("nowhere", 1, OTHER, late + 10)  # too late: nothing changes
+    out = _step(engine, run, 4, at=late + 100_000_000)
+    assert _events(out) == [] and _pose(out)["map_id"] == "m1"
+    assert _error(_pose(out), run.truth[4]) < 0.1
+
+
 def test_a_request_applies_once_its_map_is_loaded() -> None:
     run = Run.make(WORLD, 3, STEPS)
     engine = _engine()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 
 import pytest
 
@@ -87,3 +88,24 @@ def test_relocalize_needs_a_map(capsys: pytest.CaptureFixture[str]) -> None:
         main(["relocalize", "r1"])
     assert exit_.value.code == 2
     assert "--map" in capsys.readouterr().err
+
+
+def test_the_pose_state_follows_the_store_unless_given(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("RLUTF_SETTINGS", raising=False)
+
+    def config(*argv: str) -> dict[str, object]:
+        assert main(["config", *argv]) == 0
+        return dict(json.loads(capsys.readouterr().out))
+
+    got = config()
+    assert (got["state_dir"], got["no_state"]) == ("store/state", False)
+    assert (got["state_interval_s"], got["resume_max_age_s"]) == (1.0, 300.0)
+    assert config("--store", "/srv/maps")["state_dir"] == "/srv/maps/state"
+    assert config("--store", "/srv/maps", "--state", "/srv/state")["state_dir"] == "/srv/state"
+    assert config("--no-state")["no_state"] is True
+    monkeypatch.setenv("RLUTF_STORE_DIR", "/data/store")
+    assert config()["state_dir"] == "/data/store/state"
+    monkeypatch.setenv("RLUTF_RESUME_MAX_AGE_S", "60")
+    assert config()["resume_max_age_s"] == 60.0

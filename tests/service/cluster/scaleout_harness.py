@@ -76,6 +76,8 @@ def spawn_instance(endpoint: str, name: str, log_dir: Path) -> Instance:
         "--connect",
         endpoint,
         "--no-store",
+        "--state",  # each instance its own, in the test's folder (not the working directory)
+        str(log_dir / f"state-{name}"),
         "--record",
         str(log_dir / f"rec-{name}"),
         "--workers",

@@ -19,7 +19,7 @@ import zenoh
 from service_harness import JSON, Bench, Collector, SimRobot, start_service
 
 from rlutf.sim import make_building
-from schemas import Region, Relocalize, encode
+from schemas import InitialPose, Region, Relocalize, encode
 from service.live.sessions import client_config, free_port
 
 pytestmark = pytest.mark.integration
@@ -125,6 +125,25 @@ def test_an_unknown_map_keeps_the_robots_pose_and_map(watched: tuple[Bench, Coll
         assert p["map_id"] == "m1" and p["status"] != "lost" and "hypotheses" not in p
     assert _error(after[-1], robot.truth[robot.step]) < 0.05
     assert "relocalizing" not in _codes(col, "r1")
+
+
+def test_an_initial_pose_on_an_unknown_map_keeps_the_robots_pose_and_map(
+    watched: tuple[Bench, Collector],
+) -> None:
+    bench, col = watched
+    robot = _tracking(bench, col, "r1", 10)
+    typo = InitialPose(stamp_ns=robot.stamp(robot.step), map_id="nowhere", x=1.0, y=1.0, theta=0)
+    bench.client.put("rlutf/robots/r1/initialpose", encode(typo), encoding=JSON)
+    assert col.wait_for(lambda: "map_not_found" in _codes(col, "r1"), 10.0)
+    event = next(e for e in col.on("rlutf/robots/r1/events") if e["code"] == "map_not_found")
+    assert "nowhere" in event["message"]
+    seen = len(col.on("rlutf/robots/r1/pose"))
+    _drive(col, robot, 10, 0.05)
+    after = col.on("rlutf/robots/r1/pose")[seen:]
+    assert len(after) >= 8
+    for p in after:
+        assert p["map_id"] == "m1" and p["status"] != "lost"
+        assert _error(p, robot.truth[(p["stamp_ns"] - robot.t0) // 100_000_000]) < 0.05
 
 
 BAD = {
