@@ -374,6 +374,8 @@ def run_size(
         "rss_last": rss[-1] if rss else math.nan,
         "behind": result["generator_behind_s"],
         "compute_p50": float(health.get("extra", {}).get("compute_ms", {}).get("p50", math.nan)),
+        # receipt of the scan to publication of its pose, inside the service
+        "service_p99": float(health.get("latency_ms", {}).get("p99", math.nan)),
         # CPU time per scan sent, ms: where the two cores go
         "cpu_main": 1e3 * main_cpu / max(result["scans_sent"], 1),
         "cpu_workers": 1e3 * workers_cpu / max(result["scans_sent"], 1),
