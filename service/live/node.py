@@ -436,6 +436,7 @@ class LocalizationService:
             "pending_inputs": self.dispatcher.pending(),
             "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
             "recorder_overflow": self.recorder.overflowed,
+            "recorder_queue": self.recorder.queued,
             "maps": sorted(self.maps_held()),
             **self.ownership.figures(),
         }
