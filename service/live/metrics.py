@@ -19,15 +19,18 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 from wsgiref.simple_server import WSGIServer
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-if TYPE_CHECKING:
-    from service.live.node import LocalizationService
+from service.cluster.ownership import Ownership
+from service.live.dispatch import Dispatcher
+from service.live.robots import RobotView
+from service.live.stats import Stats
+from service.logs.recording import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +65,30 @@ COMPUTE = "rlutf_worker_compute_seconds"
 METRIC_NAMES = frozenset({*COUNTERS, *GAUGES, POSES, LATENCY, COMPUTE})
 
 
+class Observed(Protocol):
+    """What the metrics read from the service at scrape time (a LocalizationService)."""
+
+    @property
+    def stats(self) -> Stats:
+        """Counters shared with health."""
+
+    @property
+    def dispatcher(self) -> Dispatcher:
+        """Dropped scans and pending inputs."""
+
+    @property
+    def recorder(self) -> Recorder:
+        """Queue depth and overflow."""
+
+    @property
+    def ownership(self) -> Ownership:
+        """Robots owned."""
+
+    @property
+    def robot_view(self) -> RobotView:
+        """Robots held and lost."""
+
+
 class Metrics(Protocol):
     """What the service calls; :class:`ServiceMetrics` or :class:`NullMetrics`."""
 
@@ -78,7 +105,7 @@ class Metrics(Protocol):
     def pose(self, status: str | None) -> None:
         """One pose published with this status."""
 
-    def start(self, service: LocalizationService) -> None:
+    def start(self, service: Observed) -> None:
         """Read the service's figures at each scrape and start serving."""
 
     def close(self) -> None:
@@ -102,7 +129,7 @@ class NullMetrics:
     def pose(self, status: str | None) -> None:
         """Nothing."""
 
-    def start(self, service: LocalizationService) -> None:
+    def start(self, service: Observed) -> None:
         """Nothing."""
 
     def close(self) -> None:
@@ -112,7 +139,7 @@ class NullMetrics:
 class _ServiceCollector(Collector):
     """Reads what the service already counts or holds, at scrape time."""
 
-    def __init__(self, instance: str, service: LocalizationService) -> None:
+    def __init__(self, instance: str, service: Observed) -> None:
         self._labels = [instance]
         self._service = service
 
@@ -208,7 +235,7 @@ class ServiceMetrics:
         if child is not None:
             child.inc()
 
-    def start(self, service: LocalizationService) -> None:
+    def start(self, service: Observed) -> None:
         """Read ``service``'s figures at each scrape and serve ``/metrics`` on a thread.
 
         Raises:
