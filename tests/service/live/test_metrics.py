@@ -53,7 +53,7 @@ def _feed(bench: Bench, steps: int) -> Collector:
 
 
 def test_counters_move_as_scans_are_processed(tmp_path: Path) -> None:
-    with running_bench(tmp_path, metrics_port=0) as bench:
+    with running_bench(tmp_path, metrics_port=0, metrics_addr="127.0.0.1") as bench:
         port = bench.service.metrics.port
         assert port is not None
         me = bench.service.settings.instance
@@ -121,7 +121,7 @@ def bases() -> set[str]:
 
 def test_every_exported_name_is_listed(tmp_path: Path) -> None:
     """METRIC_NAMES (what the dashboard and docs use) is exactly what a scrape shows."""
-    with running_bench(tmp_path, metrics_port=0) as bench:
+    with running_bench(tmp_path, metrics_port=0, metrics_addr="127.0.0.1") as bench:
         assert bench.service.metrics.port is not None
         exported = families(bench.service.metrics.port)
     # prometheus_client adds a {name}_created gauge to every counter and histogram (when it
@@ -168,8 +168,8 @@ def test_instances_in_one_process_keep_their_own_registries() -> None:
 
 
 def test_a_port_in_use_fails_the_start(tmp_path: Path) -> None:
-    with running_bench(tmp_path / "a", metrics_port=0) as bench:
+    with running_bench(tmp_path / "a", metrics_port=0, metrics_addr="127.0.0.1") as bench:
         taken = bench.service.metrics.port
         assert taken is not None
         with pytest.raises(OSError):
-            running_bench(tmp_path / "b", metrics_port=taken).__enter__()
+            running_bench(tmp_path / "b", metrics_port=taken, metrics_addr="127.0.0.1").__enter__()
