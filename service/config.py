@@ -176,6 +176,14 @@ class Settings(BaseSettings):
         "take long (relocalizing or lost), so that a relocalization holds up only its own "
         "robot; one robot's updates always run in order; 1: one update at a time per worker.",
     )
+    metrics_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="Port of the Prometheus endpoint /metrics (off unless given; 0: any free "
+        "port).",
+    )
+    metrics_addr: str = Field("0.0.0.0", description="Address the metrics endpoint listens on.")
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     event_interval_s: float = Field(

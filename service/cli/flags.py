@@ -74,6 +74,16 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="worker processes (-1: one per core, the default; 0: in-process thread)",
     )
+    p.add_argument(
+        "--metrics-port",
+        type=int,
+        metavar="PORT",
+        help="serve Prometheus metrics on http://ADDR:PORT/metrics (default: off); "
+        "also RLUTF_METRICS_PORT",
+    )
+    p.add_argument(
+        "--metrics-addr", metavar="ADDR", help="address of the metrics endpoint (default 0.0.0.0)"
+    )
 
 
 def ros2_flags(p: argparse.ArgumentParser) -> None:
@@ -141,6 +151,8 @@ def load(args: argparse.Namespace) -> Any:
             record_dir=args.record,
             no_record=args.no_record,
             workers=args.workers,
+            metrics_port=args.metrics_port,
+            metrics_addr=args.metrics_addr,
             ros2=_ros2_overrides(args),
         )
     except ValidationError as err:

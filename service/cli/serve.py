@@ -102,6 +102,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except zenoh.ZError as err:
         print(f"rlutf serve: cannot open the zenoh session: {err}", file=sys.stderr)
         return EXIT_FAILURE
+    except OSError as err:  # the metrics port is taken or the address is not local
+        print(f"rlutf serve: cannot serve metrics: {err}", file=sys.stderr)
+        return EXIT_FAILURE
     print(
         f"rlutf serve: instance {settings.instance}, mode {settings.mode}, "
         f"listening on {', '.join(settings.listen) if settings.mode != 'client' else '-'}"

@@ -47,6 +47,8 @@ from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
 from service.live.dispatch import Dispatcher, Done
 from service.live.mapfeed import MapFeed
+from service.live.metrics import make_metrics
+from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
 from service.live.stats import Stats
 from service.logs.recording import NullRecorder, Recorder
@@ -107,12 +109,14 @@ class LocalizationService:
         self.settings = settings
         self.keys = Keys(settings.prefix)
         self.recorder: Recorder = recorder or NullRecorder()
-        self.stats = Stats(settings.instance)
+        self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
+        self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = _Clock()
         self.maps = MapBook(settings.max_payload_bytes)
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}
+        self.robot_view = RobotView(settings.instance, self._poses, self.clock)
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self._declared: list[Any] = []
@@ -181,6 +185,7 @@ class LocalizationService:
     def start(self) -> LocalizationService:
         """Start workers, open the session and declare everything."""
         s = self.settings
+        self.metrics.start(self)  # first: a port in use fails the start before anything runs
         # Compile the localizer's kernels (or load them from numba's cache) now, not at the
         # first scan. Worker processes do it as they start; with them, this process never runs
         # an update, and loaded kernels cost ~60 MB of resident memory a process.
@@ -209,6 +214,7 @@ class LocalizationService:
             session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample),
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
+            session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
         ]
         restored, problems = self.posestate.open()  # the poses kept across a restart
         for problem in problems:
@@ -263,6 +269,7 @@ class LocalizationService:
         if self._storage is not None:
             self._storage.close()
         self.recorder.close()
+        self.metrics.close()
         if self._own_session and self._session is not None:
             self._session.close()
         log.info("rlutf service %s stopped", self.settings.instance)
@@ -336,6 +343,7 @@ class LocalizationService:
 
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
+        self.robot_view.forget(robot)
 
     # ------------------------------------------------------------------------ outputs
     def _on_done(self, done: Done) -> None:
@@ -368,6 +376,8 @@ class LocalizationService:
                     self.stats.latency((now - out.received_ns) / 1e6)
                 if out.status == "lost":
                     self.stats.add("lost")
+                self.robot_view.published(done.robot, now, out.received_ns)
+                self.metrics.pose(out.status)
             else:
                 self._publish(out.key, out.payload)
                 self.recorder.record(out.key, EVENT_SCHEMA, out.payload, self.clock(), out.stamp_ns)
@@ -460,6 +470,7 @@ class LocalizationService:
             "pending_inputs": self.dispatcher.pending(),
             "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
             "recorder_overflow": self.recorder.overflowed,
+            "recorder_queue": self.recorder.queued,
             "maps": sorted(self.maps_held()),
             **self.ownership.figures(),
             **self.posestate.figures(),

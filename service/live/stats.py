@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from typing import Protocol
 
 import numpy as np
 
@@ -14,11 +15,35 @@ from schemas import Health, LatencyPercentiles
 _WINDOW = 10_000
 
 
-class Stats:
-    """Thread-safe counters of one service instance."""
+class Timings(Protocol):
+    """Where :class:`Stats` also sends each latency it records (the metrics' histograms)."""
 
-    def __init__(self, instance: str) -> None:
+    def latency(self, end_to_end_ms: float) -> None:
+        """One scan's time from receipt to its pose being published."""
+
+    def compute(self, ms: float) -> None:
+        """One batch's compute time in a worker."""
+
+
+class _NoTimings:
+    def latency(self, end_to_end_ms: float) -> None:
+        pass
+
+    def compute(self, ms: float) -> None:
+        pass
+
+
+class Stats:
+    """Thread-safe counters of one service instance.
+
+    Args:
+        instance: name of the instance.
+        timings: also given every latency and compute time recorded (default: nothing).
+    """
+
+    def __init__(self, instance: str, timings: Timings | None = None) -> None:
         self.instance = instance
+        self.timings: Timings = timings or _NoTimings()
         self.started = time.monotonic()
         self._lock = threading.Lock()
         self.received = 0
@@ -41,11 +66,13 @@ class Stats:
         """Record one scan's time from receipt to its pose being published."""
         with self._lock:
             self._latency_ms.append(end_to_end_ms)
+        self.timings.latency(end_to_end_ms)
 
     def compute(self, ms: float) -> None:
         """Record one batch's compute time in a worker."""
         with self._lock:
             self._compute_ms.append(ms)
+        self.timings.compute(ms)
 
     @staticmethod
     def _percentiles(values: list[float]) -> LatencyPercentiles:

@@ -103,6 +103,9 @@ class _Queue:
         """Nothing is queued."""
         return not self._items
 
+    def __len__(self) -> int:
+        return len(self._items)
+
 
 class _OpenFile(NamedTuple):
     part: Path
@@ -192,6 +195,11 @@ class McapRecorder:
     def overflowed(self) -> int:
         """Messages not recorded because the queue was full."""
         return self._overflowed
+
+    @property
+    def queued(self) -> int:
+        """Messages (and control items) waiting for the writer thread; read without a lock."""
+        return len(self._queue)
 
     @property
     def current_path(self) -> Path | None:

@@ -24,6 +24,10 @@ class Recorder(Protocol):
     def overflowed(self) -> int:
         """Messages not recorded because the queue was full."""
 
+    @property
+    def queued(self) -> int:
+        """Messages waiting in the queue to be written (for health and metrics)."""
+
     def close(self) -> None:
         """Write what is queued and finish the file."""
 
@@ -41,6 +45,11 @@ class NullRecorder:
 
     @property
     def overflowed(self) -> int:
+        """Always 0."""
+        return 0
+
+    @property
+    def queued(self) -> int:
         """Always 0."""
         return 0
 

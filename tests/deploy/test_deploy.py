@@ -1109,3 +1109,90 @@ def test_endpoints_use_the_zenoh_port() -> None:
     endpoints = list(_iter_json5_endpoints())
     assert endpoints
     assert all(e.endswith(":7447") for e in endpoints), endpoints
+
+
+# ==================================================================================== metrics
+
+METRICS_PORT = 9464
+DASHBOARD = DEPLOY / "grafana" / "rlutf-dashboard.json"
+PROMETHEUS_CONFIG = DEPLOY / "prometheus" / "prometheus.yml"
+
+
+def _metrics_port_of(words: list[str], env: dict[str, str], mp: pytest.MonkeyPatch) -> int | None:
+    """The metrics port ``rlutf WORDS`` runs with in environment ``env`` (flags beat env)."""
+    from service.cli.flags import load
+    from service.cli.main import build_parser
+
+    for key in [k for k in os.environ if k.startswith("RLUTF_")]:
+        mp.delenv(key)
+    for key, value in env.items():
+        mp.setenv(key, value)
+    port = load(build_parser().parse_args(words)).metrics_port
+    return None if port is None else int(port)
+
+
+def test_compose_serves_metrics_and_prometheus_scrapes_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    services = _compose_services()
+    rlutf = services["rlutf"]
+    env = {k: str(v) for k, v in rlutf.get("environment", {}).items()}
+    assert _metrics_port_of(list(rlutf["command"]), env, monkeypatch) == METRICS_PORT
+    assert str(METRICS_PORT) in [str(p).split("/")[0] for p in rlutf["expose"]]
+    prometheus = services["prometheus"]
+    assert prometheus["profiles"] == ["monitoring"], "optional: not started by a plain `up`"
+    config = yaml.safe_load(PROMETHEUS_CONFIG.read_text(encoding="utf-8"))
+    (job,) = config["scrape_configs"]
+    assert job["honor_labels"] is True  # keeps the service's `instance` label
+    (sd,) = job["dns_sd_configs"]
+    assert sd["names"] == ["rlutf"] and sd["port"] == METRICS_PORT
+    assert job.get("metrics_path", "/metrics") == "/metrics"
+
+
+def test_k8s_pods_serve_metrics_with_scrape_annotations(monkeypatch: pytest.MonkeyPatch) -> None:
+    docs = {(d["kind"], d["metadata"]["name"]): d for d in _k8s_docs()}
+    template = docs[("Deployment", "rlutf")]["spec"]["template"]
+    annotations = template["metadata"]["annotations"]
+    assert annotations == {
+        "prometheus.io/scrape": "true",
+        "prometheus.io/port": str(METRICS_PORT),
+        "prometheus.io/path": "/metrics",
+    }
+    (container,) = template["spec"]["containers"]
+    env = {e["name"]: e["value"] for e in container["env"] if "value" in e}
+    assert _metrics_port_of(list(container["args"]), env, monkeypatch) == METRICS_PORT
+    ports = {p["containerPort"]: p for p in container["ports"]}
+    assert ports[METRICS_PORT]["name"] == "metrics"
+
+
+def _dashboard_exprs(dashboard: dict[str, Any]) -> list[str]:
+    return [t["expr"] for panel in dashboard["panels"] for t in panel["targets"]]
+
+
+def test_grafana_dashboard_queries_only_exported_metrics() -> None:
+    from service.live.metrics import METRIC_NAMES
+
+    dashboard = json.loads(DASHBOARD.read_text(encoding="utf-8"))
+    (source,) = dashboard["__inputs"]
+    assert source["name"] == "DS_PROMETHEUS" and source["pluginId"] == "prometheus"
+    for panel in dashboard["panels"]:
+        assert panel["datasource"]["uid"] == "${DS_PROMETHEUS}", panel["title"]
+        assert all(t["datasource"]["uid"] == "${DS_PROMETHEUS}" for t in panel["targets"])
+    exprs = _dashboard_exprs(dashboard)
+
+    def family(series: str) -> str:  # a histogram's series name to its family's
+        for suffix in ("_bucket", "_sum", "_count"):
+            if series.endswith(suffix) and series.removesuffix(suffix) in METRIC_NAMES:
+                return series.removesuffix(suffix)
+        return series
+
+    used = {family(n) for e in exprs for n in re.findall(r"\brlutf_[a-z_]+", e)}
+    assert used <= METRIC_NAMES, f"not exported: {sorted(used - METRIC_NAMES)}"
+    assert used == METRIC_NAMES, f"not on the dashboard: {sorted(METRIC_NAMES - used)}"
+    # per instance, latency and compute p50 and p99 from the histograms
+    assert all('instance=~"$instance"' in e for e in exprs)
+    for histogram in ("rlutf_scan_to_pose_latency_seconds", "rlutf_worker_compute_seconds"):
+        for q in ("0.5", "0.99"):
+            assert any(e.startswith(f"histogram_quantile({q},") and histogram in e for e in exprs)
+    (variable,) = dashboard["templating"]["list"]
+    assert variable["name"] == "instance"

@@ -9,7 +9,18 @@ import pytest
 
 from service.cli.main import build_parser, main
 
-COMMANDS = ["serve", "config", "demo", "map", "pose", "relocalize", "health", "replay", "log"]
+COMMANDS = [
+    "serve",
+    "config",
+    "demo",
+    "map",
+    "pose",
+    "relocalize",
+    "health",
+    "robots",
+    "replay",
+    "log",
+]
 ACTIONS = {"map": ["put", "get", "import", "build", "show"], "log": ["info", "recover"]}
 
 

@@ -156,3 +156,40 @@ def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
     assert "95 messages" in events[0].message
     assert published == events
     assert len(read_all(rec.files[0], ["rlutf.Odometry"])) == 5
+
+
+def test_queued_is_the_queue_depth_and_drains_to_zero(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, queue_size=50, foxglove=False)
+    gate = threading.Event()
+    handle = rec._handle  # stall the writer thread so the depth stays put
+
+    def slow(item: object) -> None:
+        gate.wait(10)
+        handle(item)  # type: ignore[arg-type]
+
+    rec._handle = slow  # type: ignore[method-assign]
+    rec.set_config(CONFIG)
+    deadline = time.monotonic() + 5
+    while not rec._queue.empty() and time.monotonic() < deadline:
+        time.sleep(0.01)  # until the writer holds the config item and waits
+    assert rec.queued == 0
+    for i in range(7):
+        rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', i + 1, i)
+    assert rec.queued == 7
+    gate.set()
+    assert wait_drained(rec)
+    rec.close()
+    assert rec.queued == 0
+
+
+def wait_drained(rec: McapRecorder, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while rec.queued and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return rec.queued == 0
+
+
+def test_null_recorder_has_nothing_queued() -> None:
+    from service.logs.recording import NullRecorder
+
+    assert NullRecorder().queued == 0
