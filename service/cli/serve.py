@@ -83,8 +83,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
-    from service.live.dispatch import tune_gc
     from service.live.node import LocalizationService
+    from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
 
     settings = load(args)

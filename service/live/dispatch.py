@@ -8,11 +8,11 @@ updates are sequential while different robots run in parallel. A shard is a work
 default: numpy work holds the GIL, so threads would cap the service at one core) or, with
 ``workers=0``, threads in this process.
 
-Inside a worker process, the batches of robots that may take long (relocalizing or lost:
-:meth:`FleetEngine.expects_long_update`) run on a pool of ``threads - 1`` threads beside the one
-thread that runs every other batch, as before: a relocalization (0.1 to 2 s of compiled search,
-which releases the GIL) then holds up only its own robot, and ordinary updates do not contend
-for the GIL with each other. With ``workers=0``, the shard's ``threads`` threads take any batch.
+Inside a worker process (:mod:`service.live.worker`), the batches of robots that may take long
+(relocalizing or lost: :meth:`FleetEngine.expects_long_update`) run on a pool of ``threads - 1``
+threads beside the thread that reads the pipe and runs every other batch: a relocalization (0.1
+to 2 s of compiled search, which releases the GIL) then holds up only its own robot, and
+ordinary updates do not contend for the GIL with each other. With ``workers=0``, the shard's ``threads`` threads take any batch.
 A robot's batches still run one after another, and the robots share nothing but the maps
 (looked up under a lock), so each robot's poses are the same as in replay whatever the threads
 do.
@@ -20,27 +20,20 @@ do.
 
 from __future__ import annotations
 
-import gc
 import logging
 import multiprocessing as mp
 import os
-import pickle
-import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
-from rlutf.map import Map as World
-from rlutf.warmup import warm_up
-from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
-from service.keys import MODELS, InputKind, Keys, Message
+from service.keys import InputKind, Keys, Message
+from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
 from service.maps.book import LoadedMap
 
 log = logging.getLogger(__name__)
@@ -50,29 +43,13 @@ log = logging.getLogger(__name__)
 _IN_FLIGHT = 4
 #: The same for a worker process: robots whose batches are in its pipe or being computed.
 _PIPE_IN_FLIGHT = 16
-#: The GIL's switch interval in worker processes, seconds (Python's default: 0.005). While a
-#: long update runs beside the ordinary ones, an ordinary update that comes back from a compiled
-#: kernel waits up to this long for the GIL each time; at 5 ms the other robots' p99 latency
-#: doubled in ``bench.relocalize_fleet``. Without a long update only one thread computes.
-_SWITCH_INTERVAL_S = 0.0005
-#: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
-_GC_THRESHOLDS = (20_000, 20, 20)
-
-
-@dataclass
-class _Entry:
-    kind: InputKind
-    payload: bytes
-    message: Message | None
-    received_ns: int
-    stamp_ns: int = 0
 
 
 @dataclass
 class _Mailbox:
     shard: _Shard
-    entries: deque[_Entry] = field(default_factory=deque)
-    scan: _Entry | None = None  # the unprocessed scan in ``entries``, if any
+    entries: deque[Entry] = field(default_factory=deque)
+    scan: Entry | None = None  # the unprocessed scan in ``entries``, if any
     busy: bool = False
     queued: bool = False
 
@@ -112,7 +89,7 @@ class _Shard:
         for t in self.threads:
             t.join(timeout)
 
-    def take(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
+    def take(self) -> tuple[str | None, tuple[Any, ...] | list[Entry]] | None:
         """The next control message or ready robot's batch, or ``None`` (lock held by caller).
 
         Returns:
@@ -132,7 +109,7 @@ class _Shard:
             return robot, entries
         return None
 
-    def next_work(self) -> tuple[str | None, tuple[Any, ...] | list[_Entry]] | None:
+    def next_work(self) -> tuple[str | None, tuple[Any, ...] | list[Entry]] | None:
         """Block until :meth:`take` has something (lock held by caller).
 
         Returns:
@@ -190,14 +167,14 @@ class _ThreadShard(_Shard):
                 work = self.next_work()
                 if work is not None and work[0] is None:
                     # Under the lock: no batch handed out after this map can run before it.
-                    _apply_control(self.engine, work[1])  # type: ignore[arg-type]
+                    apply_control(self.engine, work[1])  # type: ignore[arg-type]
                     continue
             if work is None:
                 return
             robot, item = work
             assert robot is not None
             t0 = time.perf_counter()
-            outputs = _run_batch(self.engine, robot, item)  # type: ignore[arg-type]
+            outputs = run_batch(self.engine, robot, item)  # type: ignore[arg-type]
             # Published before the robot's next batch may start on another thread: its poses
             # go out (and into the log) in order.
             d.deliver(Done(robot, outputs, time.perf_counter() - t0))
@@ -224,7 +201,7 @@ class _ProcessShard(_Shard):
         self.conn, child = ctx.Pipe()
         d = dispatcher
         self.process = ctx.Process(
-            target=_worker_main,
+            target=worker_main,
             args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
             name=f"rlutf-worker-{index}",
             daemon=True,
@@ -270,7 +247,7 @@ class _ProcessShard(_Shard):
             if self.gone:
                 continue
             try:
-                _send(self.conn, out[0] if len(out) == 1 else ("many", out))
+                send(self.conn, out[0] if len(out) == 1 else ("many", out))
             except (OSError, ValueError):
                 log.exception("worker %d is gone", self.index)
                 self.gone = True
@@ -279,7 +256,7 @@ class _ProcessShard(_Shard):
         d = self.dispatcher
         while True:
             try:
-                msg = _recv(self.conn)
+                msg = recv(self.conn)
             except (EOFError, OSError):
                 return
             if msg[0] == "stopped":
@@ -317,118 +294,6 @@ class _ProcessShard(_Shard):
         self.process.join(timeout)
         if self.process.is_alive():
             self.process.terminate()
-
-
-def _send(conn: Connection, msg: tuple[Any, ...]) -> None:
-    """Send over a worker pipe: ``Connection.send`` builds a new ForkingPickler per message,
-    which costs more than the pickling of a batch."""
-    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def _recv(conn: Connection) -> Any:
-    return pickle.loads(conn.recv_bytes())
-
-
-def _run_batch(engine: FleetEngine, robot: str, entries: list[_Entry]) -> list[Outbound]:
-    outputs: list[Outbound] = []
-    for e in entries:
-        msg = e.message
-        if msg is None:
-            try:
-                msg = decode(MODELS[e.kind], e.payload)
-            except SchemaError:  # validated at the callback; only a bug gets here
-                log.exception("undecodable %s for %s reached a worker", e.kind, robot)
-                continue
-        try:
-            outputs += engine.handle(robot, msg, e.received_ns)
-        except Exception:  # one robot's failure must not take the worker down
-            log.exception("update of %s failed", robot)
-    return outputs
-
-
-def _apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
-    if msg[0] == "map":
-        _, map_id, version, geometry_or_world, received_ns = msg
-        w = (
-            geometry_or_world
-            if isinstance(geometry_or_world, World)
-            else World.from_geojson(geometry_or_world)
-        )
-        engine.register_map(map_id, version, w, received_ns)
-
-
-def tune_gc() -> None:
-    """Make garbage collection cheap for a process that handles a stream of messages.
-
-    Every message allocates short-lived containers, and Python's default thresholds then run a
-    full collection, which walks every object alive, every few hundred messages: about a sixth
-    of the service's main process time at 250 scans/s. Objects alive now (modules, settings,
-    maps) are frozen out of collections, and young collections run less often.
-    """
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(*_GC_THRESHOLDS)
-
-
-def _worker_main(
-    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
-) -> None:
-    """Entry point of a worker process: apply batches until told to stop.
-
-    This thread reads the pipe, applies maps in pipe order and runs the batches (never two of
-    one robot at once: the shard sends a robot's next batch after its ``done``) itself, all of
-    one pipe message before answering them in one message; batches that may take long
-    (relocalizing or lost robots) run on a pool of ``threads - 1`` threads and answer alone
-    (with ``threads`` 1, everything runs here, one batch at a time). A map is registered before
-    any batch sent after it is read. Running batches here rather than on a pool thread saves a
-    thread hand-off per scan.
-    """
-    warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval)
-    tune_gc()
-    sys.setswitchinterval(_SWITCH_INTERVAL_S)
-    send_lock = threading.Lock()
-
-    def answer(msg: tuple[Any, ...]) -> None:
-        try:
-            with send_lock:
-                _send(conn, msg)
-        except (OSError, ValueError):
-            log.warning("results not sent: the service is gone")
-
-    def run(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> tuple[Any, ...]:
-        entries = [_Entry(k, p, None, r) for k, p, r in batch]
-        t0 = time.perf_counter()
-        outputs = _run_batch(engine, robot, entries)
-        return ("done", robot, outputs, time.perf_counter() - t0)
-
-    def run_and_answer(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:
-        answer(run(robot, batch))
-
-    slow_lane = max(threads - 1, 0)
-    with ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow:
-        while True:
-            try:
-                msg = _recv(conn)
-            except (EOFError, OSError, KeyboardInterrupt):
-                return
-            done: list[tuple[Any, ...]] = []
-            for item in msg[1] if msg[0] == "many" else [msg]:
-                kind = item[0]
-                if kind == "stop":
-                    slow.shutdown(wait=True)
-                    answer(("stopped",))
-                    return
-                if kind == "map":
-                    _apply_control(engine, item)
-                    continue
-                _, robot, batch = item
-                if slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch]):
-                    slow.submit(run_and_answer, robot, batch)
-                else:
-                    done.append(run(robot, batch))
-            if done:
-                answer(done[0] if len(done) == 1 else ("many", done))
 
 
 class Dispatcher:
@@ -485,7 +350,7 @@ class Dispatcher:
         self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
     ) -> None:
         """Hand one validated input to its robot's mailbox (called from Zenoh callbacks)."""
-        entry = _Entry(
+        entry = Entry(
             kind, payload, None if self.processes else message, received_ns, message.stamp_ns
         )
         send = False

@@ -45,6 +45,7 @@ from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher, Done
 from service.live.mapfeed import MapFeed
 from service.live.metrics import make_metrics
@@ -76,20 +77,6 @@ COUNTED_EVENTS = {
 JSON = zenoh.Encoding.APPLICATION_JSON
 
 
-class _Clock:
-    """Strictly increasing receive times (ns since the epoch), so log order is total."""
-
-    def __init__(self) -> None:
-        self._last = 0
-        self._lock = threading.Lock()
-
-    def __call__(self) -> int:
-        with self._lock:
-            now = max(time.time_ns(), self._last + 1)
-            self._last = now
-            return now
-
-
 class LocalizationService:
     """One instance of the service.
 
@@ -111,7 +98,7 @@ class LocalizationService:
         self.recorder: Recorder = recorder or NullRecorder()
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
-        self.clock = _Clock()
+        self.clock = ReceiveClock()
         self.maps = MapBook(settings.max_payload_bytes)
         self._own_session = session is None
         self._session = session

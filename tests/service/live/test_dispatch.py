@@ -7,7 +7,8 @@ import gc
 from rlutf.localizer import LocalizerConfig
 from schemas import Odometry
 from service.keys import Keys
-from service.live.dispatch import _GC_THRESHOLDS, Dispatcher, tune_gc
+from service.live.dispatch import Dispatcher
+from service.live.worker import _GC_THRESHOLDS, tune_gc
 
 
 def test_tune_gc_freezes_what_is_alive_and_collects_less_often() -> None:

@@ -1,0 +1,158 @@
+"""The worker processes' side of the dispatcher: the pipe protocol and the loop that runs batches.
+
+A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
+it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
+[(kind, payload, received_ns), ...])``, ``("stop",)``, or ``("many", [those])``; the worker
+answers ``("done", robot, outputs, compute_s)`` (or ``("many", [those])``) and ``("stopped",)``.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import pickle
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+from rlutf.localizer import LocalizerConfig
+from rlutf.map import Map as World
+from rlutf.warmup import warm_up
+from schemas import SchemaError, decode
+from service.engine import FleetEngine, Outbound
+from service.keys import MODELS, InputKind, Keys, Message
+
+log = logging.getLogger(__name__)
+
+#: The GIL's switch interval in worker processes, seconds (Python's default: 0.005). While a
+#: long update runs beside the ordinary ones, an ordinary update that comes back from a compiled
+#: kernel waits up to this long for the GIL each time; at 5 ms the other robots' p99 latency
+#: doubled in ``bench.relocalize_fleet``. Without a long update only one thread computes.
+_SWITCH_INTERVAL_S = 0.0005
+#: Garbage collector thresholds of the service's processes (Python's default: 700, 10, 10).
+_GC_THRESHOLDS = (20_000, 20, 20)
+
+
+@dataclass
+class Entry:
+    kind: InputKind
+    payload: bytes
+    message: Message | None
+    received_ns: int
+    stamp_ns: int = 0
+
+
+def send(conn: Connection, msg: tuple[Any, ...]) -> None:
+    """Send over a worker pipe: ``Connection.send`` builds a new ForkingPickler per message,
+    which costs more than the pickling of a batch."""
+    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def recv(conn: Connection) -> Any:
+    return pickle.loads(conn.recv_bytes())
+
+
+def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Outbound]:
+    outputs: list[Outbound] = []
+    for e in entries:
+        msg = e.message
+        if msg is None:
+            try:
+                msg = decode(MODELS[e.kind], e.payload)
+            except SchemaError:  # validated at the callback; only a bug gets here
+                log.exception("undecodable %s for %s reached a worker", e.kind, robot)
+                continue
+        try:
+            outputs += engine.handle(robot, msg, e.received_ns)
+        except Exception:  # one robot's failure must not take the worker down
+            log.exception("update of %s failed", robot)
+    return outputs
+
+
+def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
+    if msg[0] == "map":
+        _, map_id, version, geometry_or_world, received_ns = msg
+        w = (
+            geometry_or_world
+            if isinstance(geometry_or_world, World)
+            else World.from_geojson(geometry_or_world)
+        )
+        engine.register_map(map_id, version, w, received_ns)
+
+
+def tune_gc() -> None:
+    """Make garbage collection cheap for a process that handles a stream of messages.
+
+    Every message allocates short-lived containers, and Python's default thresholds then run a
+    full collection, which walks every object alive, every few hundred messages: about a sixth
+    of the service's main process time at 250 scans/s. Objects alive now (modules, settings,
+    maps) are frozen out of collections, and young collections run less often.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*_GC_THRESHOLDS)
+
+
+def worker_main(
+    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
+) -> None:
+    """Entry point of a worker process: apply batches until told to stop.
+
+    This thread reads the pipe, applies maps in pipe order and runs the batches (never two of
+    one robot at once: the shard sends a robot's next batch after its ``done``) itself, all of
+    one pipe message before answering them in one message; batches that may take long
+    (relocalizing or lost robots) run on a pool of ``threads - 1`` threads and answer alone
+    (with ``threads`` 1, everything runs here, one batch at a time). A map is registered before
+    any batch sent after it is read. Running batches here rather than on a pool thread saves a
+    thread hand-off per scan.
+    """
+    warm_up()
+    engine = FleetEngine(Keys(prefix), config, interval)
+    tune_gc()
+    sys.setswitchinterval(_SWITCH_INTERVAL_S)
+    send_lock = threading.Lock()
+
+    def answer(msg: tuple[Any, ...]) -> None:
+        try:
+            with send_lock:
+                send(conn, msg)
+        except (OSError, ValueError):
+            log.warning("results not sent: the service is gone")
+
+    def run(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> tuple[Any, ...]:
+        entries = [Entry(k, p, None, r) for k, p, r in batch]
+        t0 = time.perf_counter()
+        outputs = run_batch(engine, robot, entries)
+        return ("done", robot, outputs, time.perf_counter() - t0)
+
+    def run_and_answer(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:
+        answer(run(robot, batch))
+
+    slow_lane = max(threads - 1, 0)
+    with ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow:
+        while True:
+            try:
+                msg = recv(conn)
+            except (EOFError, OSError, KeyboardInterrupt):
+                return
+            done: list[tuple[Any, ...]] = []
+            for item in msg[1] if msg[0] == "many" else [msg]:
+                kind = item[0]
+                if kind == "stop":
+                    slow.shutdown(wait=True)
+                    answer(("stopped",))
+                    return
+                if kind == "map":
+                    apply_control(engine, item)
+                    continue
+                _, robot, batch = item
+                if slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch]):
+                    slow.submit(run_and_answer, robot, batch)
+                else:
+                    done.append(run(robot, batch))
+            if done:
+                answer(done[0] if len(done) == 1 else ("many", done))
