@@ -376,6 +376,8 @@ def run_size(
         "compute_p50": float(health.get("extra", {}).get("compute_ms", {}).get("p50", math.nan)),
         # receipt of the scan to publication of its pose, inside the service
         "service_p99": float(health.get("latency_ms", {}).get("p99", math.nan)),
+        "lost": int(health.get("extra", {}).get("lost", -1)),
+        "relocalizations": int(health.get("extra", {}).get("relocalizations", -1)),
         # CPU time per scan sent, ms: where the two cores go
         "cpu_main": 1e3 * main_cpu / max(result["scans_sent"], 1),
         "cpu_workers": 1e3 * workers_cpu / max(result["scans_sent"], 1),

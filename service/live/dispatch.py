@@ -12,10 +12,10 @@ Inside a worker process (:mod:`service.live.worker`), the batches of robots that
 (relocalizing or lost: :meth:`FleetEngine.expects_long_update`) run on a pool of ``threads - 1``
 threads beside the thread that reads the pipe and runs every other batch: a relocalization (0.1
 to 2 s of compiled search, which releases the GIL) then holds up only its own robot, and
-ordinary updates do not contend for the GIL with each other. With ``workers=0``, the shard's ``threads`` threads take any batch.
-A robot's batches still run one after another, and the robots share nothing but the maps
-(looked up under a lock), so each robot's poses are the same as in replay whatever the threads
-do.
+ordinary updates do not contend for the GIL with each other. With ``workers=0``, the shard's
+``threads`` threads take any batch. A robot's batches still run one after another, and the
+robots share nothing but the maps (looked up under a lock), so each robot's poses are the same
+as in replay whatever the threads do.
 """
 
 from __future__ import annotations
@@ -261,15 +261,13 @@ class _ProcessShard(_Shard):
                 return
             if msg[0] == "stopped":
                 return
-            results = msg[1] if msg[0] == "many" else [msg]
+            _, robot, outputs, compute_s = msg
             with d.lock:
-                for _, robot, _, _ in results:
-                    self.finish(robot)
+                self.finish(robot)
                 send = self.wake()
             if send:
                 self.drain()  # the worker gets its next batches before we publish these
-            for _, robot, outputs, compute_s in results:
-                d.deliver(Done(robot, outputs, compute_s))
+            d.deliver(Done(robot, outputs, compute_s))
 
     def stop(self, deadline: float) -> None:
         """Wait for what is queued and in flight, then tell the worker to stop."""

@@ -3,7 +3,7 @@
 A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
 it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
 [(kind, payload, received_ns), ...])``, ``("stop",)``, or ``("many", [those])``; the worker
-answers ``("done", robot, outputs, compute_s)`` (or ``("many", [those])``) and ``("stopped",)``.
+answers each batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
 """
 
 from __future__ import annotations
@@ -103,8 +103,10 @@ def worker_main(
     """Entry point of a worker process: apply batches until told to stop.
 
     This thread reads the pipe, applies maps in pipe order and runs the batches (never two of
-    one robot at once: the shard sends a robot's next batch after its ``done``) itself, all of
-    one pipe message before answering them in one message; batches that may take long
+    one robot at once: the shard sends a robot's next batch after its ``done``) itself,
+    answering each as soon as it is done, so that the main process can send the next batches
+    while this one computes the rest (answering a whole pipe message at once left the worker
+    idle while the main process turned the answers round); batches that may take long
     (relocalizing or lost robots) run on a pool of ``threads - 1`` threads and answer alone
     (with ``threads`` 1, everything runs here, one batch at a time). A map is registered before
     any batch sent after it is read. Running batches here rather than on a pool thread saves a
@@ -139,7 +141,6 @@ def worker_main(
                 msg = recv(conn)
             except (EOFError, OSError, KeyboardInterrupt):
                 return
-            done: list[tuple[Any, ...]] = []
             for item in msg[1] if msg[0] == "many" else [msg]:
                 kind = item[0]
                 if kind == "stop":
@@ -153,6 +154,4 @@ def worker_main(
                 if slow_lane > 0 and engine.expects_long_update(robot, [e[0] for e in batch]):
                     slow.submit(run_and_answer, robot, batch)
                 else:
-                    done.append(run(robot, batch))
-            if done:
-                answer(done[0] if len(done) == 1 else ("many", done))
+                    answer(run(robot, batch))
