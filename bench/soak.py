@@ -605,8 +605,11 @@ def main(argv: list[str] | None = None) -> int:
         minutes.append(args.minutes)
         return render(args, outcome)
 
-    code = section_main(p, run, SECTION, argv)
-    return code or exit_code(outcome, minutes[0])
+    code = section_main(p, run, SECTION, argv) or exit_code(outcome, minutes[0])
+    for v in outcome:
+        if not v.ok:
+            print(f"soak: {v.name}: FAIL ({v.detail})", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":
