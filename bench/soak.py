@@ -281,10 +281,10 @@ class _Sampler:
 
 def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
     """Every finished log file read end to end, and the names of ``.part`` files left."""
-    from schemas import SCHEMA_NAMES, Map, PoseEstimate
+    from schemas import SCHEMA_NAMES, PoseEstimate
     from service.logs.mcapread import LogError, LogFile
 
-    pose_schema, map_schema = SCHEMA_NAMES[PoseEstimate], SCHEMA_NAMES[Map]
+    pose_schema = SCHEMA_NAMES[PoseEstimate]
     checks = []
     for path in sorted(record_dir.glob("*.mcap")):
         messages = poses = indexed = 0
@@ -295,8 +295,10 @@ def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
                 indexed = log.count()
                 for record in log.messages():
                     messages += 1
-                    poses += record.schema_name == pose_schema
-                    if record.schema_name != map_schema:  # maps keep their original log_time
+                    # the span of the poses: a file starts with the maps (and their views) at
+                    # their original log_time
+                    if record.schema_name == pose_schema:
+                        poses += 1
                         first = min(first, record.log_time_ns)
                         last = max(last, record.log_time_ns)
         except LogError as err:
@@ -434,8 +436,10 @@ def plot(samples: list[dict[str, Any]], warmup: float, title: str, path: Path) -
     fig = Figure(figsize=(8, 6), layout="constrained")
     mem, lat = fig.subplots(2, 1, sharex=True)
     mem.plot(t, [s["rss_service_mb"] for s in samples], label="service (main + workers)")
-    mem.plot(t, [s["rss_generator_mb"] for s in samples], label="load generator", ls="--")
-    mem.set_ylabel("resident memory, MB")
+    mem.set_ylabel("service resident memory, MB")
+    other = mem.twinx()  # its own scale: one axis for both would flatten the service's line
+    other.plot(t, [s["rss_generator_mb"] for s in samples], color="0.5", ls="--")
+    other.set_ylabel("load generator (dashed), MB", color="0.4")
     lat.plot(t, [s["latency_p50_ms"] for s in samples], label="p50")
     lat.plot(t, [s["latency_p99_ms"] for s in samples], label="p99")
     lat.set_ylabel("scan to pose, ms")
@@ -531,7 +535,7 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
         f"{args.robots} robots at 10 Hz, 360-beam scans, 1 cm noise, each driving a "
         f"{args.loop_seconds:g} s loop (a path and back) with continuous drifting odometry, "
         f"for {args.minutes:g} min; sampled every {args.sample_s:g} s, warm-up "
-        f"{warmup:g} minutes. Load average when the run started: {load:.1f}.",
+        f"{warmup:g} min. Load average when the run started: {load:.1f}.",
         "",
         "| verdict | | figures |",
         "| --- | --- | --- |",

@@ -252,7 +252,7 @@ class FileCheck(NamedTuple):
         messages: messages read.
         indexed: messages its summary says it holds.
         poses: PoseEstimate messages read.
-        span_s: first to last message, seconds.
+        span_s: first to last pose message, seconds.
         error: why it could not be read, or ``None``.
     """
 
@@ -291,7 +291,7 @@ def logs_verdicts(
             "logs rotated",
             len(files) >= need,
             f"{len(files)} files (at least {need} for {run_seconds:.0f} s at "
-            f"{rotate_seconds:g} s each); longest {longest:.1f} s",
+            f"{rotate_seconds:g} s each); longest {longest:.1f} s of poses",
             hard=True,
         ),
         Verdict(
