@@ -20,12 +20,13 @@ line goes to stderr and the series to ``bench/out/soak-*.csv`` (and ``.json``).
 
 Verdicts: the memory slope after ``--warmup-minutes`` (least-squares fit, at most 1 MB per 10
 minutes); no queue that grows (pending inputs and the recorder queue: the last third's median not
-above the first third's max by more than a margin; the recorder never overflowing); every scan
-answered or counted (sent = poses received + dropped + not processed, as the service reports
-them, read a few seconds after the last scan); and, after an orderly stop (SIGTERM), the logs:
-rotated (at least one file per ``--rotate-seconds`` of the run), no ``.mcap.part`` left, every
-file read end to end with the service's own reader, and its pose messages summing to the poses
-published (less what the recorder reported not recorded).
+above the first third's max by more than a margin, one message per robot for pending inputs, ten
+for the recorder; the recorder never overflowing); every scan answered or counted (sent = poses
+received + dropped + not processed, as the service reports them, read once it has drained: no
+input pending, counts settled); and, after an orderly stop (SIGTERM), the logs: rotated (at
+least one file per ``--rotate-seconds`` of the run), no ``.mcap.part`` left, every file read end
+to end with the service's own reader, and their pose messages summing to the poses published
+(less what the recorder reported not recorded).
 
 Exit code 1 when the scans are not all counted or the logs fail a verdict; the memory and queue
 verdicts count toward it only on runs of 10 minutes or more, where their targets apply (on a
@@ -83,6 +84,8 @@ from bench.soakplan import (
 SECTION = "soak"
 PLOT = Path("docs/bench/soak.png")
 OUT = Path("bench/out")
+#: Longest wait, after the last scan, for the service to drain before the final counts, s.
+DRAIN_S = 60.0
 #: A scan whose pose has not come after this long is forgotten by the generator (dropped).
 _FORGET_NS = 30_000_000_000
 
@@ -100,10 +103,12 @@ def _generator(
     ended: Any,
     requests: Any,
     replies: Any,
+    finish: Any,
 ) -> None:
     """Load generator (a separate process): loops precomputed, then publish, time, report.
 
-    Answers each request ``n`` on ``requests`` with the figures so far on ``replies``.
+    Answers each request ``n`` on ``requests`` with the figures so far on ``replies``; after the
+    last scan, waits for ``finish`` (the service has drained) before its final figures.
     """
     from rlutf.sim import (
         LidarModel,
@@ -191,7 +196,7 @@ def _generator(
 
     steps = int(minutes * 60 * RATE_HZ) + 1
     scans_sent, behind, cpu = timed_publishing(robots, steps, t0, send, ready, go, began, ended)
-    time.sleep(3.0)  # the last poses
+    finish.wait(120)
     last = figures()
     sub.undeclare()
     for s in sessions:
@@ -323,6 +328,27 @@ def _progress(s: dict[str, Any]) -> None:
     )
 
 
+def _wait_drained(session: Any, timeout: float) -> float:
+    """After the last scan: wait until the service has no input pending and its counts of scans
+    processed, dropped and not processed stay put for a second (scans still in the service would
+    be neither answered nor counted yet).
+
+    Returns:
+        Seconds waited (``timeout`` when it did not drain).
+    """
+    start = time.monotonic()
+    before: tuple[Any, ...] = ()
+    while (waited := time.monotonic() - start) < timeout:
+        h = query_health(session, timeout=2.0)
+        extra = h.get("extra", {})
+        now = (h.get("processed"), h.get("dropped"), extra.get("scans_not_processed"))
+        if h and extra.get("pending_inputs") == 0 and now == before:
+            return waited
+        before = now
+        time.sleep(1.0)
+    return timeout
+
+
 def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     """Start the service and the generator, sample until the end, stop, read the logs."""
     from service.live.sessions import client_config, free_port
@@ -333,7 +359,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     proc = start_service(endpoint, tmp, True, args.workers, env=env)
     ctx = mp.get_context("spawn")
     out, requests, replies = ctx.Queue(), ctx.Queue(), ctx.Queue()
-    ready, go, began, ended = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
+    ready, go, began, ended, finish = (ctx.Event() for _ in range(5))
     gen = ctx.Process(
         target=_generator,
         args=(
@@ -349,6 +375,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
             ended,
             requests,
             replies,
+            finish,
         ),
     )
     samples: list[dict[str, Any]] = []
@@ -373,6 +400,9 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
             while due <= time.monotonic():
                 due += args.sample_s
         cpu = sampler.cpu()
+        drained = _wait_drained(session, timeout=DRAIN_S)
+        time.sleep(1.0)  # the last poses on their way to the generator
+        finish.set()
         result = out.get(timeout=120)
         health = query_health(session)
         requests.put(None)
@@ -394,6 +424,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         "files": files,
         "parts": parts,
         "stop_code": stop_code,
+        "drained_s": drained,
     }
 
 
@@ -550,7 +581,13 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
         f"{rss[0]:.0f} / {max(rss):.0f} / {rss[-1]:.0f} MB (slope over the whole run "
         f"{slope_per_10min([x['minute'] for x in s], rss):+.2f} MB per 10 min), generator "
         f"{grss[0]:.0f} / {max(grss):.0f} / {grss[-1]:.0f} MB; the generator ended "
-        f"{g['behind_s']:.2f} s behind its schedule.",
+        f"{g['behind_s']:.2f} s behind its schedule; "
+        + (
+            f"the service had drained (no input pending, counts settled) "
+            f"{run['drained_s']:.1f} s after the last scan."
+            if run["drained_s"] < DRAIN_S
+            else f"the service had not drained {DRAIN_S:g} s after the last scan."
+        ),
         "",
         f"Logs: {len(files)} files, {sum(f.size_bytes for f in files) / 1e6:.0f} MB, "
         f"{sum(f.messages for f in files)} messages read end to end with "
