@@ -143,13 +143,15 @@ def open_fleet(
     world: Any,
     starts: list[tuple[str, Any, Any]],
     on_pose: Any,
+    congestion_control: Any = None,
 ) -> tuple[list[Any], Any, list[tuple[Any, Any]], int]:
     """Connect a load generator's robots: the map, their first odometry and initial pose.
 
     Opens one Zenoh session per 12 robots (1 to 8), puts ``world`` as map ``bench``, subscribes
     ``on_pose`` to every robot's pose, then for each ``(robot id, first odometry pose, true
     start pose)`` puts the odometry and an InitialPose stamped ``t0`` and declares the robot's
-    odometry and scan publishers.
+    odometry and scan publishers, with ``congestion_control`` when given (Zenoh's default,
+    drop, otherwise).
 
     Returns:
         The sessions, the pose subscriber, per robot its (odometry, scan) publishers, and t0 (ns).
@@ -160,6 +162,7 @@ def open_fleet(
     from service.live.sessions import client_config
 
     robots = len(starts)
+    qos = {} if congestion_control is None else {"congestion_control": congestion_control}
     sessions = [zenoh.open(client_config(endpoint)) for _ in range(max(1, min(8, robots // 12)))]
     op = sessions[0]
     op.put(
@@ -188,8 +191,8 @@ def open_fleet(
         )
         pubs.append(
             (
-                sess.declare_publisher(f"rlutf/robots/{rid}/odom"),
-                sess.declare_publisher(f"rlutf/robots/{rid}/scan"),
+                sess.declare_publisher(f"rlutf/robots/{rid}/odom", **qos),
+                sess.declare_publisher(f"rlutf/robots/{rid}/scan", **qos),
             )
         )
     return sessions, sub, pubs, t0

@@ -110,6 +110,8 @@ def _generator(
     Answers each request ``n`` on ``requests`` with the figures so far on ``replies``; after the
     last scan, waits for ``finish`` (the service has drained) before its final figures.
     """
+    import zenoh
+
     from rlutf.sim import (
         LidarModel,
         OdometryModel,
@@ -182,7 +184,12 @@ def _generator(
         (rid, stream.pose, loop.truth[0])
         for rid, stream, loop in zip(rids, streams, loops, strict=True)
     ]
-    sessions, sub, pubs, t0 = open_fleet(endpoint, world, starts, on_pose)
+    # Blocking publishers: a scan the generator's own transport dropped (Zenoh's default when
+    # its queue is full, as on two starved cores) would be counted by no one; blocked, the
+    # generator falls behind its schedule instead, and says so.
+    sessions, sub, pubs, t0 = open_fleet(
+        endpoint, world, starts, on_pose, congestion_control=zenoh.CongestionControl.BLOCK
+    )
     threading.Thread(target=answer, daemon=True).start()
 
     def send(i: int, k: int, stamp: int) -> None:
@@ -392,9 +399,12 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         sampler = _Sampler(proc, gen, session, requests, replies)
         timeout = min(3.0, args.sample_s / 2)
         due = sampler.t0 + args.sample_s
+        deadline = sampler.t0 + args.minutes * 60.0 + DRAIN_S + 240.0
         while not ended.wait(max(0.0, due - time.monotonic())):
             if proc.poll() is not None or not gen.is_alive():
                 raise RuntimeError("the service or the load generator stopped during the run")
+            if time.monotonic() > deadline:
+                raise RuntimeError("the load generator is stuck: the service does not read")
             samples.append(sampler.take(timeout))
             _progress(samples[-1])
             while due <= time.monotonic():
@@ -577,7 +587,9 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
         f"processed (reported); scan to pose p50 {g['p50']:.1f} ms, p99 {g['p99']:.1f} ms, "
         f"max {g['max']:.0f} ms; CPU ms per scan sent: service main / workers / generator "
         f"{_per_scan(main, g['scans_sent']):.2f} / {_per_scan(workers, g['scans_sent']):.2f} / "
-        f"{_per_scan(gen, g['scans_sent']):.2f}; service RSS first / peak / last "
+        f"{_per_scan(gen, g['scans_sent']):.2f}; inputs the service received: "
+        f"{h.get('received')} of {2 * g['scans_sent'] + 2 * args.robots} sent (scans, "
+        "odometry, initial poses); service RSS first / peak / last "
         f"{rss[0]:.0f} / {max(rss):.0f} / {rss[-1]:.0f} MB (slope over the whole run "
         f"{slope_per_10min([x['minute'] for x in s], rss):+.2f} MB per 10 min), generator "
         f"{grss[0]:.0f} / {max(grss):.0f} / {grss[-1]:.0f} MB; the generator ended "
