@@ -302,6 +302,7 @@ def start_service(
     workers: int,
     serve_flags: tuple[str, ...] = (),
     env: dict[str, str] | None = None,
+    stderr: Any = subprocess.DEVNULL,
 ) -> subprocess.Popen[bytes]:
     """Start ``rlutf serve`` as a router on ``endpoint``, its store (and logs) under ``tmp``.
 
@@ -312,6 +313,7 @@ def start_service(
         workers: service worker processes.
         serve_flags: more flags for ``rlutf serve``.
         env: extra environment variables (``RLUTF_*`` settings).
+        stderr: where the service's log goes (``subprocess.Popen``'s argument).
     """
     exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
     cmd = [
@@ -329,7 +331,7 @@ def start_service(
     cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
     cmd += serve_flags
     full_env = None if env is None else {**os.environ, **env}
-    return subprocess.Popen(cmd, stderr=subprocess.DEVNULL, env=full_env)
+    return subprocess.Popen(cmd, stderr=stderr, env=full_env)
 
 
 def stop_service(proc: subprocess.Popen[bytes], timeout: float = 20.0) -> int | None:

@@ -315,7 +315,8 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-soak-"))
     env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
-    proc = start_service(endpoint, tmp, True, args.workers, env=env)
+    service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
+    proc = start_service(endpoint, tmp, True, args.workers, env=env, stderr=service_log)
     ctx = mp.get_context("spawn")
     out, requests, replies = ctx.Queue(), ctx.Queue(), ctx.Queue()
     ready, go, began, ended, finish = (ctx.Event() for _ in range(5))
@@ -354,7 +355,11 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         deadline = sampler.t0 + args.minutes * 60.0 + DRAIN_S + 240.0
         while not ended.wait(max(0.0, due - time.monotonic())):
             if proc.poll() is not None or not gen.is_alive():
-                raise RuntimeError("the service or the load generator stopped during the run")
+                tail = (tmp / "service.log").read_text(errors="replace")[-3000:]
+                raise RuntimeError(
+                    f"stopped during the run: service exit code {proc.returncode}, load "
+                    f"generator exit code {gen.exitcode}; the service's log ends:\n{tail}"
+                )
             if time.monotonic() > deadline:
                 raise RuntimeError("the load generator is stuck: the service does not read")
             samples.append(sampler.take(timeout))
@@ -375,6 +380,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         if proc.poll() is None:
             stop_service(proc)
+        service_log.close()
         if gen.is_alive():
             gen.terminate()
         shutil.rmtree(tmp, ignore_errors=True)
