@@ -109,16 +109,18 @@ def timed_publishing(
     start = time.monotonic()
     period = 1.0 / RATE_HZ
     scans_sent = 0
-    events = sorted(
-        (k * period + (i / robots) * period, i, k) for i in range(robots) for k in range(steps - 1)
-    )
-    for when, i, k in events:
-        delay = start + when - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        send(i, k, t0 + int((k + 1) * period * 1e9))
-        scans_sent += 1
-    behind = time.monotonic() - (start + events[-1][0])
+    when = 0.0
+    # in time order: robot i's k-th scan at (k + i / robots) periods, generated as they come so
+    # that a long run (bench.soak) holds no schedule in memory
+    for k in range(steps - 1):
+        for i in range(robots):
+            when = k * period + (i / robots) * period
+            delay = start + when - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            send(i, k, t0 + int((k + 1) * period * 1e9))
+            scans_sent += 1
+    behind = time.monotonic() - (start + when)
     ended.set()
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return scans_sent, behind, usage.ru_utime + usage.ru_stime - cpu0
@@ -137,6 +139,66 @@ def generator_result(
     }
 
 
+def open_fleet(
+    endpoint: str,
+    world: Any,
+    starts: list[tuple[str, Any, Any]],
+    on_pose: Any,
+    congestion_control: Any = None,
+) -> tuple[list[Any], Any, list[tuple[Any, Any]], int]:
+    """Connect a load generator's robots: the map, their first odometry and initial pose.
+
+    Opens one Zenoh session per 12 robots (1 to 8), puts ``world`` as map ``bench``, subscribes
+    ``on_pose`` to every robot's pose, then for each ``(robot id, first odometry pose, true
+    start pose)`` puts the odometry and an InitialPose stamped ``t0`` and declares the robot's
+    odometry and scan publishers, with ``congestion_control`` when given (Zenoh's default,
+    drop, otherwise).
+
+    Returns:
+        The sessions, the pose subscriber, per robot its (odometry, scan) publishers, and t0 (ns).
+    """
+    import zenoh
+
+    from schemas import InitialPose, Map, encode
+    from service.live.sessions import client_config
+
+    robots = len(starts)
+    qos = {} if congestion_control is None else {"congestion_control": congestion_control}
+    sessions = [zenoh.open(client_config(endpoint)) for _ in range(max(1, min(8, robots // 12)))]
+    op = sessions[0]
+    op.put(
+        "rlutf/maps/bench",
+        encode(
+            Map.model_validate({"map_id": "bench", "version": 1, "geometry": world.to_geojson()})
+        ),
+    )
+    sub = op.declare_subscriber("rlutf/robots/*/pose", on_pose)
+    time.sleep(1.0)
+    t0 = time.time_ns()
+    pubs = []
+    for idx, (rid, o, p) in enumerate(starts):
+        sess = sessions[idx % len(sessions)]
+        sess.put(
+            f"rlutf/robots/{rid}/odom",
+            json.dumps({"stamp_ns": t0, "x": float(o[0]), "y": float(o[1]), "theta": float(o[2])}),
+        )
+        op.put(
+            f"rlutf/robots/{rid}/initialpose",
+            encode(
+                InitialPose(
+                    stamp_ns=t0, map_id="bench", x=float(p[0]), y=float(p[1]), theta=float(p[2])
+                )
+            ),
+        )
+        pubs.append(
+            (
+                sess.declare_publisher(f"rlutf/robots/{rid}/odom", **qos),
+                sess.declare_publisher(f"rlutf/robots/{rid}/scan", **qos),
+            )
+        )
+    return sessions, sub, pubs, t0
+
+
 def _generator(
     endpoint: str,
     robots: int,
@@ -153,9 +215,6 @@ def _generator(
     Sets ``began`` and ``ended`` around the timed publishing, so that the parent can read the
     service's CPU time over the same interval.
     """
-
-    import zenoh
-
     from rlutf.sim import (
         LidarModel,
         OdometryModel,
@@ -164,8 +223,6 @@ def _generator(
         make_trajectory,
         simulate_scan,
     )
-    from schemas import InitialPose, Map, encode
-    from service.live.sessions import client_config
 
     rng = np.random.default_rng(seed)
     world = make_building(rng)
@@ -181,14 +238,6 @@ def _generator(
             ranges = [round(float(r), 4) if math.isfinite(r) else None for r in s.ranges]
             scans.append((s.angle_min, s.angle_increment, s.range_min, s.range_max, ranges))
         plans.append((f"r{i:03d}", truth, odom, scans))
-    sessions = [zenoh.open(client_config(endpoint)) for _ in range(max(1, min(8, robots // 12)))]
-    op = sessions[0]
-    op.put(
-        "rlutf/maps/bench",
-        encode(
-            Map.model_validate({"map_id": "bench", "version": 1, "geometry": world.to_geojson()})
-        ),
-    )
     sent: dict[tuple[str, int], int] = {}
     latencies: list[float] = []
     poses = 0
@@ -204,32 +253,8 @@ def _generator(
             if t is not None:
                 latencies.append((now - t) / 1e6)
 
-    sub = op.declare_subscriber("rlutf/robots/*/pose", on_pose)
-    time.sleep(1.0)
-    t0 = time.time_ns()
-    pubs = []
-    for idx, (rid, truth, odom, _) in enumerate(plans):
-        sess = sessions[idx % len(sessions)]
-        o = odom[0]
-        sess.put(
-            f"rlutf/robots/{rid}/odom",
-            json.dumps({"stamp_ns": t0, "x": float(o[0]), "y": float(o[1]), "theta": float(o[2])}),
-        )
-        p = truth[0]
-        op.put(
-            f"rlutf/robots/{rid}/initialpose",
-            encode(
-                InitialPose(
-                    stamp_ns=t0, map_id="bench", x=float(p[0]), y=float(p[1]), theta=float(p[2])
-                )
-            ),
-        )
-        pubs.append(
-            (
-                sess.declare_publisher(f"rlutf/robots/{rid}/odom"),
-                sess.declare_publisher(f"rlutf/robots/{rid}/scan"),
-            )
-        )
+    starts = [(rid, odom[0], truth[0]) for rid, truth, odom, _ in plans]
+    sessions, sub, pubs, t0 = open_fleet(endpoint, world, starts, on_pose)
     # payloads encoded now, stamped at publication: only puts happen in the timed loop
     encoded = []
     for rid, _, odom, scans in plans:
@@ -271,6 +296,60 @@ def _generator(
     out.put(generator_result(scans_sent, poses, latencies, behind, cpu))
 
 
+def start_service(
+    endpoint: str,
+    tmp: Path,
+    record: bool,
+    workers: int,
+    serve_flags: tuple[str, ...] = (),
+    env: dict[str, str] | None = None,
+    stderr: Any = subprocess.DEVNULL,
+) -> subprocess.Popen[bytes]:
+    """Start ``rlutf serve`` as a router on ``endpoint``, its store (and logs) under ``tmp``.
+
+    Args:
+        endpoint: the Zenoh endpoint to listen on.
+        tmp: folder for the map store (``store``) and the recording (``logs``).
+        record: record MCAP logs.
+        workers: service worker processes.
+        serve_flags: more flags for ``rlutf serve``.
+        env: extra environment variables (``RLUTF_*`` settings).
+        stderr: where the service's log goes (``subprocess.Popen``'s argument).
+    """
+    exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
+    cmd = [
+        exe,
+        "serve",
+        "--listen",
+        endpoint,
+        "--store",
+        str(tmp / "store"),
+        "--instance",
+        "fleetbench",
+        "--workers",
+        str(workers),
+    ]
+    cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
+    cmd += serve_flags
+    full_env = None if env is None else {**os.environ, **env}
+    return subprocess.Popen(cmd, stderr=stderr, env=full_env)
+
+
+def stop_service(proc: subprocess.Popen[bytes], timeout: float = 20.0) -> int | None:
+    """SIGTERM (an orderly stop), then kill after ``timeout`` seconds.
+
+    Returns:
+        The exit code of an orderly stop, ``None`` when it had to be killed.
+    """
+    proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        return None
+
+
 def run_size(
     robots: int,
     duration: float,
@@ -292,22 +371,7 @@ def run_size(
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-fleet-"))
-    exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
-    cmd = [
-        exe,
-        "serve",
-        "--listen",
-        endpoint,
-        "--store",
-        str(tmp / "store"),
-        "--instance",
-        "fleetbench",
-        "--workers",
-        str(workers),
-    ]
-    cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
-    cmd += serve_flags
-    proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
+    proc = start_service(endpoint, tmp, record, workers, serve_flags)
     ctx = mp.get_context("spawn")
     out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     gen = ctx.Process(
@@ -349,11 +413,7 @@ def run_size(
         stop.set()
         gen.join(10)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
         shutil.rmtree(tmp, ignore_errors=True)
     lat = np.asarray(result["latencies"]) if result["latencies"] else np.array([math.nan])
     dropped = int(health.get("dropped", -1))
@@ -397,9 +457,14 @@ def _health(endpoint: str) -> dict[str, Any]:
     from service.live.sessions import client_config
 
     with zenoh.open(client_config(endpoint)) as s:
-        for r in s.get("rlutf/service/*/health", timeout=3.0):
-            if r.ok is not None:
-                return dict(json.loads(r.ok.payload.to_bytes()))
+        return query_health(s)
+
+
+def query_health(session: Any, timeout: float = 3.0) -> dict[str, Any]:
+    """The first Health reply of ``rlutf/service/*/health`` on an open session (empty if none)."""
+    for r in session.get("rlutf/service/*/health", timeout=timeout):
+        if r.ok is not None:
+            return dict(json.loads(r.ok.payload.to_bytes()))
     return {}
 
 

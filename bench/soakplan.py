@@ -1,0 +1,354 @@
+"""The pure parts of the soak benchmark (:mod:`bench.soak`): the looped robot plan and verdicts.
+
+A soak run is too long to precompute (100 robots for 30 minutes at 10 Hz is 18,000 scans each,
+about 5 GB of JSON), so each robot drives a loop: a path of ``L`` poses forward, then the same
+path backwards to its start (ping-pong, ``2 L - 2`` steps), over and over. Scans are simulated
+once per pose of the forward path (the way back reuses them), and the odometry is kept as the
+loop's ``2 L - 2`` relative increments (with drift), accumulated step after step by
+:class:`OdometryStream`, so that the odometry a robot reports is one continuous stream however
+many loops it drives. What the generator holds is fixed by ``L``, not by the run's length.
+
+The verdicts take the sampled time series and return :class:`Verdict` values; ``hard`` ones
+(scans counted, logs rotated and readable) decide the exit code of every run, the others (memory
+slope, queues) only that of a long run (:data:`LONG_RUN_MINUTES`), where their targets apply.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rlutf.motion import relative
+from rlutf.sim import OdometryModel, drift_odometry
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Memory slope target after warm-up, MB per 10 minutes.
+SLOPE_TARGET_MB_PER_10MIN = 1.0
+#: Runs at least this long have their memory and queue verdicts count toward the exit code.
+LONG_RUN_MINUTES = 10.0
+
+
+@dataclass(frozen=True)
+class RobotLoop:
+    """One robot's ping-pong loop.
+
+    Attributes:
+        truth: ``(n, 3)`` true pose at each loop step (m, m, rad), ``n = 2 L - 2``; the step after
+            the last is step 0 again.
+        increments: ``(n, 3)`` odometry motion from loop step ``j`` to step ``(j + 1) % n``, in
+            the robot's frame at step ``j`` (m, m, rad), with drift.
+        scan_of_step: ``(n,)`` index of each step's scan among the ``L`` forward poses.
+    """
+
+    truth: FloatArray
+    increments: FloatArray
+    scan_of_step: IntArray
+
+    @property
+    def steps(self) -> int:
+        """Steps in one loop."""
+        return len(self.truth)
+
+
+def ping_pong(forward: FloatArray) -> tuple[FloatArray, IntArray]:
+    """A path and the same path backwards: ``forward[0 .. L-1]`` then ``forward[L-2 .. 1]``.
+
+    Args:
+        forward: ``(L, 3)`` poses, ``L >= 2``.
+
+    Returns:
+        ``(2 L - 2, 3)`` poses of the loop and, per loop step, its index into ``forward``.
+    """
+    n = len(forward)
+    if n < 2:
+        raise ValueError(f"a loop needs at least 2 forward poses, got {n}")
+    index = np.concatenate([np.arange(n), np.arange(n - 2, 0, -1)]).astype(np.intp)
+    return forward[index], index
+
+
+def make_loop(forward: FloatArray, model: OdometryModel, rng: np.random.Generator) -> RobotLoop:
+    """The loop of a forward path, with drifting odometry increments (one draw per step).
+
+    Args:
+        forward: ``(L, 3)`` true poses, ``L >= 2``.
+        model: odometry noise.
+        rng: random generator.
+    """
+    truth, index = ping_pong(forward)
+    closed = np.vstack([truth, truth[:1]])  # back to the start: the wrap-around increment
+    odom = drift_odometry(closed, model, rng)
+    increments = relative(odom[:-1], odom[1:])
+    return RobotLoop(truth, increments, index)
+
+
+class OdometryStream:
+    """A robot's odometry, step after step, from a loop's increments (any number of loops).
+
+    Args:
+        start: the odometry pose at step 0 (x, y, theta).
+        increments: ``(n, 3)`` the loop's increments.
+    """
+
+    def __init__(self, start: Sequence[float], increments: FloatArray) -> None:
+        self._pose = (float(start[0]), float(start[1]), float(start[2]))
+        self._inc = [(float(d[0]), float(d[1]), float(d[2])) for d in increments]
+        self._step = 0
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """The odometry pose at the current step."""
+        return self._pose
+
+    def advance(self) -> tuple[float, float, float]:
+        """Move to the next step and return its odometry pose."""
+        x, y, th = self._pose
+        dx, dy, dth = self._inc[self._step % len(self._inc)]
+        c, s = math.cos(th), math.sin(th)
+        th = math.remainder(th + dth, math.tau)
+        self._pose = (x + c * dx - s * dy, y + s * dx + c * dy, th)
+        self._step += 1
+        return self._pose
+
+
+# ---------------------------------------------------------------------------------- verdicts
+
+
+class Verdict(NamedTuple):
+    """One verdict of a soak run.
+
+    Attributes:
+        name: what is judged.
+        ok: passed.
+        detail: the figures it rests on.
+        hard: decides the exit code of every run, not only of a long one.
+    """
+
+    name: str
+    ok: bool
+    detail: str
+    hard: bool
+
+
+def slope_per_10min(minutes: Sequence[float], values: Sequence[float]) -> float:
+    """Least-squares slope of ``values`` against time, per 10 minutes (``nan`` below 2 points)."""
+    t = np.asarray(minutes, dtype=float)
+    v = np.asarray(values, dtype=float)
+    keep = np.isfinite(t) & np.isfinite(v)
+    t, v = t[keep], v[keep]
+    if len(t) < 2 or np.ptp(t) == 0:
+        return math.nan
+    slope = np.polyfit(t, v, 1)[0]
+    return float(slope * 10.0)
+
+
+def after_warmup(
+    minutes: Sequence[float], values: Sequence[float], warmup_minutes: float
+) -> tuple[list[float], list[float]]:
+    """The samples taken at or after ``warmup_minutes``."""
+    pairs = [(t, v) for t, v in zip(minutes, values, strict=True) if t >= warmup_minutes]
+    return [t for t, _ in pairs], [v for _, v in pairs]
+
+
+def memory_verdict(
+    minutes: Sequence[float],
+    rss_mb: Sequence[float],
+    warmup_minutes: float,
+    target: float = SLOPE_TARGET_MB_PER_10MIN,
+) -> Verdict:
+    """Resident memory slope after warm-up at most ``target`` MB per 10 minutes."""
+    t, v = after_warmup(minutes, rss_mb, warmup_minutes)
+    slope = slope_per_10min(t, v)
+    ok = math.isfinite(slope) and slope <= target
+    span = f"{len(t)} samples from minute {warmup_minutes:g}"
+    rng = f"{min(v):.0f} to {max(v):.0f} MB" if v else "no samples"
+    return Verdict(
+        "memory slope after warm-up",
+        ok,
+        f"{slope:+.2f} MB per 10 min (target <= {target:g}); {span}, {rng}",
+        hard=False,
+    )
+
+
+def queue_grows(values: Sequence[float], margin: float) -> bool:
+    """A queue grows when the median of its last third is above the largest value of its first
+    third by more than ``margin``.
+
+    A bounded queue that fluctuates (bursts, a busy moment of the machine) has its last third's
+    median within its earlier range; one that creeps up does not. Fewer than 3 samples: no trend.
+    """
+    v = [x for x in values if math.isfinite(x)]
+    if len(v) < 3:
+        return False
+    third = len(v) // 3
+    first, last = v[:third], v[-third:]
+    return float(np.median(last)) > max(first) + margin
+
+
+def queue_verdict(
+    name: str,
+    minutes: Sequence[float],
+    values: Sequence[float],
+    warmup_minutes: float,
+    margin: float,
+) -> Verdict:
+    """No upward trend of a queue's length after warm-up (see :func:`queue_grows`)."""
+    t, v = after_warmup(minutes, values, warmup_minutes)
+    finite = [x for x in v if math.isfinite(x)]
+    if not finite:
+        return Verdict(f"{name} does not grow", True, "not reported by the service", hard=False)
+    grows = queue_grows(finite, margin)
+    third = max(len(finite) // 3, 1)
+    return Verdict(
+        f"{name} does not grow",
+        not grows,
+        f"max {max(finite):.0f}; first third max {max(finite[:third]):.0f}, last third median "
+        f"{float(np.median(finite[-third:])):.0f} (grows if above first third max + {margin:g}); "
+        f"slope {slope_per_10min(t, v):+.1f} per 10 min",
+        hard=False,
+    )
+
+
+def overflow_verdict(
+    minutes: Sequence[float], overflow: Sequence[float], warmup_minutes: float
+) -> Verdict:
+    """The recorder's queue never overflowed after warm-up (it is bounded by dropping)."""
+    _, v = after_warmup(minutes, overflow, warmup_minutes)
+    finite = [x for x in v if math.isfinite(x)]
+    lost = int(finite[-1] - finite[0]) if len(finite) >= 2 else 0
+    total = int(finite[-1]) if finite else 0
+    return Verdict(
+        "recorder queue never full after warm-up",
+        lost == 0,
+        f"{lost} messages not recorded after warm-up ({total} over the run)",
+        hard=False,
+    )
+
+
+def counted_verdict(sent: int, poses: int, dropped: int, not_processed: int) -> Verdict:
+    """Every scan sent answered (a pose received) or counted by the service."""
+    uncounted = sent - poses - dropped - not_processed
+    return Verdict(
+        "every scan answered or counted",
+        uncounted == 0 and dropped >= 0,
+        f"{sent} sent = {poses} poses + {dropped} dropped + {not_processed} not processed "
+        f"+ {uncounted} uncounted",
+        hard=True,
+    )
+
+
+class FileCheck(NamedTuple):
+    """One log file read end to end.
+
+    Attributes:
+        name: file name.
+        size_bytes: its size.
+        messages: messages read.
+        indexed: messages its summary says it holds.
+        poses: PoseEstimate messages read.
+        span_s: first to last pose message, seconds.
+        error: why it could not be read, or ``None``.
+    """
+
+    name: str
+    size_bytes: int
+    messages: int
+    indexed: int
+    poses: int
+    span_s: float
+    error: str | None
+
+
+def expected_files(run_seconds: float, rotate_seconds: float) -> int:
+    """Fewest finished files a run of ``run_seconds`` recording must leave (at least 2)."""
+    return max(2, int(run_seconds // rotate_seconds))
+
+
+def logs_verdicts(
+    files: Sequence[FileCheck],
+    parts: Sequence[str],
+    run_seconds: float,
+    rotate_seconds: float,
+    poses_published: int,
+    recorder_overflow: int,
+) -> list[Verdict]:
+    """Rotation happened, nothing is left as ``.part``, every file reads end to end, and the
+    pose messages of all files are the poses published (less what the recorder reported lost).
+    """
+    need = expected_files(run_seconds, rotate_seconds)
+    longest = max((f.span_s for f in files), default=math.nan)
+    bad = [f for f in files if f.error is not None or f.messages != f.indexed]
+    recorded = sum(f.poses for f in files)
+    missing = poses_published - recorded
+    return [
+        Verdict(
+            "logs rotated",
+            len(files) >= need,
+            f"{len(files)} files (at least {need} for {run_seconds:.0f} s at "
+            f"{rotate_seconds:g} s each); longest {longest:.1f} s of poses",
+            hard=True,
+        ),
+        Verdict(
+            "no .part file left",
+            not parts,
+            f"{len(parts)} left" + "".join(f"; {name}" for name in parts),
+            hard=True,
+        ),
+        Verdict(
+            "every file readable end to end",
+            not bad and bool(files),
+            f"{len(files) - len(bad)} of {len(files)} read, {sum(f.messages for f in files)} "
+            "messages"
+            + "".join(
+                f"; {f.name}: {f.error or f'{f.messages} read, {f.indexed} indexed'}" for f in bad
+            ),
+            hard=True,
+        ),
+        Verdict(
+            "poses recorded = poses published",
+            0 <= missing <= recorder_overflow,
+            f"{recorded} pose messages in the files, {poses_published} published, "
+            f"{recorder_overflow} messages reported not recorded",
+            hard=True,
+        ),
+    ]
+
+
+def exit_code(verdicts: Sequence[Verdict], minutes: float) -> int:
+    """1 when a hard verdict failed, or any failed on a long run; else 0."""
+    long_run = minutes >= LONG_RUN_MINUTES
+    return int(any(not v.ok and (v.hard or long_run) for v in verdicts))
+
+
+class LatencyHistogram:
+    """Latencies in 0.1 ms bins up to 60 s (the last bin holds the rest): percentiles of a run of
+    any length in fixed memory."""
+
+    BIN_MS = 0.1
+    BINS = 600_000
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS, dtype=np.int64)
+
+    def add(self, latencies_ms: Sequence[float]) -> None:
+        """Count latencies (ms)."""
+        if len(latencies_ms):
+            idx = np.minimum(
+                (np.asarray(latencies_ms, dtype=float) / self.BIN_MS).astype(np.int64),
+                self.BINS - 1,
+            )
+            self.counts += np.bincount(np.maximum(idx, 0), minlength=self.BINS)
+
+    def percentile(self, q: float) -> float:
+        """The ``q``-th percentile (upper edge of its bin), ms; ``nan`` when empty."""
+        total = int(self.counts.sum())
+        if total == 0:
+            return math.nan
+        rank = max(1, math.ceil(q / 100.0 * total))
+        return float((np.searchsorted(np.cumsum(self.counts), rank) + 1) * self.BIN_MS)

@@ -1,0 +1,401 @@
+"""Running a soak (:mod:`bench.soak`): the service, the looped load generator, the samples, and
+reading the logs after an orderly stop."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import queue
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.fleet import (
+    RATE_HZ,
+    _children,
+    _cpu_seconds,
+    _rss_tree_mb,
+    open_fleet,
+    query_health,
+    start_service,
+    stop_service,
+    timed_publishing,
+)
+from bench.soakplan import (
+    FileCheck,
+    LatencyHistogram,
+    OdometryStream,
+    make_loop,
+)
+
+#: Longest wait, after the last scan, for the service to drain before the final counts, s.
+DRAIN_S = 60.0
+#: A scan whose pose has not come after this long is forgotten by the generator (dropped).
+_FORGET_NS = 30_000_000_000
+
+
+def _generator(
+    endpoint: str,
+    robots: int,
+    minutes: float,
+    loop_seconds: float,
+    seed: int,
+    out: Any,
+    ready: Any,
+    go: Any,
+    began: Any,
+    ended: Any,
+    requests: Any,
+    replies: Any,
+    finish: Any,
+) -> None:
+    """Load generator (a separate process): loops precomputed, then publish, time, report.
+
+    Answers each request ``n`` on ``requests`` with the figures so far on ``replies``; after the
+    last scan, waits for ``finish`` (the service has drained) before its final figures.
+    """
+    import zenoh
+
+    from rlutf.sim import (
+        LidarModel,
+        OdometryModel,
+        make_building,
+        make_trajectory,
+        simulate_scan,
+    )
+
+    rng = np.random.default_rng(seed)
+    world = make_building(rng)
+    forward = max(2, round(loop_seconds * RATE_HZ / 2) + 1)
+    lidar = LidarModel(beams=360)
+    rids, loops, tails = [], [], []
+    for i in range(robots):
+        loop = make_loop(
+            make_trajectory(world, rng, forward, dt=1.0 / RATE_HZ), OdometryModel(), rng
+        )
+        scans = []
+        for pose in loop.truth[:forward]:
+            s = simulate_scan(world, pose, lidar, rng)
+            ranges = [round(float(r), 4) if math.isfinite(r) else None for r in s.ranges]
+            scans.append(
+                json.dumps(
+                    {
+                        "angle_min": s.angle_min,
+                        "angle_increment": s.angle_increment,
+                        "range_min": s.range_min,
+                        "range_max": s.range_max,
+                        "ranges": ranges,
+                    }
+                )[1:]
+            )
+        rids.append(f"r{i:03d}")
+        loops.append(loop)
+        tails.append([scans[j] for j in loop.scan_of_step])  # references, one per loop step
+    streams = [OdometryStream(loop.truth[0], loop.increments) for loop in loops]
+
+    sent: dict[tuple[str, int], int] = {}
+    latencies: list[float] = []
+    counts = {"sent": 0, "poses": 0}
+    lock = threading.Lock()
+    hist = LatencyHistogram()
+
+    def on_pose(sample: Any) -> None:
+        now = time.time_ns()
+        d = json.loads(sample.payload.to_bytes())
+        with lock:
+            t = sent.pop((d["robot_id"], d["stamp_ns"]), None)
+            counts["poses"] += 1
+            if t is not None:
+                latencies.append((now - t) / 1e6)
+
+    def figures() -> dict[str, Any]:
+        now = time.time_ns()
+        with lock:
+            lat = np.asarray(latencies)
+            latencies.clear()
+            for key in [k for k, t in sent.items() if now - t > _FORGET_NS]:
+                del sent[key]
+            snapshot = dict(counts)
+        hist.add(lat)
+        p50, p99, top = np.percentile(lat, [50, 99, 100]) if len(lat) else (math.nan,) * 3
+        return {**snapshot, "p50": p50, "p99": p99, "max": top, "count": len(lat)}
+
+    def answer() -> None:
+        while (n := requests.get()) is not None:
+            replies.put((n, figures()))
+
+    starts = [
+        (rid, stream.pose, loop.truth[0])
+        for rid, stream, loop in zip(rids, streams, loops, strict=True)
+    ]
+    # Blocking publishers: a scan the generator's own transport dropped (Zenoh's default when
+    # its queue is full, as on two starved cores) would be counted by no one; blocked, the
+    # generator falls behind its schedule instead, and says so.
+    sessions, sub, pubs, t0 = open_fleet(
+        endpoint, world, starts, on_pose, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    threading.Thread(target=answer, daemon=True).start()
+
+    def send(i: int, k: int, stamp: int) -> None:
+        x, y, th = streams[i].advance()  # step k + 1
+        head = f'{{"stamp_ns": {stamp}, '
+        pubs[i][0].put(f'{head}"x": {x!r}, "y": {y!r}, "theta": {th!r}}}')
+        with lock:
+            sent[(rids[i], stamp)] = time.time_ns()
+            counts["sent"] += 1
+        pubs[i][1].put(head + tails[i][(k + 1) % len(tails[i])])
+
+    steps = int(minutes * 60 * RATE_HZ) + 1
+    scans_sent, behind, cpu = timed_publishing(robots, steps, t0, send, ready, go, began, ended)
+    finish.wait(120)
+    last = figures()
+    sub.undeclare()
+    for s in sessions:
+        s.close()
+    out.put(
+        {
+            "scans_sent": scans_sent,
+            "poses": last["poses"],
+            "behind_s": behind,
+            "cpu_s": cpu,
+            "p50": hist.percentile(50),
+            "p99": hist.percentile(99),
+            "max": float(np.nonzero(hist.counts)[0].max(initial=-1) + 1) * hist.BIN_MS,
+        }
+    )
+
+
+class _Sampler:
+    """The parent's view of the service and the generator, one :meth:`take` per sample."""
+
+    def __init__(self, proc: Any, gen: Any, session: Any, requests: Any, replies: Any) -> None:
+        self.proc, self.gen, self.session = proc, gen, session
+        self.requests, self.replies = requests, replies
+        self.t0 = time.monotonic()
+        self.main0 = _cpu_seconds(proc.pid)
+        self.workers: dict[int, float] = {p: _cpu_seconds(p) for p in _children(proc.pid)}
+        self.workers0 = sum(self.workers.values())
+        self.gen0 = _cpu_seconds(gen.pid)
+        self.n = 0
+
+    def cpu(self) -> tuple[float, float, float]:
+        """CPU seconds since the start: service main, its workers (each as last seen), generator."""
+        for p in _children(self.proc.pid):
+            c = _cpu_seconds(p)
+            if math.isfinite(c):
+                self.workers[p] = c
+        return (
+            _cpu_seconds(self.proc.pid) - self.main0,
+            sum(self.workers.values()) - self.workers0,
+            _cpu_seconds(self.gen.pid) - self.gen0,
+        )
+
+    def _generator_figures(self, timeout: float) -> dict[str, Any]:
+        self.n += 1
+        self.requests.put(self.n)
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                n, fig = self.replies.get(timeout=left)
+            except queue.Empty:
+                break
+            if n == self.n:
+                return dict(fig)
+        return {}
+
+    def take(self, timeout: float) -> dict[str, Any]:
+        """One sample (see the module docstring); ``nan`` where a figure did not come."""
+        minute = (time.monotonic() - self.t0) / 60.0
+        main, workers, gen_cpu = self.cpu()
+        h = query_health(self.session, timeout=timeout)
+        extra = h.get("extra", {})
+        g = self._generator_figures(timeout)
+        lat = h.get("latency_ms", {})
+        nan = math.nan
+        return {
+            "minute": minute,
+            "rss_service_mb": _rss_tree_mb(self.proc.pid),
+            "rss_generator_mb": _rss_tree_mb(self.gen.pid),
+            "cpu_main_s": main,
+            "cpu_workers_s": workers,
+            "cpu_generator_s": gen_cpu,
+            "sent": g.get("sent", nan),
+            "poses": g.get("poses", nan),
+            "latency_p50_ms": g.get("p50", nan),
+            "latency_p99_ms": g.get("p99", nan),
+            "latency_max_ms": g.get("max", nan),
+            "received": h.get("received", nan),
+            "processed": h.get("processed", nan),
+            "dropped": h.get("dropped", nan),
+            "not_processed": extra.get("scans_not_processed", nan),
+            "pending_inputs": extra.get("pending_inputs", nan),
+            "recorder_queue": extra.get("recorder_queue", nan),
+            "recorder_overflow": extra.get("recorder_overflow", nan),
+            "service_latency_p99_ms": lat.get("p99", nan) if lat else nan,
+        }
+
+
+def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
+    """Every finished log file read end to end, and the names of ``.part`` files left."""
+    from schemas import SCHEMA_NAMES, PoseEstimate
+    from service.logs.mcapread import LogError, LogFile
+
+    pose_schema = SCHEMA_NAMES[PoseEstimate]
+    checks = []
+    for path in sorted(record_dir.glob("*.mcap")):
+        messages = poses = indexed = 0
+        first, last = math.inf, -math.inf
+        error = None
+        try:
+            with LogFile(path) as log:
+                indexed = log.count()
+                for record in log.messages():
+                    messages += 1
+                    # the span of the poses: a file starts with the maps (and their views) at
+                    # their original log_time
+                    if record.schema_name == pose_schema:
+                        poses += 1
+                        first = min(first, record.log_time_ns)
+                        last = max(last, record.log_time_ns)
+        except LogError as err:
+            error = str(err)
+        span = (last - first) / 1e9 if last >= first else math.nan
+        checks.append(
+            FileCheck(path.name, path.stat().st_size, messages, indexed, poses, span, error)
+        )
+    return checks, sorted(p.name for p in record_dir.glob("*.part"))
+
+
+def _progress(s: dict[str, Any]) -> None:
+    print(
+        f"[soak {s['minute']:5.1f} min] service {s['rss_service_mb']:.0f} MB, generator "
+        f"{s['rss_generator_mb']:.0f} MB; sent {s['sent']}, poses {s['poses']}, dropped "
+        f"{s['dropped']}, not processed {s['not_processed']}; latency p50 "
+        f"{s['latency_p50_ms']:.1f} p99 {s['latency_p99_ms']:.1f} ms; pending "
+        f"{format_count(s['pending_inputs'])}, recorder queue "
+        f"{format_count(s['recorder_queue'])}, overflow {s['recorder_overflow']}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _wait_drained(session: Any, timeout: float) -> float:
+    """After the last scan: wait until the service has no input pending and its counts of scans
+    processed, dropped and not processed stay put for a second (scans still in the service would
+    be neither answered nor counted yet).
+
+    Returns:
+        Seconds waited (``timeout`` when it did not drain).
+    """
+    start = time.monotonic()
+    before: tuple[Any, ...] = ()
+    while (waited := time.monotonic() - start) < timeout:
+        h = query_health(session, timeout=2.0)
+        extra = h.get("extra", {})
+        now = (h.get("processed"), h.get("dropped"), extra.get("scans_not_processed"))
+        if h and extra.get("pending_inputs") == 0 and now == before:
+            return waited
+        before = now
+        time.sleep(1.0)
+    return timeout
+
+
+def run_soak(args: argparse.Namespace) -> dict[str, Any]:
+    """Start the service and the generator, sample until the end, stop, read the logs."""
+    from service.live.sessions import client_config, free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    tmp = Path(tempfile.mkdtemp(prefix="rlutf-soak-"))
+    env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
+    service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
+    proc = start_service(endpoint, tmp, True, args.workers, env=env, stderr=service_log)
+    ctx = mp.get_context("spawn")
+    out, requests, replies = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    ready, go, began, ended, finish = (ctx.Event() for _ in range(5))
+    gen = ctx.Process(
+        target=_generator,
+        args=(
+            endpoint,
+            args.robots,
+            args.minutes,
+            args.loop_seconds,
+            args.seed,
+            out,
+            ready,
+            go,
+            began,
+            ended,
+            requests,
+            replies,
+            finish,
+        ),
+    )
+    samples: list[dict[str, Any]] = []
+    try:
+        import zenoh
+
+        time.sleep(2.0)
+        gen.start()
+        if not ready.wait(3600):
+            raise RuntimeError("the load generator did not get ready")
+        session = zenoh.open(client_config(endpoint))
+        go.set()
+        began.wait(60)
+        sampler = _Sampler(proc, gen, session, requests, replies)
+        timeout = min(3.0, args.sample_s / 2)
+        due = sampler.t0 + args.sample_s
+        deadline = sampler.t0 + args.minutes * 60.0 + DRAIN_S + 240.0
+        while not ended.wait(max(0.0, due - time.monotonic())):
+            if proc.poll() is not None or not gen.is_alive():
+                tail = (tmp / "service.log").read_text(errors="replace")[-3000:]
+                raise RuntimeError(
+                    f"stopped during the run: service exit code {proc.returncode}, load "
+                    f"generator exit code {gen.exitcode}; the service's log ends:\n{tail}"
+                )
+            if time.monotonic() > deadline:
+                raise RuntimeError("the load generator is stuck: the service does not read")
+            samples.append(sampler.take(timeout))
+            _progress(samples[-1])
+            while due <= time.monotonic():
+                due += args.sample_s
+        cpu = sampler.cpu()
+        drained = _wait_drained(session, timeout=DRAIN_S)
+        time.sleep(1.0)  # the last poses on their way to the generator
+        finish.set()
+        result = out.get(timeout=120)
+        health = query_health(session)
+        requests.put(None)
+        session.close()
+        stop_code = stop_service(proc, timeout=120)
+        gen.join(30)
+        files, parts = check_logs(tmp / "logs")
+    finally:
+        if proc.poll() is None:
+            stop_service(proc)
+        service_log.close()
+        if gen.is_alive():
+            gen.terminate()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {
+        "samples": samples,
+        "generator": result,
+        "health": health,
+        "cpu": cpu,
+        "files": files,
+        "parts": parts,
+        "stop_code": stop_code,
+        "drained_s": drained,
+    }
+
+
+def format_count(value: float) -> str:
+    """A sampled count, ``-`` when it did not come (or the service does not report it)."""
+    return "-" if isinstance(value, float) and math.isnan(value) else str(value)

@@ -1,0 +1,175 @@
+"""The pure parts of the soak benchmark: the looped plan, the slope fit and the verdicts."""
+
+from __future__ import annotations
+
+import math
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from bench.soakplan import (
+    FileCheck,
+    LatencyHistogram,
+    OdometryStream,
+    counted_verdict,
+    exit_code,
+    logs_verdicts,
+    make_loop,
+    memory_verdict,
+    ping_pong,
+    queue_grows,
+    queue_verdict,
+    slope_per_10min,
+)
+from rlutf.motion import relative, wrap_angle
+from rlutf.sim import OdometryModel, make_building, make_trajectory
+
+NO_DRIFT = OdometryModel(trans_noise=0.0, rot_noise=0.0, rot_per_metre=0.0, heading_bias=0.0)
+
+
+@pytest.fixture(scope="module")
+def forward() -> np.ndarray:
+    rng = np.random.default_rng(3)
+    return make_trajectory(make_building(rng), rng, 60, dt=0.1)
+
+
+def test_ping_pong_goes_back_to_its_start(forward: np.ndarray) -> None:
+    loop, index = ping_pong(forward)
+    assert len(loop) == 2 * len(forward) - 2
+    np.testing.assert_array_equal(loop[: len(forward)], forward)
+    np.testing.assert_array_equal(loop[len(forward) :], forward[-2:0:-1])
+    np.testing.assert_array_equal(loop, forward[index])
+    # the step after the last is the first again: one ordinary step away
+    step = np.hypot(*(loop[-1, :2] - loop[0, :2]))
+    assert step == pytest.approx(np.hypot(*(forward[1, :2] - forward[0, :2])))
+
+
+def test_ping_pong_needs_two_poses() -> None:
+    with pytest.raises(ValueError, match="at least 2"):
+        ping_pong(np.zeros((1, 3)))
+
+
+def test_odometry_without_drift_follows_the_truth_over_many_loops(forward: np.ndarray) -> None:
+    loop = make_loop(forward, NO_DRIFT, np.random.default_rng(0))
+    stream = OdometryStream(loop.truth[0], loop.increments)
+    for k in range(1, 3 * loop.steps + 1):
+        pose = stream.advance()
+        truth = loop.truth[k % loop.steps]
+        assert pose[:2] == pytest.approx(tuple(truth[:2]), abs=1e-9)
+        assert float(wrap_angle(pose[2] - truth[2])) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_odometry_is_continuous_across_loops(forward: np.ndarray) -> None:
+    loop = make_loop(forward, OdometryModel(), np.random.default_rng(1))
+    stream = OdometryStream(loop.truth[0], loop.increments)
+    poses = [stream.pose] + [stream.advance() for _ in range(4 * loop.steps)]
+    moves = relative(np.array(poses[:-1]), np.array(poses[1:]))
+    # each reported motion is the loop's increment of that step, the wrap-around included
+    np.testing.assert_allclose(moves, np.tile(loop.increments, (4, 1)), atol=1e-9)
+    # and no jump: no step moves farther than the fastest step of the truth (drift is ~3 %)
+    truth_steps = np.hypot(*np.diff(loop.truth[:, :2], axis=0).T)
+    assert np.hypot(moves[:, 0], moves[:, 1]).max() < 1.2 * truth_steps.max()
+    # drift accumulates: the odometry does not snap back to the start at each loop
+    ends = [poses[n * loop.steps] for n in range(5)]
+    assert len({(round(x, 6), round(y, 6)) for x, y, _ in ends}) == 5
+
+
+def test_what_a_robot_holds_does_not_depend_on_the_run_length(forward: np.ndarray) -> None:
+    loop = make_loop(forward, OdometryModel(), np.random.default_rng(2))
+    assert loop.increments.shape == loop.truth.shape == (2 * len(forward) - 2, 3)
+    # scans are drawn from the forward poses only: a loop needs len(forward) distinct scans
+    assert set(loop.scan_of_step.tolist()) == set(range(len(forward)))
+    # and streaming ten loops of odometry allocates nothing that stays
+    stream = OdometryStream(loop.truth[0], loop.increments)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(10 * loop.steps):
+            stream.advance()
+        grown = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert grown < 1000
+
+
+def test_slope_is_per_ten_minutes() -> None:
+    t = np.arange(0, 30, 1 / 6)
+    assert slope_per_10min(t, 400 + 0.05 * t) == pytest.approx(0.5)
+    assert slope_per_10min(t, np.full_like(t, 400.0)) == pytest.approx(0.0)
+    assert math.isnan(slope_per_10min([1.0], [2.0]))
+    assert slope_per_10min([0, 1, 2, math.nan], [0, 1, 2, 3]) == pytest.approx(10.0)
+
+
+def test_memory_verdict_leaves_out_the_warm_up() -> None:
+    t = np.arange(0, 30, 1 / 6)
+    rss = np.where(t < 5, 300 + 30 * t, 450 + 0.02 * t)  # grows while warming up, then flat
+    assert memory_verdict(t, rss, warmup_minutes=5).ok
+    assert not memory_verdict(t, rss, warmup_minutes=0).ok
+    leak = 450 + 0.2 * t  # 2 MB per 10 minutes
+    verdict = memory_verdict(t, leak, warmup_minutes=5)
+    assert not verdict.ok and "+2.00 MB per 10 min" in verdict.detail
+    assert not verdict.hard
+
+
+def test_a_queue_that_creeps_up_grows_and_a_bursty_one_does_not() -> None:
+    rng = np.random.default_rng(0)
+    bursty = rng.integers(0, 20, 90).astype(float)
+    bursty[70] = 500.0  # one busy moment late in the run
+    assert not queue_grows(bursty, margin=10)
+    creeping = np.arange(90, dtype=float) * 2 + rng.integers(0, 20, 90)
+    assert queue_grows(creeping, margin=10)
+    assert not queue_grows([0.0, 100.0], margin=0)  # too few samples for a trend
+
+
+def test_queue_verdict_of_a_queue_not_reported() -> None:
+    verdict = queue_verdict("recorder queue", [0.0, 1.0], [math.nan, math.nan], 0.0, 10)
+    assert verdict.ok and "not reported" in verdict.detail
+
+
+def test_every_scan_answered_or_counted() -> None:
+    assert counted_verdict(1000, 900, 80, 20).ok
+    missing = counted_verdict(1000, 900, 80, 10)
+    assert not missing.ok and "10 uncounted" in missing.detail and missing.hard
+    assert not counted_verdict(1000, 1000, -1, 0).ok  # no health: dropped unknown
+
+
+def _file(name: str, messages: int = 10, poses: int = 4, error: str | None = None) -> FileCheck:
+    return FileCheck(name, 1000, messages, messages, poses, 14.9, error)
+
+
+def test_logs_verdicts() -> None:
+    files = [_file(f"f{i}.mcap") for i in range(4)]
+    good = logs_verdicts(files, [], 60.0, 15.0, poses_published=16, recorder_overflow=0)
+    assert all(v.ok and v.hard for v in good)
+    few = logs_verdicts(files[:1], [], 60.0, 15.0, 4, 0)
+    assert [v.ok for v in few] == [False, True, True, True]
+    part = logs_verdicts(files, ["f4.mcap.part"], 60.0, 15.0, 16, 0)
+    assert [v.ok for v in part] == [True, False, True, True]
+    broken = [*files[:3], _file("f3.mcap", error="damaged")]
+    assert [v.ok for v in logs_verdicts(broken, [], 60.0, 15.0, 16, 0)][2] is False
+    short_read = [*files[:3], FileCheck("f3.mcap", 1000, 9, 10, 4, 14.9, None)]
+    assert [v.ok for v in logs_verdicts(short_read, [], 60.0, 15.0, 16, 0)][2] is False
+    # poses missing from the files are allowed only as far as the recorder reported overflow
+    assert logs_verdicts(files, [], 60.0, 15.0, 20, 4)[3].ok
+    assert not logs_verdicts(files, [], 60.0, 15.0, 20, 3)[3].ok
+    assert not logs_verdicts(files, [], 60.0, 15.0, 12, 0)[3].ok  # more recorded than published
+
+
+def test_exit_code_judges_memory_and_queues_only_on_long_runs() -> None:
+    t = np.arange(0, 2, 1 / 12)
+    leak = memory_verdict(t, 400 + 10 * t, warmup_minutes=0.5)
+    assert exit_code([leak, counted_verdict(10, 10, 0, 0)], minutes=1) == 0
+    assert exit_code([leak], minutes=30) == 1
+    assert exit_code([counted_verdict(10, 9, 0, 0)], minutes=1) == 1
+
+
+def test_latency_histogram_percentiles() -> None:
+    hist = LatencyHistogram()
+    assert math.isnan(hist.percentile(50))
+    hist.add(list(np.arange(1, 101, dtype=float)))  # 1 .. 100 ms
+    hist.add([])
+    assert hist.percentile(50) == pytest.approx(50.0, abs=0.11)
+    assert hist.percentile(99) == pytest.approx(99.0, abs=0.11)
+    hist.add([1e6])  # beyond the last bin: counted there
+    assert hist.percentile(100) == pytest.approx(60_000.0)
