@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 _IN_FLIGHT = 4
 #: The same for a worker process: robots whose batches are in its pipe or being computed.
 _PIPE_IN_FLIGHT = 16
+#: Odometry readings a mailbox holds for a robot that sends no scan before they go anyway.
+_ODOM_ALONE = 32
 
 
 @dataclass
@@ -52,6 +54,19 @@ class _Mailbox:
     scan: Entry | None = None  # the unprocessed scan in ``entries``, if any
     busy: bool = False
     queued: bool = False
+
+    def worth_a_batch(self) -> bool:
+        """Whether the entries are worth sending to the worker now.
+
+        Odometry alone changes nothing that is published: it waits in the mailbox for the
+        robot's next scan or request (robots send odometry just before each scan, and sending
+        it alone cost a second pipe round trip per scan), up to :data:`_ODOM_ALONE` readings.
+        """
+        return (
+            self.scan is not None
+            or len(self.entries) >= _ODOM_ALONE
+            or any(e.kind != "odom" for e in self.entries)
+        )
 
 
 @dataclass(frozen=True)
@@ -141,7 +156,7 @@ class _Shard:
         box = self.dispatcher.boxes[robot]
         box.busy = False
         self.in_flight -= 1
-        if box.entries and not box.queued:
+        if box.entries and not box.queued and box.worth_a_batch():
             box.queued = True
             self.ready.append(robot)
 
@@ -370,7 +385,7 @@ class Dispatcher:
                     self.on_drop(robot, old.stamp_ns, old.received_ns)
                 box.scan = entry
             box.entries.append(entry)
-            if not box.busy and not box.queued:
+            if not box.busy and not box.queued and box.worth_a_batch():
                 box.queued = True
                 box.shard.ready.append(robot)
                 send = box.shard.wake()

@@ -5,9 +5,9 @@ from __future__ import annotations
 import gc
 
 from rlutf.localizer import LocalizerConfig
-from schemas import Odometry
+from schemas import LaserScan, Odometry
 from service.keys import Keys
-from service.live.dispatch import Dispatcher
+from service.live.dispatch import _ODOM_ALONE, Dispatcher
 from service.live.worker import _GC_THRESHOLDS, tune_gc
 
 
@@ -34,12 +34,38 @@ def test_robots_are_spread_evenly_over_worker_shards() -> None:
     for i, robot in enumerate(robots * 2):  # the second round: robots keep their shard
         dispatcher.submit(robot, "odom", b"{}", Odometry(stamp_ns=i, x=0, y=0, theta=0), i)
     assert sorted(s.robots for s in dispatcher.shards) == [3, 3, 4]
+    # odometry alone waits for the robot's scan: nothing handed to a worker yet
+    assert all(s.in_flight == 0 and not s.ready for s in dispatcher.shards)
+    assert all(len(dispatcher.boxes[r].entries) == 2 for r in robots)
+    for i, robot in enumerate(robots):
+        dispatcher.submit(robot, "scan", b"{}", _scan(100 + i), 100 + i)
     for shard in dispatcher.shards:
         mine = {r for r in robots if dispatcher.boxes[r].shard is shard}
         # handed to the worker (in its pipe, at most max_in_flight) or waiting their turn
         sent = {r for r in mine if dispatcher.boxes[r].busy}
         assert len(sent) == min(len(mine), shard.max_in_flight) == shard.in_flight
         assert len(mine) == shard.robots and set(shard.ready) | sent == mine
+
+
+def test_odometry_alone_goes_once_the_mailbox_holds_enough() -> None:
+    """A robot that sends odometry and no scan does not fill its mailbox without bound."""
+    dispatcher = Dispatcher(Keys("rlutf"), LocalizerConfig(), 1, 0, lambda done: None, _no_drop)
+    for i in range(_ODOM_ALONE - 1):
+        dispatcher.submit("r", "odom", b"{}", Odometry(stamp_ns=i, x=0, y=0, theta=0), i)
+    assert dispatcher.shards[0].in_flight == 0 and dispatcher.pending() == _ODOM_ALONE - 1
+    dispatcher.submit("r", "odom", b"{}", Odometry(stamp_ns=99, x=0, y=0, theta=0), 99)
+    assert dispatcher.shards[0].in_flight == 1 and dispatcher.pending() == 0
+
+
+def _scan(stamp: int) -> LaserScan:
+    return LaserScan(
+        stamp_ns=stamp,
+        angle_min=0.0,
+        angle_increment=0.1,
+        range_min=0.1,
+        range_max=10.0,
+        ranges=[1.0, 2.0],
+    )
 
 
 def _no_drop(robot: str, stamp_ns: int, received_ns: int) -> None:
