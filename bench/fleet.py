@@ -551,7 +551,9 @@ def render(
             "",
             "| robots | scans sent | poses | dropped (reported) | not processed (reported) "
             "| uncounted (of which published, not received) | latency p50 ms "
-            "| p99 ms | max ms | service p99 ms (receipt to publication) | worker compute p50 ms "
+            "| p99 ms | max ms "
+            "| service p99 ms (receipt to publication, its last 10,000 scans, start included) "
+            "| worker compute p50 ms "
             "| CPU ms per scan: service main / workers / generator "
             "| CPU stolen by the hypervisor, % "
             "| service RSS MB first / peak / last "

@@ -273,6 +273,7 @@ def test_dockerfile_runtime_settings() -> None:
     assert uid.isdigit() and int(uid) != 0, "numeric non-root USER (Kubernetes runAsNonRoot)"
     expose = " ".join(rest for w, rest in stage if w == "EXPOSE")
     assert "7447" in expose
+    assert "9464" in expose  # the metrics port of the manifests
     volumes: list[str] = []
     for w, rest in stage:
         if w == "VOLUME":
