@@ -48,6 +48,7 @@ from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Messag
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher, Done
 from service.live.mapfeed import MapFeed
+from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
 from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
@@ -481,7 +482,9 @@ class LocalizationService:
         """Block until ``stop`` is set (a signal handler sets it).
 
         Timed waits in a loop, so that the main thread returns to the interpreter at least once
-        a second and runs pending signal handlers.
+        a second and runs pending signal handlers; it also gives freed heap pages back to the
+        system now and then (:mod:`service.live.memory`).
         """
+        trimmer = HeapTrimmer()
         while not stop.wait(1.0):
-            continue
+            trimmer.maybe()

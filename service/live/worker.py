@@ -25,6 +25,7 @@ from rlutf.warmup import warm_up
 from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
 from service.keys import MODELS, InputKind, Keys, Message
+from service.live.memory import HeapTrimmer
 
 log = logging.getLogger(__name__)
 
@@ -135,12 +136,14 @@ def worker_main(
         answer(run(robot, batch))
 
     slow_lane = max(threads - 1, 0)
+    trimmer = HeapTrimmer()
     with ThreadPoolExecutor(max(slow_lane, 1), thread_name_prefix="rlutf-long") as slow:
         while True:
             try:
                 msg = recv(conn)
             except (EOFError, OSError, KeyboardInterrupt):
                 return
+            trimmer.maybe()
             for item in msg[1] if msg[0] == "many" else [msg]:
                 kind = item[0]
                 if kind == "stop":
