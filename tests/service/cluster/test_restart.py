@@ -59,8 +59,10 @@ def _drive(fleet: list[SimRobot], steps: int, sent: dict[str, float] | None = No
         time.sleep(0.1)
 
 
-def _track(client: zenoh.Session, fleet: list[SimRobot], poses: PoseLog) -> None:
+def _track(client: zenoh.Session, fleet: list[SimRobot]) -> None:
     """Put the map, place the robots, drive until each is tracked close to the truth."""
+    poses = PoseLog()
+    sub = client.declare_subscriber("rlutf/robots/*/pose", poses)
     msg = Map(map_id="m1", version=1, geometry=WORLD.to_geojson())
     client.put("rlutf/maps/m1", encode(msg), encoding=JSON)
     time.sleep(0.5)
@@ -70,6 +72,7 @@ def _track(client: zenoh.Session, fleet: list[SimRobot], poses: PoseLog) -> None
     _drive(fleet, 15)
     for robot in fleet:
         assert wait_until(lambda r=robot: _last_error(poses, r) < 0.05, 5.0), robot.robot_id
+    sub.undeclare()
 
 
 def _at(robot: SimRobot, pose: dict[str, Any]) -> np.ndarray:
@@ -122,10 +125,7 @@ def test_an_orderly_restart_resumes_every_robot(tmp_path: Path) -> None:
     client = zenoh.open(client_config(endpoint))
     fleet = _fleet(client, 3)
     try:
-        before = PoseLog()
-        sub = client.declare_subscriber("rlutf/robots/*/pose", before)
-        _track(client, fleet, before)
-        sub.undeclare()
+        _track(client, fleet)
     finally:
         client.close()
         service.close()  # orderly: the final snapshot is written
@@ -150,10 +150,7 @@ def test_a_pose_older_than_the_limit_is_relocalized_instead(tmp_path: Path) -> N
     client = zenoh.open(client_config(endpoint))
     fleet = _fleet(client, 1)
     try:
-        before = PoseLog()
-        sub = client.declare_subscriber("rlutf/robots/*/pose", before)
-        _track(client, fleet, before)
-        sub.undeclare()
+        _track(client, fleet)
     finally:
         client.close()
         service.close()
@@ -225,10 +222,7 @@ def test_kill_9_and_restart_resumes_every_robot(tmp_path: Path) -> None:
         client = _client(endpoint, proc)
         fleet = _fleet(client, 3)
         try:
-            before = PoseLog()
-            sub = client.declare_subscriber("rlutf/robots/*/pose", before)
-            _track(client, fleet, before)
-            sub.undeclare()
+            _track(client, fleet)
             time.sleep(1.5)  # at least one snapshot after the last poses (state_interval_s 1)
         finally:
             client.close()
@@ -262,10 +256,7 @@ def test_a_corrupt_state_file_is_reported_and_the_service_runs(
     try:
         with zenoh.open(client_config(f"tcp/127.0.0.1:{port}")) as client:
             fleet = _fleet(client, 1)
-            poses = PoseLog()
-            sub = client.declare_subscriber("rlutf/robots/*/pose", poses)
-            _track(client, fleet, poses)  # the service runs as if it had no state
-            sub.undeclare()
+            _track(client, fleet)  # the service runs as if it had no state
         assert json.loads(service.health())["extra"]["resumed"] == 0
     finally:
         service.close()
