@@ -60,7 +60,8 @@ class WallSamples:
     Attributes:
         points: ``(K, 2)`` samples, metres.
         normals: ``(K, 2)`` unit normals of their walls, into the free space.
-        walls: ``(K,)`` index of each sample's wall in the map's segments (non-decreasing).
+        walls: ``(K,)`` index of each sample's wall in the map's segments (non-decreasing), or
+            of each point in the cloud it was thinned from (:func:`point_samples`).
         tree: the k-d tree over ``points``.
     """
 
@@ -99,7 +100,8 @@ def point_samples(
             three gets the direction to its sensor as its normal.
 
     Returns:
-        The kept points, their unit normals (turned towards their sensors) and a k-d tree.
+        The kept points, their unit normals (turned towards their sensors) and a k-d tree;
+        ``walls`` holds each kept point's index in ``points``.
     """
     key = np.floor(np.asarray(points) / spacing).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
@@ -121,7 +123,7 @@ def point_samples(
     normals[lonely] = to_sensor[lonely] / np.hypot(*to_sensor[lonely].T)[:, None]
     flip = np.einsum("ij,ij->i", normals, to_sensor) < 0.0
     normals[flip] *= -1.0
-    return WallSamples(pts, normals, np.arange(len(pts), dtype=np.int64), tree)
+    return WallSamples(pts, normals, first.astype(np.int64), tree)
 
 
 class PointToLineIcp:
