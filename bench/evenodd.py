@@ -36,6 +36,8 @@ from bench.evenodd_runs import (
     ICP_SETTINGS,
     LOGS,
     Errors,
+    MapRecipe,
+    coarse_to_fine_method,
     even_map,
     from_reference,
     icp_from_reference,
@@ -53,6 +55,8 @@ from rlutf.localizer import LocalizerConfig
 SECTION = "evenodd"
 #: The section of ``--neighbours``.
 NEIGHBOURS_SECTION = "evenodd-neighbours"
+#: The section of ``--coarse-to-fine``.
+COARSE_SECTION = "evenodd-coarse"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
 
@@ -216,6 +220,41 @@ def render_neighbours(
     return "\n".join([*lines, ""])
 
 
+def render_coarse(
+    args: argparse.Namespace, progress: Callable[[str], None] = lambda s: None
+) -> str:
+    """The coarse-to-fine trial against the default and ICP's best setting."""
+    logs = [s for s in args.logs.split(",") if s]
+    seeds = [ODOM5_SEED + i for i in range(args.seeds)]
+    lines = [
+        "### A trial: track on walls simplified at one cell, refine on the map as built",
+        "",
+        f"Command: `{_command(args)}`.",
+        "",
+        "The same runs as above. *Coarse to fine*: `LocalizerConfig()` tracks on the map "
+        "simplified at 1 cell (5 cm) and each of its poses is refined on the map as built "
+        "(`bench.evenodd_runs.CoarseToFine`; not the localizer's behaviour, a trial of it). "
+        f"Odometry seeds {', '.join(map(str, seeds))}.",
+        "",
+        "| log | method | RMSE cm | median cm | p95 cm | max cm | over 0.5 m |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name in logs:
+        world = even_map(name)
+        progress(f"{name}: RLuTF default")
+        ours = tracked(rlutf_method(LocalizerConfig()), name, world, seeds)
+        progress(f"{name}: coarse to fine")
+        c2f = tracked(coarse_to_fine_method(name, MapRecipe(simplify=0.05)), name, world, seeds)
+        progress(f"{name}: ICP")
+        icp = tracked(icp_method(name, ICP_SETTINGS[NEIGHBOURS_ICP]), name, world, seeds)
+        lines += [
+            f"| {name} | {_row('RLuTF default', ours)[2:]}",
+            f"| {name} | {_row('RLuTF coarse to fine', c2f)[2:]}",
+            f"| {name} | {_row(f'ICP on the raw points, {NEIGHBOURS_ICP}', icp)[2:]}",
+        ]
+    return "\n".join([*lines, ""])
+
+
 def _command(args: argparse.Namespace) -> str:
     parts = ["python -m bench.evenodd"]
     if args.logs != ",".join(LOGS):
@@ -224,6 +263,8 @@ def _command(args: argparse.Namespace) -> str:
         parts.append(f"--seeds {args.seeds}")
     if args.neighbours:
         parts.append("--neighbours")
+    elif args.coarse:
+        parts.append("--coarse-to-fine")
     elif not args.variants:
         parts.append("--no-variants")
     return " ".join([*parts, "--write"])
@@ -246,10 +287,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the table of ICP with the neighbouring even scans left out (its own section)",
     )
+    p.add_argument(
+        "--coarse-to-fine",
+        dest="coarse",
+        action="store_true",
+        help="only the coarse-to-fine trial (its own section)",
+    )
     p.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
     args = p.parse_args(argv)
     if args.neighbours:
         text, section = render_neighbours(args, _stderr), NEIGHBOURS_SECTION
+    elif args.coarse:
+        text, section = render_coarse(args, _stderr), COARSE_SECTION
     else:
         text, section = render(args, _stderr), SECTION
     print(text)

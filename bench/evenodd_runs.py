@@ -237,6 +237,46 @@ def icp_method(name: str, config: IcpConfig) -> Method:
     return Method("icp-raw", "ICP", lambda w, p, s: PointToLineIcp(None, p, config, samples))
 
 
+class CoarseToFine:
+    """RLuTF tracking on a coarser map, each pose then refined on the map itself.
+
+    A trial of a localizer that converges on walls simplified at ``coarse`` (fewer small
+    steps and bumps, fewer local minima) and takes its answer from the refinement on the map
+    as built; the refined pose is where the next update predicts from.
+    """
+
+    def __init__(
+        self, world: Map, pose: FloatArray, config: LocalizerConfig, seed: int, coarse: Map
+    ) -> None:
+        from rlutf.localizer import Localizer
+
+        self._coarse = Localizer(coarse, pose, config, seed=seed)
+        self._world = world
+        self._config = config
+        self._settings = config.refine_settings()
+
+    def update(self, motion: FloatArray, scan: Scan) -> Estimate:
+        """Track on the coarse map, refine on the map."""
+        result = self._coarse.update(motion, scan)
+        problem = Problem(self._world, scan, self._config, Beams.of(scan.angles))
+        fit = refine_pose(
+            self._world, result.pose, problem.beams, problem.real_ranges, problem.offset,
+            problem.scan_range, self._settings, fit_distance=self._config.fit_distance,
+        )  # fmt: skip
+        self._coarse._pose = fit.pose.copy()
+        return Estimate(fit.pose.copy(), result.status, fit.covariance)
+
+
+def coarse_to_fine_method(name: str, coarse: MapRecipe) -> Method:
+    """:class:`CoarseToFine` on ``name``'s map, the coarse map built with ``coarse``."""
+    coarse_map = even_map(name, coarse)
+
+    def make(world: Map, pose: FloatArray, seed: int) -> CoarseToFine:
+        return CoarseToFine(world, pose, LocalizerConfig(), seed, coarse_map)
+
+    return Method("coarse-to-fine", "RLuTF coarse to fine", make)
+
+
 def leave_out_method(name: str, config: IcpConfig, window: int) -> Method:
     """ICP on ``name``'s raw points without the even scans around each tracked one."""
 
