@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -59,6 +60,11 @@ NEIGHBOURS_SECTION = "evenodd-neighbours"
 COARSE_SECTION = "evenodd-coarse"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
+
+
+def _markdown(text: str) -> str:
+    """reStructuredText roles and literals as Markdown code."""
+    return re.sub(r":\w+:`~?", "`", text).replace("``", "`")
 
 
 def _cm(v: float) -> str:
@@ -114,7 +120,7 @@ def render(args: argparse.Namespace, progress: Callable[[str], None] = lambda s:
         "",
         f"Command: `{_command(args)}`.",
         "",
-        " ".join((__doc__ or "").split("\n\n")[2].split()),
+        _markdown(" ".join((__doc__ or "").split("\n\n")[2].split())),
         "",
         f"Odometry seeds {', '.join(map(str, seeds))}; errors pooled over them.",
         "",
