@@ -28,11 +28,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
 from service.keys import InputKind, Keys, Message
+from service.live.supervise import History
 from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
 from service.maps.book import LoadedMap
 
@@ -45,6 +48,8 @@ _IN_FLIGHT = 4
 _PIPE_IN_FLIGHT = 16
 #: Odometry readings a mailbox holds for a robot that sends no scan before they go anyway.
 _ODOM_ALONE = 32
+#: Versions of one map a replacement worker is sent (the engine keeps as many).
+_MAP_VERSIONS_SENT = 3
 
 
 @dataclass
@@ -54,6 +59,8 @@ class _Mailbox:
     scan: Entry | None = None  # the unprocessed scan in ``entries``, if any
     busy: bool = False
     queued: bool = False
+    last_in: int = 0  # receive time of the robot's last input
+    history: History = field(default_factory=History)  # to re-seed it if its worker dies
 
     def worth_a_batch(self) -> bool:
         """Whether the entries are worth sending to the worker now.
@@ -81,6 +88,10 @@ class Done:
 OnDone = Callable[[Done], None]
 OnDrop = Callable[[str, int, int], None]
 """Called with the robot, the dropped scan's stamp and when it was received."""
+OnSeed = Callable[[str, Entry], None]
+"""Called (under the dispatcher's lock) with each input made to re-seed a robot, to record it."""
+OnLost = Callable[[int, int | None, list[str]], None]
+"""Called with a dead worker's index, its exit code and the robots it held."""
 
 
 class _Shard:
@@ -96,6 +107,7 @@ class _Shard:
         self.max_in_flight = max(_IN_FLIGHT, dispatcher.threads)
         self.robots = 0  # robots assigned to this shard
         self.threads: list[threading.Thread] = []
+        self.gone = False  # a dead worker process, until its replacement is ready
 
     def start(self) -> None:
         raise NotImplementedError
@@ -212,15 +224,12 @@ class _ProcessShard(_Shard):
 
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
-        ctx = mp.get_context("spawn")
-        self.conn, child = ctx.Pipe()
-        d = dispatcher
-        self.process = ctx.Process(
-            target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
-            name=f"rlutf-worker-{index}",
-            daemon=True,
-        )
+        self.conn, self.process = self._spawn()
+        self.ready_event = threading.Event()
+        # Batches taken for the worker (in its pipe or being computed), by robot: what is lost
+        # if the worker dies.
+        self.inflight: dict[str, list[Entry]] = {}
+        self.generation = 0
         # A worker runs its batches one after another, so it idles while the main process turns
         # its answers round; with only _IN_FLIGHT batches in its pipe that round trip (a GIL
         # hand-off in the main process) capped a worker well under a core (measured: 150
@@ -229,13 +238,43 @@ class _ProcessShard(_Shard):
         self.max_in_flight = max(_PIPE_IN_FLIGHT, dispatcher.threads)
         self.outbox: list[tuple[Any, ...]] = []
         self.sending = False
-        self.gone = False
+
+    def _spawn(self) -> tuple[Connection, BaseProcess]:
+        ctx = mp.get_context("spawn")
+        conn, child = ctx.Pipe()
+        d = self.dispatcher
+        process = ctx.Process(
+            target=worker_main,
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
+            name=f"rlutf-worker-{self.index}",
+            daemon=True,
+        )
+        self._child: Connection | None = child
+        return conn, process
 
     def start(self) -> None:
         self.process.start()
-        t = threading.Thread(target=self._recv, name=f"rlutf-shard-{self.index}-recv", daemon=True)
+        if self._child is not None:
+            # This process's copy of the worker's end: closed, so that the worker's death
+            # reads as the end of the pipe here.
+            self._child.close()
+            self._child = None
+        t = threading.Thread(
+            target=self._recv,
+            args=(self.conn, self.generation),
+            name=f"rlutf-shard-{self.index}-recv",
+            daemon=True,
+        )
         self.threads.append(t)
         t.start()
+
+    def take(self) -> tuple[str | None, tuple[Any, ...] | list[Entry]] | None:
+        if self.gone:
+            return None  # replaced: the new worker takes work once it is ready
+        work = super().take()
+        if work is not None and work[0] is not None:
+            self.inflight[work[0]] = work[1]  # type: ignore[assignment]
+        return work
 
     def wake(self) -> bool:
         while (work := self.take()) is not None:
@@ -264,25 +303,46 @@ class _ProcessShard(_Shard):
             try:
                 send(self.conn, out[0] if len(out) == 1 else ("many", out))
             except (OSError, ValueError):
-                log.exception("worker %d is gone", self.index)
-                self.gone = True
+                # The worker died: its receiving thread reads the end of the pipe and
+                # replaces it (Dispatcher.worker_lost); what was not sent is re-seeded there.
+                log.warning("worker %d is gone", self.index)
 
-    def _recv(self) -> None:
+    def _recv(self, conn: Connection, generation: int) -> None:
         d = self.dispatcher
         while True:
             try:
-                msg = recv(self.conn)
+                msg = recv(conn)
             except (EOFError, OSError):
-                return
+                break
             if msg[0] == "stopped":
                 return
+            if msg[0] == "ready":
+                self.ready_event.set()
+                continue
             _, robot, outputs, compute_s = msg
             with d.lock:
+                self.inflight.pop(robot, None)
+                box = d.boxes.get(robot)
+                if box is not None:
+                    for out in outputs:
+                        if out.kind == "pose":
+                            box.history.note_pose(out.payload, out.received_ns)
                 self.finish(robot)
                 send = self.wake()
             if send:
                 self.drain()  # the worker gets its next batches before we publish these
             d.deliver(Done(robot, outputs, compute_s))
+        if not d.stopping and generation == self.generation:
+            d.worker_lost(self)
+
+    def respawn(self) -> None:
+        """Start a new worker process in place of the dead one (maps are queued first)."""
+        self.process.join(0.1)
+        self.conn.close()
+        self.generation += 1
+        self.ready_event = threading.Event()
+        self.conn, self.process = self._spawn()
+        self.start()
 
     def stop(self, deadline: float) -> None:
         """Wait for what is queued and in flight, then tell the worker to stop."""
@@ -308,6 +368,27 @@ class _ProcessShard(_Shard):
         if self.process.is_alive():
             self.process.terminate()
 
+    def wait_ready(self, progress: Callable[[str], None] | None, started: float) -> None:
+        """Block until the worker can localize.
+
+        Raises:
+            RuntimeError: the worker process exited first.
+        """
+        said = False
+        while not self.ready_event.wait(0.5):
+            if not self.process.is_alive():
+                raise RuntimeError(
+                    f"worker process {self.index} exited with code {self.process.exitcode} "
+                    "before it was ready"
+                )
+            waited = time.monotonic() - started
+            if progress is not None and waited > 3.0 and not said:
+                said = True
+                progress(
+                    "compiling the localizer's kernels (first start only; about 30 s on 2 cores, "
+                    "then they load from numba's cache in about a second)"
+                )
+
 
 class Dispatcher:
     """Mailboxes and shards.
@@ -319,8 +400,12 @@ class Dispatcher:
             per core.
         event_interval_ns: least time between two events of one code for one robot.
         on_done: called (from a shard's thread) with each finished batch.
-        on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
+        on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced
+            or lost with a dead worker.
         threads: threads per shard running different robots' batches at once.
+        clock: the receive clock (re-seeds get fresh receive times).
+        on_seed: records an input made to re-seed a robot whose worker died (lock held).
+        on_lost: reports a dead worker (called without the lock).
     """
 
     def __init__(
@@ -332,8 +417,18 @@ class Dispatcher:
         on_done: OnDone,
         on_drop: OnDrop,
         threads: int = _IN_FLIGHT,
+        clock: Callable[[], int] = time.time_ns,
+        on_seed: OnSeed | None = None,
+        on_lost: OnLost | None = None,
     ) -> None:
         self.keys = keys
+        self.clock = clock
+        self.on_seed: OnSeed = on_seed or (lambda robot, entry: None)
+        self.on_lost: OnLost = on_lost or (lambda index, code, robots: None)
+        self.workers_replaced = 0
+        self.reseeded = 0
+        # The map versions sent to the shards, oldest first: a new worker gets them all.
+        self._maps: dict[str, deque[tuple[Any, ...]]] = {}
         self.threads = max(1, threads)
         self.config = config
         self.event_interval_ns = event_interval_ns
@@ -350,14 +445,133 @@ class Dispatcher:
         else:
             self.shards = [_ProcessShard(i, self) for i in range(count)]
 
-    def start(self) -> None:
-        """Start the shards (worker processes take a moment to import numpy)."""
+    def start(self, progress: Callable[[str], None] | None = None) -> None:
+        """Start the shards and wait until every worker process can localize.
+
+        The first worker compiles the localizer's kernels if numba's cache does not hold them
+        yet (about 30 s on 2 cores) and the others load them from the cache once it is done:
+        several processes compiling at once on a small machine each take longer than one.
+
+        Args:
+            progress: told, once, what the wait is for when it takes more than a few seconds.
+
+        Raises:
+            RuntimeError: a worker process exited before it was ready.
+        """
         if self.processes:
             # One BLAS thread per worker: the workers already fill the cores, and BLAS threads
             # contending with them cost more than they save on the small products of an update.
             os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-        for s in self.shards:
+        started = time.monotonic()
+        first, *rest = self.shards
+        first.start()
+        if isinstance(first, _ProcessShard):
+            first.wait_ready(progress, started)
+        for s in rest:
             s.start()
+        for s in rest:
+            if isinstance(s, _ProcessShard):
+                s.wait_ready(progress, started)
+
+    def alive_workers(self) -> int:
+        """Worker processes that can take work now."""
+        return sum(1 for s in self.shards if isinstance(s, _ProcessShard) and not s.gone)
+
+    def worker_lost(self, shard: _ProcessShard) -> None:
+        """A worker process died: re-seed its robots elsewhere and start a new one.
+
+        Called on the dead worker's receiving thread. Its robots move to the surviving worker
+        with the fewest robots (or wait for the new process when none survives) and are
+        re-seeded from their last published poses (:mod:`service.live.supervise`); their scans
+        it never answered are reported dropped.
+        """
+        code = shard.process.exitcode if not shard.process.is_alive() else None
+        sends: list[_Shard] = []
+        with self.lock:
+            if self.stopping or shard.gone:
+                return
+            shard.gone = True
+            self.workers_replaced += 1
+            alive = [s for s in self.shards if isinstance(s, _ProcessShard) and not s.gone]
+            moved = [r for r, b in self.boxes.items() if b.shard is shard]
+            for robot in moved:
+                box = self.boxes[robot]
+                lost = shard.inflight.pop(robot, []) + list(box.entries)
+                box.entries.clear()
+                box.scan, box.busy, box.queued = None, False, False
+                target = min(alive, key=lambda s: s.robots) if alive else shard
+                shard.robots -= 1
+                target.robots += 1
+                box.shard = target
+                for e in lost:
+                    if e.kind == "scan":
+                        self.dropped += 1
+                        self.on_drop(robot, e.stamp_ns, e.received_ns)
+                seed = box.history.reseed(lost, self.clock)
+                for e in seed:
+                    self.on_seed(robot, e)
+                    box.history.note_input(e)
+                self.reseeded += bool(seed)
+                box.entries.extend(seed)
+                if box.entries and box.worth_a_batch():
+                    box.queued = True
+                    target.ready.append(robot)
+            shard.ready.clear()
+            shard.inflight.clear()
+            shard.outbox.clear()
+            shard.control.clear()
+            shard.in_flight = 0
+            shard.sending = False
+            for maps in self._maps.values():  # the new worker's engine needs every map
+                shard.control.extend(maps)
+            sends = [s for s in alive if s.wake()]
+        for s in sends:
+            s.drain()
+        log.error(
+            "worker process %d died (exit code %s): %d robots re-seeded from their last poses",
+            shard.index,
+            code,
+            len(moved),
+        )
+        self.on_lost(shard.index, code, moved)
+        shard.respawn()
+        try:
+            shard.wait_ready(None, time.monotonic())
+        except RuntimeError:
+            log.exception("the replacement of worker %d failed", shard.index)
+            return
+        with self.lock:
+            shard.gone = False
+            send = shard.wake()
+        if send:
+            shard.drain()
+
+    def forget(self, robot: str) -> bool:
+        """Drop an idle robot's mailbox and its state in the worker.
+
+        Returns:
+            ``False`` when the robot has inputs queued or in flight (it is not idle).
+        """
+        with self.lock:
+            box = self.boxes.get(robot)
+            if box is None:
+                return True
+            if box.busy or box.queued:
+                return False
+            # What waits is odometry alone (not worth a batch): it would change nothing
+            # that is published before the robot's state goes.
+            del self.boxes[robot]
+            box.shard.robots -= 1
+            box.shard.control.append(("forget", robot))
+            send = box.shard.wake()
+        if send:
+            box.shard.drain()
+        return True
+
+    def idle_since(self, before_ns: int) -> list[str]:
+        """Robots whose last input was received before ``before_ns``."""
+        with self.lock:
+            return [r for r, b in self.boxes.items() if b.last_in < before_ns]
 
     def submit(
         self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
@@ -374,9 +588,13 @@ class Dispatcher:
             if box is None:
                 # A robot's localizer lives in one worker for good: balance robot counts (a hash
                 # of a few dozen ids can leave one worker a fifth busier than the other).
-                shard = min(self.shards, key=lambda s: s.robots)
+                live = [s for s in self.shards if not s.gone] or self.shards
+                shard = min(live, key=lambda s: s.robots)
                 shard.robots += 1
                 box = self.boxes[robot] = _Mailbox(shard)
+            box.last_in = received_ns
+            if kind != "scan" and self.processes:
+                box.history.note_input(entry)
             if kind == "scan":
                 old = box.scan
                 if old is not None:
@@ -400,6 +618,8 @@ class Dispatcher:
         """
         geometry: Any = loaded.world if not self.processes else loaded.world.to_geojson()
         msg = ("map", loaded.map_id, loaded.version, geometry, loaded.received_ns)
+        if self.processes:
+            self._maps.setdefault(loaded.map_id, deque(maxlen=_MAP_VERSIONS_SENT)).append(msg)
         for s in self.shards:
             s.control.append(msg)
             s.cond.notify_all()

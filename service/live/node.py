@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -45,14 +46,17 @@ from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher, Done
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
+from service.live.outbox import Outbox
 from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
 from service.live.stats import Stats
+from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import MapBook
 from service.maps.store import FileMapStore, MapStorage
@@ -108,7 +112,9 @@ class LocalizationService:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self._declared: list[Any] = []
-        self._input_sub: Any = None
+        self._input_subs: list[Any] = []
+        self.outbox = Outbox()  # Events go out from its thread, never from a callback's
+        self.ready = False
         self._token: Any = None
         self._storage: MapStorage | None = None
         self.dispatcher = Dispatcher(
@@ -119,6 +125,9 @@ class LocalizationService:
             self._on_done,
             self._on_drop,
             threads=settings.worker_threads,
+            clock=self.clock,
+            on_seed=self._record_seed,
+            on_lost=self._on_worker_lost,
         )
         self.mapfeed = MapFeed(
             self.keys,
@@ -160,6 +169,12 @@ class LocalizationService:
                 settings.max_payload_bytes,
                 self.keys,
             )
+        self.gate = Gate(self.clock, int(settings.max_stamp_ahead_s * 1e9), settings.max_robots)
+        self.ownership.max_ahead_ns = self.gate.max_ahead_ns
+        self.ownership.max_robots = settings.max_robots
+        self.sweeper = Sweeper(
+            self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
+        )
         self.closed = threading.Event()
 
     # ------------------------------------------------------------------------ lifecycle
@@ -170,8 +185,16 @@ class LocalizationService:
             raise RuntimeError("the service is not started")
         return self._session
 
-    def start(self) -> LocalizationService:
-        """Start workers, open the session and declare everything."""
+    def start(self, progress: Callable[[str], None] | None = None) -> LocalizationService:
+        """Start workers, open the session and declare everything; return once ready.
+
+        Ready means that every process of the instance can localize: the liveliness token
+        (which routes robots here) is declared, and Health says ``ready``, only then.
+
+        Args:
+            progress: told what the start waits for when it takes more than a few seconds (the
+                first start after an install compiles the localizer's kernels).
+        """
         s = self.settings
         self.metrics.start(self)  # first: a port in use fails the start before anything runs
         # Compile the localizer's kernels (or load them from numba's cache) now, not at the
@@ -183,10 +206,11 @@ class LocalizationService:
         if hasattr(self.recorder, "on_overflow"):
             # Already in the log; published so operators see it live.
             self.recorder.on_overflow = lambda ev: self._publish(self.keys.events, encode(ev))
-        self.dispatcher.start()
+        self.dispatcher.start(progress)
         if self._session is None:
             self._session = zenoh.open(zenoh_config(s))
         session = self._session
+        self.outbox.start(session)
         if not s.no_store:
             self._storage = MapStorage(
                 session,
@@ -212,7 +236,13 @@ class LocalizationService:
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
-        self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        # One subscriber per input leaf and one for poses: none of them receives what this
+        # service itself puts (Events go to other sessions only), so no callback can wait on
+        # a queue that only its own thread drains.
+        self._input_subs = [
+            session.declare_subscriber(self.keys.robot_leaf(leaf), self._on_robot_sample)
+            for leaf in (*INPUT_KINDS, "pose")
+        ]
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -228,6 +258,8 @@ class LocalizationService:
             time.sleep(s.join_warmup_s)
         self._token = session.liveliness().declare_token(self.keys.service(s.instance))
         self.ownership.ready = True
+        self.sweeper.start()
+        self.ready = True
         log.info("rlutf service %s started (mode %s, prefix %s)", s.instance, s.mode, s.prefix)
         return self
 
@@ -238,8 +270,9 @@ class LocalizationService:
         self.closed.set()
         if self._token is not None:
             self._token.undeclare()  # the other instances take the robots over at once
-        if self._input_sub is not None:
-            self._input_sub.undeclare()
+        for sub in self._input_subs:
+            sub.undeclare()
+        self.sweeper.close()
         self.dispatcher.stop()
         self.posestate.close()  # after the last pose is out
         if self.ros2 is not None:
@@ -256,6 +289,7 @@ class LocalizationService:
             pub.undeclare()
         if self._storage is not None:
             self._storage.close()
+        self.outbox.close()
         self.recorder.close()
         self.metrics.close()
         if self._own_session and self._session is not None:
@@ -285,7 +319,10 @@ class LocalizationService:
         robot, leaf = parsed
         limit = self.settings.max_payload_bytes
         if leaf == "pose":  # every instance follows every pose, for handovers
-            self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
+            problem = self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
+            if problem and self.gate.allow_event(received):
+                code = EventCode.STAMP_REJECTED
+                self._robot_event(robot, "warning", code, key, problem, received)
             return
         if leaf not in INPUT_KINDS:
             return  # events, or keys of other tools
@@ -294,13 +331,52 @@ class LocalizationService:
             self.ownership.ignore(robot, leaf, payload, limit)
             return
         self.stats.add("received")
+        refused = self.gate.refuse_new(self, robot, received)
+        if refused is not None:
+            self.stats.add("rejected")
+            if refused:
+                self._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, received)
+            return
         try:
             msg = decode(MODELS[leaf], payload, max_bytes=limit)
         except SchemaError as err:
             self.stats.add("rejected")
             self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
             return
+        problem = self.gate.stamp_problem(msg.stamp_ns, received)
+        if problem is not None:
+            self.stats.add("rejected")
+            if self.gate.allow_event(received):
+                self._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, received)
+            return
         self.ownership.offer(robot, leaf, payload, msg, received)
+
+    def robots_held(self) -> int:
+        """Robots with a mailbox here or waiting for their seed (the gate's bound)."""
+        return len(self.dispatcher.boxes) + self.ownership.acquiring()
+
+    def holds(self, robot: str) -> bool:
+        """Whether ``robot`` is held here."""
+        return robot in self.dispatcher.boxes or self.ownership.holds(robot)
+
+    def _evict(self, robot: str) -> bool:
+        """Drop a robot that sent nothing for ``robot_idle_s`` (see service.live.admission)."""
+        with self.ownership.lock:  # no input of the robot is admitted meanwhile
+            if not self.dispatcher.forget(robot):
+                return False
+            self.ownership.forget(robot)
+            self._poses.pop(robot, None)
+            self.robot_view.forget(robot)
+            self.posestate.forget(robot)
+            self._robot_event(
+                robot,
+                "info",
+                EventCode.ROBOT_EVICTED,
+                self.keys.robot(robot, "scan"),
+                f"no input for {self.settings.robot_idle_s:g} s (robot_idle_s): the robot's state "
+                "is dropped; it starts anew at its next input (publish an InitialPose)",
+            )
+        return True
 
     def _offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
         """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
@@ -328,6 +404,26 @@ class LocalizationService:
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
+
+    def _record_seed(self, robot: str, entry: Entry) -> None:
+        """Record an input made to re-seed a robot whose worker died (dispatcher lock held)."""
+        key = self.keys.robot(robot, entry.kind)
+        self.recorder.record(
+            key, SCHEMA_OF_LEAF[entry.kind], entry.payload, entry.received_ns, entry.stamp_ns
+        )
+
+    def _on_worker_lost(self, index: int, code: int | None, robots: list[str]) -> None:
+        more = f" and {len(robots) - 10} more" if len(robots) > 10 else ""
+        shown = ", ".join(robots[:10]) + more
+        self._global_event(
+            "error",
+            EventCode.WORKER_LOST,
+            self.keys.service(self.settings.instance),
+            f"worker process {index} died (exit code {code}); a new one is starting; "
+            f"{len(robots)} robots re-seeded from their last published poses"
+            + (f" ({shown})" if robots else "")
+            + "; the scans it had not answered are dropped",
+        )
 
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
@@ -413,7 +509,7 @@ class LocalizationService:
                             self._publishers[key] = pub
                 pub.put(payload)
             else:
-                self.session.put(key, payload, encoding=JSON)
+                self.outbox.put(key, payload)  # never waits: see service.live.outbox
         except zenoh.ZError:
             log.warning("could not publish on %s", key, exc_info=True)
 
@@ -456,19 +552,27 @@ class LocalizationService:
         """The current Health message, encoded."""
         extra: dict[str, Any] = {
             "pending_inputs": self.dispatcher.pending(),
-            "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
+            "workers": self.dispatcher.alive_workers(),
+            "workers_replaced": self.dispatcher.workers_replaced,
+            "robots_reseeded": self.dispatcher.reseeded,
+            "events_unsent": self.outbox.dropped,
             "recorder_overflow": self.recorder.overflowed,
             "recorder_queue": self.recorder.queued,
-            "maps": sorted(self.maps_held()),
+            "maps": sorted(self.maps_held())[:50],  # a summary; maps_count counts them all
+            "maps_count": len(self.maps_held()),
             **self.ownership.figures(),
             **self.posestate.figures(),
+            **self.gate.figures(),
+            "robots_evicted": self.sweeper.evicted,
         }
         if self.ros2 is not None:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
             extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
             extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
-        return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
+        return encode(
+            self.stats.health(len(self._poses), self.dispatcher.dropped, extra, ready=self.ready)
+        )
 
     def maps_held(self) -> list[str]:
         """Ids of the maps loaded."""
