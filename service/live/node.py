@@ -37,24 +37,25 @@ from schemas import (
     Odometry,
     PoseEstimate,
     Relocalize,
-    SchemaError,
-    decode,
     encode,
 )
 from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
-from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.keys import INPUT_KINDS, InputKind, Keys, Message
 from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
-from service.live.dispatch import Dispatcher, Done
+from service.live.dispatch import Dispatcher
+from service.live.intake import Intake
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
 from service.live.outbox import Outbox
+from service.live.publishing import EVENT_SCHEMA, Announcer
 from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
+from service.live.shards import Done
 from service.live.stats import Stats
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
@@ -72,7 +73,6 @@ SCHEMA_OF_LEAF = {
     "pose": SCHEMA_NAMES[PoseEstimate],
     "events": SCHEMA_NAMES[Event],
 }
-EVENT_SCHEMA = SCHEMA_NAMES[Event]
 #: Events counted in health, by how their code reads in an encoded Event.
 COUNTED_EVENTS = {
     f'"code":"{EventCode.RELOCALIZING}"'.encode(): "relocalizations",
@@ -109,12 +109,20 @@ class LocalizationService:
         self._session = session
         self._poses: dict[str, bytes] = {}
         self.robot_view = RobotView(settings.instance, self._poses, self.clock)
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._lock = threading.Lock()
         self._declared: list[Any] = []
         self._input_subs: list[Any] = []
         self.outbox = Outbox()  # Events go out from its thread, never from a callback's
+        self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox)
+        self._publish = self.out.publish
+        self._event = self.out.event
+        self._robot_event = self.out.robot_event
+        self._global_event = self.out.global_event
+        self._on_drop = self.out.on_drop
         self.ready = False
+        self.intake = Intake(self)
+        self._on_robot_sample = self.intake.on_robot_sample
+        self._offer = self.intake.offer
+        self._reject = self.intake.reject
         self._token: Any = None
         self._storage: MapStorage | None = None
         self.dispatcher = Dispatcher(
@@ -211,6 +219,7 @@ class LocalizationService:
             self._session = zenoh.open(zenoh_config(s))
         session = self._session
         self.outbox.start(session)
+        self.out.attach(session)
         if not s.no_store:
             self._storage = MapStorage(
                 session,
@@ -285,8 +294,7 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
-        for pub in self._publishers.values():
-            pub.undeclare()
+        self.out.close()
         if self._storage is not None:
             self._storage.close()
         self.outbox.close()
@@ -303,54 +311,6 @@ class LocalizationService:
         self.close()
 
     # ------------------------------------------------------------------------ inputs
-    def _on_robot_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        received = self.clock()
-        try:
-            parsed = self.keys.parse_robot_key(key)
-        except KeyError_ as err:
-            if self.ownership.ready and self.membership.owns_key(key):  # one instance reports
-                self.stats.add("received")
-                self.stats.add("rejected")
-                self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
-            return
-        if parsed is None:
-            return
-        robot, leaf = parsed
-        limit = self.settings.max_payload_bytes
-        if leaf == "pose":  # every instance follows every pose, for handovers
-            problem = self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
-            if problem and self.gate.allow_event(received):
-                code = EventCode.STAMP_REJECTED
-                self._robot_event(robot, "warning", code, key, problem, received)
-            return
-        if leaf not in INPUT_KINDS:
-            return  # events, or keys of other tools
-        payload = sample.payload.to_bytes()
-        if not self.ownership.owns(robot):
-            self.ownership.ignore(robot, leaf, payload, limit)
-            return
-        self.stats.add("received")
-        refused = self.gate.refuse_new(self, robot, received)
-        if refused is not None:
-            self.stats.add("rejected")
-            if refused:
-                self._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, received)
-            return
-        try:
-            msg = decode(MODELS[leaf], payload, max_bytes=limit)
-        except SchemaError as err:
-            self.stats.add("rejected")
-            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
-            return
-        problem = self.gate.stamp_problem(msg.stamp_ns, received)
-        if problem is not None:
-            self.stats.add("rejected")
-            if self.gate.allow_event(received):
-                self._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, received)
-            return
-        self.ownership.offer(robot, leaf, payload, msg, received)
-
     def robots_held(self) -> int:
         """Robots with a mailbox here or waiting for their seed (the gate's bound)."""
         return len(self.dispatcher.boxes) + self.ownership.acquiring()
@@ -377,25 +337,6 @@ class LocalizationService:
                 "is dropped; it starts anew at its next input (publish an InitialPose)",
             )
         return True
-
-    def _offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
-        """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
-        if not self.ownership.owns(robot):
-            self.ownership.ignore(robot, kind, payload, self.settings.max_payload_bytes)
-            return
-        self.stats.add("received")
-        self.ownership.offer(robot, kind, payload, msg, at)
-
-    def _reject(self, robot: str | None, key: str, message: str, at: int) -> None:
-        """Bad input from the ROS 2 front door: an Event, nothing else."""
-        if robot is not None and not self.ownership.owns(robot):
-            return  # its owner reports it
-        self.stats.add("received")
-        self.stats.add("rejected")
-        if robot is None:
-            self._global_event("error", EventCode.INVALID_KEY, key, message, at)
-        else:
-            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message, at)
 
     def _admit(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
         """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
@@ -468,76 +409,6 @@ class LocalizationService:
                 for code, counter in COUNTED_EVENTS.items():
                     if code in out.payload:
                         self.stats.add(counter)
-
-    def _on_drop(self, robot: str, stamp_ns: int, received_ns: int) -> None:
-        # Recorded (not published: under overload that would add load) so replay drops the
-        # same scans; counted in health.
-        ev = Event(
-            stamp_ns=stamp_ns,
-            level="info",
-            code=EventCode.SCAN_DROPPED,
-            key=self.keys.robot(robot, "scan"),
-            message=f"scan {stamp_ns} replaced by a newer scan before processing",
-        )
-        self.recorder.record(
-            self.keys.robot_events(robot), EVENT_SCHEMA, encode(ev), self.clock(), stamp_ns
-        )
-
-    def _publish(self, key: str, payload: bytes, pose: bool = False) -> None:
-        if self.closed.is_set() and self._session is None:
-            return
-        try:
-            if pose:
-                pub = self._publishers.get(key)
-                if pub is None:
-                    with self._lock:
-                        pub = self._publishers.get(key)
-                        if pub is None:
-                            pub = self.session.declare_publisher(
-                                key,
-                                encoding=JSON,
-                                congestion_control=zenoh.CongestionControl.DROP,
-                                priority=zenoh.Priority.DATA_HIGH,
-                                # Not express: batched with other messages. Express, every
-                                # pose took a slot of the link's short queue, and under CPU
-                                # load Zenoh dropped some (measured at 50 robots: ~1 %).
-                                express=False,
-                                # Not to our own subscriber on {prefix}/robots/*/*: a callback
-                                # per pose only to follow what _on_done already has.
-                                allowed_destination=zenoh.Locality.REMOTE,
-                            )
-                            self._publishers[key] = pub
-                pub.put(payload)
-            else:
-                self.outbox.put(key, payload)  # never waits: see service.live.outbox
-        except zenoh.ZError:
-            log.warning("could not publish on %s", key, exc_info=True)
-
-    def _event(
-        self, key: str, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        stamp = now if now is not None else self.clock()
-        ev = Event(stamp_ns=stamp, level=level, code=code, key=about, message=message)
-        payload = encode(ev)
-        log.log(
-            logging.WARNING if level in ("warning", "error") else logging.INFO,
-            "%s %s: %s",
-            code,
-            about,
-            message,
-        )
-        self._publish(key, payload)
-        self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)
-
-    def _robot_event(
-        self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        self._event(self.keys.robot_events(robot), level, code, about, message, now)
-
-    def _global_event(
-        self, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        self._event(self.keys.events, level, code, about, message, now)
 
     # ------------------------------------------------------------------------ queries
     def _on_pose_query(self, query: zenoh.Query) -> None:

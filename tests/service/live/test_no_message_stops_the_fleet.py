@@ -244,11 +244,13 @@ def test_idle_robots_are_evicted_and_robot_ids_are_bounded(tmp_path: Path) -> No
             )
         assert col.wait_for(lambda: any(e["code"] == "robot_limit" for e in col.on("rlutf/events")))
         assert bench.service.robots_held() <= 50
-        assert col.wait_for(lambda: bench.service.robots_held() == 0, 8.0)
-        evicted = [e for e in col.samples if e.endswith("/events") and e != "rlutf/events"]
-        assert col.wait_for(
-            lambda: sum(1 for k in evicted for e in col.on(k) if e["code"] == "robot_evicted") == 50
-        )
+        assert col.wait_for(lambda: bench.service.robots_held() == 0, 30.0)
+
+        def evictions() -> int:
+            keys = [k for k in list(col.samples) if k.endswith("/events") and k != "rlutf/events"]
+            return sum(1 for k in keys for e in col.on(k) if e["code"] == "robot_evicted")
+
+        assert col.wait_for(lambda: evictions() == 50, 10.0)
         health = _health(bench)
         assert health is not None
         assert health["extra"]["robots_evicted"] == 50
