@@ -124,7 +124,14 @@ def pose_record(payload: bytes) -> PoseRecord:
     return PoseRecord(p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload)
 
 
-def _dropped_scans(logs: Sequence[LogFile]) -> tuple[Counter[tuple[str, int]], list[Record]]:
+def _dropped_scans(
+    logs: Sequence[LogFile], evictions: list[tuple[int, str]] | None = None
+) -> tuple[Counter[tuple[str, int]], list[Record]]:
+    """The scans the live service dropped (per robot and stamp) and the events saying so.
+
+    Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
+    ``(log_time_ns, robot)``, in log order, and their records to the events returned.
+    """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
     for rec in merged_messages(logs, {EVENT_SCHEMA}):
@@ -140,6 +147,13 @@ def _dropped_scans(logs: Sequence[LogFile]) -> tuple[Counter[tuple[str, int]], l
             if isinstance(stamp, int):
                 drops[(where.robot, stamp)] += 1
                 records.append(rec)
+        elif (
+            isinstance(data, dict)
+            and data.get("code") == EventCode.ROBOT_EVICTED
+            and evictions is not None
+        ):
+            evictions.append((rec.log_time_ns, where.robot))
+            records.append(rec)
     return drops, records
 
 
@@ -165,8 +179,17 @@ class _Run:
         self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
         self.book = MapBook(cfg.max_payload_bytes)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
+        self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
+        self._next_eviction = 0
 
     def handle(self, rec: Record) -> None:
+        # Robots the live service evicted are forgotten at the same point of the inputs.
+        while (
+            self._next_eviction < len(self.evictions)
+            and self.evictions[self._next_eviction][0] <= rec.log_time_ns
+        ):
+            self.engine.forget(self.evictions[self._next_eviction][1])
+            self._next_eviction += 1
         if rec.schema_name == POSE_SCHEMA:
             try:
                 pose = pose_record(rec.payload)
@@ -282,7 +305,8 @@ def replay(
                 assignments=assignments,
             )
         result = ReplayResult(config)
-        drops, drop_records = _dropped_scans(logs)
+        evictions: list[tuple[int, str]] = []
+        drops, drop_records = _dropped_scans(logs, evictions)
         if on_total is not None:
             on_total(sum(lf.count(REPLAYED) for lf in logs))
         part = out.with_name(out.name + ".part") if out is not None else None
@@ -302,6 +326,7 @@ def replay(
                 )
                 writer.write_all(drop_records)
             run = _Run(result, drops, writer)
+            run.evictions = sorted(evictions)
             for rec in merged_messages(logs, REPLAYED):
                 run.handle(rec)
                 if progress is not None:
