@@ -121,10 +121,11 @@ def render(
     tolerance_rad: float,
     console: Console,
     strict: bool = False,
+    heading: str = "Audit",
 ) -> None:
-    """Print the per-robot table."""
+    """Print the per-robot table, titled ``heading`` (e.g. which run)."""
     table = Table(
-        title=f"Audit: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
+        title=f"{heading}: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
         f"{tolerance_rad:g} rad)"
     )
     for name in (
@@ -157,5 +158,45 @@ def render(
             f"{a.max_heading:.3g}",
             f"{a.rms_heading:.3g}",
             "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]",
+        )
+    console.print(table)
+
+
+@dataclass(frozen=True)
+class RunVerdict:
+    """One run's line in the final summary of an audit over several runs.
+
+    Attributes:
+        label: how the run is named (id and instance, or "files without rlutf.run").
+        files: its files.
+        robots: robots audited.
+        poses: recorded poses compared.
+        result: ``passed``, ``FAILED`` or ``nothing to audit``.
+        out: the run's replay output.
+    """
+
+    label: str
+    files: int
+    robots: int
+    poses: int
+    result: str
+    out: str
+
+
+def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:
+    """Print one line per run: the summary of an audit over several runs."""
+    table = Table(title=f"Audit of {len(verdicts)} runs")
+    for name in ("run", "id (instance)", "files", "robots", "recorded poses", "result", "output"):
+        table.add_column(name, justify="right" if name in ("run", "files", "robots") else "left")
+    for k, v in enumerate(verdicts, 1):
+        colour = {"passed": "green", "FAILED": "bold red"}.get(v.result, "yellow")
+        table.add_row(
+            str(k),
+            v.label,
+            str(v.files),
+            str(v.robots),
+            str(v.poses),
+            f"[{colour}]{v.result}[/{colour}]",
+            v.out,
         )
     console.print(table)
