@@ -17,6 +17,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -278,7 +279,14 @@ def _report(
     poses = sum(len(v) for v in result.recorded.values())
 
     def verdict(text: str) -> RunVerdict:
-        return RunVerdict(run.label, len(run.files), len(audits), poses, text, str(out))
+        tag = run.tags[0]
+        started = "-"
+        if tag is not None:
+            when = datetime.fromtimestamp(tag.started_ns / 1e9, UTC)
+            started = when.isoformat(timespec="seconds").removesuffix("+00:00")
+        return RunVerdict(
+            run.short_label, started, len(run.files), len(audits), poses, text, out.name
+        )
 
     if not audits:
         console.print("no recorded poses in the input: nothing to audit")

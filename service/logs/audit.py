@@ -167,7 +167,8 @@ class RunVerdict:
     """One run's line in the final summary of an audit over several runs.
 
     Attributes:
-        label: how the run is named (id and instance, or "files without rlutf.run").
+        label: how the run is named (short id and instance).
+        started: when the run started (UTC, ISO 8601), or ``-``.
         files: its files.
         robots: robots audited.
         poses: recorded poses compared.
@@ -176,6 +177,7 @@ class RunVerdict:
     """
 
     label: str
+    started: str
     files: int
     robots: int
     poses: int
@@ -186,12 +188,15 @@ class RunVerdict:
 def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:
     """Print one line per run: the summary of an audit over several runs."""
     table = Table(title=f"Audit of {len(verdicts)} runs")
-    for name in ("run", "id (instance)", "files", "robots", "recorded poses", "result", "output"):
-        table.add_column(name, justify="right" if name in ("run", "files", "robots") else "left")
+    for name in ("run", "started (UTC)", "id (instance)", "files", "robots", "recorded poses"):
+        table.add_column(name, justify="left" if "(" in name else "right")
+    table.add_column("result")
+    table.add_column("output", overflow="fold")
     for k, v in enumerate(verdicts, 1):
         colour = {"passed": "green", "FAILED": "bold red"}.get(v.result, "yellow")
         table.add_row(
             str(k),
+            v.started,
             v.label,
             str(v.files),
             str(v.robots),

@@ -114,6 +114,11 @@ def _when(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
 
 
+def _clock(ns: int) -> str:
+    """Time of day (UTC) to the millisecond; the date is on the run's line."""
+    return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%H:%M:%S.%f")[:-3]
+
+
 def render_info(info: LogInfo, console: Console) -> None:
     """Print a log's info as tables."""
     console.print(f"[bold]{info.path}[/bold]  {info.size:,} bytes, {info.messages:,} messages")
@@ -122,7 +127,7 @@ def render_info(info: LogInfo, console: Console) -> None:
         started = _when(int(run.get("started_ns", "0")))
         console.print(
             f"run: {run.get('run_id')}, instance {run.get('instance') or '?'}, started "
-            f"{started}, file {run.get('sequence', '?')} of the run"
+            f"{started}, file number {run.get('sequence', '?')} in the run (from 0)"
         )
     else:
         console.print("run: none recorded (rlutf.run missing: not written by rlutf 0.3 or later)")
@@ -230,13 +235,13 @@ def render_runs(runs: Sequence[RunInfo], console: Console) -> None:
                 f"[yellow]file(s) {', '.join(map(str, run.missing))} of the run not given[/yellow]"
             )
         table = Table(title=f"files of run {k}")
-        for name in ("file #", "path", "bytes", "messages", "from", "to", "carried maps"):
-            table.add_column(name, justify="left" if name == "path" else "right")
+        for name in ("file #", "file", "bytes", "messages", "from", "to", "carried maps"):
+            table.add_column(name, justify="left" if name == "file" else "right")
         for tag, f in zip(run.tags, info.files, strict=True):
-            start_s, end_s = ("-", "-") if f.time_range is None else map(_when, f.time_range)
+            start_s, end_s = ("-", "-") if f.time_range is None else map(_clock, f.time_range)
             table.add_row(
                 str(tag.sequence) if tag is not None else "-",
-                f.path,
+                Path(f.path).name,
                 f"{f.size:,}",
                 f"{f.messages:,}",
                 start_s,

@@ -131,6 +131,13 @@ class LogRun:
         return [n for n in range(max(seen) + 1) if n not in seen]
 
     @property
+    def short_label(self) -> str:
+        """The label with the run id cut to its first 8 characters (for tables)."""
+        if self.run_id is None:
+            return "no rlutf.run"
+        return f"{self.run_id[:8]} ({self.instance or '?'})"
+
+    @property
     def label(self) -> str:
         """How reports name the run."""
         if self.run_id is None:

@@ -152,9 +152,11 @@ def test_a_tampered_run_fails_alone(
     assert code == 1
     text = capsys.readouterr().out
     assert f"FAILED (1 of {RUNS + 1} runs)" in text
-    # the summary names the run that failed, and only that one
-    failed = [line for line in text.splitlines() if "FAILED" in line and "│" in line]
-    assert len(failed) == 1 and bad.run_id in failed[0]
+    # the summary's last row is the tampered run (the latest started), and only it failed
+    rows = [line for line in text.splitlines() if line.startswith("│") and "│ demo" not in line]
+    failed = [line for line in rows if "FAILED" in line]
+    assert len(failed) == 1 and failed[0].startswith(f"│ {RUNS + 1} ")
+    assert f"run {RUNS + 1} of {RUNS + 1}: {bad.run_id}" in text
 
 
 def test_log_info_describes_each_run(
