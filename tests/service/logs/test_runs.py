@@ -153,9 +153,9 @@ def test_a_tampered_run_fails_alone(
     text = capsys.readouterr().out
     assert f"FAILED (1 of {RUNS + 1} runs)" in text
     # the summary's last row is the tampered run (the latest started), and only it failed
-    rows = [line for line in text.splitlines() if line.startswith("│") and "│ demo" not in line]
-    failed = [line for line in rows if "FAILED" in line]
-    assert len(failed) == 1 and failed[0].startswith(f"│ {RUNS + 1} ")
+    failed = [line.split("│") for line in text.splitlines() if "FAILED │" in line]
+    assert len(failed) == 1 and failed[0][1].strip() == str(RUNS + 1)
+    assert bad.run_id[:8] in failed[0][3]
     assert f"run {RUNS + 1} of {RUNS + 1}: {bad.run_id}" in text
 
 
