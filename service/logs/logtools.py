@@ -81,8 +81,12 @@ def log_info(path: Path) -> LogInfo:
         carried = 0
         first = last = None
         for rec in lf.messages():  # all of them: a damaged chunk is found, not ignored
-            if rec.schema_name == "rlutf.Map" and opened is not None and rec.log_time_ns < opened:
-                carried += 1
+            if (
+                opened is not None
+                and rec.log_time_ns < opened
+                and _is_map(rec.topic, rec.schema_name)
+            ):
+                carried += rec.schema_name == "rlutf.Map"
             else:
                 t = rec.log_time_ns
                 first = t if first is None or t < first else first
@@ -108,6 +112,11 @@ def log_info(path: Path) -> LogInfo:
             tag.to_metadata() if tag is not None else None,
             carried,
         )
+
+
+def _is_map(topic: str, schema_name: str) -> bool:
+    """A map or its Foxglove view: what a rotated file carries over from earlier files."""
+    return schema_name == "rlutf.Map" or topic.startswith("/foxglove/maps/")
 
 
 def _when(ns: int) -> str:

@@ -61,9 +61,7 @@ def record_run(
             poses.append(
                 Record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", payload, at, p.stamp_ns)
             )
-    rec = McapRecorder(
-        folder, instance="demo", max_bytes=max_bytes, chunk_size=4096, foxglove=False
-    )
+    rec = McapRecorder(folder, instance="demo", max_bytes=max_bytes, chunk_size=4096)
     rec.set_config(computed.config.settings)
     for r in sorted([*inputs, *poses], key=lambda r: r.log_time_ns):
         rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
