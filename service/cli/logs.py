@@ -4,7 +4,7 @@ Exit codes:
 
 * ``0``: done (replay: every recorded pose reproduced within the tolerance, or nothing to
   audit; recover: something was salvaged);
-* ``1``: the audit failed (a recorded pose was not reproduced within the tolerance);
+* ``1``: the audit failed (a recorded pose of any run was not reproduced within the tolerance);
 * ``2``: an input is missing, not MCAP, truncated or damaged (the message says to run
   ``rlutf log recover``), or the arguments or configuration are invalid.
 
@@ -180,7 +180,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
         console = _console()
         verdicts = []
         for k, (run, out) in enumerate(zip(runs, outs, strict=True), 1):
-            heading = "Audit" if len(runs) == 1 else f"Audit of run {k}"
             if len(runs) > 1:
                 console.rule(f"run {k} of {len(runs)}: {run.label}")
                 console.print(f"files: {' '.join(str(f) for f in run.files)}")
@@ -189,8 +188,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     f"[yellow]run {run.run_id}: file(s) {', '.join(map(str, run.missing))} "
                     "of the run not given: poses after a missing file may not reproduce[/yellow]"
                 )
-            result = _replay_one(args, run.files, out, f"run {k}/{len(runs)}")
-            verdicts.append(_report(args, console, result, summary, out, run, k, heading))
+            label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
+            result = _replay_one(args, run.files, out, label)
+            verdicts.append(_report(args, console, result, summary, out, run, (k, len(runs))))
     except (LogError, ReplayConfigError, ValueError) as err:
         return _fail("replay", err)
     except OSError as err:
@@ -218,7 +218,7 @@ def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, labe
     from service.logs.replay import replay
 
     progress = Progress(
-        f"replaying {label}" if label != "run 1/1" else "replaying",
+        label,
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
@@ -246,12 +246,14 @@ def _report(
     summary: Any,
     out: Path,
     run: Any,
-    k: int,
-    heading: str,
+    place: tuple[int, int],
 ) -> Any:
-    """Print one run's replay and audit; its line for the final summary."""
+    """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
+    final summary."""
     from service.logs.audit import RunVerdict, all_passed, audit, render
 
+    k, n = place
+    heading = "Audit" if n == 1 else f"Audit of run {k}"
     if summary is not None:
         console.print(_bag_report(summary))
     recomputed = sum(len(v) for v in result.recomputed.values())
@@ -270,7 +272,7 @@ def _report(
     if args.plot is not None:
         from service.logs.plots import plot_all
 
-        folder = args.plot if heading == "Audit" else args.plot / f"run{k}"
+        folder = args.plot if n == 1 else args.plot / f"run{k}"
         for path in plot_all(result, folder):
             console.print(f"wrote {path}")
     tol_m = args.tolerance
