@@ -123,9 +123,9 @@ def register(sub: Any) -> None:
         help="repair a log cut short by a crash",
         description="Copy every complete chunk (schemas, channels, messages) and every metadata "
         "record (rlutf.run included) of a truncated or damaged MCAP file, such as a .mcap.part "
-        "left by a crash, into a new valid file. Several inputs: OUT is a folder (created if "
-        "missing) that gets each one under its name without .part; the recovered files are "
-        "listed by run. Exit 2 if an input is not MCAP.",
+        "left by a crash, into a new valid file. Several inputs, or an existing folder OUT: OUT "
+        "is a folder (created if missing) that gets each one under its name without .part; the "
+        "recovered files are listed by run. Exit 2 if an input is not MCAP.",
     )
     rec.add_argument("broken", type=Path, nargs="+", metavar="BROKEN.mcap")
     rec.add_argument("out", type=Path, metavar="OUT")
@@ -342,7 +342,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from service.logs.runs import group_runs
 
     outs = [args.out]
-    if len(args.broken) > 1:
+    if len(args.broken) > 1 or args.out.is_dir():
         args.out.mkdir(parents=True, exist_ok=True)
         outs = [args.out / p.name.removesuffix(".part") for p in args.broken]
     for broken, out in zip(args.broken, outs, strict=True):
