@@ -247,3 +247,17 @@ def test_outputs_of_several_runs(out: str, names: Sequence[str]) -> None:
     runs = [LogRun((Path("logs/a.mcap"),), (None,), 0), LogRun((Path("old/a.mcap"),), (None,), 1)]
     assert run_outputs(out, runs) == [Path(n) for n in names]
     assert run_outputs("x.mcap", runs[:1]) == [Path("x.mcap")]
+
+
+def test_plots_of_several_runs_go_to_a_folder_per_run(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    files = [str(p) for rec in recorders[:2] for p in rec.files]
+    plots = tmp_path / "plots"
+    argv = ["replay", *files, "--out", str(tmp_path / "x.mcap"), "--plot", str(plots), "--quiet"]
+    assert main(argv) == 0
+    capsys.readouterr()
+    for k in (1, 2):
+        for robot in ("r1", "r2"):
+            assert (plots / f"run{k}" / f"{robot}.png").read_bytes()[:4] == b"\x89PNG"
