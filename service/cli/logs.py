@@ -204,12 +204,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
         render_verdicts(verdicts, console)
     failed = sum(v.result == "FAILED" for v in verdicts)
     if len(verdicts) > 1:
-        console.print(
-            f"audit: [bold red]FAILED[/bold red] ({failed} of {len(verdicts)} runs)"
-            if failed
-            else f"audit: [green]passed[/green] ({len(verdicts)} runs)"
-        )
+        console.print(_verdict_line(verdicts))
     return EXIT_AUDIT_FAILED if failed else EXIT_OK
+
+
+def _verdict_line(verdicts: Sequence[Any]) -> str:
+    """The last line of an audit over several runs."""
+    counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED")}
+    empty = len(verdicts) - counts["passed"] - counts["FAILED"]
+    if counts["FAILED"]:
+        return f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
+    if not counts["passed"]:
+        return f"audit: nothing to audit in {len(verdicts)} runs"
+    also = f"; {empty} with nothing to audit" if empty else ""
+    runs = "run" if counts["passed"] == 1 else "runs"
+    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also})"
 
 
 def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, label: str) -> Any:

@@ -261,3 +261,15 @@ def test_plots_of_several_runs_go_to_a_folder_per_run(
     for k in (1, 2):
         for robot in ("r1", "r2"):
             assert (plots / f"run{k}" / f"{robot}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_run_without_poses_is_named_but_fails_nothing(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    inputs_only = write_log(tmp_path / "other-tool.mcap", simulated_inputs(steps=3))
+    files = [str(recorders[0].files[0]), str(inputs_only)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "nothing to audit" in text and "audit: passed (1 run; 1 with nothing to audit)" in text
+    assert (tmp_path / "other-tool.replay.mcap").exists()
