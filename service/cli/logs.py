@@ -6,7 +6,9 @@ Exit codes:
   audit; recover: something was salvaged);
 * ``1``: the audit failed (a recorded pose of any run was not reproduced within the tolerance);
 * ``2``: an input is missing, not MCAP, truncated or damaged (the message says to run
-  ``rlutf log recover``), or the arguments or configuration are invalid.
+  ``rlutf log recover``), or the arguments or configuration are invalid. Given several
+  files, replay names each unreadable file or run and audits the others first; an audit
+  that failed then still exits 1.
 
 Errors are one line on stderr, never a traceback.
 """
@@ -17,7 +19,6 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -152,6 +153,7 @@ def _fail(command: str, err: Exception) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """``rlutf replay``: sort the inputs into runs, replay and audit each on its own."""
+    from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
     from service.logs.mcapread import LogError
     from service.logs.replayconfig import ReplayConfigError
     from service.logs.runs import group_runs, run_outputs
@@ -169,8 +171,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
         except (ValueError, OSError) as err:
             inputs[0].unlink(missing_ok=True)
             return _fail("replay", err)
+    unreadable: list[tuple[Path, LogError]] = []
     try:
-        runs = group_runs(inputs)
+        # One file that cannot be read stops a replay of one file; of several, it is named
+        # and the other runs are audited (exit 2 at the end unless an audit failed).
+        runs = group_runs(inputs, unreadable if len(inputs) > 1 else None)
+        for _path, bad in unreadable:
+            _fail("replay", bad)
+        if not runs:
+            return EXIT_BAD_INPUT
         outs = run_outputs(args.out, runs)
         clash = next((o for o in outs for p in args.inputs if o.resolve() == p.resolve()), None)
         if clash is not None:
@@ -189,7 +198,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     "of the run not given: poses after a missing file may not reproduce[/yellow]"
                 )
             label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
-            result = _replay_one(args, run.files, out, label)
+            try:
+                result = _replay_one(args, run.files, out, label)
+            except LogError as err:  # a damaged chunk: this run cannot be audited
+                if len(runs) == 1:
+                    raise
+                _fail("replay", err)
+                verdicts.append(run_verdict(run, out, 0, 0, UNREADABLE))
+                continue
             verdicts.append(_report(args, console, result, summary, out, run, (k, len(runs))))
     except (LogError, ReplayConfigError, ValueError) as err:
         return _fail("replay", err)
@@ -199,26 +215,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if summary is not None:
             inputs[0].unlink(missing_ok=True)
     if len(verdicts) > 1:
-        from service.logs.audit import render_verdicts
-
         render_verdicts(verdicts, console)
-    failed = sum(v.result == "FAILED" for v in verdicts)
-    if len(verdicts) > 1:
-        console.print(_verdict_line(verdicts))
-    return EXIT_AUDIT_FAILED if failed else EXIT_OK
-
-
-def _verdict_line(verdicts: Sequence[Any]) -> str:
-    """The last line of an audit over several runs."""
-    counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED")}
-    empty = len(verdicts) - counts["passed"] - counts["FAILED"]
-    if counts["FAILED"]:
-        return f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
-    if not counts["passed"]:
-        return f"audit: nothing to audit in {len(verdicts)} runs"
-    also = f"; {empty} with nothing to audit" if empty else ""
-    runs = "run" if counts["passed"] == 1 else "runs"
-    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also})"
+    if len(verdicts) > 1 or unreadable:
+        console.print(verdict_line(verdicts, len(unreadable)))
+    if any(v.result == "FAILED" for v in verdicts):
+        return EXIT_AUDIT_FAILED
+    if unreadable or any(v.result == UNREADABLE for v in verdicts):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
 
 
 def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, label: str) -> Any:
@@ -259,7 +263,7 @@ def _report(
 ) -> Any:
     """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
     final summary."""
-    from service.logs.audit import RunVerdict, all_passed, audit, render
+    from service.logs.audit import all_passed, audit, render, run_verdict
 
     k, n = place
     heading = "Audit" if n == 1 else f"Audit of run {k}"
@@ -289,19 +293,9 @@ def _report(
     audits = audit(result.recorded, result.recomputed)
     poses = sum(len(v) for v in result.recorded.values())
 
-    def verdict(text: str) -> RunVerdict:
-        tag = run.tags[0]
-        started = "-"
-        if tag is not None:
-            when = datetime.fromtimestamp(tag.started_ns / 1e9, UTC)
-            started = when.isoformat(timespec="seconds").removesuffix("+00:00")
-        return RunVerdict(
-            run.short_label, started, len(run.files), len(audits), poses, text, out.name
-        )
-
     if not audits:
         console.print("no recorded poses in the input: nothing to audit")
-        return verdict("nothing to audit")
+        return run_verdict(run, out, 0, poses, "nothing to audit")
     render(audits, tol_m, tol_rad, console, args.strict, heading)
     ok = all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
     if result.unreadable_poses:
@@ -309,7 +303,7 @@ def _report(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
         )
     console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
-    return verdict("passed" if ok else "FAILED")
+    return run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
 
 
 def _bag_report(summary: Any) -> str:

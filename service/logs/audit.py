@@ -19,14 +19,19 @@ import math
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
 from rlutf.motion import wrap_scalar
 from service.logs.replay import PoseRecord
+from service.logs.runs import LogRun
 
 DEFAULT_TOLERANCE = 1e-9
+UNREADABLE = "unreadable"
+"""A run's result when one of its files could not be read."""
 
 
 @dataclass(frozen=True)
@@ -172,7 +177,7 @@ class RunVerdict:
         files: its files.
         robots: robots audited.
         poses: recorded poses compared.
-        result: ``passed``, ``FAILED`` or ``nothing to audit``.
+        result: ``passed``, ``FAILED``, ``nothing to audit`` or :data:`UNREADABLE`.
         out: the run's replay output.
     """
 
@@ -183,6 +188,34 @@ class RunVerdict:
     poses: int
     result: str
     out: str
+
+
+def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int) -> str:
+    """The last line of an audit over several runs (or files)."""
+    counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED", UNREADABLE)}
+    empty = len(verdicts) - sum(counts.values())
+    if counts["FAILED"]:
+        return f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
+    if counts[UNREADABLE] or unreadable_files:
+        return (
+            f"audit: [bold red]incomplete[/bold red]: {counts[UNREADABLE]} run(s) and "
+            f"{unreadable_files} file(s) could not be read; {counts['passed']} run(s) passed"
+        )
+    if not counts["passed"]:
+        return f"audit: nothing to audit in {len(verdicts)} runs"
+    also = f"; {empty} with nothing to audit" if empty else ""
+    runs = "run" if counts["passed"] == 1 else "runs"
+    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also})"
+
+
+def run_verdict(run: LogRun, out: Path, robots: int, poses: int, result: str) -> RunVerdict:
+    """One run's line in the final summary."""
+    tag = run.tags[0]
+    started = "-"
+    if tag is not None:
+        when = datetime.fromtimestamp(tag.started_ns / 1e9, UTC)
+        started = when.isoformat(timespec="seconds").removesuffix("+00:00")
+    return RunVerdict(run.short_label, started, len(run.files), robots, poses, result, out.name)
 
 
 def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:

@@ -145,13 +145,21 @@ class LogRun:
         return f"{self.run_id} ({self.instance or '?'})"
 
 
-def group_runs(paths: Sequence[Path]) -> list[LogRun]:
+def group_runs(
+    paths: Sequence[Path], unreadable: list[tuple[Path, LogError]] | None = None
+) -> list[LogRun]:
     """Sort files into runs (see the module docstring), ordered by start.
 
     A file given twice (the same path) counts once.
 
+    Args:
+        paths: the files.
+        unreadable: if given, files that cannot be read are added to it with their error and
+            left out, instead of raising.
+
     Raises:
-        service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged.
+        service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged (unless
+            ``unreadable`` is given).
         RunConflict: two different files are the same file number of the same run.
     """
     tagged: dict[str, list[tuple[RunTag, Path]]] = {}
@@ -163,9 +171,15 @@ def group_runs(paths: Sequence[Path]) -> list[LogRun]:
         if key in seen:
             continue
         seen.add(key)
-        with LogFile(path) as log:
-            tag = run_tag(log)
-            span = log.time_range
+        try:
+            with LogFile(path) as log:
+                tag = run_tag(log)
+                span = log.time_range
+        except LogError as err:
+            if unreadable is None:
+                raise
+            unreadable.append((Path(path), err))
+            continue
         if tag is None:
             untagged.append(Path(path))
             if span is not None:

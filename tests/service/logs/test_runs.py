@@ -273,3 +273,26 @@ def test_a_run_without_poses_is_named_but_fails_nothing(
     text = capsys.readouterr().out
     assert "nothing to audit" in text and "audit: passed (1 run; 1 with nothing to audit)" in text
     assert (tmp_path / "other-tool.replay.mcap").exists()
+
+
+def test_an_unreadable_file_or_run_is_named_and_the_others_audited(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    garbage = tmp_path / "notes.mcap"
+    garbage.write_text("not a log")
+    damaged = tmp_path / "damaged.mcap"
+    data = bytearray(recorders[1].files[0].read_bytes())
+    middle = len(data) // 3
+    data[middle : middle + 64] = bytes(64)  # inside a chunk: its CRC no longer matches
+    damaged.write_bytes(bytes(data))
+    files = [str(recorders[0].files[0]), str(garbage), str(damaged)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/out/", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "notes.mcap: not an MCAP file" in captured.err
+    assert "damaged.mcap" in captured.err and "rlutf log recover" in captured.err
+    assert "1 run(s) and 1 file(s) could not be read; 1 run(s) passed" in captured.out
+    # an audit that fails still says so first: exit 1, not 2
+    bad = record_run(tmp_path / "tampered", tmp_path, RUNS + 1, tamper=True)
+    files = [*map(str, bad.files), str(garbage)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/out2/", "--quiet"]) == 1
