@@ -114,7 +114,8 @@ def register(sub: Any) -> None:
         description="Describe logs. One file: its run, channels, time range, robots, maps. "
         "Several files (e.g. logs/*.mcap): grouped by run (metadata rlutf.run; files without "
         "it form one run), per run its files in sequence order, time range, robots and maps; "
-        'with --json an object {"runs": [...]}. Exit 2 if a file cannot be read.',
+        'with --json an object {"runs": [...], "unreadable": [...]}. Exit 2 if a file cannot '
+        "be read (among several: after describing the others).",
     )
     info.add_argument("files", type=Path, nargs="+", metavar="FILE")
     info.add_argument("--json", action="store_true", help="print JSON instead of tables")
@@ -319,11 +320,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     from service.logs.logtools import log_info, render_info, render_runs, runs_info
     from service.logs.mcapread import LogError
 
+    unreadable: list[tuple[Path, LogError]] = []
     try:
         if len(args.files) == 1:
             info = log_info(args.files[0])
-        else:
-            runs = runs_info(args.files)
+        else:  # one unreadable file among several is named, the others described
+            runs = runs_info(args.files, unreadable)
     except LogError as err:
         return _fail("log info", err)
     if len(args.files) == 1:
@@ -331,11 +333,15 @@ def cmd_info(args: argparse.Namespace) -> int:
             print(json.dumps(info.to_json(), indent=2))
         else:
             render_info(info, _console())
-    elif args.json:
-        print(json.dumps({"runs": [r.to_json() for r in runs]}, indent=2))
+        return EXIT_OK
+    for _path, bad in unreadable:
+        _fail("log info", bad)
+    if args.json:
+        named = [{"path": str(p), "error": str(e)} for p, e in unreadable]
+        print(json.dumps({"runs": [r.to_json() for r in runs], "unreadable": named}, indent=2))
     else:
         render_runs(runs, _console())
-    return EXIT_OK
+    return EXIT_BAD_INPUT if unreadable else EXIT_OK
 
 
 def cmd_recover(args: argparse.Namespace) -> int:

@@ -24,8 +24,16 @@ from mcap.writer import CompressionType, Writer
 from rich.console import Console
 from rich.table import Table
 
-from service.logs.mcapread import MAGIC, ChannelInfo, LogFile, NotALog, map_topic, robot_topic
-from service.logs.runs import LogRun, group_runs, run_tag
+from service.logs.mcapread import (
+    MAGIC,
+    ChannelInfo,
+    LogError,
+    LogFile,
+    NotALog,
+    map_topic,
+    robot_topic,
+)
+from service.logs.runs import LogRun, RunTag, group_runs, run_tag
 
 
 @dataclass
@@ -217,14 +225,34 @@ class RunInfo:
         }
 
 
-def runs_info(paths: Sequence[Path]) -> list[RunInfo]:
+def runs_info(
+    paths: Sequence[Path], unreadable: list[tuple[Path, LogError]] | None = None
+) -> list[RunInfo]:
     """:func:`log_info` of every file, grouped by run (:func:`service.logs.runs.group_runs`).
 
+    Args:
+        paths: the files.
+        unreadable: if given, files that cannot be read are added to it with their error and
+            left out (their run reports them missing), instead of raising.
+
     Raises:
-        service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged, or two files
-            claim the same place in a run.
+        service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged (unless
+            ``unreadable`` is given), or two files claim the same place in a run.
     """
-    return [RunInfo(run, [log_info(p) for p in run.files]) for run in group_runs(paths)]
+    out = []
+    for run in group_runs(paths, unreadable):
+        kept: list[tuple[Path, RunTag | None, LogInfo]] = []
+        for path, tag in zip(run.files, run.tags, strict=True):
+            try:
+                kept.append((path, tag, log_info(path)))
+            except LogError as err:
+                if unreadable is None:
+                    raise
+                unreadable.append((path, err))
+        if kept:
+            files = LogRun(tuple(k[0] for k in kept), tuple(k[1] for k in kept), run.start_ns)
+            out.append(RunInfo(files, [k[2] for k in kept]))
+    return out
 
 
 def render_runs(runs: Sequence[RunInfo], console: Console) -> None:

@@ -296,3 +296,18 @@ def test_an_unreadable_file_or_run_is_named_and_the_others_audited(
     bad = record_run(tmp_path / "tampered", tmp_path, RUNS + 1, tamper=True)
     files = [*map(str, bad.files), str(garbage)]
     assert main(["replay", *files, "--out", f"{tmp_path}/out2/", "--quiet"]) == 1
+
+
+def test_log_info_names_an_unreadable_file_and_describes_the_others(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    garbage = tmp_path / "notes.mcap"
+    garbage.write_text("not a log")
+    files = [*map(str, recorders[2].files), str(garbage)]
+    assert main(["log", "info", *files, "--json"]) == 2
+    captured = capsys.readouterr()
+    data = json.loads(captured.out)
+    assert [r["run_id"] for r in data["runs"]] == [recorders[2].run_id]
+    assert [u["path"] for u in data["unreadable"]] == [str(garbage)]
+    assert "notes.mcap: not an MCAP file" in captured.err
