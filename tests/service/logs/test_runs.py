@@ -180,6 +180,9 @@ def test_rotated_files_carry_maps_outside_their_own_time(
     files = recorders[2].files
     infos = [log_info(p) for p in files]
     assert infos[0].carried_maps == 0 and all(i.carried_maps == 1 for i in infos[1:])
+    runs = [(i.run or {}).get("run_id") for i in infos]
+    assert runs == [recorders[2].run_id] * len(files)
+    assert [(i.run or {}).get("sequence") for i in infos] == [str(n) for n in range(len(files))]
     # each file's time starts at its own first message, not at the carried map's log_time
     spans = [i.time_range for i in infos]
     assert all(s is not None for s in spans)
