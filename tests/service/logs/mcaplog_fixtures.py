@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from rlutf.map import Map as World
 from rlutf.sim import (
     LidarModel,
     OdometryModel,
@@ -32,24 +33,27 @@ def simulated_inputs(
     seed: int = 3,
     beams: int = 120,
     prefix: str = "rlutf",
+    world: World | None = None,
 ) -> list[Record]:
-    """A map, initial poses, then odometry and a scan per robot per step, in log order.
+    """A map (``world``, default :data:`WORLD`), initial poses, then odometry and a scan per
+    robot per step, in log order.
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
     rng = np.random.default_rng(seed)
+    building = WORLD if world is None else world
     out = [
         Record(
             f"{prefix}/maps/m1",
             "rlutf.Map",
-            encode(Map(map_id="m1", version=1, geometry=WORLD.to_geojson())),
+            encode(Map(map_id="m1", version=1, geometry=building.to_geojson())),
             T0 - 1_000_000,
             T0 - 1_000_000,
         )
     ]
     runs = {}
     for k, robot in enumerate(robots):
-        truth = make_trajectory(WORLD, rng, steps + 1)
+        truth = make_trajectory(building, rng, steps + 1)
         odom = drift_odometry(truth, OdometryModel(), rng)
         runs[robot] = (truth, odom)
         start = InitialPose(
@@ -81,7 +85,7 @@ def simulated_inputs(
             )
             if i == 0:
                 continue
-            s = simulate_scan(WORLD, truth[i], lidar, rng)
+            s = simulate_scan(building, truth[i], lidar, rng)
             scan = LaserScan(
                 stamp_ns=stamp,
                 angle_min=s.angle_min,
