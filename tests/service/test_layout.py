@@ -24,6 +24,8 @@ ALLOWED: dict[str, set[str]] = {
     "logs": {"keys", "config", "engine", "relocalization", "maps"},
     "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs"},
     "live": {"keys", "config", "engine", "relocalization", "maps", "logs", "cluster", "ros2"},
+    # the simulated fleet is a client of the service, as the command line is
+    "sim": {"keys", "config", "maps", "logs", "live", "ros2"},
     "cli": {
         "keys",
         "config",
@@ -34,6 +36,7 @@ ALLOWED: dict[str, set[str]] = {
         "cluster",
         "live",
         "ros2",
+        "sim",
     },
     "__main__": {"cli"},
 }
