@@ -8,9 +8,11 @@ after robot its path, its odometry and its ``L`` scans. The same spec gives the 
 for bit.
 
 A run may be longer than a path: past its last pose a robot drives the path back to its start,
-then out again (ping-pong, :meth:`RobotPlan.index`), its odometry and its scans retracing the
-same values. A run of any length (``rlutf simulate`` until Ctrl-C, a 30-minute soak) holds one
-path per robot, and the odometry error stays what it was along the path.
+then out again (ping-pong, :meth:`RobotPlan.index`), over and over, its scans those of the way
+out. Its odometry goes on drifting: the way back has drift of its own, drawn after every robot's
+way out (so that a plan's way out does not depend on it), and each loop starts where the last
+one ended (:meth:`RobotPlan.odometry_at`). A run of any length (``rlutf simulate`` until Ctrl-C,
+a 30-minute soak) holds one path per robot.
 
 Step 0 is the start: the robot's first odometry and, unless the plan has none, its initial pose.
 Its scans and odometry follow at steps 1, 2, ... (step ``k`` at ``k / rate`` seconds).
@@ -18,7 +20,9 @@ Its scans and odometry follow at steps 1, 2, ... (step ``k`` at ``k / rate`` sec
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import cmath
+import math
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -162,6 +166,8 @@ class RobotPlan:
             ``truth[0]``.
         scans: the ``L`` scans, one taken at each pose (no return: NaN).
         initial: the pose its InitialPose announces, or ``None`` when it announces none.
+        back: ``(L - 1, 3)`` what its odometry reads on the way back, at poses ``L - 2`` down to
+            ``0``; ``None``: it retraces the way out's readings.
     """
 
     robot_id: str
@@ -169,6 +175,7 @@ class RobotPlan:
     odometry: FloatArray
     scans: tuple[Scan, ...]
     initial: FloatArray | None
+    back: FloatArray | None = None
 
     def index(self, step: int) -> int:
         """The pose of the path the robot is at, at ``step`` (out and back, over and over)."""
@@ -176,10 +183,58 @@ class RobotPlan:
         j = step % (2 * n - 2)
         return j if j < n else 2 * n - 2 - j
 
+    def odometry_at(self, step: int) -> tuple[float, float, float]:
+        """What the odometry reads at ``step``: each loop starts where the last one ended."""
+        n = 2 * len(self.truth) - 2
+        loops, j = divmod(step, n)
+        if j < len(self.truth):
+            pose = _pose(self.odometry[j])
+        else:
+            pose = _pose(
+                self.odometry[self.index(j)]
+                if self.back is None
+                else self.back[j - len(self.truth)]
+            )
+        if loops == 0 or self.back is None:
+            return pose
+        start = _pose(self.odometry[0])
+        loop = _relative(start, _pose(self.back[-1]))
+        return _compose(_compose(start, _power(loop, loops)), _relative(start, pose))
+
     def truth_at(self, step: int) -> FloatArray:
         """The true pose at ``step``."""
         pose: FloatArray = self.truth[self.index(step)]
         return pose
+
+
+def _pose(p: FloatArray) -> tuple[float, float, float]:
+    return (float(p[0]), float(p[1]), float(p[2]))
+
+
+def _compose(
+    a: tuple[float, float, float], b: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (
+        a[0] + c * b[0] - s * b[1],
+        a[1] + s * b[0] + c * b[1],
+        math.remainder(a[2] + b[2], math.tau),
+    )
+
+
+def _relative(
+    a: tuple[float, float, float], b: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], math.tau))
+
+
+def _power(p: tuple[float, float, float], n: int) -> tuple[float, float, float]:
+    """``p`` composed with itself ``n`` times (closed form: a rotation's geometric series)."""
+    t, turn = complex(p[0], p[1]), cmath.exp(1j * p[2])
+    moved = t * n if abs(turn - 1) < 1e-12 else t * (1 - turn**n) / (1 - turn)
+    return (moved.real, moved.imag, math.remainder(n * p[2], math.tau))
 
 
 def plan_robot(
@@ -211,6 +266,17 @@ def plan_robot(
     return RobotPlan(robot_id, truth, odom, scans, initial)
 
 
+def with_way_back(
+    robot: RobotPlan, odometry: OdometryModel | None, rng: np.random.Generator
+) -> RobotPlan:
+    """The robot with the drift of its way back drawn (none drawn: ``odometry`` is ``None``)."""
+    reverse = robot.truth[::-1]
+    read = reverse.copy() if odometry is None else drift_odometry(reverse, odometry, rng)
+    end = _pose(robot.odometry[-1])
+    back = [_compose(end, _relative(_pose(read[0]), _pose(p))) for p in read[1:]]
+    return replace(robot, back=np.asarray(back, dtype=np.float64))
+
+
 @dataclass(frozen=True, eq=False)
 class FleetPlan:
     """A whole fleet: the spec it was drawn from, the map, the robots."""
@@ -240,8 +306,9 @@ def plan_fleet(spec: FleetSpec, world: World | None = None) -> FleetPlan:
         )
     lidar = LidarModel(beams=spec.beams)
     offset = spec.initial_offset if spec.initial_poses else None
-    robots = tuple(
+    out = [
         plan_robot(rid, world, rng, spec.poses, lidar, spec.odometry, 1.0 / spec.rate_hz, offset)
         for rid in spec.ids
-    )
+    ]
+    robots = tuple(with_way_back(robot, spec.odometry, rng) for robot in out)
     return FleetPlan(spec, world, robots)

@@ -96,7 +96,8 @@ class Scoreboard:
             return None
         robot = self.plan.robots[i]
         truth = robot.truth_at(step)
-        odom_error = math.hypot(*(robot.odometry[robot.index(step), :2] - truth[:2]))
+        odom = robot.odometry_at(step)
+        odom_error = math.hypot(odom[0] - truth[0], odom[1] - truth[1])
         with self.lock:
             score = self.robots[pose.robot_id]
             score.errors.append(math.hypot(pose.x - truth[0], pose.y - truth[1]))

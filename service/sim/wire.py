@@ -93,7 +93,7 @@ def _scan_body(scan: Scan) -> str:
     return json.dumps(body)[1:]
 
 
-def _odometry_body(pose: np.ndarray) -> str:
+def _odometry_body(pose: np.ndarray | tuple[float, float, float]) -> str:
     return json.dumps({"x": float(pose[0]), "y": float(pose[1]), "theta": float(pose[2])})[1:]
 
 
@@ -121,7 +121,10 @@ class JsonWire:
 
     def odometry(self, robot: int, step: int, stamp_ns: int) -> bytes:
         """See :class:`RobotWire`."""
-        return _stamped(self._odometry[robot][self.plan.robots[robot].index(step)], stamp_ns)
+        bodies = self._odometry[robot]
+        if step < len(bodies):
+            return _stamped(bodies[step], stamp_ns)
+        return _stamped(_odometry_body(self.plan.robots[robot].odometry_at(step)), stamp_ns)
 
     def scan(self, robot: int, step: int, stamp_ns: int) -> bytes:
         """See :class:`RobotWire`."""
@@ -202,7 +205,7 @@ class CdrWire:
             stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns), frame_id=frame_id
         )
 
-    def _pose(self, p: np.ndarray) -> Any:
+    def _pose(self, p: np.ndarray | tuple[float, float, float]) -> Any:
         t = self._t
         return t["geometry_msgs/msg/Pose"](
             position=t["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=0.0),
@@ -240,7 +243,10 @@ class CdrWire:
 
     def odometry(self, robot: int, step: int, stamp_ns: int) -> bytes:
         """See :class:`RobotWire`."""
-        msg = self._odometry[robot][self.plan.robots[robot].index(step)]
+        plan = self.plan.robots[robot]
+        msg = self._odometry[robot][plan.index(step)]
+        if step >= len(plan.truth):  # the way back, or a later loop: not the way out's reading
+            msg.pose.pose = self._pose(plan.odometry_at(step))
         msg.header = self._header(stamp_ns, "odom")
         return self._convert.serialize(msg, self._convert.ODOMETRY)
 
