@@ -54,7 +54,7 @@ def test_a_robot_drives_out_and_back(plan) -> None:  # type: ignore[no-untyped-d
 def test_odometry_without_drift_follows_the_truth_over_many_loops() -> None:
     plan = plan_fleet(FleetSpec(robots=1, poses=12, beams=8, seed=1, odometry=None))
     robot = plan.robots[0]
-    for step in range(0, 7 * len(robot.truth)):
+    for step in range(7 * len(robot.truth)):
         odom, truth = robot.odometry_at(step), robot.truth_at(step)
         assert odom[:2] == pytest.approx(tuple(truth[:2]), abs=1e-9)
         assert float(wrap_angle(odom[2] - truth[2])) == pytest.approx(0.0, abs=1e-9)
