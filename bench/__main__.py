@@ -28,9 +28,9 @@ from bench.accuracy import FULL, QUICK, Profile, build_runs, run_accuracy, total
 from bench.logs import write_run_files
 from bench.methods import DEFAULT_METHOD, Method, table_methods
 from bench.priors import priors_section
-from bench.relocalize import FULL as RELOC_FULL
-from bench.relocalize import QUICK as RELOC_QUICK
 from bench.relocalize import relocalize_section
+from bench.reloccases import FULL as RELOC_FULL
+from bench.reloccases import QUICK as RELOC_QUICK
 from bench.report import replace_section
 from bench.speed import growth, latency_vs_beams, latency_vs_map, speed_methods, sweep_maps
 from bench.tables import overview_table, scenario_table, speed_tables, targets
