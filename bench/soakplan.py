@@ -247,7 +247,7 @@ class LatencyHistogram:
     def __init__(self) -> None:
         self.counts = np.zeros(self.BINS, dtype=np.int64)
 
-    def add(self, latencies_ms: Sequence[float]) -> None:
+    def add(self, latencies_ms: Sequence[float] | FloatArray) -> None:
         """Count latencies (ms)."""
         if len(latencies_ms):
             idx = np.minimum(
