@@ -25,10 +25,7 @@ from bench.scenarios import FloatArray
 from rlutf.map import Map
 from rlutf.relocalize import Relocalization, RelocalizeSettings, relocalize, search_grid
 from rlutf.scan import Scan
-from rlutf.sim import (
-    LidarModel,
-    simulate_scan,
-)
+from rlutf.sim import LidarModel, simulate_scan
 
 
 @dataclass(frozen=True, eq=False)
