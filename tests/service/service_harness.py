@@ -112,8 +112,9 @@ def sim_robot(
 ) -> SimRobot:
     """A robot on its own path of ``steps`` poses (seeded), 180-beam scans, stamps from ``t0``
     (default: now) at 10 Hz."""
+    start = time.time_ns() if t0 is None else t0  # before the drawing: no stamp ahead of now
     plan = plan_robot(robot_id, world, np.random.default_rng(seed), steps, LidarModel(beams=180))
-    return SimRobot(plan, session, time.time_ns() if t0 is None else t0)
+    return SimRobot(plan, session, start)
 
 
 @dataclass
