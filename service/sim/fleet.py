@@ -149,7 +149,7 @@ def drive(
     calls = 0
     behind = 0.0
     step = 0
-    while steps is None or step < steps:
+    while (steps is None or step < steps) and not (stop is not None and stop.is_set()):
         step += 1
         if on_step is not None:
             on_step(step)
