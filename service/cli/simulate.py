@@ -259,11 +259,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"({args.path_seconds:g} s each, {spec.beams}-beam scans, seed {spec.seed})",
             flush=True,
         )
+        drawing = time.monotonic()
         plan = plan_fleet(spec, world)
         if args.ros2:
             wire: Any = CdrWire(plan, args.ros_domain_id, "humble" if args.humble else "jazzy")
         else:
             wire = JsonWire(plan, keys)
+        print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
         fleet = SimFleet(plan, wire, lambda: zenoh.open(zenoh_config(settings)), keys=keys)
         stop = threading.Event()
         events: Counter[str] = Counter()
