@@ -6,11 +6,11 @@ import argparse
 import logging
 import sys
 
-from service.cli import logs, maps, query, robots, serve
+from service.cli import logs, maps, query, robots, serve, simulate
 from service.cli.flags import EXIT_USAGE
 
 #: The command groups, in the order ``rlutf --help`` lists their commands.
-GROUPS = (serve, maps, query, robots, logs)
+GROUPS = (serve, simulate, maps, query, robots, logs)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -127,6 +127,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
-    from service.live.demo import run_demo
+    from service.sim.demo import run_demo
 
     return run_demo(args)

@@ -13,6 +13,7 @@ COMMANDS = [
     "serve",
     "config",
     "demo",
+    "simulate",
     "map",
     "pose",
     "relocalize",
