@@ -1,4 +1,5 @@
-"""``rlutf map put|get|import|build|show``: maps into and out of the store, from grids and logs."""
+"""``rlutf map put|get|list|remove|import|build|show``: maps into and out of the store, from grids
+and logs."""
 
 from __future__ import annotations
 
@@ -8,12 +9,21 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
+from service.cli.errors import CliError
+from service.cli.flags import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    client,
+    timeout_flag,
+    writable,
+    zenoh_flags,
+)
 
 
 def register(sub: Any) -> None:
     """Add ``map`` and its actions to the ``rlutf`` subcommands."""
-    maps = sub.add_parser("map", help="put, get, import, build and show maps")
+    maps = sub.add_parser("map", help="put, get, list, remove, import, build and show maps")
     msub = maps.add_subparsers(dest="map_command", metavar="ACTION")
     maps.set_defaults(func=cmd_map)
     put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
@@ -24,8 +34,32 @@ def register(sub: Any) -> None:
     get = msub.add_parser("get", help="print a stored map")
     get.add_argument("map_id")
     get.add_argument("--out", type=Path, help="write to a file instead of stdout")
-    get.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(get, what="the storage's answer")
     zenoh_flags(get, client=True)
+
+    ls = msub.add_parser(
+        "list",
+        help="list the stored maps: id, version, size, and the robots on each",
+        description="Ask every storage of {prefix}/maps/* and the live instances: one line per "
+        "map with its version, payload size, extent (width x height of its bounding box) and "
+        "the robots localized on it. Exit 1 if no storage answers.",
+    )
+    timeout_flag(ls, what="the storages' answers")
+    ls.add_argument("--json", action="store_true", help="print one JSON array instead of text")
+    zenoh_flags(ls, client=True)
+
+    rm = msub.add_parser(
+        "remove",
+        help="delete a stored map",
+        description="Delete {prefix}/maps/ID from the storages (a Zenoh delete on the key) and "
+        "check that none answers for it any more. Robots on the map keep the copy their "
+        "service holds until it restarts; a new initial pose on it gets map_not_found. A map "
+        "that robots are on is removed only with --force.",
+    )
+    rm.add_argument("map_id", metavar="ID", help="the map's id")
+    rm.add_argument("--force", action="store_true", help="remove it even if robots are on it")
+    timeout_flag(rm, what="the storages to drop the map")
+    zenoh_flags(rm, client=True)
 
     imp = msub.add_parser(
         "import",
@@ -85,7 +119,7 @@ def register(sub: Any) -> None:
     )
     show.add_argument("source", help="a map JSON file, or the id of a stored map")
     show.add_argument("--out", type=Path, default=Path("map.png"), help="PNG (default map.png)")
-    show.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(show, what="the storage's answer")
     zenoh_flags(show, client=True)
     show.set_defaults(func=cmd_show)
 
@@ -111,19 +145,24 @@ def _map_output_flags(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
-    """``rlutf map put|get``, and the usage of ``rlutf map`` without an action."""
+    """``rlutf map put|get|list|remove``, and the usage of ``rlutf map`` without an action."""
     from service.maps.client import get_map, put_map
 
+    if args.map_command in ("list", "remove"):
+        return _cmd_catalog(args)
     if args.map_command == "put":
         settings, session = client(args)
         with session:
             return put_map(session, settings.prefix, args.file, args.map_id, args.version)
     if args.map_command == "get":
+        if args.out is not None:
+            writable(args.out, "--out")
         settings, session = client(args)
         with session:
             return get_map(session, settings.prefix, args.map_id, args.out, args.timeout)
     print(
-        "rlutf map: choose an action: put, get, import, build, show (see rlutf map --help)",
+        "rlutf map: choose an action: put, get, list, remove, import, build, show (see rlutf "
+        "map --help)",
         file=sys.stderr,
     )
     return EXIT_USAGE
@@ -162,10 +201,19 @@ def _finish(args: argparse.Namespace, result: Any) -> int:
     return EXIT_OK
 
 
+def _outputs(args: argparse.Namespace) -> None:
+    """Refuse output paths that cannot be written before the work starts."""
+    for flag in ("out", "png", "save_grid"):
+        path = getattr(args, flag, None)
+        if path is not None:
+            writable(path, "--" + flag.replace("_", "-"))
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """``rlutf map import``."""
     from service.maps.mapimport import MapImportError, import_grid
 
+    _outputs(args)
     try:
         result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
     except MapImportError as err:
@@ -186,6 +234,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         save_grid,
     )
 
+    _outputs(args)
     try:
         if args.ros2:
             from service.ros2.bags import BagError
@@ -221,6 +270,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     from service.maps.mapimport import MapImportError, render_map
 
     path = Path(args.source)
+    writable(args.out, "--out")
     if path.is_file():
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
@@ -255,3 +305,91 @@ def cmd_show(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
     print(f"wrote {args.out}")
     return EXIT_OK
+
+
+def _cmd_catalog(args: argparse.Namespace) -> int:
+    """``rlutf map list`` and ``rlutf map remove ID``."""
+    from schemas import valid_id
+    from service.live.robots import fetch_robots, merge_robots
+    from service.maps.catalog import list_maps, remove_map
+
+    if args.map_command == "remove" and not valid_id(args.map_id):
+        raise CliError(f"invalid map id {args.map_id!r}: use 1 to 64 of A-Z a-z 0-9 _ -", 2)
+    settings, session = client(args)
+    with session:
+        on: dict[str, list[str]] = {}
+        for state in merge_robots(fetch_robots(session, settings.prefix, args.timeout)):
+            on.setdefault(state.map_id, []).append(state.robot_id)
+        stored = list_maps(session, settings.prefix, args.timeout)
+        if args.map_command == "list":
+            return _print_maps(stored, on, args.json)
+        if args.map_id not in {m.map_id for m in stored}:
+            raise CliError(
+                f"no storage holds map {args.map_id!r} (`rlutf map list` shows the stored maps)"
+            )
+        robots = on.get(args.map_id, [])
+        if robots and not args.force:
+            raise CliError(
+                f"robots are on map {args.map_id!r}: {', '.join(robots)}; they would keep their "
+                "service's copy until it restarts. Remove it anyway with --force"
+            )
+        if not remove_map(session, settings.prefix, args.map_id, args.timeout):
+            raise CliError(
+                f"a storage still answers for map {args.map_id!r} after {args.timeout:g} s: it "
+                "does not honour deletes (zenohd's storage manager?); remove it there"
+            )
+    print(f"removed map {args.map_id} from {settings.prefix}/maps/{args.map_id}")
+    return EXIT_OK
+
+
+def _print_maps(stored: list[Any], on: dict[str, list[str]], as_json: bool) -> int:
+    from service.cli.present import table
+
+    if as_json:
+        rows = [
+            {
+                "map_id": m.map_id,
+                "version": m.version,
+                "size_bytes": m.size_bytes,
+                "extent_m": None if m.extent is None else list(m.extent),
+                "robots": on.get(m.map_id, []),
+            }
+            for m in stored
+        ]
+        print(json.dumps(rows))
+    else:
+        print(
+            table(
+                ("map", "version", "size", "extent m", "robots"),
+                (
+                    [
+                        m.map_id,
+                        "-" if m.version is None else str(m.version),
+                        _size(m.size_bytes),
+                        "-" if m.extent is None else f"{m.extent[0]:.1f} x {m.extent[1]:.1f}",
+                        _robots(on.get(m.map_id, [])),
+                    ]
+                    for m in stored
+                ),
+                {1, 2, 3},
+            )
+        )
+    if not stored:
+        print("rlutf map list: no storage answered with a map", file=sys.stderr)
+        return EXIT_FAILURE
+    return EXIT_OK
+
+
+def _size(n: int) -> str:
+    if n < 1024:
+        return f"{n} B"
+    if n < 1024 * 1024:
+        return f"{n / 1024:.1f} KB"
+    return f"{n / 1024 / 1024:.1f} MB"
+
+
+def _robots(ids: list[str], most: int = 5) -> str:
+    if not ids:
+        return "-"
+    shown = ", ".join(ids[:most])
+    return f"{shown} and {len(ids) - most} more" if len(ids) > most else shown
