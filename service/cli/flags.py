@@ -312,7 +312,18 @@ def zenoh_file_config(settings: Any) -> Any:
         return zenoh_config(settings)
     except zenoh.ZError as err:
         raise CliError(
-            f"zenoh config file {settings.zenoh_config}: {zenoh_text(err)}; fix it (JSON5, as "
-            "zenohd reads it) or leave out -c/--config",
+            f"zenoh config file {settings.zenoh_config}{_json5_problem(zenoh_text(err))}; fix "
+            "it (JSON5, as zenohd reads it) or leave out -c/--config",
             EXIT_USAGE,
         ) from err
+
+
+def _json5_problem(text: str) -> str:
+    """``, line L, column C: what`` from a JSON5 parser's multi-line report."""
+    import re
+
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r"^\s*=\s*(.+)$", text, re.MULTILINE)
+    if where is None:
+        return ": " + " ".join(text.split())
+    return f", line {where[1]}, column {where[2]}: " + (what[1] if what else "not valid JSON5")

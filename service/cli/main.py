@@ -12,7 +12,7 @@ import logging
 import re
 import sys
 from importlib import metadata
-from typing import Any
+from typing import Any, NoReturn
 
 from service.cli import logs, maps, operate, query, robots, serve
 from service.cli.errors import EXIT_FAILURE, EXIT_USAGE, explain
@@ -47,6 +47,10 @@ class _Parser(argparse.ArgumentParser):
             default=argparse.SUPPRESS,
             help="show the traceback of an unexpected error",
         )
+
+    def error(self, message: str) -> NoReturn:
+        """A bad flag in two lines (argparse would print the whole usage first)."""
+        self.exit(EXIT_USAGE, f"{self.prog}: {message}\nsee `{self.prog} --help`\n")
 
 
 def _version() -> str:
@@ -110,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "debug", False):
             raise
         known = explain(err)
-        name = " ".join(w for w in ("rlutf", args.command, getattr(args, "map_command", None)) if w)
+        action = getattr(args, "map_command", None) or getattr(args, "log_command", None)
+        name = " ".join(w for w in ("rlutf", args.command, action) if w)
         if known is None:
             print(
                 f"{name}: unexpected error: {type(err).__name__}: {err}\n"

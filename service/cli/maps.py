@@ -151,6 +151,12 @@ def cmd_map(args: argparse.Namespace) -> int:
     if args.map_command in ("list", "remove"):
         return _cmd_catalog(args)
     if args.map_command == "put":
+        if not args.file.is_file():
+            raise CliError(
+                f"{args.file}: no such file; give a Map JSON or GeoJSON file (`rlutf map import` "
+                "writes one from a map_server grid)",
+                EXIT_USAGE,
+            )
         settings, session = client(args)
         with session:
             return put_map(session, settings.prefix, args.file, args.map_id, args.version)
@@ -274,9 +280,19 @@ def cmd_show(args: argparse.Namespace) -> int:
     if path.is_file():
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as err:
-            print(f"rlutf map show: cannot read {path}: {err}", file=sys.stderr)
-            return EXIT_FAILURE
+        except OSError as err:
+            raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            where = (
+                f" (line {err.lineno}, column {err.colno}: {err.msg})"
+                if isinstance(err, json.JSONDecodeError)
+                else " (not UTF-8 text)"
+            )
+            raise CliError(
+                f"{path}: not a map JSON file{where}; give a Map JSON (`rlutf map get` and "
+                "`rlutf map import` write one) or the id of a stored map",
+                EXIT_USAGE,
+            ) from err
     else:
         from schemas import valid_id
         from service.keys import Keys

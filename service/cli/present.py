@@ -93,7 +93,7 @@ def robots_table(
             num(s.y, 3),
             degrees(s.theta),
             centimetres(s.sigma_xy_m),
-            degrees(s.sigma_theta_rad),
+            degrees(s.sigma_theta_rad, 2),
             age(s.age_s),
             num(s.latency_ms, 1),
             s.owner,
@@ -124,7 +124,7 @@ def poses_table(poses: Iterable[PoseEstimate], now_ns: int | None = None) -> str
                 num(p.y, 3),
                 degrees(p.theta),
                 centimetres(sxy),
-                degrees(sth),
+                degrees(sth, 2),
                 age(max(now - p.stamp_ns, 0) / 1e9),
                 num(p.discrepancy, 4),
             ]
@@ -180,7 +180,7 @@ def event_line(robot: str | None, ev: Event) -> str:
 def pose_line(p: PoseEstimate) -> str:
     """One pose as a sentence."""
     sxy, sth = one_sigma(p.covariance)
-    spread = "" if sxy is None else f" ± {centimetres(sxy)} cm, {degrees(sth)}°"
+    spread = "" if sxy is None else f" ± {centimetres(sxy)} cm, {degrees(sth, 2)}°"
     return (
         f"{p.robot_id} on {p.map_id}: {p.status} at x {p.x:.3f} m, y {p.y:.3f} m, "
         f"θ {degrees(p.theta)}°{spread}"

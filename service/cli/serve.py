@@ -20,6 +20,7 @@ from service.cli.flags import (
     number,
     ros2_flags,
     settings_flags,
+    zenoh_file_config,
     zenoh_flags,
 )
 
@@ -108,6 +109,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.logs.recording import make_recorder
 
     settings = load(args)
+    zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

@@ -17,11 +17,16 @@ COMMANDS = [
     "pose",
     "relocalize",
     "health",
+    "initialpose",
+    "events",
     "robots",
     "replay",
     "log",
 ]
-ACTIONS = {"map": ["put", "get", "import", "build", "show"], "log": ["info", "recover"]}
+ACTIONS = {
+    "map": ["put", "get", "list", "remove", "import", "build", "show"],
+    "log": ["info", "recover"],
+}
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -54,7 +59,9 @@ def test_no_command_prints_help_and_exits_2(capsys: pytest.CaptureFixture[str]) 
 
 def test_map_without_an_action_says_which_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["map"]) == 2
-    assert "choose an action: put, get, import, build, show" in capsys.readouterr().err
+    assert (
+        "choose an action: put, get, list, remove, import, build, show" in capsys.readouterr().err
+    )
 
 
 def test_log_without_an_action_prints_its_help_and_exits_2(
