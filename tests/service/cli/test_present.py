@@ -74,7 +74,19 @@ def test_robots_table_in_degrees_and_centimetres_with_silent_and_waiting_robots(
         "2.2",
         "a",
     ]
-    assert second.split() == ["robot-22", "m", "tracking", "0.000", "-1.500", "90.0", "-", "-", "-", "-", "b"]
+    assert second.split() == [
+        "robot-22",
+        "m",
+        "tracking",
+        "0.000",
+        "-1.500",
+        "90.0",
+        "-",
+        "-",
+        "-",
+        "-",
+        "b",
+    ]
     assert third.split()[:4] == ["r3", "m", "silent", "(tracking)"]
     assert "1 min 47 s" in third
     assert fourth.split()[:3] == ["r0", "-", "waiting"]
