@@ -11,7 +11,14 @@ from typing import Any
 
 from service.cli.errors import EXIT_FAILURE, EXIT_OK
 from service.cli.flags import client, number, zenoh_flags
-from service.cli.query import check_ids, json_flag, refused_hint, require_service, show_event
+from service.cli.query import (
+    check_ids,
+    json_flag,
+    refused_hint,
+    request_flags,
+    require_service,
+    show_event,
+)
 
 
 def register(sub: Any) -> None:
@@ -27,8 +34,7 @@ def register(sub: Any) -> None:
         "refusal (a robot not sending scans yet); exit 1 when no service is live or it refuses "
         "the request (map not in the store).",
     )
-    init.add_argument("robot", help="robot id")
-    init.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
+    request_flags(init, 5.0, "until its first pose on the map")
     init.add_argument(
         "--pose",
         required=True,
@@ -37,15 +43,6 @@ def register(sub: Any) -> None:
         help="pose in map coordinates, e.g. --pose -1.5,2.0,0.3 (metres, radians)",
     )
     init.add_argument("--degrees", action="store_true", help="THETA is in degrees")
-    init.add_argument(
-        "--wait",
-        type=number(minimum=0),
-        default=5.0,
-        metavar="SECONDS",
-        help="follow the robot's events this long for the first pose (default 5; 0: put and exit)",
-    )
-    json_flag(init, "the robot's Events as JSON, one per line")
-    zenoh_flags(init, client=True)
     init.set_defaults(func=cmd_initialpose)
 
     events = sub.add_parser(

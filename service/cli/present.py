@@ -174,7 +174,8 @@ def event_line(robot: str | None, ev: Event) -> str:
     """One Event as a line: local time, level, robot (``-``: service-wide), code, message."""
     clock = time.strftime("%H:%M:%S", time.localtime(ev.stamp_ns / 1e9))
     millis = ev.stamp_ns // 1_000_000 % 1000
-    return f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {ev.code}: {ev.message}"
+    text = ev.message if ev.message.startswith(f"{ev.code}:") else f"{ev.code}: {ev.message}"
+    return f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {text}"
 
 
 def pose_line(p: PoseEstimate) -> str:

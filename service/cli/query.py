@@ -39,8 +39,7 @@ def register(sub: Any) -> None:
         "robot's Events are printed until it is relocalized (exit 0) or the request fails or "
         "the time runs out (exit 1).",
     )
-    reloc.add_argument("robot", help="robot id")
-    reloc.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
+    request_flags(reloc, 10.0, "until it is relocalized")
     reloc.add_argument(
         "--near",
         metavar="X,Y,RADIUS",
@@ -48,15 +47,6 @@ def register(sub: Any) -> None:
         help="search only within RADIUS metres of (X, Y) in map coordinates (default: the "
         "whole map)",
     )
-    reloc.add_argument(
-        "--wait",
-        type=number(minimum=0),
-        default=10.0,
-        metavar="SECONDS",
-        help="follow the robot's events this long (default 10; 0: put and exit)",
-    )
-    json_flag(reloc, "the robot's Events as JSON, one per line")
-    zenoh_flags(reloc, client=True)
     reloc.set_defaults(func=cmd_relocalize)
 
     health = sub.add_parser(
@@ -70,6 +60,23 @@ def register(sub: Any) -> None:
     json_flag(health, "one Health (WIRE.md) per line")
     zenoh_flags(health, client=True)
     health.set_defaults(func=cmd_health)
+
+
+def request_flags(p: argparse.ArgumentParser, wait: float, until: str) -> None:
+    """The arguments of a request about one robot: ROBOT, ``--map``, ``--wait``, ``--json`` and
+    the zenoh flags."""
+    p.add_argument("robot", help="robot id")
+    p.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
+    p.add_argument(
+        "--wait",
+        type=number(minimum=0),
+        default=wait,
+        metavar="SECONDS",
+        help=f"follow the robot's events {until}, at most this long (default {wait:g}; 0: put "
+        "and exit)",
+    )
+    json_flag(p, "the robot's Events as JSON, one per line")
+    zenoh_flags(p, client=True)
 
 
 def json_flag(p: argparse.ArgumentParser, what: str) -> None:

@@ -28,6 +28,20 @@ def _drive(robot: SimRobot, steps: int) -> None:
         time.sleep(0.03)
 
 
+def _tracked(bench: Bench) -> SimRobot:
+    """Robot r1 on map m1 (already put), with a few poses published."""
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/robots/r1/pose", col)
+    time.sleep(0.3)
+    robot = bench.robot("r1", 1)
+    robot.initial_pose("m1")
+    time.sleep(0.3)
+    _drive(robot, 3)
+    assert col.wait_for(lambda: len(col.on("rlutf/robots/r1/pose")) >= 2)
+    sub.undeclare()
+    return robot
+
+
 def test_initialpose_starts_a_waiting_robot_and_events_show_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -136,16 +150,8 @@ def test_health_and_relocalize_read_as_text(
     code, out, _ = _cli(capsys, "health", "-e", e, "--json")
     assert json.loads(out)["instance"] == bench.service.settings.instance
 
-    col = Collector()
-    sub = bench.client.declare_subscriber("rlutf/robots/*/pose", col)
     bench.put_map()
-    time.sleep(0.3)
-    robot = bench.robot("r1", 1)
-    robot.initial_pose("m1")
-    time.sleep(0.3)
-    _drive(robot, 3)
-    assert col.wait_for(lambda: len(col.on("rlutf/robots/r1/pose")) >= 2)
-    sub.undeclare()
+    robot = _tracked(bench)
     driver = threading.Thread(target=_drive, args=(robot, 40))
     driver.start()
     code, out, err = _cli(capsys, "relocalize", "r1", "--map", "m1", "-e", e, "--wait", "8")
@@ -161,15 +167,7 @@ def test_map_list_and_remove(bench: Bench, capsys: pytest.CaptureFixture[str]) -
     e = bench.endpoint
     bench.put_map("m1")
     bench.put_map("m2", version=3)
-    col = Collector()
-    sub = bench.client.declare_subscriber("rlutf/robots/*/pose", col)
-    time.sleep(0.3)
-    robot = bench.robot("r1", 1)
-    robot.initial_pose("m1")
-    time.sleep(0.3)
-    _drive(robot, 3)
-    assert col.wait_for(lambda: len(col.on("rlutf/robots/r1/pose")) >= 1)
-    sub.undeclare()
+    _tracked(bench)
 
     code, out, _ = _cli(capsys, "map", "list", "-e", e, "--json")
     assert code == 0
