@@ -9,8 +9,9 @@ import time
 from pathlib import Path
 
 import pytest
-from service_harness import Bench, Collector, SimRobot, running_bench
+from service_harness import JSON, Bench, Collector, SimRobot, running_bench
 
+from schemas import encode
 from service.cli.main import main
 
 pytestmark = pytest.mark.integration
@@ -26,6 +27,16 @@ def _drive(robot: SimRobot, steps: int) -> None:
     for _ in range(steps):
         robot.advance()
         time.sleep(0.03)
+
+
+def _stand(robot: SimRobot, done: threading.Event) -> None:
+    """Scans of a robot standing still (later stamps, the same place) until ``done``."""
+    while not done.is_set():
+        robot.t0 += 100_000_000
+        robot.odom(robot.step)
+        scan = encode(robot.scan_msg(robot.step))
+        robot.session.put(f"rlutf/robots/{robot.robot_id}/scan", scan, encoding=JSON)
+        time.sleep(0.05)
 
 
 def _tracked(bench: Bench) -> SimRobot:
@@ -56,8 +67,8 @@ def test_initialpose_starts_a_waiting_robot_and_events_show_it(
             target=lambda: seen.append(_cli(capsys, "events", "r1", "-e", e, "--seconds", "1.5"))
         )
         follow.start()
-        time.sleep(0.5)
-        _drive(robot, 5)
+        while follow.is_alive():  # scans until the command ends, whenever it subscribed
+            _drive(robot, 1)
         follow.join()
         code, out, _ = seen[0]
         assert code == 0
@@ -75,13 +86,15 @@ def test_initialpose_starts_a_waiting_robot_and_events_show_it(
         # the pose as typed, negative numbers included; the robot's next scan starts it
         x, y, theta = (float(v) for v in robot.truth[robot.step])
         pose = f"{x:.4f},{y:.4f},{theta:.4f}"
-        driver = threading.Thread(target=_drive, args=(robot, 20))
+        done = threading.Event()
+        driver = threading.Thread(target=_stand, args=(robot, done))
         driver.start()
         code, out, err = _cli(capsys, "initialpose", "r1", "--map", "m1", "--pose", pose, "-e", e)
+        done.set()
         driver.join()
         assert code == 0, err
-        assert out.startswith("initial pose set: r1 at x")
-        assert "r1 on m1:" in out
+        assert "initial pose set: r1 at x" in out
+        assert "r1 on m1: tracking at" in out or "r1 on m1: corrected at" in out
 
         code, out, _ = _cli(capsys, "pose", "r1", "-e", e)
         assert code == 0
@@ -196,3 +209,27 @@ def test_map_list_and_remove(bench: Bench, capsys: pytest.CaptureFixture[str]) -
     assert code == 0
     code, out, err = _cli(capsys, "map", "list", "-e", e)
     assert code == 1 and "no storage answered with a map" in err
+
+
+def test_events_without_a_robot_include_the_service_wide_ones(
+    bench: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
+    seen: list[tuple[int, str, str]] = []
+    follow = threading.Thread(
+        target=lambda: seen.append(
+            _cli(capsys, "events", "--json", "-e", bench.endpoint, "--seconds", "2")
+        )
+    )
+    follow.start()
+    robot = bench.robot("r5", 2)
+    while follow.is_alive():  # until the command ends, whenever it subscribed
+        bench.client.put("rlutf/maps/broken", b'{"map_id": "broken", "version": 1}')
+        robot.advance()  # a scan with no initial pose: r5's not_initialized
+        time.sleep(0.1)
+    follow.join()
+    code, out, _ = seen[0]
+    assert code == 0
+    events = [json.loads(line) for line in out.splitlines()]
+    codes = {(e["code"], e["key"]) for e in events}
+    assert ("invalid_map", "rlutf/maps/broken") in codes
+    assert ("not_initialized", "rlutf/robots/r5/scan") in codes
