@@ -30,6 +30,7 @@ __all__ = [
     "load",
     "number",
     "timeout_flag",
+    "usable_folder",
     "writable",
 ]
 
@@ -86,6 +87,28 @@ def writable(path: Path, flag: str) -> None:
     if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise CliError(
             f"{flag} {path}: not writable (permission denied); choose a path you may write",
+            EXIT_USAGE,
+        )
+
+
+def usable_folder(path: Path, flag: str) -> None:
+    """Refuse a folder that cannot be created or written (its nearest existing part is a file,
+    or not writable).
+
+    Raises:
+        CliError: naming the flag, the path and the fix.
+    """
+    part = path.absolute()
+    while not part.exists() and part != part.parent:
+        part = part.parent
+    if not part.is_dir():
+        raise CliError(
+            f"{flag} {path}: {part} is a file, not a folder; choose another folder", EXIT_USAGE
+        )
+    if not os.access(part, os.W_OK | os.X_OK):
+        raise CliError(
+            f"{flag} {path}: cannot write in {part} (permission denied); choose a folder you "
+            "may write",
             EXIT_USAGE,
         )
 

@@ -20,6 +20,7 @@ from service.cli.flags import (
     number,
     ros2_flags,
     settings_flags,
+    usable_folder,
     zenoh_file_config,
     zenoh_flags,
 )
@@ -110,6 +111,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     settings = load(args)
     zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
+    if not settings.no_store:
+        usable_folder(settings.store_dir, "--store")
+    if not settings.no_record:
+        usable_folder(settings.record_dir, "--record")
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -129,7 +134,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
-    except OSError as err:  # the metrics port is taken or the address is not local
+    except OSError as err:
+        if err.filename is not None:  # a folder of the store, the state or the logs
+            raise
+        # the metrics port is taken or the address is not local
         print(
             f"rlutf serve: cannot serve metrics on {settings.metrics_addr}:"
             f"{settings.metrics_port} ({err.strerror or err}); choose another --metrics-port "
@@ -160,5 +168,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
     from service.live.demo import run_demo
+
+    if args.store is not None:
+        usable_folder(args.store, "--store")
+    if not args.no_record:
+        usable_folder(args.record, "--record")
 
     return run_demo(args)

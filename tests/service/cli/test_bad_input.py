@@ -85,6 +85,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "show", "corrupt.json", "--out", "no/dir/x.png"], 2, ["--out", "no/dir"])
     yield Bad(["map", "import", "foreign.yaml", "--out", "no/dir/m.json"], 2, ["--out"])
     yield Bad(["map", "build", "foreign.txt", "--png", "no/dir/m.png"], 2, ["--png"])
+    yield Bad(["serve", "--store", "foreign.txt/maps"], 2, ["--store", "not a folder"])
+    yield Bad(["serve", "--record", "foreign.txt/logs"], 2, ["--record", "not a folder"])
+    yield Bad(["demo", "--record", "foreign.txt"], 2, ["--record", "not a folder"])
     # missing, corrupt or foreign files
     yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
     yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])

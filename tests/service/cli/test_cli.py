@@ -127,3 +127,21 @@ def test_the_pose_state_follows_the_store_unless_given(
     assert config()["state_dir"] == "/data/store/state"
     monkeypatch.setenv("RLUTF_RESUME_MAX_AGE_S", "60")
     assert config()["resume_max_age_s"] == 60.0
+
+
+@pytest.mark.parametrize(
+    ("argv", "attr", "value"),
+    [
+        (["initialpose", "r1", "--map", "m", "--pose", "-1.5,2.0,0.3"], "pose", (-1.5, 2.0, 0.3)),
+        (["initialpose", "r1", "--map", "m", "--pose", "-1,-2,-0.5"], "pose", (-1.0, -2.0, -0.5)),
+        (["initialpose", "r1", "--pose", "-.5,0,0", "--map", "m"], "pose", (-0.5, 0.0, 0.0)),
+        (["relocalize", "r1", "--map", "m", "--near", "-4,-2.5,3"], "near", (-4.0, -2.5, 3.0)),
+    ],
+)
+def test_negative_numbers_are_read_as_typed(
+    argv: list[str], attr: str, value: tuple[float, ...]
+) -> None:
+    from service.cli.main import _join_number_lists
+
+    args = build_parser().parse_args(_join_number_lists(argv))
+    assert getattr(args, attr) == value
