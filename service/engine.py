@@ -311,6 +311,16 @@ class FleetEngine:
         key = self.keys.robot(robot.robot_id, "scan")
         applied = self._apply(robot, received_ns)
         skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        if robot.map_id is None and robot.pending is not None:
+            return skipped + self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
+            )
         if robot.map_id is None:
             return skipped + self._event(
                 robot,

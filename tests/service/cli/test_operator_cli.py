@@ -135,6 +135,17 @@ def test_initialpose_on_a_missing_map_is_refused(
         assert code == 1
         assert json.loads(out.splitlines()[0])["code"] == "map_not_found"
         assert "rlutf map list" in err
+        # its scans wait for that map: listed as waiting for it, not for an initial pose
+        robot = bench.robot("r1", 1)
+        robot.odom(0)
+        waiting: list[dict] = []
+        for _ in range(50):
+            robot.advance()
+            code, out, _ = _cli(capsys, "robots", "-e", bench.endpoint, "--json")
+            waiting = [r for r in json.loads(out) if r["status"] == "waiting"]
+            if waiting:
+                break
+        assert [(r["robot_id"], r["reason"]) for r in waiting] == [("r1", "map_not_found")]
 
 
 def test_commands_that_need_a_service_say_when_none_is_live(
