@@ -171,10 +171,12 @@ def health_table(healths: Iterable[Health]) -> str:
 
 
 def event_line(robot: str | None, ev: Event) -> str:
-    """One Event as a line: local time, level, robot (``-``: service-wide), code, message."""
+    """One Event as a line: local time, level, robot (``-``: service-wide, with the Event's key),
+    code and message."""
     clock = time.strftime("%H:%M:%S", time.localtime(ev.stamp_ns / 1e9))
     millis = ev.stamp_ns // 1_000_000 % 1000
-    text = ev.message if ev.message.startswith(f"{ev.code}:") else f"{ev.code}: {ev.message}"
+    code = ev.code if robot else f"{ev.code} ({ev.key})"  # service-wide: which map or key
+    text = ev.message if ev.message.startswith(f"{ev.code}:") else f"{code}: {ev.message}"
     return f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {text}"
 
 

@@ -153,7 +153,7 @@ def test_an_event_is_one_line_with_its_robot() -> None:
     line = event_line("r1", ev)
     assert line.endswith("warning  r1  not_initialized: scan before an initial pose")
     assert line[8:12] == ".123"
-    assert "  -  " in event_line(None, ev)
+    assert "  -  not_initialized (rlutf/robots/r1/scan): scan" in event_line(None, ev)
 
 
 def _lost(fit: float, needed: float) -> LocalizeResult:
