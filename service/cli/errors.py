@@ -84,5 +84,12 @@ def explain(err: BaseException) -> tuple[str, int] | None:
     if isinstance(err, UnicodeDecodeError):
         return "the file is not UTF-8 text (a binary or foreign file?)", EXIT_USAGE
     if type(err).__module__.startswith("zenoh"):
-        return f"zenoh: {zenoh_text(err)}; {UNREACHABLE_HINT}", EXIT_FAILURE
+        text = zenoh_text(err)
+        if "Address already in use" in text:
+            hint = "the port is taken (another `rlutf serve`, demo or zenohd?); choose another"
+        elif "Unable to connect" in text:
+            hint = UNREACHABLE_HINT
+        else:
+            hint = "check the zenoh flags (-m, -l, -e, -c)"
+        return f"zenoh: {text}; {hint}", EXIT_FAILURE
     return None

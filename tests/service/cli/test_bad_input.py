@@ -165,6 +165,10 @@ def test_serve_on_a_taken_port_says_so(
     free.bind(("127.0.0.1", 0))
     port = free.getsockname()[1]
     free.close()
+    code = _run(["demo", "--port", str(taken_port), "--no-record", "--workers", "0"])
+    err = capsys.readouterr().err
+    assert code == 1 and str(taken_port) in err and "the port is taken" in err
+
     code = _run(
         [
             "serve",
