@@ -30,9 +30,10 @@ def _drive(robot: SimRobot, steps: int) -> None:
 
 
 def _stand(robot: SimRobot, done: threading.Event) -> None:
-    """Scans of a robot standing still (later stamps, the same place) until ``done``."""
+    """Odometry and scans of a robot standing still, stamped now (as a real robot stamps them,
+    so that an operator's InitialPose, stamped now, falls among them) until ``done``."""
     while not done.is_set():
-        robot.t0 += 100_000_000
+        robot.t0 = time.time_ns() - robot.step * 100_000_000
         robot.odom(robot.step)
         scan = encode(robot.scan_msg(robot.step))
         robot.session.put(f"rlutf/robots/{robot.robot_id}/scan", scan, encoding=JSON)
@@ -60,16 +61,13 @@ def test_initialpose_starts_a_waiting_robot_and_events_show_it(
         e = bench.endpoint
         bench.put_map()
         robot = bench.robot("r1", 1)
-        robot.odom(0)
         # scans with no initial pose: a waiting robot, and not_initialized Events
-        seen: list[tuple[int, str, str]] = []
-        follow = threading.Thread(
-            target=lambda: seen.append(_cli(capsys, "events", "r1", "-e", e, "--seconds", "1.5"))
-        )
-        follow.start()
-        while follow.is_alive():  # scans until the command ends, whenever it subscribed
-            _drive(robot, 1)
-        follow.join()
+        done = threading.Event()
+        standing = threading.Thread(target=_stand, args=(robot, done))
+        standing.start()
+        seen = [_cli(capsys, "events", "r1", "-e", e, "--seconds", "1.5")]
+        done.set()
+        standing.join()
         code, out, _ = seen[0]
         assert code == 0
         assert "not_initialized" in out and "rlutf initialpose r1" in out
