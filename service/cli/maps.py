@@ -312,7 +312,11 @@ def cmd_show(args: argparse.Namespace) -> int:
                 if r.ok
             ]
         if not replies:
-            print(f"rlutf map show: no storage answered for map {args.source!r}", file=sys.stderr)
+            print(
+                f"rlutf map show: {args.source!r} is no file, and no storage answered for a map "
+                "of that id (`rlutf map list` shows the stored maps)",
+                file=sys.stderr,
+            )
             return EXIT_FAILURE
         data = json.loads(replies[0].payload.to_bytes())
     try:
