@@ -164,8 +164,8 @@ def require_service(session: Any, prefix: str, endpoints: list[str]) -> None:
 
     if not live_instances(session, prefix):
         raise CliError(
-            f"no rlutf service is live on prefix {prefix!r} at {', '.join(endpoints)}: "
-            f"{UNREACHABLE_HINT}; --prefix if it runs with another"
+            f"no rlutf service is live on prefix {prefix!r} at {', '.join(endpoints)} (or it "
+            f"is still starting): {UNREACHABLE_HINT}; --prefix if it runs with another"
         )
 
 
