@@ -79,6 +79,9 @@ class LocalizeResult:
             first (``pose`` is the first); empty otherwise.
         relocalizing: this update belongs to a relocalization (the map was searched or its
             hypotheses followed); the one where a hypothesis wins has status ``corrected``.
+        fit_needed: the share of the returns that had to fit for the pose to be trusted:
+            ``min_fit``, or more for a robot whose scans usually fit better (its typical share
+            less a margin); NaN where the update did not apply it (relocalizations).
     """
 
     pose: FloatArray
@@ -92,6 +95,7 @@ class LocalizeResult:
     refine_casts: int = 0
     hypotheses: tuple[Hypothesis, ...] = ()
     relocalizing: bool = False
+    fit_needed: float = math.nan
 
 
 class Localizer:
@@ -335,6 +339,7 @@ class Localizer:
             share,
             fit.sigma,
             fit.casts if cfg.refine else 0,
+            fit_needed=floor,
         )
 
     def _relocalizing(

@@ -405,7 +405,9 @@ class LocalizationService:
                 self.metrics.pose(out.status)
             else:
                 self._publish(out.key, out.payload)
-                self.recorder.record(out.key, EVENT_SCHEMA, out.payload, self.clock(), out.stamp_ns)
+                now = self.clock()
+                self.recorder.record(out.key, EVENT_SCHEMA, out.payload, now, out.stamp_ns)
+                self.robot_view.event(done.robot, out.payload, now)
                 for code, counter in COUNTED_EVENTS.items():
                     if code in out.payload:
                         self.stats.add(counter)
