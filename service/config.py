@@ -184,6 +184,20 @@ class Settings(BaseSettings):
         "port).",
     )
     metrics_addr: str = Field("0.0.0.0", description="Address the metrics endpoint listens on.")
+    foxglove_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="Port of the live view, a Foxglove WebSocket server an operator opens in the "
+        "Foxglove app (off unless given; 0: any free port).",
+    )
+    foxglove_addr: str = Field(
+        "127.0.0.1",
+        description="Address the live view listens on (0.0.0.0 to open it from other hosts).",
+    )
+    foxglove_rate_hz: float = Field(
+        10.0, gt=0, le=100, description="Most refreshes a second of each robot's live view."
+    )
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     event_interval_s: float = Field(

@@ -83,6 +83,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.live.foxview import LiveViewError
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
@@ -102,6 +103,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except zenoh.ZError as err:
         print(f"rlutf serve: cannot open the zenoh session: {err}", file=sys.stderr)
         return EXIT_FAILURE
+    except LiveViewError as err:  # --foxglove-port taken or --foxglove-addr not local
+        print(f"rlutf serve: {err} (choose another --foxglove-port)", file=sys.stderr)
+        return EXIT_FAILURE
     except OSError as err:  # the metrics port is taken or the address is not local
         print(f"rlutf serve: cannot serve metrics: {err}", file=sys.stderr)
         return EXIT_FAILURE
@@ -112,6 +116,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
+    if service.live.url is not None:
+        print(
+            f"rlutf serve: live view on {service.live.url} (Foxglove app: Open connection, "
+            "Foxglove WebSocket)",
+            file=sys.stderr,
+            flush=True,
+        )
     try:
         service.wait(stop)
     finally:
