@@ -86,6 +86,11 @@ class Ros2Settings(BaseModel):
     map_topic: str | None = Field(
         None, description="OccupancyGrid topic to import maps from (off unless given)."
     )
+    global_localization_service: str | None = Field(
+        "reinitialize_global_localization",
+        description="std_srvs/srv/Empty service, relative to the namespace, that relocalizes the "
+        "robot globally on its map, as AMCL's (null: off).",
+    )
     global_frame: str = Field("map", description="Frame of poses and initial poses.")
     odom_frame: str = Field("odom", description="The odometry frame.")
     base_frame: str = Field("base_footprint", description="The robot's base frame.")
