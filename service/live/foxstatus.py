@@ -1,7 +1,8 @@
 """A robot's status as a Foxglove scene entity: its 1-sigma ellipse and a label.
 
 The live view (:mod:`service.live.foxview`) draws one entity per robot on ``/foxglove/fleet``
-(``foxglove.SceneUpdate``, the schema the log's map views use): a flat ellipse of the pose's
+(``foxglove.SceneUpdate``, the schema the log's map views use; the robots that moved since the
+last refresh in one message): a flat ellipse of the pose's
 1-sigma position uncertainty (from the PoseEstimate's covariance; none without one), coloured by
 status, and a text label such as ``r1 tracking ±2.1 cm ±0.4°``. Pure: JSON in, JSON out.
 """
@@ -64,8 +65,8 @@ def _primitive_pose(x: float, y: float, yaw: float) -> dict[str, Any]:
     }
 
 
-def status_update(robot: str, pose: dict[str, Any], frame: str) -> bytes:
-    """The ``foxglove.SceneUpdate`` of a decoded PoseEstimate, in the map frame ``frame``."""
+def status_entity(robot: str, pose: dict[str, Any], frame: str) -> dict[str, Any]:
+    """The scene entity of a decoded PoseEstimate, in the map frame ``frame``."""
     stamp = int(pose["stamp_ns"])
     x, y = float(pose["x"]), float(pose["y"])
     color = COLORS.get(status_of(pose), COLORS["lost"])
@@ -94,7 +95,7 @@ def status_update(robot: str, pose: dict[str, Any], frame: str) -> bytes:
         "color": _TEXT_COLOR,
         "text": label(robot, pose),
     }
-    entity = {
+    return {
         "timestamp": {"sec": stamp // 1_000_000_000, "nsec": stamp % 1_000_000_000},
         "frame_id": frame,
         "id": f"robot/{robot}",
@@ -114,5 +115,9 @@ def status_update(robot: str, pose: dict[str, Any], frame: str) -> bytes:
         "texts": [text],
         "models": [],
     }
-    update = {"deletions": [], "entities": [entity]}
+
+
+def status_update(entities: list[dict[str, Any]]) -> bytes:
+    """One ``foxglove.SceneUpdate`` of several robots' entities (each replaces its robot's)."""
+    update = {"deletions": [], "entities": entities}
     return json.dumps(update, separators=(",", ":"), allow_nan=False).encode()

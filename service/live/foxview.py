@@ -30,7 +30,7 @@ from foxglove import Channel, Context, Schema
 from foxglove.websocket import ChannelView, Client, ServerListener
 
 from service.keys import Keys
-from service.live.foxstatus import status_update
+from service.live.foxstatus import status_entity, status_update
 from service.logs.foxglove import (
     FRAME_TRANSFORM,
     LASER_SCAN,
@@ -182,6 +182,7 @@ class FoxgloveView:
         with self._lock:
             dirty, self._dirty = self._dirty, set()
             records = [self._latest[t] for t in dirty if t in self._latest]
+        entities, latest = [], 0
         for rec in records:
             parts = robot_topic(rec.topic)
             if parts is None:
@@ -195,12 +196,14 @@ class FoxgloveView:
             for out in self._converter(rec):
                 self._channel(out.topic, out.schema_name).log(out.payload, log_time=out.log_time_ns)
                 self.shown += 1
-            if leaf == "pose":
+            if leaf == "pose" and self._channels[FLEET_TOPIC].has_sinks():
                 pose = json.loads(rec.payload)
                 frame = self._converter.frame_of(str(pose["map_id"]))
-                update = status_update(parts.robot, pose, frame)
-                self._channels[FLEET_TOPIC].log(update, log_time=rec.log_time_ns)
-                self.shown += 1
+                entities.append(status_entity(parts.robot, pose, frame))
+                latest = max(latest, rec.log_time_ns)
+        if entities:
+            self._channels[FLEET_TOPIC].log(status_update(entities), log_time=latest)
+            self.shown += 1
 
     def _show_maps(self) -> None:
         with self._lock:
