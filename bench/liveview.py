@@ -15,6 +15,7 @@ and workers), latency, drops, and the messages and bytes the client received.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -40,6 +41,7 @@ class Watcher(threading.Thread):
         self.channels = 0
 
     def run(self) -> None:
+        from websockets.exceptions import ConnectionClosed
         from websockets.sync.client import connect
         from websockets.typing import Subprotocol
 
@@ -49,7 +51,7 @@ class Watcher(threading.Thread):
             except OSError:
                 time.sleep(0.2)  # the service is not listening yet
                 continue
-            with ws:
+            with ws, contextlib.suppress(ConnectionClosed):  # closed: the service stopped
                 self._follow(ws)
             return
 
@@ -85,7 +87,7 @@ def run(robots: int, duration: float, record: bool, workers: int) -> list[dict[s
                 watcher = Watcher(port)
                 watcher.start()
         t0 = time.monotonic()
-        r = run_size(robots, duration, record, workers, serve_flags=flags)
+        r = run_size(robots, duration, record, workers, serve_flags=flags, threads=True)
         elapsed = time.monotonic() - t0
         if watcher is not None:
             watcher.stop.set()
@@ -97,11 +99,23 @@ def run(robots: int, duration: float, record: bool, workers: int) -> list[dict[s
     return results
 
 
+def view_threads(results: list[dict[str, Any]]) -> dict[str, float]:
+    """CPU ms per scan sent of the service's threads that exist only with the view on.
+
+    The refresh thread (``rlutf-foxglove``) and the SDK's server threads: every thread name of
+    the main process in the last run that the run without the view did not have.
+    """
+    base = set(results[0]["threads"].get("main", {}))
+    last = results[-1]["threads"].get("main", {})
+    return {name: ms for name, ms in last.items() if name not in base}
+
+
 def render(robots: int, duration: float, record: bool, workers: int) -> str:
     """Run and return the Markdown section."""
     load = os.getloadavg()[0]
     rows = []
-    for r in run(robots, duration, record, workers):
+    results = run(robots, duration, record, workers)
+    for r in results:
         view = r.get("view")
         seen = (
             f"{view[0]} channels, {view[1]} messages ({view[2] / 1e6:.0f} MB), "
@@ -111,11 +125,12 @@ def render(robots: int, duration: float, record: bool, workers: int) -> str:
         )
         rows.append(
             f"| {r['name']} | {r['sent']} | {r['poses']} | {r['dropped']} "
+            f"| {r['cpu_service_per_pose']:.2f} "
             f"| {r['cpu_main']:.2f} / {r['cpu_workers']:.2f} "
-            f"| {r['cpu_main'] + r['cpu_workers']:.2f} "
             f"| {r['p50']:.1f} / {r['p99']:.1f} | {r['steal']:.1f} | {seen} |"
         )
     flags = ("" if record else " --no-record") + (f" --workers {workers}" if workers >= 0 else "")
+    view = view_threads(results)
     return "\n".join(
         [
             "## Live view: what a Foxglove client costs localization (issue 22)",
@@ -130,14 +145,25 @@ def render(robots: int, duration: float, record: bool, workers: int) -> str:
             "times: without `--foxglove-port`, with it and no client, and with a Foxglove "
             "WebSocket client (`websockets`, `foxglove.sdk.v1`, in the benchmark's process) "
             "subscribed to every channel for the whole run, at the default "
-            "`foxglove_rate_hz` (10). CPU is the service's, per scan sent, over the publishing "
-            f"interval. Load average when the run started: {load:.1f}.",
+            "`foxglove_rate_hz` (10). CPU is the service's (main process and workers) over the "
+            "publishing interval, per scan sent, and per pose the service reports processed. "
+            f"Load average when the run started: {load:.1f} (2 cores: above 2, other work "
+            "competed for them).",
             "",
-            "| live view | scans sent | poses | dropped | CPU ms per scan: main / workers "
-            "| service CPU ms per scan | latency p50 / p99 ms | CPU stolen, % "
+            "| live view | scans sent | poses | dropped | service CPU ms per pose published "
+            "| CPU ms per scan sent: main / workers | latency p50 / p99 ms | CPU stolen, % "
             "| what the client received |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             *rows,
+            "",
+            "The view's own threads with the client connected (CPU ms per scan sent, the "
+            "kernel's per-thread counters; threads of the main process absent from the run "
+            "without the view, Python names from `py-spy dump`):",
+            "",
+            "| thread | CPU ms per scan sent |",
+            "| --- | ---: |",
+            *[f"| {name} | {ms:.3f} |" for name, ms in sorted(view.items(), key=lambda i: -i[1])],
+            f"| all of them | {sum(view.values()):.3f} |",
         ]
     )
 

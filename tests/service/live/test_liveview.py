@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -23,6 +27,7 @@ from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
 from service.live.foxview import FoxgloveView
+from service.live.sessions import free_port
 from service.logs.foxglove import embedded_dir
 
 pytestmark = pytest.mark.integration
@@ -194,3 +199,31 @@ def test_a_port_in_use_fails_the_start(tmp_path: Path) -> None:
             running_bench(tmp_path / "b", foxglove_port=port),
         ):
             pass
+
+
+def test_rlutf_serve_foxglove_port_prints_where_to_connect(tmp_path: Path) -> None:
+    exe = Path(sys.executable).with_name("rlutf")
+    cmd = [str(exe), "serve", "--foxglove-port", "0", "--listen", f"tcp/127.0.0.1:{free_port()}"]
+    cmd += ["--store", str(tmp_path / "store"), "--no-record", "--workers", "0"]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RLUTF_")}
+    proc = subprocess.Popen(
+        cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+    )
+    try:
+        assert proc.stderr is not None
+        url = None
+        end = time.monotonic() + 180
+        while url is None and time.monotonic() < end:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            if "live view on ws://" in line:
+                url = line.split("live view on ", 1)[1].split()[0]
+        assert url is not None and not url.endswith(":0")
+        with foxglove_client(url) as client:
+            client.pump(1.0)
+            assert client.server_info is not None
+            assert {"/foxglove/tf", "/foxglove/fleet"} <= set(client.channels)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
