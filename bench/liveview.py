@@ -86,13 +86,11 @@ def run(robots: int, duration: float, record: bool, workers: int) -> list[dict[s
             if "client" in name and "no client" not in name:
                 watcher = Watcher(port)
                 watcher.start()
-        t0 = time.monotonic()
         r = run_size(robots, duration, record, workers, serve_flags=flags, threads=True)
-        elapsed = time.monotonic() - t0
         if watcher is not None:
             watcher.stop.set()
             watcher.join(5)
-            r["view"] = (watcher.channels, watcher.messages, watcher.bytes, elapsed)
+            r["view"] = (watcher.channels, watcher.messages, watcher.bytes)
         r["name"] = name
         results.append(r)
         print(r["name"], r["cpu_main"], r["cpu_workers"], flush=True)
@@ -117,12 +115,7 @@ def render(robots: int, duration: float, record: bool, workers: int) -> str:
     results = run(robots, duration, record, workers)
     for r in results:
         view = r.get("view")
-        seen = (
-            f"{view[0]} channels, {view[1]} messages ({view[2] / 1e6:.0f} MB), "
-            f"{view[1] / view[3]:.0f}/s over the run"
-            if view
-            else "-"
-        )
+        seen = f"{view[0]} channels, {view[1]} messages ({view[2] / 1e6:.0f} MB)" if view else "-"
         rows.append(
             f"| {r['name']} | {r['sent']} | {r['poses']} | {r['dropped']} "
             f"| {r['cpu_service_per_pose']:.2f} "
