@@ -7,12 +7,15 @@ malformed payload, a wrong type on a topic, a namespace that is not a robot id, 
 in another frame) is dropped with an Event through ``reject``; nothing else is touched.
 
 Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
-transient-local, depth 1: an advanced publisher with a one-sample cache, as rmw_zenoh declares
-it) and as the ``map`` -> ``odom`` transform on the robot's ``tf`` (map -> base composed with the
-inverse of the robot's odometry at the scan's stamp, stamped ahead by the transform tolerance),
-each sample with rmw_zenoh's attachment, on the key the robot's own distribution listens on.
-Liveliness tokens announce the node and its topics, so ``ros2 node list`` and ``ros2 topic
-list`` show them.
+transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
+heartbeat, as rmw_zenoh declares it) and as the ``map`` -> ``odom`` transform on the robot's
+``tf`` (map -> base composed with the inverse of the robot's odometry at the scan's stamp,
+stamped ahead by the transform tolerance), each sample with rmw_zenoh's attachment, on the key
+the robot's own distribution listens on. Liveliness tokens announce the node and its topics, so
+``ros2 node list`` and ``ros2 topic list`` show them. AMCL's
+``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`;
+started without a map, the front door says at once what will be refused
+(:func:`no_map_warning`).
 """
 
 from __future__ import annotations
