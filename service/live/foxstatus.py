@@ -13,7 +13,7 @@ import json
 import math
 from typing import Any
 
-from service.logs.foxglove import robot_frame
+from service.logs.foxglove import robot_frame, scene_entity
 
 #: Status colours: tracking green, corrected blue, lost red, relocalizing orange.
 COLORS = {
@@ -95,26 +95,10 @@ def status_entity(robot: str, pose: dict[str, Any], frame: str) -> dict[str, Any
         "color": _TEXT_COLOR,
         "text": label(robot, pose),
     }
-    return {
-        "timestamp": {"sec": stamp // 1_000_000_000, "nsec": stamp % 1_000_000_000},
-        "frame_id": frame,
-        "id": f"robot/{robot}",
-        "lifetime": {"sec": 0, "nsec": 0},
-        "frame_locked": False,
-        "metadata": [
-            {"key": "robot_id", "value": robot},
-            {"key": "status", "value": status_of(pose)},
-            {"key": "base_frame", "value": robot_frame(robot)},
-        ],
-        "arrows": [],
-        "cubes": [],
-        "spheres": [],
-        "cylinders": cylinders,
-        "lines": [],
-        "triangles": [],
-        "texts": [text],
-        "models": [],
-    }
+    metadata = {"robot_id": robot, "status": status_of(pose), "base_frame": robot_frame(robot)}
+    return scene_entity(
+        stamp, frame, f"robot/{robot}", metadata, False, cylinders=cylinders, texts=[text]
+    )
 
 
 def status_update(entities: list[dict[str, Any]]) -> bytes:

@@ -173,6 +173,19 @@ def test_a_call_for_a_robot_without_a_map_is_refused(tmp_path: Path) -> None:
         sub.undeclare()
 
 
+def _ros_subscription(session: zenoh.Session, key_expr: str, callback: Any) -> Any:
+    """A subscription as rmw_zenoh declares one for a reliable transient-local topic
+    (``rmw_subscription_data.cpp``: history of late publishers, heartbeat recovery)."""
+    return zenoh.ext.declare_advanced_subscriber(
+        session,
+        key_expr,
+        callback,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
+        subscriber_detection=True,
+    )
+
+
 def test_amcl_pose_has_rmw_zenohs_heartbeat_and_a_ros_subscriber_recovers(
     ros_bench: Bench,
 ) -> None:
@@ -185,17 +198,9 @@ def test_amcl_pose_has_rmw_zenohs_heartbeat_and_a_ros_subscriber_recovers(
         heartbeats.append((str(s.key_expr), struct.unpack("<I", s.payload.to_bytes())[0]))
 
     hb_sub = bench.client.declare_subscriber(f"{pose_key}/@adv/**", on_heartbeat)
-    # A subscription as rmw_zenoh declares one for a reliable transient-local topic.
     got = RosListener()
     misses: list[Any] = []
-    ros_sub = zenoh.ext.declare_advanced_subscriber(
-        bench.client,
-        pose_key,
-        got,
-        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-        recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
-        subscriber_detection=True,
-    )
+    ros_sub = _ros_subscription(bench.client, pose_key, got)
     miss_listener = ros_sub.sample_miss_listener(misses.append)
     _track(bench, r1, 20)
     assert _wait(lambda: len(got.on(pose_key)) >= 10)
@@ -209,14 +214,7 @@ def test_amcl_pose_has_rmw_zenohs_heartbeat_and_a_ros_subscriber_recovers(
     last = TS.deserialize_cdr(got.on(pose_key)[-1][0], POSE)
     # a subscriber that comes late recovers the last pose from the publisher's cache
     late = RosListener()
-    late_sub = zenoh.ext.declare_advanced_subscriber(
-        bench.client,
-        pose_key,
-        late,
-        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-        recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
-        subscriber_detection=True,
-    )
+    late_sub = _ros_subscription(bench.client, pose_key, late)
     assert _wait(lambda: late.on(pose_key), 5.0)
     recovered = TS.deserialize_cdr(late.on(pose_key)[-1][0], POSE)
     assert recovered.header.stamp == last.header.stamp
