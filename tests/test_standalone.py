@@ -70,10 +70,10 @@ def _broken_links(page: Path) -> list[str]:
     broken = []
     for n, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1):
         for target in LINK.findall(line):
-            if re.match(r"[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
-                continue  # a URL (https:, mailto:) or an anchor on the same page
+            if re.match(r"[a-z][a-z0-9+.-]*:", target):
+                continue  # a URL (https:, mailto:)
             name, _, anchor = target.partition("#")
-            path = (page.parent / name).resolve()
+            path = (page.parent / name).resolve() if name else page
             if not (path.exists() and path.is_relative_to(REPO)):
                 broken.append(f"{page.relative_to(REPO)}:{n}: {target}")
             elif anchor and path.suffix == ".md" and anchor not in _anchors(path):

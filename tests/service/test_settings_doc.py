@@ -51,8 +51,8 @@ def test_the_page_lists_every_setting_and_no_other() -> None:
 def test_the_defaults_on_the_page_are_the_code_s() -> None:
     code = _code()
     wrong = []
-    for name, cell in _page().items():
-        cell = cell.strip()
+    for name, text in _page().items():
+        cell = text.strip()
         if not cell.startswith("`"):
             continue  # said in words: it depends on the host or another setting
         if json.loads(cell.strip("`")) != code[name]:
