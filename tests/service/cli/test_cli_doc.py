@@ -41,10 +41,9 @@ def _shown() -> list[tuple[str, str]]:
         blocks = re.findall(r"```bash\n(.*?)```", page.read_text(encoding="utf-8"), flags=re.S)
         for block in blocks:
             for line in block.replace("\\\n", " ").splitlines():
-                code = shlex.split(line, comments=True)
-                for part in " ".join(code).replace("&&", ";").replace("&", ";").split(";"):
-                    if part.strip().startswith("rlutf "):
-                        found.append((page.name, part.strip()))
+                code = " ".join(shlex.split(line, comments=True))
+                parts = code.replace("&&", ";").replace("&", ";").split(";")
+                found += [(page.name, p.strip()) for p in parts if p.strip().startswith("rlutf ")]
     return found
 
 
