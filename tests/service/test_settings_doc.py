@@ -6,23 +6,33 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import typing
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
 
-from rlutf.config import LocalizerConfig
-from service.config import Ros2Robot, Ros2Settings, Settings
+from service.config import Settings
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "settings.md"
 #: A table row: ``| `name` | default | what |``.
 ROW = re.compile(r"^\| `([a-z0-9_.<>]+)` \| ([^|]+) \|", re.M)
 
 
-def _defaults(model: type[BaseModel], prefix: str, nested: tuple[str, ...]) -> dict[str, Any]:
+def _flatten(model: type[BaseModel], prefix: str) -> dict[str, Any]:
+    """Every setting of a model by its dotted name, with its default: nested models (and
+    dataclasses, and maps of models keyed by a name, ``<ns>``) give their own settings."""
     out: dict[str, Any] = {}
     for name, field in model.model_fields.items():
-        if name not in nested:
+        kind, args = field.annotation, typing.get_args(field.annotation)
+        if isinstance(kind, type) and issubclass(kind, BaseModel):
+            out |= _flatten(kind, f"{prefix}{name}.")
+        elif isinstance(kind, type) and dataclasses.is_dataclass(kind):
+            for inner in dataclasses.fields(kind):
+                out[f"{prefix}{name}.{inner.name}"] = inner.default
+        elif len(args) == 2 and isinstance(args[1], type) and issubclass(args[1], BaseModel):
+            out |= _flatten(args[1], f"{prefix}{name}.<ns>.")
+        else:
             value = field.get_default(call_default_factory=True)
             out[prefix + name] = str(value) if isinstance(value, Path) else value
     return out
@@ -30,12 +40,7 @@ def _defaults(model: type[BaseModel], prefix: str, nested: tuple[str, ...]) -> d
 
 def _code() -> dict[str, Any]:
     """Every setting by its dotted name, with its default."""
-    found = _defaults(Settings, "", ("ros2", "localizer"))
-    found |= _defaults(Ros2Settings, "ros2.", ("robots",))
-    found |= _defaults(Ros2Robot, "ros2.robots.<ns>.", ())
-    for field in dataclasses.fields(LocalizerConfig):
-        found[f"localizer.{field.name}"] = field.default
-    return found
+    return _flatten(Settings, "")
 
 
 def _page() -> dict[str, str]:
