@@ -48,9 +48,10 @@ def _page() -> dict[str, str]:
 
 
 def test_the_page_lists_every_setting_and_no_other() -> None:
-    code, page = set(_code()), set(_page())
-    assert not code - page, f"settings missing from docs/settings.md: {sorted(code - page)}"
-    assert not page - code, f"docs/settings.md lists unknown settings: {sorted(page - code)}"
+    code, page = _code(), set(_page())
+    rows = [f"| `{n}` | `{json.dumps(code[n])}` | ... |" for n in sorted(set(code) - page)]
+    assert not rows, "settings missing from docs/settings.md, add rows:\n" + "\n".join(rows)
+    assert not page - set(code), f"docs/settings.md lists unknown settings: {page - set(code)}"
 
 
 def test_the_defaults_on_the_page_are_the_code_s() -> None:
