@@ -43,7 +43,7 @@ from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
-from service.keys import INPUT_KINDS, InputKind, Keys, Message
+from service.keys import InputKind, Keys, Message
 from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher
@@ -248,12 +248,14 @@ class LocalizationService:
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
-        # One subscriber per input leaf and one for poses: none of them receives what this
-        # service itself puts (Events go to other sessions only), so no callback can wait on
-        # a queue that only its own thread drains.
+        # One subscriber for every robot key: its callbacks run on one thread, in arrival order
+        # (a subscriber per leaf would each have a thread of its own, and a robot's scan could
+        # overtake the odometry put before it). It never receives what this service puts
+        # (Events and poses go to other sessions only), so no callback can wait on a queue
+        # that only its own thread drains; leaves that are no input or pose (other instances'
+        # Events) are dropped on the key, before any decode.
         self._input_subs = [
-            session.declare_subscriber(self.keys.robot_leaf(leaf), self._on_robot_sample)
-            for leaf in (*INPUT_KINDS, "pose")
+            session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
         ]
         if self.ros2 is not None:
             self.ros2.start(session)
