@@ -213,6 +213,9 @@ class EventCode:
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
     STATE_UNREADABLE: Final = "state_unreadable"
     """The durable pose state could not be read or its folder made; started without it."""
+    INTERNAL_ERROR: Final = "internal_error"
+    """An input's update failed inside the service (a bug); it was not applied, and the robot's
+    state is as before it."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(

@@ -30,7 +30,6 @@ import numpy as np
 from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
 from rlutf.motion import interpolate, relative
-from rlutf.scan import Scan
 from schemas import (
     Event,
     EventCode,
@@ -41,11 +40,12 @@ from schemas import (
     encode,
 )
 from schemas.fastpose import encode_pose
+from service.guard import Limits, Snapshot, check_input, kind_of, region_on, usable_scan, where
 from service.keys import Keys
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped"]
+OutKind = Literal["pose", "event", "need_map", "skipped", "rejected"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
@@ -57,8 +57,10 @@ class Outbound:
 
     Attributes:
         kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published) or
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published).
+            ``need_map`` (``map_id`` is wanted from the store; nothing is published),
+            ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
+            ``rejected`` (an input over a limit of :mod:`service.guard`; counted, nothing is
+            published: its Event, rate-limited, is a separate ``event``).
         key: the Zenoh key to put on.
         payload: encoded JSON.
         stamp_ns: the message's own stamp (MCAP ``publish_time``).
@@ -116,14 +118,20 @@ class FleetEngine:
         keys: the key layout.
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
+        limits: what is accepted beyond the schema (:mod:`service.guard`).
     """
 
     def __init__(
-        self, keys: Keys, config: LocalizerConfig, event_interval_ns: int = 1_000_000_000
+        self,
+        keys: Keys,
+        config: LocalizerConfig,
+        event_interval_ns: int = 1_000_000_000,
+        limits: Limits | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
+        self.limits = limits or Limits()
         self._maps: dict[str, _MapVersions] = {}
         self._maps_lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
@@ -186,8 +194,42 @@ class FleetEngine:
         message: LaserScan | Odometry | InitialPose | Relocalize,
         received_ns: int,
     ) -> list[Outbound]:
-        """Apply one input of one robot and return what to publish."""
+        """Apply one input of one robot and return what to publish.
+
+        An input over a limit (:func:`service.guard.check_input`) changes nothing and gives an
+        Event ``invalid_message``; an update that raises is undone (the robot's state is as
+        before the input) and gives an Event ``internal_error``.
+        """
         robot = self._robot(robot_id)
+        kind = kind_of(message)
+        problem = check_input(message, self.limits)
+        if problem is not None:
+            key = self.keys.robot(robot_id, kind)
+            return [
+                Outbound("rejected", key, b"", message.stamp_ns, robot_id),
+                *self._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
+            ]
+        saved = Snapshot(robot)
+        try:
+            return self._handle(robot, message, received_ns)
+        except Exception as err:  # one robot's failure never reaches the others or the caller
+            saved.restore(robot)
+            return self._event(
+                robot,
+                received_ns,
+                "error",
+                EventCode.INTERNAL_ERROR,
+                self.keys.robot(robot_id, kind),
+                f"{kind} {message.stamp_ns} not applied: {type(err).__name__}: "
+                f"{str(err)[:200]}{where(err)}; the robot's state is as before it",
+            )
+
+    def _handle(
+        self,
+        robot: _Robot,
+        message: LaserScan | Odometry | InitialPose | Relocalize,
+        received_ns: int,
+    ) -> list[Outbound]:
         if isinstance(message, Odometry):
             self._add_odometry(robot, message)
             return []
@@ -290,7 +332,7 @@ class FleetEngine:
         if req.kind == "initialpose":
             robot.episode = None
             return []
-        robot.localizer.relocalize(req.region)
+        robot.localizer.relocalize(region_on(req.region, world))
         robot.episode = Episode(f"requested on {req.describe()}")
         return self._events(robot, received_ns, key, robot.episode.start())
 
@@ -342,14 +384,8 @@ class FleetEngine:
             motion = relative(robot.anchor, odom)
         if odom is not None:
             robot.anchor = odom
-        scan = Scan.create(
-            np.array(msg.ranges, dtype=np.float64),  # None (no return) becomes NaN
-            msg.angle_min,
-            msg.angle_increment,
-            msg.range_min,
-            msg.range_max,
-            (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
-        )
+        # Ranges no wall of the map can be at are no return: bounded work before any search.
+        scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):

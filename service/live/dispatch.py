@@ -32,6 +32,7 @@ from typing import Any
 
 from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import InputKind, Keys, Message
 from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
 from service.maps.book import LoadedMap
@@ -165,7 +166,7 @@ class _ThreadShard(_Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
+        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, d.limits)
 
     def start(self) -> None:
         for i in range(self.dispatcher.threads):
@@ -217,7 +218,7 @@ class _ProcessShard(_Shard):
         d = dispatcher
         self.process = ctx.Process(
             target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads, d.limits),
             name=f"rlutf-worker-{index}",
             daemon=True,
         )
@@ -321,6 +322,7 @@ class Dispatcher:
         on_done: called (from a shard's thread) with each finished batch.
         on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
         threads: threads per shard running different robots' batches at once.
+        limits: what inputs may hold beyond the schema (:mod:`service.guard`).
     """
 
     def __init__(
@@ -332,8 +334,10 @@ class Dispatcher:
         on_done: OnDone,
         on_drop: OnDrop,
         threads: int = _IN_FLIGHT,
+        limits: Limits | None = None,
     ) -> None:
         self.keys = keys
+        self.limits = limits or Limits()
         self.threads = max(1, threads)
         self.config = config
         self.event_interval_ns = event_interval_ns

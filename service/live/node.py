@@ -119,6 +119,7 @@ class LocalizationService:
             self._on_done,
             self._on_drop,
             threads=settings.worker_threads,
+            limits=settings.limits,
         )
         self.mapfeed = MapFeed(
             self.keys,
@@ -343,6 +344,9 @@ class LocalizationService:
                 continue
             if out.kind == "skipped":
                 self.stats.add("skipped")
+                continue
+            if out.kind == "rejected":  # over a limit (service.guard); its Event comes apart
+                self.stats.add("rejected")
                 continue
             if out.kind == "pose":
                 with self.ownership.lock:  # a robot released meanwhile is not answered for

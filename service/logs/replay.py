@@ -162,7 +162,9 @@ class _Run:
         self.result = result
         self.drops = drops
         self.writer = writer
-        self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
+        self.engine = FleetEngine(
+            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits
+        )
         self.book = MapBook(cfg.max_payload_bytes)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
 
@@ -233,7 +235,9 @@ class _Run:
             log.exception("update of %s failed", robot)
             return
         for out in outputs:
-            if out.kind == "need_map":
+            if out.kind == "rejected":  # over a limit (service.guard): its Event follows
+                self.result.rejected += 1
+            if out.kind not in ("pose", "event"):
                 continue
             schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
