@@ -44,9 +44,10 @@ from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
-from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message, printable
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher, Done
+from service.live.keywatch import KeyWatch
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
@@ -151,6 +152,14 @@ class LocalizationService:
                 settings.max_payload_bytes,
             )
         )
+        self.keywatch = KeyWatch(  # puts and DELETEs on keys nothing else takes: Events
+            self.keys,
+            self._global_event,
+            self.clock,
+            int(settings.event_interval_s * 1e9),
+            lambda key: self.ownership.ready and self.membership.owns_key(key),
+            self.stats,
+        )
         self.ros2: Ros2FrontDoor | None = None
         if settings.ros2.enabled:
             self.ros2 = Ros2FrontDoor(
@@ -214,6 +223,9 @@ class LocalizationService:
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        self._declared.append(
+            session.declare_subscriber(self.keywatch.key_expr, self.keywatch.on_sample)
+        )
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -271,6 +283,8 @@ class LocalizationService:
 
     # ------------------------------------------------------------------------ inputs
     def _on_robot_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return  # DELETEs are not inputs: the KeyWatch reports them
         key = str(sample.key_expr)
         received = self.clock()
         try:
@@ -431,8 +445,8 @@ class LocalizationService:
             logging.WARNING if level in ("warning", "error") else logging.INFO,
             "%s %s: %s",
             code,
-            about,
-            message,
+            printable(about),  # a client's key: a newline in it must not forge a log line
+            printable(message, 2000),
         )
         self._publish(key, payload)
         self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)
