@@ -125,14 +125,14 @@ WORLD = make_building(np.random.default_rng(11))
 
 
 def start_service(store: Path, port: int, workers: int = 0, **kw: Any) -> LocalizationService:
+    defaults: dict[str, Any] = {"event_interval_s": 0.0}
     settings = Settings(
         listen=[f"tcp/127.0.0.1:{port}"],
         store_dir=store,
         no_record=True,
         workers=workers,
         instance=f"test-{port}",
-        event_interval_s=0.0,
-        **kw,
+        **{**defaults, **kw},
     )
     return LocalizationService(settings).start()
 
