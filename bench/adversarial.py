@@ -30,6 +30,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -122,8 +123,13 @@ def _terminate(proc: subprocess.Popen[bytes]) -> float | None:
     return time.monotonic() - t0
 
 
-def run_class(name: str, duration: float, scale: float, workers: int) -> dict[str, Any]:
-    """One attack class against a fresh service, three good robots beside it."""
+def run_class(
+    name: str, duration: float, scale: float, workers: int, keep: Path | None = None
+) -> dict[str, Any]:
+    """One attack class against a fresh service, three good robots beside it.
+
+    ``keep``: a folder to copy the service's log into (``CLASS.log``).
+    """
     import zenoh
 
     from service.live.sessions import client_config, free_port
@@ -183,6 +189,9 @@ def run_class(name: str, duration: float, scale: float, workers: int) -> dict[st
             if robots.is_alive():
                 robots.kill()
         log.close()
+        if keep is not None:
+            keep.mkdir(parents=True, exist_ok=True)
+            shutil.copy(tmp / "service.log", keep / f"{name}.log")
         shutil.rmtree(tmp, ignore_errors=True)
     row["events"] = dict(events)
     row["health_max"] = max(probe.latencies, default=math.nan)
@@ -271,11 +280,16 @@ def render(args: argparse.Namespace) -> str:
     duration = args.duration or (8.0 if quick else 20.0)
     long = args.mixed_duration or (8.0 if quick else 60.0)
     scale = 0.05 if quick else 1.0
+    # Compile (or load) the localizer's kernels once, as the service's workers will: a worker
+    # compiling for a minute would be counted against the first classes.
+    subprocess.run(
+        [sys.executable, "-c", "from rlutf.warmup import warm_up; warm_up()"], check=True
+    )
     rows = []
     for name in names:
         # ``none`` is the reference of ``mixed``: the same length
         length = long if name in ("mixed", "none") and "mixed" in names else duration
-        row = run_class(name, length, scale, args.workers)
+        row = run_class(name, length, scale, args.workers, args.logs)
         rows.append(row)
         print(table([row])[-1], flush=True)
     command = "python -m bench.adversarial" + (" --quick" if quick else "")
@@ -313,6 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         "--mixed-duration", type=float, help="seconds of mixed and none (default 60; quick 8)"
     )
     p.add_argument("--workers", type=int, default=2, help="service worker processes")
+    p.add_argument("--logs", type=Path, help="keep each class's service log in this folder")
     return section_main(p, render, SECTION, argv)
 
 

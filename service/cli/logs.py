@@ -263,6 +263,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
         return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
     state = (
         "complete (nothing was missing)"
+        if report.complete and not report.resyncs
+        else "read to its end"
         if report.complete
         else f"cut at byte {report.stopped_at} ({report.stopped})"
     )
@@ -276,4 +278,13 @@ def cmd_recover(args: argparse.Namespace) -> int:
             "whose channel was lost",
             file=sys.stderr,
         )
+    if report.resyncs:
+        print(
+            f"skipped {report.resyncs} unreadable stretch(es), the first at byte "
+            f"{report.first_unreadable} ({report.first_problem}); reading resumed at the next "
+            "chunk that checks out",
+            file=sys.stderr,
+        )
+    if report.duplicate_chunks:
+        print(f"dropped {report.duplicate_chunks} duplicated chunks", file=sys.stderr)
     return EXIT_OK

@@ -57,7 +57,9 @@ def test_the_service_keys_are_not_odd(key: str) -> None:
 
 
 def test_printable_escapes_control_characters() -> None:
-    assert printable("rlutf/robots/a\nWARNING forged/scan") == "rlutf/robots/a\\x0aWARNING forged/scan"
+    assert (
+        printable("rlutf/robots/a\nWARNING forged/scan") == "rlutf/robots/a\\x0aWARNING forged/scan"
+    )
     assert printable("a\x1b[31mred\u2028") == "a\\x1b[31mred\\u2028"
     assert printable("plain/key-é") == "plain/key-é"
     assert printable("x" * 300, limit=10) == "x" * 10 + "..."
