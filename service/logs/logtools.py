@@ -28,7 +28,15 @@ from mcap.writer import CompressionType, Writer
 from rich.console import Console
 from rich.table import Table
 
-from service.logs.mcapread import MAGIC, ChannelInfo, LogFile, NotALog, map_topic, robot_topic
+from service.logs.mcapread import (
+    MAGIC,
+    ChannelInfo,
+    LogFile,
+    NotALog,
+    UnreadableConfig,
+    map_topic,
+    robot_topic,
+)
 
 
 @dataclass
@@ -91,9 +99,16 @@ def log_info(path: Path) -> LogInfo:
             lf.time_range,
             dict(sorted(robots.items())),
             {k: sorted(set(v)) for k, v in maps.items()},
-            lf.config(),
+            _config_or_none(lf),
             [name for name, _ in lf.metadata()],
         )
+
+
+def _config_or_none(lf: LogFile) -> dict[str, Any] | None:
+    try:
+        return lf.config()
+    except UnreadableConfig:
+        return None
 
 
 def _when(ns: int) -> str:

@@ -44,7 +44,13 @@ from service.engine import FleetEngine
 from service.keys import Keys
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
-from service.logs.mcapread import LogFile, map_topic, merged_messages, robot_topic
+from service.logs.mcapread import (
+    LogFile,
+    UnreadableConfig,
+    map_topic,
+    merged_messages,
+    robot_topic,
+)
 from service.logs.replayconfig import ReplayConfig, resolve
 from service.maps.book import MapBook, MapRejected
 
@@ -278,7 +284,13 @@ def replay(
     with ExitStack() as stack:
         logs = [stack.enter_context(LogFile(p)) for p in inputs]
         if config is None:
-            recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            try:
+                recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            except UnreadableConfig as err:
+                if settings_file is None and not assignments:
+                    raise
+                log.warning("%s; replaying on the defaults, --settings and --set", err)
+                recorded = None
             config = resolve(
                 recorded,
                 prefix_hint=_prefix_hint(logs),

@@ -188,3 +188,25 @@ def test_recover_drops_a_duplicated_chunk(log: Path, tmp_path: Path) -> None:
     report = recover(doubled, tmp_path / "fixed.mcap")
     assert report.duplicate_chunks == 1 and report.bad_chunks == 0
     assert read_all(tmp_path / "fixed.mcap") == read_all(log)
+
+
+def test_a_config_record_that_is_not_json_stops_replay_unless_settings_are_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    from mcap.writer import Writer
+
+    from service.logs.mcapread import UnreadableConfig
+
+    bad = tmp_path / "badconfig.mcap"
+    with open(bad, "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("rlutf.config", {"json": "{prefix: rlutf"})
+        w.finish()
+    with pytest.raises(UnreadableConfig, match="not a JSON object"):
+        replay([bad])
+    code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
+    assert code == 2 and "rlutf.config" in err and "--settings" in err and "Traceback" not in err
+    result = replay([bad], assignments=["prefix=rlutf"])
+    assert result.config.prefix == "rlutf"
+    assert any("rlutf.config" in r.getMessage() for r in caplog.records)
