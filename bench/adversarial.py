@@ -48,6 +48,9 @@ HEALTH_EVERY_S = 0.5
 HEALTH_TIMEOUT_S = 2.0
 TERM_TIMEOUT_S = 15.0
 #: Classes after which no good robot may go longer than this without a pose, seconds.
+#: What ``--quick`` runs unless ``--classes`` says otherwise: the reference and the mix of all
+#: cheap classes (under a minute in all).
+QUICK_CLASSES = ["none", "mixed"]
 GAP_TARGETS = {"map-2km": 1.0, "map-40k": 1.0, "scan-1e5": 1.0, "kill-worker": 2.0}
 
 
@@ -272,7 +275,8 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
 
 def render(args: argparse.Namespace) -> str:
     """Run the chosen classes and return the Markdown section."""
-    names = [c for c in args.classes.split(",") if c] if args.classes else list(CLASSES)
+    default = QUICK_CLASSES if args.quick else list(CLASSES)
+    names = [c for c in args.classes.split(",") if c] if args.classes else default
     unknown = [c for c in names if c not in CLASSES]
     if unknown:
         raise SystemExit(f"unknown class(es): {', '.join(unknown)} (known: {', '.join(CLASSES)})")
@@ -295,6 +299,12 @@ def render(args: argparse.Namespace) -> str:
     command = "python -m bench.adversarial" + (" --quick" if quick else "")
     if args.classes:
         command += f" --classes {args.classes}"
+    if args.duration:
+        command += f" --duration {args.duration:g}"
+    if args.mixed_duration:
+        command += f" --mixed-duration {args.mixed_duration:g}"
+    if args.workers != 2:
+        command += f" --workers {args.workers}"
     return "\n".join(
         [
             f"Command: `{command}`",
@@ -321,7 +331,12 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--classes", help=f"comma-separated, of: {', '.join(CLASSES)} (default: all)")
-    p.add_argument("--quick", action="store_true", help="CI smoke run: short, counts / 20")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="CI smoke run (under a minute): none and mixed unless --classes, 8 s each, "
+        "counts / 20",
+    )
     p.add_argument("--duration", type=float, help="seconds per class (default 20; quick 8)")
     p.add_argument(
         "--mixed-duration", type=float, help="seconds of mixed and none (default 60; quick 8)"

@@ -160,7 +160,7 @@ def test_recover_salvages_every_intact_chunk_past_a_corrupted_chunk_length(
     log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], wrong: int
 ) -> None:
     # Issue 19: one corrupted chunk length made recover keep only the first half of the file.
-    start, length = _middle_chunk(log)
+    start, _ = _middle_chunk(log)
     data = bytearray(log.read_bytes())
     field = slice(start + 1, start + 9)
     data[field] = (int.from_bytes(data[field], "little") + wrong).to_bytes(8, "little")
