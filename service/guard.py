@@ -37,6 +37,9 @@ Message = LaserScan | Odometry | InitialPose | Relocalize
 _TWO_PI: Final = 2.0 * math.pi
 #: Metres added to the map's diagonal (and the sensor's offset) beyond which a range is no return.
 _REACH_MARGIN_M: Final = 1.0
+#: The attribute of :class:`rlutf.localizer.Localizer` holding a relocalization under way, the
+#: one part of its state an update changes in place (the rest it reassigns).
+_RELOCALIZATION: Final = "_follower"
 
 
 def kind_of(message: Message) -> str:
@@ -259,7 +262,7 @@ class Snapshot:
             if isinstance(value, np.random.Generator):
                 self.generators[name] = value.bit_generator.state
                 self.loc_fields[name] = value
-            elif hasattr(value, "world") and isinstance(value.world, World):
+            elif name == _RELOCALIZATION and value is not None:  # changed in place: copied
                 self.loc_fields[name] = copy.deepcopy(value, {id(value.world): value.world})
             else:
                 self.loc_fields[name] = value
