@@ -312,7 +312,8 @@ def render(args: argparse.Namespace) -> str:
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
             f"{platform.python_version()}. Per class a fresh `rlutf serve` ({args.workers} "
             f"workers, recording on), three good robots at {RATE_HZ:g} Hz for {duration:g} s "
-            f"({long:g} s for none and mixed); counts scaled by {scale:g}. Targets (issue 19): "
+            + (f"({long:g} s for none and mixed)" if "mixed" in names else "")
+            + f"; counts scaled by {scale:g}. Targets (issue 19): "
             "health answers within 2 s throughout; good robots >= 90 % answered; no gap over "
             "1 s (2 s after kill-worker); no pose off by more than 0.5 m unless lost; RSS under "
             "1 GB; many-ids growth <= 100 MB; SIGTERM exit within 10 s; mixed within 5 points "

@@ -7,10 +7,18 @@ otherwise hear nothing. :class:`KeyWatch` subscribes to ``{prefix}/**``, classif
 reports each class (``extra_levels``, ``unknown_leaf``, ``delete``, ``map_deleted``,
 ``unknown_key``) at most once per interval, counting the rest in the next Event's message, so a
 flood of odd keys costs a few microseconds a message and one Event a second.
+
+The Events go out from a thread of the KeyWatch's own, through a short queue that drops (and
+counts) when full: a Zenoh callback that puts can wait on the very channel whose thread runs it
+(issue 19), so no callback here waits for Zenoh. :meth:`KeyWatch.limited` offers the same rate
+limit and thread to other reports of bad keys (invalid robot ids, map keys the store rejects).
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import queue
 import threading
 from collections.abc import Callable
 
@@ -18,6 +26,11 @@ import zenoh
 
 from service.keys import Keys
 from service.live.stats import Stats
+
+log = logging.getLogger(__name__)
+
+#: Events waiting for the KeyWatch's thread; more are dropped (and counted).
+_QUEUE = 256
 
 Report = Callable[[str, str, str, str, int], None]
 """Called with level, code, key, message and the receive time of the sample."""
@@ -53,6 +66,30 @@ class KeyWatch:
         self._lock = threading.Lock()
         self._last: dict[str, int] = {}
         self._held: dict[str, int] = {}
+        self._queue: queue.Queue[tuple[str, str, str, str, int] | None] = queue.Queue(_QUEUE)
+        self._thread: threading.Thread | None = None
+        self.dropped = 0
+
+    def start(self) -> None:
+        """Start the thread that publishes the Events."""
+        self._thread = threading.Thread(target=self._run, name="rlutf-keywatch", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Publish what is queued, then stop the thread."""
+        if self._thread is None:
+            return
+        with contextlib.suppress(queue.Full):
+            self._queue.put(None, timeout=1.0)
+        self._thread.join(2.0)
+        self._thread = None
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            try:
+                self.report(*item)
+            except Exception:  # a report that fails must not end the thread
+                log.exception("publishing an Event about key %r failed", item[2])
 
     @property
     def key_expr(self) -> str:
@@ -70,13 +107,20 @@ class KeyWatch:
             return
         self.stats.add("received")
         self.stats.add("rejected")
-        now = self.clock()
+        self.limited(odd.kind, odd.level, odd.code, key, odd.message, self.clock())
+
+    def limited(self, kind: str, level: str, code: str, key: str, message: str, at: int) -> None:
+        """Report an Event of class ``kind``, unless one of that class went out less than the
+        interval ago (then it is counted in the next one's message). Never blocks."""
         with self._lock:
-            last = self._last.get(odd.kind)
-            if last is not None and now - last < self.interval_ns:
-                self._held[odd.kind] = self._held.get(odd.kind, 0) + 1
+            last = self._last.get(kind)
+            if last is not None and at - last < self.interval_ns:
+                self._held[kind] = self._held.get(kind, 0) + 1
                 return
-            self._last[odd.kind] = now
-            held = self._held.pop(odd.kind, 0)
+            self._last[kind] = at
+            held = self._held.pop(kind, 0)
         more = f" ({held} more like it since the last such Event)" if held else ""
-        self.report(odd.level, odd.code, key, odd.message + more, now)
+        try:
+            self._queue.put_nowait((level, code, key, message + more, at))
+        except queue.Full:
+            self.dropped += 1

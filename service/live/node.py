@@ -203,8 +203,8 @@ class LocalizationService:
                 self.keys,
                 FileMapStore(s.store_dir),
                 s.max_payload_bytes,
-                on_error=lambda key, msg: self._global_event(
-                    "error", EventCode.INVALID_MAP, key, msg
+                on_error=lambda key, msg: self.keywatch.limited(
+                    "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
                 ),
             )
         self.mapfeed.start(session)
@@ -223,6 +223,7 @@ class LocalizationService:
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        self.keywatch.start()
         self._declared.append(
             session.declare_subscriber(self.keywatch.key_expr, self.keywatch.on_sample)
         )
@@ -265,6 +266,7 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
+        self.keywatch.close()  # after its subscriber: what it queued goes out
         for pub in self._publishers.values():
             pub.undeclare()
         if self._storage is not None:
@@ -293,7 +295,9 @@ class LocalizationService:
             if self.ownership.ready and self.membership.owns_key(key):  # one instance reports
                 self.stats.add("received")
                 self.stats.add("rejected")
-                self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
+                self.keywatch.limited(
+                    "invalid_id", "error", EventCode.INVALID_KEY, key, str(err), received
+                )
             return
         if parsed is None:
             return
