@@ -21,9 +21,11 @@ import logging
 import queue
 import threading
 from collections.abc import Callable
+from typing import Any
 
 import zenoh
 
+from service.config import Settings
 from service.keys import Keys
 from service.live.stats import Stats
 
@@ -43,9 +45,8 @@ class KeyWatch:
         keys: the key layout.
         report: publishes an Event about ``key``.
         clock: receive time, ns.
-        interval_ns: least time between two Events of one class.
+        settings: ``event_interval_s`` is the least time between two Events of one class.
         owns_key: whether this instance reports for a key (one instance of a cluster does).
-        stats: counts every odd sample this instance reports for as received and rejected.
     """
 
     def __init__(
@@ -53,16 +54,16 @@ class KeyWatch:
         keys: Keys,
         report: Report,
         clock: Callable[[], int],
-        interval_ns: int,
+        settings: Settings,
         owns_key: Callable[[str], bool],
-        stats: Stats,
     ) -> None:
         self.keys = keys
         self.report = report
         self.clock = clock
-        self.interval_ns = interval_ns
+        self.interval_ns = int(settings.event_interval_s * 1e9)
         self.owns_key = owns_key
-        self.stats = stats
+        self.stats: Stats | None = None
+        self._subscriber: Any = None
         self._lock = threading.Lock()
         self._last: dict[str, int] = {}
         self._held: dict[str, int] = {}
@@ -70,13 +71,24 @@ class KeyWatch:
         self._thread: threading.Thread | None = None
         self.dropped = 0
 
-    def start(self) -> None:
-        """Start the thread that publishes the Events."""
+    def start(self, session: zenoh.Session, stats: Stats) -> None:
+        """Start the thread that publishes the Events and subscribe to ``{prefix}/**``.
+
+        Args:
+            session: the service's session.
+            stats: counts every odd sample this instance reports for as received and rejected.
+        """
+        self.stats = stats
         self._thread = threading.Thread(target=self._run, name="rlutf-keywatch", daemon=True)
         self._thread.start()
+        self._subscriber = session.declare_subscriber(self.key_expr, self.on_sample)
 
     def close(self) -> None:
-        """Publish what is queued, then stop the thread."""
+        """Unsubscribe, publish what is queued, then stop the thread."""
+        if self._subscriber is not None:
+            with contextlib.suppress(Exception):  # already gone with the session
+                self._subscriber.undeclare()
+            self._subscriber = None
         if self._thread is None:
             return
         with contextlib.suppress(queue.Full):
@@ -105,8 +117,9 @@ class KeyWatch:
         odd = self.keys.odd(key, delete)
         if odd is None or not self.owns_key(key):
             return
-        self.stats.add("received")
-        self.stats.add("rejected")
+        if self.stats is not None:
+            self.stats.add("received")
+            self.stats.add("rejected")
         self.limited(odd.kind, odd.level, odd.code, key, odd.message, self.clock())
 
     def limited(self, kind: str, level: str, code: str, key: str, message: str, at: int) -> None:

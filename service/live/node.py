@@ -152,14 +152,8 @@ class LocalizationService:
                 settings.max_payload_bytes,
             )
         )
-        self.keywatch = KeyWatch(  # puts and DELETEs on keys nothing else takes: Events
-            self.keys,
-            self._global_event,
-            self.clock,
-            int(settings.event_interval_s * 1e9),
-            lambda key: self.ownership.ready and self.membership.owns_key(key),
-            self.stats,
-        )
+        owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
+        self.keywatch = KeyWatch(self.keys, self._global_event, self.clock, settings, owns_key)
         self.ros2: Ros2FrontDoor | None = None
         if settings.ros2.enabled:
             self.ros2 = Ros2FrontDoor(
@@ -223,10 +217,7 @@ class LocalizationService:
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
         self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
-        self.keywatch.start()
-        self._declared.append(
-            session.declare_subscriber(self.keywatch.key_expr, self.keywatch.on_sample)
-        )
+        self.keywatch.start(session, self.stats)  # Events for keys nothing else takes
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -266,7 +257,7 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
-        self.keywatch.close()  # after its subscriber: what it queued goes out
+        self.keywatch.close()
         for pub in self._publishers.values():
             pub.undeclare()
         if self._storage is not None:
@@ -360,11 +351,8 @@ class LocalizationService:
                 assert out.map_id is not None
                 self.mapfeed.need(out.map_id, done.robot)
                 continue
-            if out.kind == "skipped":
-                self.stats.add("skipped")
-                continue
-            if out.kind == "rejected":  # over a limit (service.guard); its Event comes apart
-                self.stats.add("rejected")
+            if out.kind in ("skipped", "rejected"):  # rejected: over a limit (service.guard)
+                self.stats.add(out.kind)
                 continue
             if out.kind == "pose":
                 with self.ownership.lock:  # a robot released meanwhile is not answered for
