@@ -39,8 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from bench.attacks import CLASSES, Context
-from bench.fleet import _rss_tree_mb, query_health, start_service
+from bench.fleetrun import query_health, start_service
 from bench.goodrobots import GOOD, RATE_HZ, WARMUP_S, drive, score
+from bench.procstat import rss_tree_mb
 from bench.report import section_main
 
 SECTION = "adversarial"
@@ -77,7 +78,7 @@ class Probe:
         with zenoh.open(client_config(self.endpoint)) as session:
             while not self.stop.is_set():
                 t0 = time.monotonic()
-                self.rss.append((t0, _rss_tree_mb(self.pid)))
+                self.rss.append((t0, rss_tree_mb(self.pid)))
                 answered = any(
                     r.ok is not None
                     for r in session.get("rlutf/service/*/health", timeout=HEALTH_TIMEOUT_S)
@@ -173,7 +174,7 @@ def run_class(
             time.sleep(WARMUP_S + 1.0)
             attack_for = max(duration - WARMUP_S - 1.5, 1.0)
             ctx = Context(session, proc.pid, list(GOOD), starts, scale, attack_for)
-            row["rss_before"] = _rss_tree_mb(proc.pid)
+            row["rss_before"] = rss_tree_mb(proc.pid)
             attack_start = time.monotonic()
             row["sent"] = CLASSES[name](ctx)
             row["attack_s"] = time.monotonic() - attack_start

@@ -14,6 +14,7 @@ import signal
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 T_FAR = 2**62  # a stamp ~146 years ahead
@@ -293,13 +294,13 @@ def _mixed_stream(ctx: Context) -> Iterator[Callable[[], None]]:
     while True:
         i += 1
         yield lambda: s.put(f"rlutf/robots/{good}/scan", b"{broken")
-        yield lambda i=i: s.put(f"rlutf/robots/mixfresh{i}/scan", b"[1, 2")
-        yield lambda i=i: s.put(f"rlutf/robots/mixid{i}/odom", _odom())
+        yield partial(s.put, f"rlutf/robots/mixfresh{i}/scan", b"[1, 2")
+        yield partial(s.put, f"rlutf/robots/mixid{i}/odom", _odom())
         yield lambda: s.put("rlutf/robots/atk-mix/scan", _scan([1e5] * 360, range_max=1e6))
         for key, payload in _extreme_payloads("atk-mix"):
-            yield lambda key=key, payload=payload: s.put(key, payload)
+            yield partial(s.put, key, payload)
         for key in odd[:-1]:
-            yield lambda key=key: s.put(key, _odom())
+            yield partial(s.put, key, _odom())
         yield lambda: s.delete("rlutf/robots/atk-mix/scan")
         yield lambda: s.delete("rlutf/maps/nosuchmap")
 

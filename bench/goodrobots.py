@@ -2,7 +2,7 @@
 
 :func:`drive` runs in a process of its own: it simulates each robot's run on the map ``bench``
 (truth, drifting odometry, 360-beam scans with 1 cm noise) before the clock starts, places the
-robots (:func:`bench.fleet.open_fleet`), then publishes odometry and a scan per robot every
+robots (:func:`open_fleet`), then publishes odometry and a scan per robot every
 0.1 s and records every pose it receives. :func:`score` reads what the attack did to them.
 """
 
@@ -28,7 +28,6 @@ def drive(endpoint: str, duration: float, seed: int, out: Any, ready: Any, go: A
 
     Puts on ``out`` first the robots' start poses, then the result :func:`score` reads.
     """
-    from bench.fleet import open_fleet
     from rlutf.sim import (
         LidarModel,
         OdometryModel,
@@ -68,7 +67,7 @@ def drive(endpoint: str, duration: float, seed: int, out: Any, ready: Any, go: A
             poses.append(row)
 
     starts = [(rid, odom[0], truth[0]) for rid, truth, odom, _ in plans]
-    sessions, sub, pubs, t0 = open_fleet(endpoint, world, starts, on_pose)
+    session, sub, pubs, t0 = open_fleet(endpoint, world, starts, on_pose)
     out.put({rid: tuple(float(v) for v in truth[0]) for rid, truth, _, _ in plans})
     ready.set()
     go.wait()
@@ -93,12 +92,48 @@ def drive(endpoint: str, duration: float, seed: int, out: Any, ready: Any, go: A
     end = time.monotonic()
     time.sleep(2.0)  # the last poses
     sub.undeclare()
-    for s in sessions:
-        s.close()
+    session.close()
     with lock:
         got = list(poses)
     truths = {rid: truth.tolist() for rid, truth, _, _ in plans}
     out.put({"sent": sent, "poses": got, "truth": truths, "start": start, "end": end})
+
+
+def open_fleet(
+    endpoint: str, world: Any, starts: list[tuple[str, Any, Any]], on_pose: Any
+) -> tuple[Any, Any, list[tuple[Any, Any]], int]:
+    """Put the map ``bench``, follow every pose, place the robots (first odometry, initial
+    pose stamped ``t0``) and declare their publishers.
+
+    Returns:
+        The session, the pose subscriber, per robot its (odometry, scan) publishers, and t0.
+    """
+    import zenoh
+
+    from schemas import InitialPose, Map, encode
+    from service.live.sessions import client_config
+
+    session = zenoh.open(client_config(endpoint))
+    body = {"map_id": "bench", "version": 1, "geometry": world.to_geojson()}
+    session.put("rlutf/maps/bench", encode(Map.model_validate(body)))
+    sub = session.declare_subscriber("rlutf/robots/*/pose", on_pose)
+    time.sleep(1.0)
+    t0 = time.time_ns()
+    pubs = []
+    for rid, o, p in starts:
+        odom = {"stamp_ns": t0, "x": float(o[0]), "y": float(o[1]), "theta": float(o[2])}
+        session.put(f"rlutf/robots/{rid}/odom", json.dumps(odom))
+        start = InitialPose(
+            stamp_ns=t0, map_id="bench", x=float(p[0]), y=float(p[1]), theta=float(p[2])
+        )
+        session.put(f"rlutf/robots/{rid}/initialpose", encode(start))
+        pubs.append(
+            (
+                session.declare_publisher(f"rlutf/robots/{rid}/odom"),
+                session.declare_publisher(f"rlutf/robots/{rid}/scan"),
+            )
+        )
+    return session, sub, pubs, t0
 
 
 def score(result: dict[str, Any], attack_start: float) -> dict[str, Any]:

@@ -108,6 +108,7 @@ class _Robot:
     start_stamp: int = 0  # stamp of the initial pose
     last_pose: bytes | None = None
     last_status: str = ""  # of the last pose: a lost robot's next updates search wide
+    fresh: bool = False  # a new localizer (seeded) whose first update searches wide
     last_event: dict[str, int] = field(default_factory=dict)
 
 
@@ -172,14 +173,22 @@ class FleetEngine:
         Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
         are. Call it while none of the robot's inputs is being handled.
         """
-        if "relocalize" in kinds:
+        if "relocalize" in kinds or "initialpose" in kinds:
             return True
         r = self._robots.get(robot_id)
         if r is None:
             return False
-        if r.pending is not None and r.pending.kind == "relocalize":
-            return True
-        return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
+        if r.pending is not None:
+            return True  # applied at the next input: its first update searches wide
+        return (
+            r.fresh
+            or r.last_status == "lost"
+            or (r.localizer is not None and r.localizer.relocalizing)
+        )
+
+    def forget(self, robot_id: str) -> None:
+        """Drop everything held for a robot (evicted after it sent nothing for long)."""
+        self._robots.pop(robot_id, None)
 
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
@@ -325,6 +334,7 @@ class FleetEngine:
                 robot.localizer.set_map(world)
         else:
             robot.localizer = Localizer(world, req.pose, self.config, seed=robot.seed)
+            robot.fresh = True
             if req.kind == "initialpose" or robot.anchor is None:
                 robot.anchor = req.anchor
                 robot.start_stamp = req.stamp_ns
@@ -353,6 +363,16 @@ class FleetEngine:
         key = self.keys.robot(robot.robot_id, "scan")
         applied = self._apply(robot, received_ns)
         skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        if robot.map_id is None and robot.pending is not None:
+            return skipped + self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
+            )
         if robot.map_id is None:
             return skipped + self._event(
                 robot,
@@ -360,7 +380,8 @@ class FleetEngine:
                 "warning",
                 EventCode.NOT_INITIALIZED,
                 key,
-                "scan before an initial pose; publish an InitialPose first",
+                "scan before an initial pose; publish an InitialPose first (`rlutf "
+                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
             )
         if self._world_for(robot, received_ns) is None or robot.localizer is None:
             return skipped + self._event(
@@ -387,6 +408,7 @@ class FleetEngine:
         # Ranges no wall of the map can be at are no return: bounded work before any search.
         scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
+        robot.fresh = False
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (
@@ -411,9 +433,7 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 pose_key,
-                f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
-                f"{self.config.fit_distance:g} m of the map at the best pose (at least "
-                f"{100 * self.config.min_fit:.0f} % needed); "
+                _unfit(result, self.config.fit_distance, self.config.min_fit)
                 + (
                     "relocalizing on the whole map"
                     if result.relocalizing
@@ -496,3 +516,22 @@ class FleetEngine:
                 "event", self.keys.robot_events(robot.robot_id), encode(ev), now_ns, robot.robot_id
             )
         ]
+
+
+def _unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
+    """Why a pose is lost, with the share of the returns that fit and the share needed."""
+    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
+    fit = result.fit if math.isfinite(result.fit) else 0.0
+    digits = 0  # enough digits that the two shares never read the same
+    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
+        digits += 1
+    shares = (
+        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
+        f"the best pose, under the {100 * needed:.{digits}f} % needed"
+    )
+    if needed > min_fit:
+        return (
+            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
+            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
+        )
+    return f"the scan does not fit the map: {shares}; "

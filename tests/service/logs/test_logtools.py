@@ -132,8 +132,9 @@ def test_corrupt_chunk_is_reported_and_skipped_by_recover(
     code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
     assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
     assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.part").exists()
-    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
-    assert code == 0 and "skipped 1 damaged chunks" in err
+    code, out, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "skipped 1 damaged chunk(s)" in err
+    assert "read to its end" in out and "nothing was missing" not in out
     original = read_all(log)
     got = read_all(tmp_path / "fixed.mcap")
     assert 0 < len(original) - len(got) < len(original) // 10
