@@ -90,6 +90,11 @@ class Ros2Settings(BaseModel):
     map_topic: str | None = Field(
         None, description="OccupancyGrid topic to import maps from (off unless given)."
     )
+    global_localization_service: str | None = Field(
+        "reinitialize_global_localization",
+        description="std_srvs/srv/Empty service, relative to the namespace, that relocalizes the "
+        "robot globally on its map, as AMCL's (null: off).",
+    )
     global_frame: str = Field("map", description="Frame of poses and initial poses.")
     odom_frame: str = Field("odom", description="The odometry frame.")
     base_frame: str = Field("base_footprint", description="The robot's base frame.")
@@ -188,6 +193,20 @@ class Settings(BaseSettings):
         "port).",
     )
     metrics_addr: str = Field("0.0.0.0", description="Address the metrics endpoint listens on.")
+    foxglove_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="Port of the live view, a Foxglove WebSocket server an operator opens in the "
+        "Foxglove app (off unless given; 0: any free port).",
+    )
+    foxglove_addr: str = Field(
+        "127.0.0.1",
+        description="Address the live view listens on (0.0.0.0 to open it from other hosts).",
+    )
+    foxglove_rate_hz: float = Field(
+        10.0, gt=0, le=100, description="Most refreshes a second of each robot's live view."
+    )
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     max_stamp_ahead_s: float = Field(

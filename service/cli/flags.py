@@ -193,6 +193,18 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--metrics-addr", metavar="ADDR", help="address of the metrics endpoint (default 0.0.0.0)"
     )
+    p.add_argument(
+        "--foxglove-port",
+        type=int,
+        metavar="PORT",
+        help="serve a live view on ws://ADDR:PORT for the Foxglove app (Open connection, "
+        "Foxglove WebSocket; default: off; 0: any free port); also RLUTF_FOXGLOVE_PORT",
+    )
+    p.add_argument(
+        "--foxglove-addr",
+        metavar="ADDR",
+        help="address of the live view (default 127.0.0.1; 0.0.0.0 for other hosts)",
+    )
 
 
 def ros2_flags(p: argparse.ArgumentParser) -> None:
@@ -260,6 +272,8 @@ def load(args: argparse.Namespace) -> Any:
             workers=args.workers,
             metrics_port=args.metrics_port,
             metrics_addr=args.metrics_addr,
+            foxglove_port=getattr(args, "foxglove_port", None),
+            foxglove_addr=getattr(args, "foxglove_addr", None),
             ros2=_ros2_overrides(args),
         )
     )

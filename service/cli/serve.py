@@ -106,6 +106,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.live.foxview import LiveViewError
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
@@ -137,6 +138,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
+    except LiveViewError as err:  # --foxglove-port taken or --foxglove-addr not local
+        print(f"rlutf serve: {err} (choose another --foxglove-port)", file=sys.stderr)
+        return EXIT_FAILURE
     except OSError as err:
         if err.filename is not None:  # a folder of the store, the state or the logs
             raise
@@ -161,6 +165,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if service.metrics.port is not None:
         print(
             f"rlutf serve: metrics on http://{settings.metrics_addr}:{service.metrics.port}/metrics",
+            file=sys.stderr,
+            flush=True,
+        )
+    if service.live.url is not None:
+        print(
+            f"rlutf serve: live view on {service.live.url} (Foxglove app: Open connection, "
+            "Foxglove WebSocket)",
             file=sys.stderr,
             flush=True,
         )
