@@ -40,44 +40,16 @@ from schemas import (
     encode,
 )
 from schemas.fastpose import encode_pose
-from service.guard import Limits, Snapshot, check_input, kind_of, region_on, usable_scan, where
+from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
+__all__ = ["FleetEngine", "Outbound"]
+
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped", "rejected"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
-
-
-@dataclass(frozen=True)
-class Outbound:
-    """Something the engine wants published.
-
-    Attributes:
-        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published),
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
-            ``rejected`` (an input over a limit of :mod:`service.guard`; counted, nothing is
-            published: its Event, rate-limited, is a separate ``event``).
-        key: the Zenoh key to put on.
-        payload: encoded JSON.
-        stamp_ns: the message's own stamp (MCAP ``publish_time``).
-        robot: the robot concerned, if any.
-        map_id: for ``need_map``.
-        status: for ``pose``: the pose status.
-        received_ns: for ``pose``: when the scan it answers was received.
-    """
-
-    kind: OutKind
-    key: str
-    payload: bytes
-    stamp_ns: int
-    robot: str | None = None
-    map_id: str | None = None
-    status: str | None = None
-    received_ns: int | None = None
 
 
 @dataclass
@@ -209,29 +181,7 @@ class FleetEngine:
         Event ``invalid_message``; an update that raises is undone (the robot's state is as
         before the input) and gives an Event ``internal_error``.
         """
-        robot = self._robot(robot_id)
-        kind = kind_of(message)
-        problem = check_input(message, self.limits)
-        if problem is not None:
-            key = self.keys.robot(robot_id, kind)
-            return [
-                Outbound("rejected", key, b"", message.stamp_ns, robot_id),
-                *self._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
-            ]
-        saved = Snapshot(robot)
-        try:
-            return self._handle(robot, message, received_ns)
-        except Exception as err:  # one robot's failure never reaches the others or the caller
-            saved.restore(robot)
-            return self._event(
-                robot,
-                received_ns,
-                "error",
-                EventCode.INTERNAL_ERROR,
-                self.keys.robot(robot_id, kind),
-                f"{kind} {message.stamp_ns} not applied: {type(err).__name__}: "
-                f"{str(err)[:200]}{where(err)}; the robot's state is as before it",
-            )
+        return guarded(self, self._robot(robot_id), message, received_ns)
 
     def _handle(
         self,

@@ -23,16 +23,19 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Any, Final
+from dataclasses import dataclass
+from typing import Any, Final, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from rlutf.map import Map as World
 from rlutf.scan import Scan
-from schemas import MAX_BEAMS, InitialPose, LaserScan, Odometry, Relocalize
+from schemas import MAX_BEAMS, EventCode, InitialPose, LaserScan, Odometry, Relocalize
+from service.keys import Keys
 
 Message = LaserScan | Odometry | InitialPose | Relocalize
+OutKind = Literal["pose", "event", "need_map", "skipped", "rejected"]
 
 _TWO_PI: Final = 2.0 * math.pi
 #: Metres added to the map's diagonal (and the sensor's offset) beyond which a range is no return.
@@ -40,6 +43,75 @@ _REACH_MARGIN_M: Final = 1.0
 #: The attribute of :class:`rlutf.localizer.Localizer` holding a relocalization under way, the
 #: one part of its state an update changes in place (the rest it reassigns).
 _RELOCALIZATION: Final = "_follower"
+
+
+@dataclass(frozen=True)
+class Outbound:
+    """Something the engine wants published (:mod:`service.engine` exports it).
+
+    Attributes:
+        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
+            ``need_map`` (``map_id`` is wanted from the store; nothing is published),
+            ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
+            ``rejected`` (an input over a limit of :mod:`service.guard`; counted, nothing is
+            published: its Event, rate-limited, is a separate ``event``).
+        key: the Zenoh key to put on.
+        payload: encoded JSON.
+        stamp_ns: the message's own stamp (MCAP ``publish_time``).
+        robot: the robot concerned, if any.
+        map_id: for ``need_map``.
+        status: for ``pose``: the pose status.
+        received_ns: for ``pose``: when the scan it answers was received.
+    """
+
+    kind: OutKind
+    key: str
+    payload: bytes
+    stamp_ns: int
+    robot: str | None = None
+    map_id: str | None = None
+    status: str | None = None
+    received_ns: int | None = None
+
+
+class Engine(Protocol):
+    """What :func:`guarded` needs of :class:`service.engine.FleetEngine`."""
+
+    keys: Keys
+    limits: Limits
+
+    def _handle(self, robot: Any, message: Message, received_ns: int) -> list[Outbound]: ...
+
+    def _event(
+        self, robot: Any, now_ns: int, level: Any, code: str, key: str, message: str
+    ) -> list[Outbound]: ...
+
+
+def guarded(engine: Engine, robot: Any, message: Message, received_ns: int) -> list[Outbound]:
+    """Apply one input of a robot with ``engine``, within the limits and undone if it raises.
+
+    An input over a limit (:func:`check_input`) changes nothing and gives an Event
+    ``invalid_message``; an update that raises is undone (the robot's state is as before the
+    input, :class:`Snapshot`) and gives an Event ``internal_error``.
+    """
+    kind = kind_of(message)
+    key = engine.keys.robot(robot.robot_id, kind)
+    problem = check_input(message, engine.limits)
+    if problem is not None:
+        return [
+            Outbound("rejected", key, b"", message.stamp_ns, robot.robot_id),
+            *engine._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
+        ]
+    saved = Snapshot(robot)
+    try:
+        return engine._handle(robot, message, received_ns)
+    except Exception as err:  # one robot's failure never reaches the others or the caller
+        saved.restore(robot)
+        text = (
+            f"{kind} {message.stamp_ns} not applied: {type(err).__name__}: {str(err)[:200]}"
+            f"{where(err)}; the robot's state is as before it"
+        )
+        return engine._event(robot, received_ns, "error", EventCode.INTERNAL_ERROR, key, text)
 
 
 def kind_of(message: Message) -> str:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -40,6 +39,7 @@ from service.logs.mcapread import (
     robot_topic,
 )
 from service.logs.runs import LogRun, RunTag, group_runs, run_tag
+from service.logs.salvage import next_readable
 
 
 @dataclass
@@ -389,45 +389,6 @@ class _Copier:
             w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
 
 
-#: Opcodes of the records reading may resume at after an unreadable stretch.
-_CHUNK, _METADATA = 0x06, 0x0C
-_SCAN_BLOCK = 1 << 20
-_METADATA_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
-
-
-def _resumable(src: IO[bytes], at: int, size: int) -> bool:
-    """Whether a chunk that checks out, or a metadata record, starts at ``at``."""
-    src.seek(at)
-    head = src.read(9)
-    if len(head) < 9:
-        return False
-    opcode, length = head[0], int.from_bytes(head[1:], "little")
-    if opcode not in (_CHUNK, _METADATA) or at + 9 + length > size or length < 8:
-        return False
-    src.seek(at)
-    try:
-        record = next(iter(StreamReader(src, skip_magic=True, emit_chunks=True).records))
-        if isinstance(record, Chunk):
-            breakup_chunk(record, validate_crc=True)
-            return record.uncompressed_crc != 0  # a CRC was written: it is what checked out
-        return isinstance(record, Metadata) and _METADATA_NAME.fullmatch(record.name) is not None
-    except Exception:
-        return False
-
-
-def _next_record(src: IO[bytes], start: int, size: int) -> int | None:
-    """The offset of the next record at or after ``start`` that reading may resume at."""
-    pos = start
-    while pos < size:
-        src.seek(pos)
-        block = src.read(_SCAN_BLOCK)
-        for i, byte in enumerate(block):
-            if byte in (_CHUNK, _METADATA) and _resumable(src, pos + i, size):
-                return pos + i
-        pos += len(block)
-    return None
-
-
 def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
     copier = _Copier(writer, report)
     size = os.fstat(src.fileno()).st_size
@@ -470,7 +431,7 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
             break
         except Exception as err:  # the cut, or garbage where a record should start
             problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-            resume = _next_record(src, end + 1, size)
+            resume = next_readable(src, end + 1, size)
             if resume is None:
                 report.stopped, report.stopped_at = problem, end
                 break
