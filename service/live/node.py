@@ -48,6 +48,7 @@ from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher
 from service.live.intake import Intake
+from service.live.keywatch import KeyWatch
 from service.live.liveview import LiveView, make_live_view
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
@@ -138,6 +139,7 @@ class LocalizationService:
             clock=self.clock,
             on_seed=self._record_seed,
             on_lost=self._on_worker_lost,
+            limits=settings.limits,
         )
         self.mapfeed = MapFeed(
             self.keys,
@@ -169,6 +171,8 @@ class LocalizationService:
                 settings.max_payload_bytes,
             )
         )
+        owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
+        self.keywatch = KeyWatch(self.keys, self._global_event, self.clock, settings, owns_key)
         self.ros2: Ros2FrontDoor | None = None
         if settings.ros2.enabled:
             self.ros2 = Ros2FrontDoor(
@@ -229,8 +233,8 @@ class LocalizationService:
                 self.keys,
                 FileMapStore(s.store_dir),
                 s.max_payload_bytes,
-                on_error=lambda key, msg: self._global_event(
-                    "error", EventCode.INVALID_MAP, key, msg
+                on_error=lambda key, msg: self.keywatch.limited(
+                    "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
                 ),
             )
         self.mapfeed.start(session)
@@ -257,6 +261,7 @@ class LocalizationService:
         self._input_subs = [
             session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
         ]
+        self.keywatch.start(session, self.stats)  # Events for keys nothing else takes
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -299,6 +304,7 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
+        self.keywatch.close()
         self.out.close()
         if self._storage is not None:
             self._storage.close()
@@ -385,8 +391,8 @@ class LocalizationService:
                 assert out.map_id is not None
                 self.mapfeed.need(out.map_id, done.robot)
                 continue
-            if out.kind == "skipped":
-                self.stats.add("skipped")
+            if out.kind in ("skipped", "rejected"):  # rejected: over a limit (service.guard)
+                self.stats.add(out.kind)
                 continue
             if out.kind == "pose":
                 with self.ownership.lock:  # a robot released meanwhile is not answered for
