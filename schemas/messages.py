@@ -190,7 +190,8 @@ class EventCode:
     INVALID_MESSAGE: Final = "invalid_message"
     """A payload was rejected: malformed, wrong types, missing fields or too large."""
     INVALID_KEY: Final = "invalid_key"
-    """A key with a robot id or map id that does not match the id pattern."""
+    """A key with a robot id or map id that does not match the id pattern, a key with extra
+    levels or an unknown leaf, a DELETE on a robot key, a put on a key nothing reads."""
     MAP_NOT_FOUND: Final = "map_not_found"
     """An InitialPose or Relocalize names a map no storage answers for."""
     INVALID_MAP: Final = "invalid_map"
@@ -213,6 +214,19 @@ class EventCode:
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
     STATE_UNREADABLE: Final = "state_unreadable"
     """The durable pose state could not be read or its folder made; started without it."""
+    WORKER_LOST: Final = "worker_lost"
+    """A worker process died; a new one starts and its robots are re-seeded from their poses."""
+    ROBOT_EVICTED: Final = "robot_evicted"
+    """A robot sent nothing for ``robot_idle_s``: its state was dropped (it starts anew)."""
+    ROBOT_LIMIT: Final = "robot_limit"
+    """An input for a new robot id was refused: the instance holds ``max_robots`` already."""
+    STAMP_REJECTED: Final = "stamp_rejected"
+    """A message's stamp is too far ahead of the service's clock to be trusted."""
+    MAP_DELETED: Final = "map_deleted"
+    """A DELETE on a map key: the store drops the map; robots on it keep their copy."""
+    INTERNAL_ERROR: Final = "internal_error"
+    """An input's update failed inside the service (a bug); it was not applied, and the robot's
+    state is as before it."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(
@@ -271,6 +285,13 @@ class Health(WireModel):
     )
     latency_ms: LatencyPercentiles = Field(
         default=LatencyPercentiles(), description="Per-update latency, milliseconds."
+    )
+    ready: bool | None = Field(
+        default=None,
+        description=(
+            "v1.2: true once every process of the instance can localize (kernels compiled or "
+            "loaded); the instance declares its liveliness token only then."
+        ),
     )
     extra: FreeForm = Field(
         default_factory=dict, description="Further implementation-defined figures."

@@ -6,9 +6,8 @@ encoded. It does no I/O and reads no clock, so replaying a log's inputs through 
 ``log_time`` order gives the same outputs, byte for byte.
 
 Maps are registered with the time they were received; a robot uses, for each of its inputs, the
-newest version of its map received no later than that input. This makes the live service (maps
-reach worker processes a moment after they are received) and replay (maps are read from the log
-in order) see the same map at the same point of every robot's input.
+newest version of its map received no later than that input, so the live service (maps reach
+workers a moment after they are received) and replay see the same map at the same point.
 
 An InitialPose or Relocalize waits for its map without taking the robot off the map it is
 localized on (:mod:`service.relocalization`). Different robots may be handled on different
@@ -30,7 +29,6 @@ import numpy as np
 from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
 from rlutf.motion import interpolate, relative
-from rlutf.scan import Scan
 from schemas import (
     Event,
     EventCode,
@@ -41,41 +39,16 @@ from schemas import (
     encode,
 )
 from schemas.fastpose import encode_pose
+from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
+__all__ = ["FleetEngine", "Outbound"]
+
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
-
-
-@dataclass(frozen=True)
-class Outbound:
-    """Something the engine wants published.
-
-    Attributes:
-        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published) or
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published).
-        key: the Zenoh key to put on.
-        payload: encoded JSON.
-        stamp_ns: the message's own stamp (MCAP ``publish_time``).
-        robot: the robot concerned, if any.
-        map_id: for ``need_map``.
-        status: for ``pose``: the pose status.
-        received_ns: for ``pose``: when the scan it answers was received.
-    """
-
-    kind: OutKind
-    key: str
-    payload: bytes
-    stamp_ns: int
-    robot: str | None = None
-    map_id: str | None = None
-    status: str | None = None
-    received_ns: int | None = None
 
 
 @dataclass
@@ -106,6 +79,7 @@ class _Robot:
     start_stamp: int = 0  # stamp of the initial pose
     last_pose: bytes | None = None
     last_status: str = ""  # of the last pose: a lost robot's next updates search wide
+    fresh: bool = False  # a new localizer (seeded) whose first update searches wide
     last_event: dict[str, int] = field(default_factory=dict)
 
 
@@ -116,14 +90,20 @@ class FleetEngine:
         keys: the key layout.
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
+        limits: what is accepted beyond the schema (:mod:`service.guard`).
     """
 
     def __init__(
-        self, keys: Keys, config: LocalizerConfig, event_interval_ns: int = 1_000_000_000
+        self,
+        keys: Keys,
+        config: LocalizerConfig,
+        event_interval_ns: int = 1_000_000_000,
+        limits: Limits | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
+        self.limits = limits or Limits()
         self._maps: dict[str, _MapVersions] = {}
         self._maps_lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
@@ -164,14 +144,22 @@ class FleetEngine:
         Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
         are. Call it while none of the robot's inputs is being handled.
         """
-        if "relocalize" in kinds:
+        if "relocalize" in kinds or "initialpose" in kinds:
             return True
         r = self._robots.get(robot_id)
         if r is None:
             return False
-        if r.pending is not None and r.pending.kind == "relocalize":
-            return True
-        return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
+        if r.pending is not None:
+            return True  # applied at the next input: its first update searches wide
+        return (
+            r.fresh
+            or r.last_status == "lost"
+            or (r.localizer is not None and r.localizer.relocalizing)
+        )
+
+    def forget(self, robot_id: str) -> None:
+        """Drop everything held for a robot (evicted after it sent nothing for long)."""
+        self._robots.pop(robot_id, None)
 
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
@@ -186,8 +174,20 @@ class FleetEngine:
         message: LaserScan | Odometry | InitialPose | Relocalize,
         received_ns: int,
     ) -> list[Outbound]:
-        """Apply one input of one robot and return what to publish."""
-        robot = self._robot(robot_id)
+        """Apply one input of one robot and return what to publish.
+
+        An input over a limit (:func:`service.guard.check_input`) changes nothing and gives an
+        Event ``invalid_message``; an update that raises is undone (the robot's state is as
+        before the input) and gives an Event ``internal_error``.
+        """
+        return guarded(self, self._robot(robot_id), message, received_ns)
+
+    def _handle(
+        self,
+        robot: _Robot,
+        message: LaserScan | Odometry | InitialPose | Relocalize,
+        received_ns: int,
+    ) -> list[Outbound]:
         if isinstance(message, Odometry):
             self._add_odometry(robot, message)
             return []
@@ -283,6 +283,7 @@ class FleetEngine:
                 robot.localizer.set_map(world)
         else:
             robot.localizer = Localizer(world, req.pose, self.config, seed=robot.seed)
+            robot.fresh = True
             if req.kind == "initialpose" or robot.anchor is None:
                 robot.anchor = req.anchor
                 robot.start_stamp = req.stamp_ns
@@ -290,7 +291,7 @@ class FleetEngine:
         if req.kind == "initialpose":
             robot.episode = None
             return []
-        robot.localizer.relocalize(req.region)
+        robot.localizer.relocalize(region_on(req.region, world))
         robot.episode = Episode(f"requested on {req.describe()}")
         return self._events(robot, received_ns, key, robot.episode.start())
 
@@ -311,6 +312,16 @@ class FleetEngine:
         key = self.keys.robot(robot.robot_id, "scan")
         applied = self._apply(robot, received_ns)
         skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        if robot.map_id is None and robot.pending is not None:
+            return skipped + self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
+            )
         if robot.map_id is None:
             return skipped + self._event(
                 robot,
@@ -318,7 +329,8 @@ class FleetEngine:
                 "warning",
                 EventCode.NOT_INITIALIZED,
                 key,
-                "scan before an initial pose; publish an InitialPose first",
+                "scan before an initial pose; publish an InitialPose first (`rlutf "
+                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
             )
         if self._world_for(robot, received_ns) is None or robot.localizer is None:
             return skipped + self._event(
@@ -342,15 +354,10 @@ class FleetEngine:
             motion = relative(robot.anchor, odom)
         if odom is not None:
             robot.anchor = odom
-        scan = Scan.create(
-            np.array(msg.ranges, dtype=np.float64),  # None (no return) becomes NaN
-            msg.angle_min,
-            msg.angle_increment,
-            msg.range_min,
-            msg.range_max,
-            (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
-        )
+        # Ranges no wall of the map can be at are no return: bounded work before any search.
+        scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
+        robot.fresh = False
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (
@@ -375,9 +382,7 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 pose_key,
-                f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
-                f"{self.config.fit_distance:g} m of the map at the best pose (at least "
-                f"{100 * self.config.min_fit:.0f} % needed); "
+                _unfit(result, self.config.fit_distance, self.config.min_fit)
                 + (
                     "relocalizing on the whole map"
                     if result.relocalizing
@@ -460,3 +465,22 @@ class FleetEngine:
                 "event", self.keys.robot_events(robot.robot_id), encode(ev), now_ns, robot.robot_id
             )
         ]
+
+
+def _unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
+    """Why a pose is lost, with the share of the returns that fit and the share needed."""
+    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
+    fit = result.fit if math.isfinite(result.fit) else 0.0
+    digits = 0  # enough digits that the two shares never read the same
+    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
+        digits += 1
+    shares = (
+        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
+        f"the best pose, under the {100 * needed:.{digits}f} % needed"
+    )
+    if needed > min_fit:
+        return (
+            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
+            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
+        )
+    return f"the scan does not fit the map: {shares}; "

@@ -2,8 +2,9 @@
 
 A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
 it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
-[(kind, payload, received_ns), ...])``, ``("stop",)``, or ``("many", [those])``; the worker
-answers each batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
+[(kind, payload, received_ns), ...])``, ``("forget", robot)``, ``("stop",)``, or ``("many",
+[those])``; the worker says ``("ready",)`` once its kernels are compiled or loaded, answers each
+batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from rlutf.map import Map as World
 from rlutf.warmup import warm_up
 from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import MODELS, InputKind, Keys, Message
 from service.live.memory import HeapTrimmer
 
@@ -75,7 +77,9 @@ def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Out
 
 
 def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
-    if msg[0] == "map":
+    if msg[0] == "forget":
+        engine.forget(msg[1])
+    elif msg[0] == "map":
         _, map_id, version, geometry_or_world, received_ns = msg
         w = (
             geometry_or_world
@@ -99,7 +103,12 @@ def tune_gc() -> None:
 
 
 def worker_main(
-    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
+    conn: Connection,
+    prefix: str,
+    config: LocalizerConfig,
+    interval: int,
+    threads: int,
+    limits: Limits | None = None,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
@@ -114,10 +123,11 @@ def worker_main(
     thread hand-off per scan.
     """
     warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval)
+    engine = FleetEngine(Keys(prefix), config, interval, limits)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
+    send(conn, ("ready",))  # the kernels are compiled or loaded: this process can localize
 
     def answer(msg: tuple[Any, ...]) -> None:
         try:
@@ -150,7 +160,7 @@ def worker_main(
                     slow.shutdown(wait=True)
                     answer(("stopped",))
                     return
-                if kind == "map":
+                if kind in ("map", "forget"):
                     apply_control(engine, item)
                     continue
                 _, robot, batch = item

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import heapq
 import io
+import time
 from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +18,7 @@ from typing import IO, Any, NamedTuple
 
 from mcap.reader import SeekingReader
 
-from service.logs.mcapfile import CONFIG_METADATA, Record, config_from_metadata
+from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -30,15 +31,60 @@ class NotALog(LogError):
     """The file is missing or is not an MCAP file at all."""
 
 
+class UnreadableConfig(LogError):
+    """The log's ``rlutf.config`` record is not a JSON object: a replay cannot trust it."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(
+            f"{path}: its rlutf.config record (the configuration it was recorded with) is "
+            f"unreadable: {detail}. A replay on other settings would not be an audit; give the "
+            "configuration with --settings FILE (or --set KEY=VALUE) to replay it anyway"
+        )
+        self.path = path
+
+
 class DamagedLog(LogError):
     """An MCAP file cut short or corrupted: ``rlutf log recover`` can salvage it."""
 
     def __init__(self, path: Path, detail: str) -> None:
         super().__init__(
-            f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
+            part_message(path)
+            if path.name.endswith(".mcap.part")
+            else f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
             f"short); salvage its complete chunks with: rlutf log recover {path} FIXED.mcap"
         )
         self.path = path
+
+
+#: A ``.mcap.part`` modified this recently is taken to be still recorded, seconds.
+RECENT_S = 60.0
+
+
+def part_message(path: Path, now: float | None = None) -> str:
+    """What a ``.mcap.part`` file is and how to read it now.
+
+    The recorder writes a log as ``NAME.mcap.part`` and renames it ``NAME.mcap`` when it is
+    finished (rotation or a stop); until then it has no summary, and its last chunk may be
+    half-written. Its complete chunks (flushed at least every second) can be copied out.
+    """
+    try:
+        age = (time.time() if now is None else now) - path.stat().st_mtime
+    except OSError:
+        age = None
+    state = (
+        f"is being recorded now (last written {age:.0f} s ago)"
+        if age is not None and age < RECENT_S
+        else "was left unfinished (its recorder crashed or was killed)"
+        if age is not None
+        else "is unfinished"
+    )
+    final = path.name.removesuffix(".part")
+    return (
+        f"{path}: this log {state}: a .mcap.part file has no index until the service finishes "
+        f"it (at rotation, record_max_seconds, or when it stops) and renames it {final}. "
+        f"To read it now, copy its complete chunks: rlutf log recover {path} COPY.mcap "
+        "(the file being recorded is not touched), then use COPY.mcap"
+    )
 
 
 class ChannelInfo(NamedTuple):
@@ -193,11 +239,23 @@ class LogFile:
             raise DamagedLog(self.path, f"unreadable metadata ({type(err).__name__})") from err
 
     def config(self) -> dict[str, Any] | None:
-        """The last ``rlutf.config`` stored, if any."""
+        """The last ``rlutf.config`` stored, if any.
+
+        Raises:
+            UnreadableConfig: a ``rlutf.config`` record is there but is not a JSON object.
+        """
         found = None
         for name, data in self.metadata():
             if name == CONFIG_METADATA:
-                found = config_from_metadata(data) or found
+                config = config_from_metadata(data)
+                if config is None:
+                    text = str(data.get(CONFIG_KEY, ""))
+                    raise UnreadableConfig(
+                        self.path,
+                        f"{CONFIG_KEY!r} is not a JSON object"
+                        + (f" (it begins {text[:40]!r})" if text else " (it is missing)"),
+                    )
+                found = config
         return found
 
     def messages(self, schema_names: Collection[str] | None = None) -> Iterator[Record]:

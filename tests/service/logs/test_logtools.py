@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 
 import pytest
@@ -132,8 +134,9 @@ def test_corrupt_chunk_is_reported_and_skipped_by_recover(
     code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
     assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
     assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.part").exists()
-    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
-    assert code == 0 and "skipped 1 damaged chunks" in err
+    code, out, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "skipped 1 damaged chunk(s)" in err
+    assert "read to its end" in out and "nothing was missing" not in out
     original = read_all(log)
     got = read_all(tmp_path / "fixed.mcap")
     assert 0 < len(original) - len(got) < len(original) // 10
@@ -145,3 +148,112 @@ def test_recover_refuses_to_overwrite_its_input(
 ) -> None:
     code, _, err = _run(["log", "recover", str(log), str(log)], capsys)
     assert code == 2 and "must not be the input" in err
+
+
+def _middle_chunk(log: Path) -> tuple[int, int]:
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 4
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    return chunk.chunk_start_offset, chunk.chunk_length
+
+
+@pytest.mark.parametrize("wrong", [1, 1000, 2**40])
+def test_recover_salvages_every_intact_chunk_past_a_corrupted_chunk_length(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], wrong: int
+) -> None:
+    # Issue 19: one corrupted chunk length made recover keep only the first half of the file.
+    start, _ = _middle_chunk(log)
+    data = bytearray(log.read_bytes())
+    field = slice(start + 1, start + 9)
+    data[field] = (int.from_bytes(data[field], "little") + wrong).to_bytes(8, "little")
+    bad = tmp_path / "badlength.mcap"
+    bad.write_bytes(bytes(data))
+    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "unreadable stretch" in err, err
+    original = read_all(log)
+    got = read_all(tmp_path / "fixed.mcap")
+    assert set(got) <= set(original)
+    lost = len(original) - len(got)
+    assert 0 <= lost < len(original) // 10, "at most the damaged chunk is lost"
+    assert got[-1] == original[-1], "the chunks after the damage are salvaged"
+    with LogFile(tmp_path / "fixed.mcap") as lf:
+        assert lf.config() == replay([log]).config.settings
+
+
+def test_recover_drops_a_duplicated_chunk(log: Path, tmp_path: Path) -> None:
+    start, length = _middle_chunk(log)
+    data = log.read_bytes()
+    doubled = tmp_path / "doubled.mcap"
+    doubled.write_bytes(
+        data[: start + length] + data[start : start + length] + data[start + length :]
+    )
+    report = recover(doubled, tmp_path / "fixed.mcap")
+    assert report.duplicate_chunks == 1 and report.bad_chunks == 0
+    assert read_all(tmp_path / "fixed.mcap") == read_all(log)
+
+
+def test_a_config_record_that_is_not_json_stops_replay_unless_settings_are_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    from mcap.writer import Writer
+
+    from service.logs.mcapread import UnreadableConfig
+
+    bad = tmp_path / "badconfig.mcap"
+    with open(bad, "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("rlutf.config", {"json": "{prefix: rlutf"})
+        w.finish()
+    with pytest.raises(UnreadableConfig, match="not a JSON object"):
+        replay([bad])
+    code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
+    assert code == 2 and "rlutf.config" in err and "--settings" in err and "Traceback" not in err
+    result = replay([bad], assignments=["prefix=rlutf"])
+    assert result.config.prefix == "rlutf"
+    assert any("rlutf.config" in r.getMessage() for r in caplog.records)
+
+
+def test_a_log_being_recorded_says_so_and_how_to_read_it_now(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = McapRecorder(tmp_path / "rec", chunk_size=2048, flush_interval_s=0.05)
+    rec.set_config(CONFIG)
+    inputs = simulated_inputs(steps=12)
+    try:
+        for r in inputs:
+            rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+        (part,) = _wait_for_part(tmp_path / "rec", rec)
+        code, _, err = _run(["log", "info", str(part)], capsys)
+        assert code == 2 and "Traceback" not in err
+        assert "is being recorded now" in err and "incomplete or damaged" not in err
+        assert f"rlutf log recover {part} COPY.mcap" in err
+        # what it says works while the recorder still writes: a copy of the complete chunks
+        copy = tmp_path / "copy.mcap"
+        code, _, _ = _run(["log", "recover", str(part), str(copy)], capsys)
+        assert code == 0 and part.exists()
+        code, out, _ = _run(["log", "info", str(copy)], capsys)
+        assert code == 0 and "rlutf.LaserScan" in out
+        copied = [r.payload for r in read_all(copy) if r.schema_name.startswith("rlutf.")]
+        assert copied and copied == [r.payload for r in inputs][: len(copied)]
+    finally:
+        rec.close()
+    # an unfinished file nobody writes any more (a crash) is told apart by its age
+    left = tmp_path / "left.mcap.part"
+    left.write_bytes(part.with_suffix("").read_bytes()[:-100])  # the finished file, cut short
+    old = left.stat().st_mtime - 3600
+    os.utime(left, (old, old))
+    code, _, err = _run(["log", "info", str(left)], capsys)
+    assert code == 2 and "was left unfinished" in err and "rlutf log recover" in err
+
+
+def _wait_for_part(folder: Path, rec: McapRecorder, timeout: float = 10.0) -> list[Path]:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        parts = list(folder.glob("*.mcap.part"))
+        if parts and rec.queued == 0 and parts[0].stat().st_size > 10_000:
+            time.sleep(0.2)  # a flush after the last message
+            return parts
+        time.sleep(0.05)
+    raise AssertionError(f"no .mcap.part in {folder}")
