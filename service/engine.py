@@ -42,6 +42,7 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.keys import Keys
+from service.prepared import PreparedMap, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
@@ -82,9 +83,9 @@ class Outbound:
 class _MapVersions:
     received: list[int] = field(default_factory=list)
     versions: list[int] = field(default_factory=list)
-    worlds: list[World] = field(default_factory=list)
+    worlds: list[PreparedMap] = field(default_factory=list)
 
-    def at(self, received_ns: int) -> tuple[int, World] | None:
+    def at(self, received_ns: int) -> tuple[int, PreparedMap] | None:
         i = bisect.bisect_right(self.received, received_ns) - 1
         if i < 0:
             return None
@@ -129,22 +130,36 @@ class FleetEngine:
         self._robots: dict[str, _Robot] = {}
 
     # ----------------------------------------------------------------------------- maps
-    def register_map(self, map_id: str, version: int, world: World, received_ns: int) -> None:
-        """Make a map version available to inputs received at or after ``received_ns``."""
+    def register_map(self, map_id: str, version: int, world: WorldSource, received_ns: int) -> None:
+        """Make a map version available to inputs received at or after ``received_ns``.
+
+        ``world`` may be a function that builds the map: it is built (and indexed) by the first
+        input that needs it, not here, so that registering a map costs nothing.
+        """
+        prepared = PreparedMap(world, self.config)
         with self._maps_lock:
             book = self._maps.setdefault(map_id, _MapVersions())
             if book.versions and version <= book.versions[-1]:
                 return
             book.received.append(received_ns)
             book.versions.append(version)
-            book.worlds.append(world)
+            book.worlds.append(prepared)
             if len(book.worlds) > _MAP_VERSIONS_KEPT:
                 del book.received[0], book.versions[0], book.worlds[0]
 
     def _map_at(self, map_id: str, received_ns: int) -> tuple[int, World] | None:
         with self._maps_lock:
             book = self._maps.get(map_id)
-            return book.at(received_ns) if book else None
+            found = book.at(received_ns) if book else None
+        if found is None:
+            return None
+        return found[0], found[1].world()  # built by the first input that needs it
+
+    def _map_unready(self, map_id: str | None) -> bool:
+        """Whether the newest version of a map is registered but not built yet."""
+        with self._maps_lock:
+            book = self._maps.get(map_id) if map_id is not None else None
+            return book is not None and not book.worlds[-1].ready
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -160,16 +175,23 @@ class FleetEngine:
     def expects_long_update(self, robot_id: str, kinds: list[str]) -> bool:
         """Whether the robot's next inputs (of these kinds) may take long to handle.
 
-        True while it relocalizes or is lost (its updates search the map or widely), and for a
-        Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
-        are. Call it while none of the robot's inputs is being handled.
+        True while it relocalizes or is lost (its updates search the map or widely), for a
+        Relocalize, for an InitialPose (its map may be new to this process), and while the
+        newest version of its map (or of the map its request waits for) is not built yet: the
+        first update on a map builds its index. Only a hint for scheduling: it changes when
+        outputs come, never what they are. Call it while none of the robot's inputs is being
+        handled.
         """
-        if "relocalize" in kinds:
+        if "relocalize" in kinds or "initialpose" in kinds:
             return True
         r = self._robots.get(robot_id)
         if r is None:
             return False
-        if r.pending is not None and r.pending.kind == "relocalize":
+        if r.pending is not None and (
+            r.pending.kind == "relocalize" or self._map_unready(r.pending.map_id)
+        ):
+            return True
+        if self._map_unready(r.map_id):
             return True
         return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
 

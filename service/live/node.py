@@ -54,7 +54,7 @@ from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
 from service.live.stats import Stats
 from service.logs.recording import NullRecorder, Recorder
-from service.maps.book import MapBook
+from service.maps.book import Held, MapBook
 from service.maps.store import FileMapStore, MapStorage
 from service.ros2.frontdoor import Ros2FrontDoor
 
@@ -100,7 +100,7 @@ class LocalizationService:
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
-        self.maps = MapBook(settings.max_payload_bytes)
+        self.maps = MapBook(settings.max_map_bytes, settings.map_limits(), held=self._store_holds)
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}
@@ -192,10 +192,11 @@ class LocalizationService:
                 session,
                 self.keys,
                 FileMapStore(s.store_dir),
-                s.max_payload_bytes,
+                s.max_map_bytes,
                 on_error=lambda key, msg: self._global_event(
                     "error", EventCode.INVALID_MAP, key, msg
                 ),
+                limits=s.map_limits(),
             )
         self.mapfeed.start(session)
         self._declared += [
@@ -469,6 +470,10 @@ class LocalizationService:
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
             extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
         return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
+
+    def _store_holds(self, map_id: str) -> Held | None:
+        """What the embedded store holds for a map (MapBook's version rule consults it)."""
+        return self._storage.held(map_id) if self._storage is not None else None
 
     def maps_held(self) -> list[str]:
         """Ids of the maps loaded."""

@@ -163,7 +163,7 @@ class _Run:
         self.drops = drops
         self.writer = writer
         self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
-        self.book = MapBook(cfg.max_payload_bytes)
+        self.book = MapBook(cfg.max_map_bytes, cfg.map_limits)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
 
     def handle(self, rec: Record) -> None:

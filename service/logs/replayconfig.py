@@ -21,7 +21,13 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from rlutf.localizer import LocalizerConfig
+from rlutf.map import MapLimits
 from service.config import Settings
+
+_DEFAULT_LIMITS = MapLimits(
+    Settings.model_fields["max_map_area"].default,
+    Settings.model_fields["max_map_vertices"].default,
+)
 
 
 class ReplayConfigError(ValueError):
@@ -36,8 +42,11 @@ class ReplayConfig:
         prefix: key prefix of the outputs.
         localizer: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
-        max_payload_bytes: largest accepted payload.
+        max_payload_bytes: largest accepted payload of a robot's message.
         settings: the merged configuration, stored as ``rlutf.config`` in the output.
+        max_map_bytes: largest accepted Map payload (the live service's ``max_map_bytes``).
+        map_limits: extent and vertex limits of a map, as live, so that an audit reproduces
+            which maps were refused.
     """
 
     prefix: str
@@ -45,6 +54,8 @@ class ReplayConfig:
     event_interval_ns: int
     max_payload_bytes: int
     settings: dict[str, Any]
+    max_map_bytes: int = Settings.model_fields["max_map_bytes"].default
+    map_limits: MapLimits = _DEFAULT_LIMITS
 
 
 def _default(name: str) -> Any:
@@ -57,6 +68,9 @@ def default_settings(prefix: str | None) -> dict[str, Any]:
         "prefix": prefix or _default("prefix"),
         "event_interval_s": _default("event_interval_s"),
         "max_payload_bytes": _default("max_payload_bytes"),
+        "max_map_bytes": _default("max_map_bytes"),
+        "max_map_area": _default("max_map_area"),
+        "max_map_vertices": _default("max_map_vertices"),
         "localizer": asdict(LocalizerConfig()),
     }
 
@@ -151,9 +165,13 @@ def resolve(
         localizer = TypeAdapter(LocalizerConfig).validate_python(loc)
         interval = float(merged["event_interval_s"])
         max_bytes = int(merged["max_payload_bytes"])
+        max_map_bytes = int(merged["max_map_bytes"])
+        limits = MapLimits(float(merged["max_map_area"]), int(merged["max_map_vertices"]))
     except (ValidationError, TypeError, ValueError) as err:
         raise ReplayConfigError(f"invalid configuration: {err}") from err
     prefix = merged.get("prefix")
     if not isinstance(prefix, str) or not prefix:
         raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")
-    return ReplayConfig(prefix, localizer, int(interval * 1e9), max_bytes, merged)
+    return ReplayConfig(
+        prefix, localizer, int(interval * 1e9), max_bytes, merged, max_map_bytes, limits
+    )

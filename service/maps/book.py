@@ -1,16 +1,65 @@
-"""Validation and versioning of maps as the service receives them."""
+"""Validation and versioning of maps as the service receives them.
+
+One rule decides what a put of a map means, in the store and in every service (WIRE.md v1.2,
+:func:`put_verdict`): a newer version replaces the map; the same version with the same content
+is an echo and changes nothing; an older version, or the same version with other content, is a
+conflict: it changes nothing anywhere and is reported (``map_version_conflict``). Content is
+compared on the canonical encoding of the message, so whitespace and key order do not count.
+"""
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 from rlutf.errors import MapError
 from rlutf.map import Map as World
-from schemas import Map, SchemaError, decode
+from rlutf.map import MapLimits
+from schemas import Map, SchemaError, decode, encode
+
+Verdict = Literal["new", "echo", "conflict"]
+Held = tuple[int, str]
+"""A map version held and the digest of its content (:func:`content_digest`)."""
 
 
 class MapRejected(ValueError):
     """A map payload that cannot be used; the message says why."""
+
+
+class VersionConflict(MapRejected):
+    """A put of an older version, or of the held version with other content.
+
+    Attributes:
+        map_id: the map.
+        version: the version put.
+        held: the version held.
+    """
+
+    def __init__(self, map_id: str, version: int, held: int) -> None:
+        self.map_id = map_id
+        self.version = version
+        self.held = held
+        what = "an older version than" if version < held else "other content than"
+        super().__init__(
+            f"map {map_id!r}: version {version} put, {what} the held version {held}; "
+            f"nothing changed (put version {held + 1} or later: rlutf map put --version next)"
+        )
+
+
+def content_digest(msg: Map) -> str:
+    """SHA-256 of the message's canonical encoding: equal maps, equal digests."""
+    return hashlib.sha256(encode(msg)).hexdigest()
+
+
+def put_verdict(held: Held | None, version: int, digest: str) -> Verdict:
+    """What a put of ``version`` with content ``digest`` means when ``held`` is held."""
+    if held is None or version > held[0]:
+        return "new"
+    if version == held[0] and digest == held[1]:
+        return "echo"
+    return "conflict"
 
 
 @dataclass(frozen=True)
@@ -21,8 +70,9 @@ class LoadedMap:
         map_id: its id.
         version: its version.
         payload: the wire payload as received.
-        world: the algorithm's map.
+        world: the algorithm's map (validated; its index is made where it is first used).
         received_ns: when the service accepted it.
+        digest: :func:`content_digest` of the message.
     """
 
     map_id: str
@@ -30,10 +80,23 @@ class LoadedMap:
     payload: bytes
     world: World
     received_ns: int
+    digest: str = ""
 
 
-def load_map(payload: bytes, *, expected_id: str | None, max_bytes: int) -> tuple[Map, World]:
-    """Decode and validate a map payload (schema, then geometry).
+def load_map(
+    payload: bytes,
+    *,
+    expected_id: str | None,
+    max_bytes: int,
+    limits: MapLimits | None = None,
+) -> tuple[Map, World]:
+    """Decode and validate a map payload (size, schema, extent and vertex count, geometry).
+
+    Args:
+        payload: the Map message.
+        expected_id: the id of the key it came on.
+        max_bytes: the maps' size limit (``max_map_bytes``), bytes.
+        limits: checked on the positions before the geometry is built.
 
     Raises:
         MapRejected: with a message naming the field and the problem.
@@ -45,17 +108,32 @@ def load_map(payload: bytes, *, expected_id: str | None, max_bytes: int) -> tupl
     if expected_id is not None and msg.map_id != expected_id:
         raise MapRejected(f"map_id: {msg.map_id!r} does not match the key's id {expected_id!r}")
     try:
-        world = World.from_geojson(msg.geometry.model_dump(mode="python"))
+        world = World.from_geojson(msg.geometry.model_dump(mode="python"), limits=limits)
     except MapError as err:
         raise MapRejected(f"geometry.{err}") from err
     return msg, world
 
 
 class MapBook:
-    """The newest valid version of every map the service has seen."""
+    """The newest valid version of every map the service has seen.
 
-    def __init__(self, max_bytes: int) -> None:
+    Args:
+        max_bytes: the maps' size limit, bytes.
+        limits: extent and vertex limits of a map.
+        held: what the map store holds for a map this book does not hold yet (the embedded
+            store's :meth:`~service.maps.store.MapStorage.held`), so that the service never
+            loads a version the store refused.
+    """
+
+    def __init__(
+        self,
+        max_bytes: int,
+        limits: MapLimits | None = None,
+        held: Callable[[str], Held | None] | None = None,
+    ) -> None:
         self._max_bytes = max_bytes
+        self._limits = limits
+        self._held = held or (lambda map_id: None)
         self._maps: dict[str, LoadedMap] = {}
 
     def get(self, map_id: str) -> LoadedMap | None:
@@ -70,16 +148,42 @@ class MapBook:
         """Take a map payload received on ``{prefix}/maps/{map_id}``.
 
         Returns:
-            The loaded map when it is new or newer than the one held; ``None`` when it is not
-            newer (an echo or an old version).
+            The loaded map when it is new or newer than the one held; ``None`` for an echo of
+            the version held.
+
+        Raises:
+            VersionConflict: an older version, or the held version with other content.
+            MapRejected: the payload is invalid.
+        """
+        return self.commit(map_id, payload, self.check(map_id, payload), received_ns)
+
+    def commit(
+        self, map_id: str, payload: bytes, checked: tuple[Map, World], received_ns: int
+    ) -> LoadedMap | None:
+        """:meth:`offer` of a payload already :meth:`check`-ed (the costly part, which the
+        service runs before it takes the dispatcher's lock).
+
+        Raises:
+            VersionConflict: an older version, or the held version with other content.
+        """
+        msg, world = checked
+        digest = content_digest(msg)
+        mine = self._maps.get(map_id)
+        held = (mine.version, mine.digest) if mine is not None else self._held(map_id)
+        verdict = put_verdict(held, msg.version, digest)
+        if verdict == "conflict":
+            assert held is not None
+            raise VersionConflict(map_id, msg.version, held[0])
+        if verdict == "echo" and mine is not None:
+            return None
+        loaded = LoadedMap(map_id, msg.version, bytes(payload), world, received_ns, digest)
+        self._maps[map_id] = loaded
+        return loaded
+
+    def check(self, map_id: str, payload: bytes) -> tuple[Map, World]:
+        """Validate a payload for ``map_id`` with this book's limits (no state changes).
 
         Raises:
             MapRejected: the payload is invalid.
         """
-        msg, world = load_map(payload, expected_id=map_id, max_bytes=self._max_bytes)
-        held = self._maps.get(map_id)
-        if held is not None and msg.version <= held.version:
-            return None
-        loaded = LoadedMap(map_id, msg.version, bytes(payload), world, received_ns)
-        self._maps[map_id] = loaded
-        return loaded
+        return load_map(payload, expected_id=map_id, max_bytes=self._max_bytes, limits=self._limits)
