@@ -250,7 +250,7 @@ def square_map(map_id: str, side: float) -> bytes:
     )
 
 
-def wavy_room(vertices: int, radius: float = 20.0) -> dict[str, Any]:
+def wavy_room(vertices: int, radius: float = 6.0) -> dict[str, Any]:
     """A round room whose wall ripples (5 cm), drawn with ``vertices`` vertices (GeoJSON)."""
     t = np.linspace(0.0, 2.0 * math.pi, vertices, endpoint=False)
     r = radius + 0.05 * np.sin(t * 200.0)

@@ -31,8 +31,14 @@ def distance_field(
                 px = fx0 + (c + 0.5) * resolution - ax
                 s = (px * ex + py * ey) / ee if ee > 0.0 else 0.0
                 s = min(max(s, 0.0), 1.0)
-                d = math.hypot(px - s * ex, py - s * ey)
-                field[r, c] = min(field[r, c], d)
+                qx = px - s * ex
+                qy = py - s * ey
+                # Most cells of a short wall's box are nearer another wall already: skip the
+                # square root there (the margin keeps the result bit for bit what it was).
+                cur = float(field[r, c])
+                if qx * qx + qy * qy >= cur * cur * 1.0000001 + 1e-12:
+                    continue
+                field[r, c] = min(field[r, c], math.hypot(qx, qy))
     return field
 
 

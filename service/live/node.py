@@ -197,6 +197,7 @@ class LocalizationService:
                     "error", EventCode.INVALID_MAP, key, msg
                 ),
                 limits=s.map_limits(),
+                checker=self.maps.checker,
             )
         self.mapfeed.start(session)
         self._declared += [

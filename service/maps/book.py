@@ -10,7 +10,10 @@ compared on the canonical encoding of the message, so whitespace and key order d
 from __future__ import annotations
 
 import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Literal
 
@@ -18,6 +21,13 @@ from rlutf.errors import MapError
 from rlutf.map import Map as World
 from rlutf.map import MapLimits
 from schemas import Map, SchemaError, decode, encode
+
+#: Size limit of a map a tool reads from a local file (the service's ``max_map_bytes`` applies
+#: when it is put).
+FILE_MAX_BYTES = 1 << 31
+
+#: Validations a :class:`MapChecker` remembers.
+_CHECKS_KEPT = 4
 
 Verdict = Literal["new", "echo", "conflict"]
 Held = tuple[int, str]
@@ -114,6 +124,48 @@ def load_map(
     return msg, world
 
 
+class MapChecker:
+    """Validates map payloads (:func:`load_map`) once each: the embedded store and the service's
+    map feed see the same put at once, and a map of real size takes seconds to validate.
+
+    Args:
+        max_bytes: the maps' size limit, bytes.
+        limits: extent and vertex limits of a map.
+    """
+
+    def __init__(self, max_bytes: int, limits: MapLimits | None = None) -> None:
+        self.max_bytes = max_bytes
+        self.limits = limits
+        self._lock = threading.Lock()
+        self._recent: OrderedDict[tuple[str, bytes], Future[tuple[Map, World]]] = OrderedDict()
+
+    def check(self, map_id: str, payload: bytes) -> tuple[Map, World]:
+        """The decoded message and its map; a second caller with the same payload waits for
+        the first one's answer.
+
+        Raises:
+            MapRejected: the payload is invalid.
+        """
+        key = (map_id, hashlib.sha256(payload).digest())
+        with self._lock:
+            found = self._recent.get(key)
+            mine = found is None
+            if found is None:
+                found = self._recent[key] = Future()
+                while len(self._recent) > _CHECKS_KEPT:
+                    self._recent.popitem(last=False)
+        if mine:
+            try:
+                found.set_result(
+                    load_map(
+                        payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
+                    )
+                )
+            except Exception as err:  # MapRejected, or a bug: the waiters get it too
+                found.set_exception(err)
+        return found.result()
+
+
 class MapBook:
     """The newest valid version of every map the service has seen.
 
@@ -131,8 +183,7 @@ class MapBook:
         limits: MapLimits | None = None,
         held: Callable[[str], Held | None] | None = None,
     ) -> None:
-        self._max_bytes = max_bytes
-        self._limits = limits
+        self.checker = MapChecker(max_bytes, limits)
         self._held = held or (lambda map_id: None)
         self._maps: dict[str, LoadedMap] = {}
 
@@ -186,4 +237,4 @@ class MapBook:
         Raises:
             MapRejected: the payload is invalid.
         """
-        return load_map(payload, expected_id=map_id, max_bytes=self._max_bytes, limits=self._limits)
+        return self.checker.check(map_id, payload)

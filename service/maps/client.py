@@ -13,7 +13,13 @@ import zenoh
 
 from schemas import Map, SchemaError, decode, encode, valid_id
 from service.keys import Keys
-from service.maps.book import MapRejected, content_digest, load_map, put_verdict
+from service.maps.book import (
+    FILE_MAX_BYTES,
+    MapRejected,
+    content_digest,
+    load_map,
+    put_verdict,
+)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -43,7 +49,7 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
     data["version"] = version if version is not None else data.get("version", 1)
     data.setdefault("frame_id", "map")
     try:
-        msg = decode(Map, json.dumps(data))
+        msg = decode(Map, json.dumps(data), max_bytes=FILE_MAX_BYTES)
         payload = encode(msg)
         load_map(payload, expected_id=str(mid), max_bytes=len(payload))
     except (SchemaError, MapRejected) as err:
@@ -74,7 +80,7 @@ def held_map(session: zenoh.Session, key: str, timeout: float) -> Map | None:
         if reply.ok is None:
             continue
         try:
-            return decode(Map, reply.ok.payload.to_bytes(), max_bytes=10**10)
+            return decode(Map, reply.ok.payload.to_bytes(), max_bytes=FILE_MAX_BYTES)
         except SchemaError:
             continue
     return None

@@ -25,6 +25,7 @@ from schemas import valid_id
 from service.keys import KeyError_, Keys
 from service.maps.book import (
     Held,
+    MapChecker,
     MapRejected,
     VersionConflict,
     content_digest,
@@ -132,6 +133,7 @@ class MapStorage:
         max_bytes: the maps' size limit, bytes.
         on_error: reports a bad key or a map that could not be written: ``(key, message)``.
         limits: extent and vertex limits of a map.
+        checker: validates puts (the service's, so that a put is validated once).
     """
 
     def __init__(
@@ -142,11 +144,13 @@ class MapStorage:
         max_bytes: int,
         on_error: Callable[[str, str], None] | None = None,
         limits: MapLimits | None = None,
+        checker: MapChecker | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
         self.max_bytes = max_bytes
         self.limits = limits
+        self.checker = checker or MapChecker(max_bytes, limits)
         self.on_error = on_error or (lambda key, msg: None)
         self._versions: dict[str, Held] = {}
         self._lock = threading.Lock()
@@ -198,9 +202,7 @@ class MapStorage:
                 self._versions.pop(map_id, None)
             return
         try:
-            msg, _ = load_map(
-                payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
-            )
+            msg, _ = self.checker.check(map_id, payload)
         except MapRejected:
             return  # the service's map subscriber reports it
         digest = content_digest(msg)

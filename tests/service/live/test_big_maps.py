@@ -1,0 +1,242 @@
+"""Maps of real size (issue 20) and of large extent (issue 19), on a real service over Zenoh.
+
+A warehouse of thousands of traced racks (megabytes of JSON, over the robots' message limit)
+is put with the map tool, localized on live in a worker process, recorded, and replayed to the
+same poses. A 144-byte 2 km square is refused with an Event before any work; a 40,000-vertex
+room is built in the worker of the robot that needs it while the other robots keep their poses.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from bench.bigmap import aisle_y, warehouse
+from bench.mapload import PeakRss, SteadyFleet, square_map, wavy_room
+from rlutf.map import Map as World
+from rlutf.sim import LidarModel, simulate_scan
+from schemas import InitialPose, LaserScan, Map, Odometry, encode
+from service.config import Settings
+from service.live.node import LocalizationService
+from service.live.sessions import client_config, free_port
+from service.logs.mcaplog import McapRecorder
+from service.logs.replay import replay
+from service.maps.client import put_map
+
+pytestmark = pytest.mark.integration
+JSON = zenoh.Encoding.APPLICATION_JSON
+RACKS = (50, 40)  # 2,000 racks
+
+
+def _wait(pred: Any, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return bool(pred())
+
+
+def _service(folder: Path, workers: int, record: bool = False) -> LocalizationService:
+    port = free_port()
+    settings = Settings(
+        listen=[f"tcp/127.0.0.1:{port}"],
+        store_dir=folder / "store",
+        record_dir=folder / "logs",
+        no_record=not record,
+        workers=workers,
+        instance=f"big-{port}",
+        event_interval_s=0.0,
+    )
+    recorder = McapRecorder(settings.record_dir, instance=settings.instance) if record else None
+    return LocalizationService(settings, recorder=recorder).start()
+
+
+def _endpoint(service: LocalizationService) -> str:
+    return service.settings.listen[0]
+
+
+def _events(session: zenoh.Session) -> tuple[list[dict[str, Any]], Any]:
+    seen: list[dict[str, Any]] = []
+    sub = session.declare_subscriber(
+        "rlutf/events", lambda s: seen.append(json.loads(s.payload.to_bytes()))
+    )
+    return seen, sub
+
+
+def _drive(
+    session: zenoh.Session, robot: str, map_id: str, world: World, truth: np.ndarray
+) -> list[dict[str, Any]]:
+    """InitialPose at the first pose, then odometry and a scan per pose at 10 Hz."""
+    poses: list[dict[str, Any]] = []
+    sub = session.declare_subscriber(
+        f"rlutf/robots/{robot}/pose", lambda s: poses.append(json.loads(s.payload.to_bytes()))
+    )
+    rng = np.random.default_rng(5)
+    t0 = time.time_ns()
+
+    def odom(k: int) -> None:
+        x, y, th = (float(v) for v in truth[k])
+        msg = Odometry(stamp_ns=t0 + k * 100_000_000, x=x, y=y, theta=th)
+        session.put(f"rlutf/robots/{robot}/odom", encode(msg), encoding=JSON)
+
+    odom(0)
+    x, y, th = (float(v) for v in truth[0])
+    init = InitialPose(stamp_ns=t0, map_id=map_id, x=x, y=y, theta=th)
+    session.put(f"rlutf/robots/{robot}/initialpose", encode(init), encoding=JSON)
+    for k in range(1, len(truth)):
+        s = simulate_scan(world, truth[k], LidarModel(beams=360), rng)
+        scan = LaserScan(
+            stamp_ns=t0 + k * 100_000_000,
+            angle_min=s.angle_min,
+            angle_increment=s.angle_increment,
+            range_min=s.range_min,
+            range_max=s.range_max,
+            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
+        )
+        odom(k)
+        session.put(f"rlutf/robots/{robot}/scan", encode(scan), encoding=JSON)
+        time.sleep(0.1)
+    last = t0 + (len(truth) - 1) * 100_000_000
+    _wait(lambda: any(p["stamp_ns"] == last for p in poses), 60.0)
+    sub.undeclare()
+    return poses
+
+
+def test_a_warehouse_of_thousands_of_racks_live_and_in_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    geometry = warehouse(*RACKS)
+    payload = encode(Map(map_id="warehouse", version=1, geometry=geometry))
+    assert len(payload) > 3 * Settings().max_payload_bytes  # several MB: over a robot's limit
+    assert len(geometry["coordinates"]) - 1 == RACKS[0] * RACKS[1]
+    world = World.from_geojson(geometry)
+    service = _service(tmp_path, workers=1, record=True)
+    try:
+        with zenoh.open(client_config(_endpoint(service))) as client:
+            events, sub = _events(client)
+            path = tmp_path / "warehouse.json"
+            path.write_bytes(payload)
+            assert put_map(client, "rlutf", path, None, "next", timeout=30.0) == 0
+            assert "stored" in capsys.readouterr().out
+            assert (tmp_path / "store" / "warehouse.json").read_bytes() == payload
+            assert _wait(lambda: service.maps.get("warehouse") is not None, 30.0)
+            assert not [e for e in events if e["code"] in ("invalid_map", "invalid_message")]
+            steps = 40
+            truth = np.column_stack(
+                [10.0 + 0.08 * np.arange(steps), np.full(steps, aisle_y(RACKS[1])), np.zeros(steps)]
+            )
+            poses = _drive(client, "picker", "warehouse", world, truth)
+            sub.undeclare()
+    finally:
+        service.close()
+    assert len(poses) >= steps - 5
+    last = poses[-1]
+    k = round((last["stamp_ns"] - poses[0]["stamp_ns"]) / 1e8) + 1
+    assert last["map_id"] == "warehouse" and last["status"] != "lost"
+    assert math.hypot(last["x"] - truth[k, 0], last["y"] - truth[k, 1]) < 0.05
+    # Recorded, and replay (with default settings) takes the same map to the same poses.
+    logs = sorted((tmp_path / "logs").glob("*.mcap"))
+    result = replay(logs)
+    assert result.maps["warehouse"] == payload
+    assert result.rejected == 0
+    recorded = [p.payload for p in result.recorded["picker"]]
+    assert len(recorded) == len(poses)
+    assert [p.payload for p in result.recomputed["picker"]] == recorded
+
+
+def _steady(client: zenoh.Session) -> SteadyFleet:
+    fleet = SteadyFleet(client, robots=3, seconds=30.0)
+    fleet.start()
+    time.sleep(3.0)  # localizers made, fields built
+    return fleet
+
+
+def test_a_2km_square_is_refused_before_any_work_and_stalls_no_one(tmp_path: Path) -> None:
+    service = _service(tmp_path, workers=2)
+    try:
+        with zenoh.open(client_config(_endpoint(service))) as client, PeakRss() as rss:
+            fleet = _steady(client)
+            events, sub = _events(client)
+            t0 = time.monotonic()
+            client.put("rlutf/maps/square", square_map("square", 2000.0), encoding=JSON)
+            assert _wait(lambda: any(e["code"] == "invalid_map" for e in events), 5.0)
+            refused_s = time.monotonic() - t0
+            time.sleep(3.0)
+            window = fleet.window(t0, t0 + 3.0)
+            fleet.stop()
+            sub.undeclare()
+        (event,) = [e for e in events if e["code"] == "invalid_map"]
+        assert "max_map_area" in event["message"] and "2000 m x 2000 m" in event["message"]
+        assert event["key"] == "rlutf/maps/square"
+        assert service.maps.get("square") is None
+        assert not (tmp_path / "store" / "square.json").exists()
+    finally:
+        service.close()
+    assert refused_s < 1.0
+    assert window["max_gap_s"] < 1.0, window
+    assert window["answered"] >= 0.9, window
+    assert rss.peak < 1024, f"service and test process: {rss.peak:.0f} MB"
+
+
+def test_a_40000_vertex_map_is_built_off_the_other_robots_path(tmp_path: Path) -> None:
+    room = wavy_room(40_000)
+    world = World.from_geojson(room)
+    service = _service(tmp_path, workers=2)
+    try:
+        with zenoh.open(client_config(_endpoint(service))) as client, PeakRss() as rss:
+            fleet = _steady(client)
+            events, sub = _events(client)
+            t0 = time.monotonic()
+            client.put(
+                "rlutf/maps/wavy",
+                encode(Map(map_id="wavy", version=1, geometry=room)),
+                encoding=JSON,
+            )
+            assert _wait(lambda: service.maps.get("wavy") is not None, 10.0)
+            truth = np.column_stack([0.05 * np.arange(20), np.zeros(20), np.zeros(20)])
+            poses = _drive(client, "rover", "wavy", world, truth)
+            window = fleet.window(t0, time.monotonic())
+            fleet.stop()
+            sub.undeclare()
+        assert not [e for e in events if e["code"] == "invalid_map"]
+    finally:
+        service.close()
+    assert len(poses) >= 15 and poses[-1]["status"] != "lost"
+    assert window["max_gap_s"] < 1.0, window
+    assert window["answered"] >= 0.9, window
+    assert rss.peak < 1024, f"service and test process: {rss.peak:.0f} MB"
+
+
+def test_replay_applies_the_same_limits(tmp_path: Path) -> None:
+    """An audit reproduces which maps the service refused: the limits are in the log's config."""
+    from service.logs.mcapfile import LogWriter, Record
+
+    assert Settings().max_map_bytes >= 64 * 1024 * 1024
+    assert Settings().max_payload_bytes <= 1_000_000
+    big = encode(Map(map_id="hall", version=1, geometry=warehouse(4, 4)))
+    records = [
+        Record("rlutf/maps/square", "rlutf.Map", square_map("square", 2000.0), 1, 1),
+        Record("rlutf/maps/hall", "rlutf.Map", big, 2, 2),
+    ]
+    for name, config, rejected in [
+        ("defaults", None, 1),  # the square only
+        ("tight", {"max_map_vertices": 100}, 2),  # the hall too
+        ("raised", {"max_map_area": 5e6}, 0),
+    ]:
+        path = tmp_path / f"{name}.mcap"
+        with open(path, "wb") as stream:
+            writer = LogWriter(stream)
+            if config is not None:
+                writer.write_config(config)
+            writer.write_all(records)
+            writer.finish()
+        result = replay([path])
+        assert result.rejected == rejected, name
