@@ -124,7 +124,7 @@ def test_a_warehouse_of_thousands_of_racks_live_and_in_replay(
             events, sub = _events(client)
             path = tmp_path / "warehouse.json"
             path.write_bytes(payload)
-            assert put_map(client, "rlutf", path, None, "next", timeout=30.0) == 0
+            assert put_map(client, "rlutf", path, None, "next", timeout=120.0) == 0
             assert "stored" in capsys.readouterr().out
             assert (tmp_path / "store" / "warehouse.json").read_bytes() == payload
             assert _wait(lambda: service.maps.get("warehouse") is not None, 30.0)
