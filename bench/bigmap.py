@@ -262,7 +262,7 @@ def live(payload: bytes, racks_y: int, workers: int) -> dict[str, Any]:
             fleet = SteadyFleet(session, robots=3, seconds=60.0)
             fleet.start()
             events, sub = _events(session)
-            time.sleep(10.0)  # the robots' localizers made, their map's field built
+            fleet.wait_steady()
             out["before"] = fleet.window(time.monotonic() - 5.0, time.monotonic())
             # The warehouse, with `rlutf map put` (a process of its own, as an operator's).
             path = tmp / "warehouse.json"

@@ -143,6 +143,19 @@ class SteadyFleet:
                 )
                 self.sent += 1
 
+    def wait_steady(self, timeout: float = 120.0) -> bool:
+        """Wait until every robot had a pose for each of its last 20 scans (the service's
+        workers have loaded their kernels and the robots' localizers are made)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if all(
+                len(r.put_at) > 25 and all(k in r.got_at for k in sorted(r.put_at)[-25:-5])
+                for r in self.robots
+            ):
+                return True
+            time.sleep(0.1)
+        return False
+
     def stop(self) -> None:
         """Stop driving (poses still in flight are counted for a moment)."""
         time.sleep(1.0)

@@ -15,7 +15,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from rlutf.errors import MapError
 from rlutf.map import Map as World
@@ -124,6 +124,33 @@ def load_map(
     return msg, world
 
 
+class CheckedMap(NamedTuple):
+    """A valid map payload, without its decoded message (a map of real size is millions of
+    Python objects once decoded: kept, they slowed every garbage collection of the process).
+
+    Attributes:
+        version: its version.
+        digest: :func:`content_digest` of the message.
+        world: the algorithm's map.
+    """
+
+    version: int
+    digest: str
+    world: World
+
+
+def check_map(
+    payload: bytes, *, expected_id: str | None, max_bytes: int, limits: MapLimits | None = None
+) -> CheckedMap:
+    """:func:`load_map`, keeping the version and digest of the message only.
+
+    Raises:
+        MapRejected: with a message naming the field and the problem.
+    """
+    msg, world = load_map(payload, expected_id=expected_id, max_bytes=max_bytes, limits=limits)
+    return CheckedMap(msg.version, content_digest(msg), world)
+
+
 class MapChecker:
     """Validates map payloads (:func:`load_map`) once each: the embedded store and the service's
     map feed see the same put at once, and a map of real size takes seconds to validate.
@@ -137,10 +164,10 @@ class MapChecker:
         self.max_bytes = max_bytes
         self.limits = limits
         self._lock = threading.Lock()
-        self._recent: OrderedDict[tuple[str, bytes], Future[tuple[Map, World]]] = OrderedDict()
+        self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
 
-    def check(self, map_id: str, payload: bytes) -> tuple[Map, World]:
-        """The decoded message and its map; a second caller with the same payload waits for
+    def check(self, map_id: str, payload: bytes) -> CheckedMap:
+        """The map's version, digest and map; a second caller with the same payload waits for
         the first one's answer.
 
         Raises:
@@ -157,7 +184,7 @@ class MapChecker:
         if mine:
             try:
                 found.set_result(
-                    load_map(
+                    check_map(
                         payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
                     )
                 )
@@ -209,7 +236,7 @@ class MapBook:
         return self.commit(map_id, payload, self.check(map_id, payload), received_ns)
 
     def commit(
-        self, map_id: str, payload: bytes, checked: tuple[Map, World], received_ns: int
+        self, map_id: str, payload: bytes, checked: CheckedMap, received_ns: int
     ) -> LoadedMap | None:
         """:meth:`offer` of a payload already :meth:`check`-ed (the costly part, which the
         service runs before it takes the dispatcher's lock).
@@ -217,21 +244,20 @@ class MapBook:
         Raises:
             VersionConflict: an older version, or the held version with other content.
         """
-        msg, world = checked
-        digest = content_digest(msg)
+        version, digest, world = checked
         mine = self._maps.get(map_id)
         held = (mine.version, mine.digest) if mine is not None else self._held(map_id)
-        verdict = put_verdict(held, msg.version, digest)
+        verdict = put_verdict(held, version, digest)
         if verdict == "conflict":
             assert held is not None
-            raise VersionConflict(map_id, msg.version, held[0])
+            raise VersionConflict(map_id, version, held[0])
         if verdict == "echo" and mine is not None:
             return None
-        loaded = LoadedMap(map_id, msg.version, bytes(payload), world, received_ns, digest)
+        loaded = LoadedMap(map_id, version, bytes(payload), world, received_ns, digest)
         self._maps[map_id] = loaded
         return loaded
 
-    def check(self, map_id: str, payload: bytes) -> tuple[Map, World]:
+    def check(self, map_id: str, payload: bytes) -> CheckedMap:
         """Validate a payload for ``map_id`` with this book's limits (no state changes).
 
         Raises:

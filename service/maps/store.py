@@ -28,8 +28,7 @@ from service.maps.book import (
     MapChecker,
     MapRejected,
     VersionConflict,
-    content_digest,
-    load_map,
+    check_map,
     put_verdict,
 )
 
@@ -156,8 +155,8 @@ class MapStorage:
         self._lock = threading.Lock()
         for map_id, payload in store.items():
             try:
-                msg, _ = load_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
-                self._versions[map_id] = (msg.version, content_digest(msg))
+                checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+                self._versions[map_id] = (checked.version, checked.digest)
             except MapRejected as err:
                 log.warning("stored map %s is invalid and is not served: %s", map_id, err)
         self._tasks: queue.Queue[tuple[str, str, bytes | None] | None] = queue.Queue(_QUEUED)
@@ -202,23 +201,22 @@ class MapStorage:
                 self._versions.pop(map_id, None)
             return
         try:
-            msg, _ = self.checker.check(map_id, payload)
+            version, digest, _ = self.checker.check(map_id, payload)
         except MapRejected:
             return  # the service's map subscriber reports it
-        digest = content_digest(msg)
         with self._lock:
             held = self._versions.get(map_id)
-            verdict = put_verdict(held, msg.version, digest)
+            verdict = put_verdict(held, version, digest)
             if verdict != "new":
                 if held is not None and verdict == "conflict":
-                    log.info("%s", VersionConflict(map_id, msg.version, held[0]))
+                    log.info("%s", VersionConflict(map_id, version, held[0]))
                 return
             try:
                 self.store.put(map_id, payload)
             except OSError as err:
                 self.on_error(key, f"could not store map {map_id}: {err}")
                 return
-            self._versions[map_id] = (msg.version, digest)
+            self._versions[map_id] = (version, digest)
 
     def _on_query(self, query: zenoh.Query) -> None:
         with query:
