@@ -39,7 +39,14 @@ from typing import Any
 
 import numpy as np
 
-from bench.mapload import JSON_ENCODING, PeakRss, SteadyFleet, square_map, wavy_room
+from bench.mapload import (
+    JSON_ENCODING,
+    PeakRss,
+    SteadyFleet,
+    scan_payload,
+    square_map,
+    wavy_room,
+)
 from bench.report import section_main
 
 SECTION = "Maps of real size and of large extent"
@@ -183,10 +190,9 @@ def _robot_on(session: Any, robot: str, map_id: str, world: Any, pose: np.ndarra
     scan every 0.1 s until its first pose comes; it returns the seconds that took (None:
     none in 30 s). The scan is simulated here, before any clock runs."""
     from rlutf.sim import LidarModel, simulate_scan
-    from schemas import InitialPose, LaserScan, Odometry, encode
+    from schemas import InitialPose, Odometry, encode
 
     s = simulate_scan(world, pose, LidarModel(beams=360), np.random.default_rng(1))
-    ranges = [float(r) if math.isfinite(r) else None for r in s.ranges]
     x, y, th = (float(v) for v in pose)
 
     def go() -> float | None:
@@ -203,15 +209,9 @@ def _robot_on(session: Any, robot: str, map_id: str, world: Any, pose: np.ndarra
                 st = stamp + k * 100_000_000
                 odom = encode(Odometry(stamp_ns=st, x=x, y=y, theta=th))
                 session.put(f"rlutf/robots/{robot}/odom", odom)
-                scan = LaserScan(
-                    stamp_ns=st,
-                    angle_min=s.angle_min,
-                    angle_increment=s.angle_increment,
-                    range_min=s.range_min,
-                    range_max=s.range_max,
-                    ranges=ranges,
+                session.put(
+                    f"rlutf/robots/{robot}/scan", scan_payload(s, st), encoding=JSON_ENCODING
                 )
-                session.put(f"rlutf/robots/{robot}/scan", encode(scan), encoding=JSON_ENCODING)
                 if _wait(lambda: got, 0.1) is not None:
                     return time.monotonic() - t0
             return None

@@ -23,6 +23,22 @@ RATE_HZ = 10.0
 JSON_ENCODING = "application/json"
 
 
+def scan_payload(s: Any, stamp_ns: int) -> bytes:
+    """The LaserScan payload of a simulated :class:`rlutf.scan.Scan` (no return: null)."""
+    from schemas import LaserScan, encode
+
+    return encode(
+        LaserScan(
+            stamp_ns=stamp_ns,
+            angle_min=s.angle_min,
+            angle_increment=s.angle_increment,
+            range_min=s.range_min,
+            range_max=s.range_max,
+            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
+        )
+    )
+
+
 @dataclass
 class _Robot:
     robot_id: str
@@ -53,7 +69,7 @@ class SteadyFleet:
         seed: int = 3,
     ) -> None:
         from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
-        from schemas import LaserScan, Map, Odometry, encode
+        from schemas import Map, Odometry, encode
 
         rng = np.random.default_rng(seed)
         self.session = session
@@ -68,20 +84,8 @@ class SteadyFleet:
             scans, odom = [], []
             for k in range(steps):
                 s = simulate_scan(self.world, truth[k], LidarModel(beams=180), rng)
-                ranges = [float(r) if math.isfinite(r) else None for r in s.ranges]
                 stamp = self.stamp(k)
-                scans.append(
-                    encode(
-                        LaserScan(
-                            stamp_ns=stamp,
-                            angle_min=s.angle_min,
-                            angle_increment=s.angle_increment,
-                            range_min=s.range_min,
-                            range_max=s.range_max,
-                            ranges=ranges,
-                        )
-                    )
-                )
+                scans.append(scan_payload(s, stamp))
                 p = truth[k]
                 odom.append(
                     encode(

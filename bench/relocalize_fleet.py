@@ -46,6 +46,7 @@ KIDNAPPED = "kidnapped"
 
 def _plans(robots: int, steps: int, seed: int) -> tuple[Any, dict[str, Any]]:
     """The map and, per robot, its truth and (odometry, scan) payloads per step."""
+    from bench.mapload import scan_payload
     from rlutf.sim import (
         LidarModel,
         OdometryModel,
@@ -54,7 +55,7 @@ def _plans(robots: int, steps: int, seed: int) -> tuple[Any, dict[str, Any]]:
         make_trajectory,
         simulate_scan,
     )
-    from schemas import LaserScan, Odometry, encode
+    from schemas import Odometry, encode
 
     rng = np.random.default_rng(seed)
     world = make_building(rng, width=100.0, height=60.0, rooms_x=10, rooms_y=6)
@@ -75,18 +76,6 @@ def _plans(robots: int, steps: int, seed: int) -> tuple[Any, dict[str, Any]]:
                 )
             )
         plans[rid] = (truth, msgs)
-
-    def scan_payload(s: Any, stamp: int) -> bytes:
-        return encode(
-            LaserScan(
-                stamp_ns=stamp,
-                angle_min=s.angle_min,
-                angle_increment=s.angle_increment,
-                range_min=s.range_min,
-                range_max=s.range_max,
-                ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-            )
-        )
 
     return world, {"plans": plans, "scan_payload": scan_payload}
 

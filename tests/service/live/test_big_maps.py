@@ -19,10 +19,10 @@ import pytest
 import zenoh
 
 from bench.bigmap import aisle_y, warehouse
-from bench.mapload import PeakRss, SteadyFleet, square_map, wavy_room
+from bench.mapload import PeakRss, SteadyFleet, scan_payload, square_map, wavy_room
 from rlutf.map import Map as World
 from rlutf.sim import LidarModel, simulate_scan
-from schemas import InitialPose, LaserScan, Map, Odometry, encode
+from schemas import InitialPose, Map, Odometry, encode
 from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
@@ -99,15 +99,7 @@ def _drive(
             encoding=JSON,
         )
         s = simulate_scan(world, pose, LidarModel(beams=360), rng)
-        scan = LaserScan(
-            stamp_ns=stamp,
-            angle_min=s.angle_min,
-            angle_increment=s.angle_increment,
-            range_min=s.range_min,
-            range_max=s.range_max,
-            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-        )
-        session.put(f"rlutf/robots/{robot}/scan", encode(scan), encoding=JSON)
+        session.put(f"rlutf/robots/{robot}/scan", scan_payload(s, stamp), encoding=JSON)
         time.sleep(0.1)
         return stamp
 
