@@ -72,6 +72,7 @@ class MapFeed:
     def start(self, session: zenoh.Session) -> None:
         """Start the map thread; maps are fetched on ``session``."""
         self._session = session
+        self.book.checker.start()
         self._thread = threading.Thread(target=self._run, name="rlutf-maps", daemon=True)
         self._thread.start()
 
@@ -80,6 +81,7 @@ class MapFeed:
         self._tasks.put(None)
         if self._thread is not None:
             self._thread.join(timeout)
+        self.book.checker.close()
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """Subscriber callback on ``{prefix}/maps/*``: queue the map for parsing."""

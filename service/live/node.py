@@ -100,7 +100,12 @@ class LocalizationService:
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
-        self.maps = MapBook(settings.max_map_bytes, settings.map_limits(), held=self._store_holds)
+        self.maps = MapBook(
+            settings.max_map_bytes,
+            settings.map_limits(),
+            held=self._store_holds,
+            isolated=settings.workers != 0,  # workers build maps; this process only checks them
+        )
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}

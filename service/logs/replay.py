@@ -198,6 +198,7 @@ class _Run:
             return
         self._write(rec)
         if loaded is not None:
+            assert loaded.world is not None  # checked in this process
             self.engine.register_map(
                 loaded.map_id, loaded.version, loaded.world, loaded.received_ns
             )

@@ -10,10 +10,12 @@ compared on the canonical encoding of the message, so whitespace and key order d
 from __future__ import annotations
 
 import hashlib
+import multiprocessing as mp
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -80,7 +82,9 @@ class LoadedMap:
         map_id: its id.
         version: its version.
         payload: the wire payload as received.
-        world: the algorithm's map (validated; its index is made where it is first used).
+        world: the algorithm's map (validated; its index is made where it is first used;
+            ``None`` when it was checked in another process, for worker processes that build
+            it from the payload).
         received_ns: when the service accepted it.
         digest: :func:`content_digest` of the message.
     """
@@ -88,7 +92,7 @@ class LoadedMap:
     map_id: str
     version: int
     payload: bytes
-    world: World
+    world: World | None
     received_ns: int
     digest: str = ""
 
@@ -131,12 +135,12 @@ class CheckedMap(NamedTuple):
     Attributes:
         version: its version.
         digest: :func:`content_digest` of the message.
-        world: the algorithm's map.
+        world: the algorithm's map (``None`` when it was checked in another process).
     """
 
     version: int
     digest: str
-    world: World
+    world: World | None
 
 
 def check_map(
@@ -151,6 +155,13 @@ def check_map(
     return CheckedMap(msg.version, content_digest(msg), world)
 
 
+def _check_elsewhere(
+    map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None
+) -> tuple[int, str]:
+    checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+    return checked.version, checked.digest
+
+
 class MapChecker:
     """Validates map payloads (:func:`load_map`) once each: the embedded store and the service's
     map feed see the same put at once, and a map of real size takes seconds to validate.
@@ -158,13 +169,57 @@ class MapChecker:
     Args:
         max_bytes: the maps' size limit, bytes.
         limits: extent and vertex limits of a map.
+        isolated: validate in a process of its own, which keeps no map: decoding a map holds
+            the interpreter's lock for seconds (pydantic and the JSON parser are C code that
+            does not let other threads run), which stalled every robot of a service whose
+            Zenoh callbacks share the process. For a service whose worker processes build the
+            maps, the main process never needs the map itself.
     """
 
-    def __init__(self, max_bytes: int, limits: MapLimits | None = None) -> None:
+    def __init__(
+        self, max_bytes: int, limits: MapLimits | None = None, isolated: bool = False
+    ) -> None:
         self.max_bytes = max_bytes
         self.limits = limits
+        self.isolated = isolated
+        self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
         self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
+
+    def start(self) -> None:
+        """Start the validating process now (imports take a while), if isolated."""
+        if self.isolated:
+            self._executor().submit(int)  # spawned in the background
+
+    def close(self) -> None:
+        """Stop the validating process, if any."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+            return self._pool
+
+    def _check(self, map_id: str, payload: bytes) -> CheckedMap:
+        if not self.isolated:
+            return check_map(
+                payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
+            )
+        pool = self._executor()
+        try:
+            version, digest = pool.submit(
+                _check_elsewhere, map_id, payload, self.max_bytes, self.limits
+            ).result()
+        except BrokenProcessPool as err:  # killed (out of memory?): the next map gets a new one
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            raise MapRejected(f"the process validating map {map_id!r} died: {err}") from err
+        return CheckedMap(version, digest, None)
 
     def check(self, map_id: str, payload: bytes) -> CheckedMap:
         """The map's version, digest and map; a second caller with the same payload waits for
@@ -183,11 +238,7 @@ class MapChecker:
                     self._recent.popitem(last=False)
         if mine:
             try:
-                found.set_result(
-                    check_map(
-                        payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
-                    )
-                )
+                found.set_result(self._check(map_id, payload))
             except Exception as err:  # MapRejected, or a bug: the waiters get it too
                 found.set_exception(err)
         return found.result()
@@ -202,6 +253,8 @@ class MapBook:
         held: what the map store holds for a map this book does not hold yet (the embedded
             store's :meth:`~service.maps.store.MapStorage.held`), so that the service never
             loads a version the store refused.
+        isolated: validate maps in a process of their own (:class:`MapChecker`); the maps
+            loaded then carry no :class:`~rlutf.map.Map`.
     """
 
     def __init__(
@@ -209,8 +262,9 @@ class MapBook:
         max_bytes: int,
         limits: MapLimits | None = None,
         held: Callable[[str], Held | None] | None = None,
+        isolated: bool = False,
     ) -> None:
-        self.checker = MapChecker(max_bytes, limits)
+        self.checker = MapChecker(max_bytes, limits, isolated)
         self._held = held or (lambda map_id: None)
         self._maps: dict[str, LoadedMap] = {}
 

@@ -19,7 +19,7 @@ import pytest
 import zenoh
 
 from bench.bigmap import aisle_y, warehouse
-from bench.mapload import PeakRss, SteadyFleet, scan_payload, square_map, wavy_room
+from bench.mapload import PeakRss, SteadyFleet, rss_mb, scan_payload, square_map, wavy_room
 from rlutf.map import Map as World
 from rlutf.sim import LidarModel, simulate_scan
 from schemas import InitialPose, Map, Odometry, encode
@@ -176,6 +176,7 @@ def test_a_2km_square_is_refused_before_any_work_and_stalls_no_one(tmp_path: Pat
     try:
         with zenoh.open(client_config(_endpoint(service))) as client, PeakRss() as rss:
             fleet = _steady(client)
+            baseline = rss_mb()
             events, sub = _events(client)
             t0 = time.monotonic()
             client.put("rlutf/maps/square", square_map("square", 2000.0), encoding=JSON)
@@ -195,7 +196,9 @@ def test_a_2km_square_is_refused_before_any_work_and_stalls_no_one(tmp_path: Pat
     assert refused_s < 1.0
     assert window["max_gap_s"] < 1.0, window
     assert window["answered"] >= 0.9, window
-    assert rss.peak < 1024, f"service and test process: {rss.peak:.0f} MB"
+    # This process is the service's main process and the test's; its workers and map checker
+    # are its children. The bench (bench.bigmap) measures a service alone.
+    assert rss.peak - baseline < 300, f"{baseline:.0f} MB, then up to {rss.peak:.0f} MB"
 
 
 def test_a_40000_vertex_map_is_built_off_the_other_robots_path(tmp_path: Path) -> None:
@@ -205,6 +208,7 @@ def test_a_40000_vertex_map_is_built_off_the_other_robots_path(tmp_path: Path) -
     try:
         with zenoh.open(client_config(_endpoint(service))) as client, PeakRss() as rss:
             fleet = _steady(client)
+            baseline = rss_mb()
             events, sub = _events(client)
             t0 = time.monotonic()
             client.put(
@@ -225,7 +229,9 @@ def test_a_40000_vertex_map_is_built_off_the_other_robots_path(tmp_path: Path) -
     assert poses[-1]["status"] != "lost"
     assert window["max_gap_s"] < 1.0, window
     assert window["answered"] >= 0.9, window
-    assert rss.peak < 1024, f"service and test process: {rss.peak:.0f} MB"
+    # This process is the service's main process and the test's; its workers and map checker
+    # are its children. The bench (bench.bigmap) measures a service alone.
+    assert rss.peak - baseline < 300, f"{baseline:.0f} MB, then up to {rss.peak:.0f} MB"
 
 
 def test_replay_applies_the_same_limits(tmp_path: Path) -> None:
