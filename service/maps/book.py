@@ -155,6 +155,11 @@ def check_map(
     return CheckedMap(msg.version, content_digest(msg), world)
 
 
+def _imported() -> bool:
+    """Run in the validating process at start: unpickling it imports this module there."""
+    return True
+
+
 def _check_elsewhere(
     map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None
 ) -> tuple[int, str]:
@@ -187,9 +192,10 @@ class MapChecker:
         self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
 
     def start(self) -> None:
-        """Start the validating process now (imports take a while), if isolated."""
+        """Start the validating process, if isolated, and wait until it runs (its imports take
+        a second or more: at start, not when the first map comes)."""
         if self.isolated:
-            self._executor().submit(int)  # spawned in the background
+            self._executor().submit(_imported).result()
 
     def close(self) -> None:
         """Stop the validating process, if any."""
