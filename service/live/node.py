@@ -100,11 +100,8 @@ class LocalizationService:
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
-        self.maps = MapBook(
-            settings.max_map_bytes,
-            settings.map_limits(),
-            held=self._store_holds,
-            isolated=settings.workers != 0,  # workers build maps; this process only checks them
+        self.maps = MapBook(  # with worker processes, this process only checks maps
+            settings.max_map_bytes, settings.map_limits(), self._store_holds, settings.workers != 0
         )
         self._own_session = session is None
         self._session = session
@@ -201,7 +198,6 @@ class LocalizationService:
                 on_error=lambda key, msg: self._global_event(
                     "error", EventCode.INVALID_MAP, key, msg
                 ),
-                limits=s.map_limits(),
                 checker=self.maps.checker,
             )
         self.mapfeed.start(session)
