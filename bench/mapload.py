@@ -239,13 +239,21 @@ class PeakRss:
     def __init__(self, pid: int | None = None) -> None:
         self.pid = pid
         self.peak = 0.0
+        self.phase = 0.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="peak-rss", daemon=True)
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.peak = max(self.peak, rss_mb(self.pid))
+            now = rss_mb(self.pid)
+            self.peak = max(self.peak, now)
+            self.phase = max(self.phase, now)
             self._stop.wait(0.05)
+
+    def restart(self) -> float:
+        """The peak since the last restart (or the start), MB; starts a new one."""
+        peak, self.phase = self.phase, 0.0
+        return max(peak, rss_mb(self.pid))
 
     def __enter__(self) -> PeakRss:
         self._thread.start()

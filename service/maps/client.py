@@ -74,13 +74,20 @@ def parse_version(text: str) -> int | str:
     return value
 
 
-def held_map(session: zenoh.Session, key: str, timeout: float) -> Map | None:
-    """The map a storage answers for ``key``, or ``None`` when none answers."""
+def held_map(
+    session: zenoh.Session, key: str, timeout: float, unless: bytes | None = None
+) -> Map | bytes | None:
+    """The map a storage answers for ``key``, or ``None`` when none answers; ``unless`` itself
+    (not decoded: a map of real size takes seconds) when the storage answers with those bytes.
+    """
     for reply in session.get(key, timeout=timeout):
         if reply.ok is None:
             continue
+        payload = reply.ok.payload.to_bytes()
+        if unless is not None and payload == unless:
+            return unless
         try:
-            return decode(Map, reply.ok.payload.to_bytes(), max_bytes=FILE_MAX_BYTES)
+            return decode(Map, payload, max_bytes=FILE_MAX_BYTES)
         except SchemaError:
             continue
     return None
@@ -117,7 +124,8 @@ def put_map(
         return 1
     msg = decode(Map, payload, max_bytes=len(payload))
     key = Keys(prefix).map(msg.map_id)
-    held = held_map(session, key, timeout)
+    found = held_map(session, key, timeout)
+    held = found if isinstance(found, Map) else None
     if version == NEXT:
         if held is not None and _same_content(held, msg):
             print(f"unchanged: {key} already holds this map as version {held.version}")
@@ -135,7 +143,7 @@ def put_map(
             print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
             return 1
     session.put(key, payload, encoding=JSON)
-    return _confirm(session, key, msg, len(payload), timeout)
+    return _confirm(session, key, msg, payload, timeout)
 
 
 def _same_content(held: Map, msg: Map) -> bool:
@@ -150,16 +158,16 @@ def _refused(key: str, version: int, held: int) -> str:
     )
 
 
-def _confirm(session: zenoh.Session, key: str, msg: Map, size: int, timeout: float) -> int:
+def _confirm(session: zenoh.Session, key: str, msg: Map, payload: bytes, timeout: float) -> int:
     """Wait until the storage answers with the map put; report what it holds otherwise."""
     digest = content_digest(msg)
     deadline = time.monotonic() + timeout
-    held: Map | None = None
     while True:
-        held = held_map(session, key, min(timeout, 2.0))
-        if held is not None and content_digest(held) == digest:
-            print(f"put {key} (version {msg.version}, {size} bytes): stored")
+        held = held_map(session, key, min(timeout, 2.0), unless=payload)
+        if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
+            print(f"put {key} (version {msg.version}, {len(payload)} bytes): stored")
             return 0
+        assert not isinstance(held, bytes)
         if held is not None and held.version >= msg.version:
             print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
             return 1
