@@ -79,6 +79,9 @@ class LocalizeResult:
             first (``pose`` is the first); empty otherwise.
         relocalizing: this update belongs to a relocalization (the map was searched or its
             hypotheses followed); the one where a hypothesis wins has status ``corrected``.
+        fit_needed: the share of the returns that had to fit for the pose to be trusted:
+            ``min_fit``, or more for a robot whose scans usually fit better (its typical share
+            less a margin); NaN where the update did not apply it (relocalizations).
     """
 
     pose: FloatArray
@@ -92,6 +95,7 @@ class LocalizeResult:
     refine_casts: int = 0
     hypotheses: tuple[Hypothesis, ...] = ()
     relocalizing: bool = False
+    fit_needed: float = math.nan
 
 
 class Localizer:
@@ -136,6 +140,9 @@ class Localizer:
         self._typical_fit = math.nan
         self._fit_deviation = 0.0
         self._probation = False
+        # A seeded pose (an initial pose, a handover, a restart) is a claim until a scan fits
+        # it: the first update after it must fit at least ``seed_fit`` of its returns.
+        self._unverified = True
 
     @property
     def pose(self) -> FloatArray:
@@ -159,6 +166,7 @@ class Localizer:
         self._spread = self._spread_of(spread)
         self._follower = None
         self._lost_run = 0
+        self._unverified = True
 
     def set_map(self, world: Map) -> None:
         """Switch to a new version of the map, keeping the pose."""
@@ -290,6 +298,9 @@ class Localizer:
             if self._probation:
                 margin = min(margin, cfg.probation_margin)
             floor = max(floor, self._typical_fit - margin)
+        verifying = self._unverified and cfg.mode != "paper"
+        if verifying:
+            floor = max(floor, cfg.seed_fit)
         if share < floor:
             status: Status = "lost"
             # Look wider at the next scan (default mode): a lost robot comes back by itself,
@@ -297,10 +308,14 @@ class Localizer:
             self._spread = (cfg.spread, cfg.spread_heading) if wide else None
             self._probation = True
             self._lost_run += 1
-            if cfg.relocalize_after and self._lost_run >= cfg.relocalize_after:
+            if cfg.relocalize_after and (verifying or self._lost_run >= cfg.relocalize_after):
+                # A seed that the scan does not confirm is no place to search around: a robot
+                # handed over (or restarted, or placed) from a wrong pose would otherwise be
+                # "corrected" to a place near it that fits half of its beams.
                 self.relocalize()
         else:
             status = "tracking" if rounds == 0 else "corrected"
+            self._unverified = False
             self._lost_run = 0
             self._probation = False
             rate = cfg.typical_rate
@@ -324,6 +339,7 @@ class Localizer:
             share,
             fit.sigma,
             fit.casts if cfg.refine else 0,
+            fit_needed=floor,
         )
 
     def _relocalizing(

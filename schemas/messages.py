@@ -216,6 +216,14 @@ class EventCode:
     MAP_VERSION_CONFLICT: Final = "map_version_conflict"
     """A map put of a version lower than the one held, or of the same version with other
     content (WIRE.md v1.2): it changed nothing; the message names both versions."""
+    WORKER_LOST: Final = "worker_lost"
+    """A worker process died; a new one starts and its robots are re-seeded from their poses."""
+    ROBOT_EVICTED: Final = "robot_evicted"
+    """A robot sent nothing for ``robot_idle_s``: its state was dropped (it starts anew)."""
+    ROBOT_LIMIT: Final = "robot_limit"
+    """An input for a new robot id was refused: the instance holds ``max_robots`` already."""
+    STAMP_REJECTED: Final = "stamp_rejected"
+    """A message's stamp is too far ahead of the service's clock to be trusted."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(
@@ -275,6 +283,13 @@ class Health(WireModel):
     )
     latency_ms: LatencyPercentiles = Field(
         default=LatencyPercentiles(), description="Per-update latency, milliseconds."
+    )
+    ready: bool | None = Field(
+        default=None,
+        description=(
+            "v1.2: true once every process of the instance can localize (kernels compiled or "
+            "loaded); the instance declares its liveliness token only then."
+        ),
     )
     extra: FreeForm = Field(
         default_factory=dict, description="Further implementation-defined figures."

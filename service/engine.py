@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import bisect
 import math
-import threading
 import zlib
 from dataclasses import dataclass, field
 from typing import Literal
@@ -42,14 +41,11 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.keys import Keys
-from service.prepared import PreparedMap, WorldSource
+from service.prepared import MapShelf, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
 OutKind = Literal["pose", "event", "need_map", "skipped"]
-
-#: Versions of one map kept for inputs that were received before a newer version.
-_MAP_VERSIONS_KEPT = 3
 
 
 @dataclass(frozen=True)
@@ -80,19 +76,6 @@ class Outbound:
 
 
 @dataclass
-class _MapVersions:
-    received: list[int] = field(default_factory=list)
-    versions: list[int] = field(default_factory=list)
-    worlds: list[PreparedMap] = field(default_factory=list)
-
-    def at(self, received_ns: int) -> tuple[int, PreparedMap] | None:
-        i = bisect.bisect_right(self.received, received_ns) - 1
-        if i < 0:
-            return None
-        return self.versions[i], self.worlds[i]
-
-
-@dataclass
 class _Robot:
     robot_id: str
     seed: int
@@ -107,6 +90,7 @@ class _Robot:
     start_stamp: int = 0  # stamp of the initial pose
     last_pose: bytes | None = None
     last_status: str = ""  # of the last pose: a lost robot's next updates search wide
+    fresh: bool = False  # a new localizer (seeded) whose first update searches wide
     last_event: dict[str, int] = field(default_factory=dict)
 
 
@@ -125,8 +109,7 @@ class FleetEngine:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
-        self._maps: dict[str, _MapVersions] = {}
-        self._maps_lock = threading.Lock()
+        self._maps = MapShelf(config)
         self._robots: dict[str, _Robot] = {}
 
     # ----------------------------------------------------------------------------- maps
@@ -136,30 +119,13 @@ class FleetEngine:
         ``world`` may be a function that builds the map: it is built (and indexed) by the first
         input that needs it, not here, so that registering a map costs nothing.
         """
-        prepared = PreparedMap(world, self.config)
-        with self._maps_lock:
-            book = self._maps.setdefault(map_id, _MapVersions())
-            if book.versions and version <= book.versions[-1]:
-                return
-            book.received.append(received_ns)
-            book.versions.append(version)
-            book.worlds.append(prepared)
-            if len(book.worlds) > _MAP_VERSIONS_KEPT:
-                del book.received[0], book.versions[0], book.worlds[0]
+        self._maps.register(map_id, version, world, received_ns)
 
     def _map_at(self, map_id: str, received_ns: int) -> tuple[int, World] | None:
-        with self._maps_lock:
-            book = self._maps.get(map_id)
-            found = book.at(received_ns) if book else None
-        if found is None:
-            return None
-        return found[0], found[1].world()  # built by the first input that needs it
+        return self._maps.at(map_id, received_ns)
 
     def _map_unready(self, map_id: str | None) -> bool:
-        """Whether the newest version of a map is registered but not built yet."""
-        with self._maps_lock:
-            book = self._maps.get(map_id) if map_id is not None else None
-            return book is not None and not book.worlds[-1].ready
+        return map_id is not None and self._maps.unready(map_id)
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -187,13 +153,19 @@ class FleetEngine:
         r = self._robots.get(robot_id)
         if r is None:
             return False
-        if r.pending is not None and (
-            r.pending.kind == "relocalize" or self._map_unready(r.pending.map_id)
-        ):
-            return True
+        if r.pending is not None:
+            return True  # applied at the next input: its first update searches wide
         if self._map_unready(r.map_id):
-            return True
-        return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
+            return True  # the first update on a new map version builds it
+        return (
+            r.fresh
+            or r.last_status == "lost"
+            or (r.localizer is not None and r.localizer.relocalizing)
+        )
+
+    def forget(self, robot_id: str) -> None:
+        """Drop everything held for a robot (evicted after it sent nothing for long)."""
+        self._robots.pop(robot_id, None)
 
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
@@ -305,6 +277,7 @@ class FleetEngine:
                 robot.localizer.set_map(world)
         else:
             robot.localizer = Localizer(world, req.pose, self.config, seed=robot.seed)
+            robot.fresh = True
             if req.kind == "initialpose" or robot.anchor is None:
                 robot.anchor = req.anchor
                 robot.start_stamp = req.stamp_ns
@@ -333,6 +306,16 @@ class FleetEngine:
         key = self.keys.robot(robot.robot_id, "scan")
         applied = self._apply(robot, received_ns)
         skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        if robot.map_id is None and robot.pending is not None:
+            return skipped + self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
+            )
         if robot.map_id is None:
             return skipped + self._event(
                 robot,
@@ -340,7 +323,8 @@ class FleetEngine:
                 "warning",
                 EventCode.NOT_INITIALIZED,
                 key,
-                "scan before an initial pose; publish an InitialPose first",
+                "scan before an initial pose; publish an InitialPose first (`rlutf "
+                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
             )
         if self._world_for(robot, received_ns) is None or robot.localizer is None:
             return skipped + self._event(
@@ -373,6 +357,7 @@ class FleetEngine:
             (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
         )
         result = robot.localizer.update(motion, scan)
+        robot.fresh = False
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (
@@ -397,9 +382,7 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 pose_key,
-                f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
-                f"{self.config.fit_distance:g} m of the map at the best pose (at least "
-                f"{100 * self.config.min_fit:.0f} % needed); "
+                _unfit(result, self.config.fit_distance, self.config.min_fit)
                 + (
                     "relocalizing on the whole map"
                     if result.relocalizing
@@ -482,3 +465,22 @@ class FleetEngine:
                 "event", self.keys.robot_events(robot.robot_id), encode(ev), now_ns, robot.robot_id
             )
         ]
+
+
+def _unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
+    """Why a pose is lost, with the share of the returns that fit and the share needed."""
+    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
+    fit = result.fit if math.isfinite(result.fit) else 0.0
+    digits = 0  # enough digits that the two shares never read the same
+    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
+        digits += 1
+    shares = (
+        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
+        f"the best pose, under the {100 * needed:.{digits}f} % needed"
+    )
+    if needed > min_fit:
+        return (
+            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
+            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
+        )
+    return f"the scan does not fit the map: {shares}; "

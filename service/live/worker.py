@@ -2,8 +2,9 @@
 
 A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
 it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
-[(kind, payload, received_ns), ...])``, ``("stop",)``, or ``("many", [those])``; the worker
-answers each batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
+[(kind, payload, received_ns), ...])``, ``("forget", robot)``, ``("stop",)``, or ``("many",
+[those])``; the worker says ``("ready",)`` once its kernels are compiled or loaded, answers each
+batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
 """
 
 from __future__ import annotations
@@ -76,7 +77,9 @@ def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Out
 
 
 def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
-    if msg[0] == "map":
+    if msg[0] == "forget":
+        engine.forget(msg[1])
+    elif msg[0] == "map":
         _, map_id, version, payload_or_world, received_ns = msg
         # A payload is built by the first update that needs it (service.prepared), not here on
         # the pipe thread, where it would hold up every robot of this worker.
@@ -127,6 +130,7 @@ def worker_main(
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
+    send(conn, ("ready",))  # the kernels are compiled or loaded: this process can localize
 
     def answer(msg: tuple[Any, ...]) -> None:
         try:
@@ -159,7 +163,7 @@ def worker_main(
                     slow.shutdown(wait=True)
                     answer(("stopped",))
                     return
-                if kind == "map":
+                if kind in ("map", "forget"):
                     apply_control(engine, item)
                     continue
                 _, robot, batch = item

@@ -25,9 +25,8 @@ import numpy as np
 import pytest
 import zenoh
 from scaleout_harness import PoseLog, wait_until
-from service_harness import JSON, WORLD, Collector, SimRobot, start_service
+from service_harness import JSON, WORLD, Collector, SimRobot, sim_robot, start_service
 
-from rlutf.sim import make_trajectory
 from schemas import Map, encode
 from service.cluster.posestate import FILE_NAME
 from service.live.sessions import client_config, free_port
@@ -41,12 +40,7 @@ DOWNTIME_STEPS = 15
 
 def _fleet(session: zenoh.Session, count: int) -> list[SimRobot]:
     t0 = time.time_ns()
-    fleet = []
-    for i in range(count):
-        rng = np.random.default_rng(40 + i)
-        truth = make_trajectory(WORLD, rng, 200)
-        fleet.append(SimRobot(f"r{i}", WORLD, truth, session, t0, rng=rng))
-    return fleet
+    return [sim_robot(f"r{i}", WORLD, 40 + i, session, 200, t0) for i in range(count)]
 
 
 def _drive(fleet: list[SimRobot], steps: int, sent: dict[str, float] | None = None) -> None:
@@ -249,9 +243,9 @@ def test_a_corrupt_state_file_is_reported_and_the_service_runs(
     (store / "state").mkdir(parents=True)
     (store / "state" / FILE_NAME).write_bytes(b'{"version": 1, "robots": {"r0": {"po')
     port = free_port()
-    caplog.set_level("WARNING", logger="service.live.node")
+    caplog.set_level("WARNING", logger="service.live.publishing")
     service = start_service(store, port)  # the Event goes out before any client can hear it
-    events = [r.getMessage() for r in caplog.records if r.name == "service.live.node"]
+    events = [r.getMessage() for r in caplog.records if r.name == "service.live.publishing"]
     assert any(m.startswith("state_unreadable rlutf/events") for m in events), events
     try:
         with zenoh.open(client_config(f"tcp/127.0.0.1:{port}")) as client:
