@@ -25,18 +25,10 @@ JSON_ENCODING = "application/json"
 
 def scan_payload(s: Any, stamp_ns: int) -> bytes:
     """The LaserScan payload of a simulated :class:`rlutf.scan.Scan` (no return: null)."""
-    from schemas import LaserScan, encode
+    from schemas import encode
+    from service.sim.wire import laser_scan
 
-    return encode(
-        LaserScan(
-            stamp_ns=stamp_ns,
-            angle_min=s.angle_min,
-            angle_increment=s.angle_increment,
-            range_min=s.range_min,
-            range_max=s.range_max,
-            ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-        )
-    )
+    return encode(laser_scan(s, stamp_ns))
 
 
 @dataclass

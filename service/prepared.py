@@ -5,8 +5,8 @@ and walls (:class:`rlutf.map.MapLimits` bounds both). A worker process is sent e
 registers a :class:`PreparedMap` at once, which costs nothing, and the first update of a robot on
 that map builds it, on the worker's slow lane (:meth:`service.engine.FleetEngine.
 expects_long_update` says so while the map is not ready), so that robots on other maps never
-wait for it. A worker whose robots never use a map never builds it. :class:`MapShelf` holds an engine's map
-versions by the time they were received.
+wait for it. A worker whose robots never use a map never builds it. :class:`MapShelf` holds an
+engine's map versions by the time they were received.
 """
 
 from __future__ import annotations

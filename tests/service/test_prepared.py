@@ -3,15 +3,19 @@ robots waiting for such a build are scheduled as long updates (off the worker's 
 
 from __future__ import annotations
 
+import numpy as np
 from shapely.geometry import box
 
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map as World
+from rlutf.sim import LidarModel, simulate_scan
 from schemas import InitialPose
 from service.engine import FleetEngine
 from service.keys import Keys
 from service.prepared import PreparedMap
+from service.sim.wire import laser_scan
 
+RNG = np.random.default_rng(4)
 WORLD = World.from_shapely(box(0.0, 0.0, 10.0, 8.0).difference(box(4.0, 3.0, 5.0, 4.0)))
 
 
@@ -29,6 +33,8 @@ def test_a_map_is_built_once_by_its_first_user_and_a_robot_waiting_for_it_is_lon
     start = InitialPose(stamp_ns=5, map_id="m1", x=1.0, y=1.0, theta=0.0)
     engine.handle("r1", start, 20)
     assert built == [1]
+    scan = simulate_scan(WORLD, np.array([1.0, 1.0, 0.0]), LidarModel(beams=90), RNG)
+    engine.handle("r1", laser_scan(scan, 6), 21)  # the seeded robot's first (wide) update
     assert not engine.expects_long_update("r1", ["odom", "scan"])
     engine.register_map("m1", 2, source, 30)  # a new version, not built yet
     assert engine.expects_long_update("r1", ["odom", "scan"])
