@@ -22,7 +22,7 @@ from bench.bigmap import aisle_y, warehouse
 from bench.mapload import PeakRss, SteadyFleet, rss_mb, scan_payload, square_map, wavy_room
 from rlutf.map import Map as World
 from rlutf.sim import LidarModel, simulate_scan
-from schemas import InitialPose, Map, Odometry, encode
+from schemas import InitialPose, LaserScan, Map, Odometry, encode
 from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
@@ -259,3 +259,65 @@ def test_replay_applies_the_same_limits(tmp_path: Path) -> None:
             writer.finish()
         result = replay([path])
         assert result.rejected == rejected, name
+
+
+def test_a_map_built_from_a_real_log_live_and_in_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`rlutf map build --put` on the CARMEN intel log: stored, loaded, localized on with the
+    log's own scans, recorded and replayed to the same poses, all with default settings."""
+    from bench.scenarios import DATA
+    from service.cli.main import main
+    from service.maps.mapimport import read_carmen
+
+    log = DATA / "carmen" / "intel-corrected.log.gz"
+    service = _service(tmp_path, workers=1, record=True)
+    try:
+        with zenoh.open(client_config(_endpoint(service))) as client:
+            out = tmp_path / "intel.json"
+            argv = ["map", "build", str(log), "--id", "intel", "--out", str(out), "--put"]
+            assert main([*argv, "--connect", _endpoint(service)]) == 0
+            assert "stored" in capsys.readouterr().out
+            assert _wait(lambda: service.maps.get("intel") is not None, 60.0)
+            payload = (tmp_path / "store" / "intel.json").read_bytes()
+            carmen = read_carmen(log)
+            poses: list[dict[str, Any]] = []
+            sub = client.declare_subscriber(
+                "rlutf/robots/intel/pose", lambda s: poses.append(json.loads(s.payload.to_bytes()))
+            )
+            t0 = time.time_ns()
+            first = carmen.scans[0].pose
+            init = InitialPose(stamp_ns=t0, map_id="intel", x=first[0], y=first[1], theta=first[2])
+            odom0 = Odometry(stamp_ns=t0, x=first[0], y=first[1], theta=first[2])
+            client.put("rlutf/robots/intel/odom", encode(odom0), encoding=JSON)
+            client.put("rlutf/robots/intel/initialpose", encode(init), encoding=JSON)
+            steps = 30
+            for k, scan in enumerate(carmen.scans[1 : steps + 1], start=1):
+                stamp = t0 + k * 100_000_000
+                x, y, th = (float(v) for v in scan.pose)
+                odom = Odometry(stamp_ns=stamp, x=x, y=y, theta=th)
+                client.put("rlutf/robots/intel/odom", encode(odom), encoding=JSON)
+                msg = LaserScan(
+                    stamp_ns=stamp,
+                    angle_min=float(scan.angles[0]),
+                    angle_increment=float(scan.angles[1] - scan.angles[0]),
+                    range_min=0.05,
+                    range_max=float(scan.max_range) - 1e-3,  # at max: no return
+                    ranges=[float(r) for r in scan.ranges],
+                )
+                client.put("rlutf/robots/intel/scan", encode(msg), encoding=JSON)
+                time.sleep(0.3 if k == 1 else 0.1)  # the first update builds the map
+            last = t0 + steps * 100_000_000
+            _wait(lambda: any(p["stamp_ns"] == last for p in poses), 60.0)
+            sub.undeclare()
+    finally:
+        service.close()
+    assert len(poses) >= steps // 2
+    truth = carmen.scans[steps].pose
+    assert poses[-1]["stamp_ns"] == last
+    assert math.hypot(poses[-1]["x"] - truth[0], poses[-1]["y"] - truth[1]) < 0.1
+    result = replay(sorted((tmp_path / "logs").glob("*.mcap")))
+    assert result.maps["intel"] == payload and result.rejected == 0
+    recorded = [p.payload for p in result.recorded["intel"]]
+    assert len(recorded) == len(poses)
+    assert [p.payload for p in result.recomputed["intel"]] == recorded
