@@ -6,9 +6,8 @@ encoded. It does no I/O and reads no clock, so replaying a log's inputs through 
 ``log_time`` order gives the same outputs, byte for byte.
 
 Maps are registered with the time they were received; a robot uses, for each of its inputs, the
-newest version of its map received no later than that input. This makes the live service (maps
-reach worker processes a moment after they are received) and replay (maps are read from the log
-in order) see the same map at the same point of every robot's input.
+newest version of its map received no later than that input, so the live service (maps reach
+workers a moment after they are received) and replay see the same map at the same point.
 
 An InitialPose or Relocalize waits for its map without taking the robot off the map it is
 localized on (:mod:`service.relocalization`). Different robots may be handled on different
