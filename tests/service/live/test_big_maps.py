@@ -261,6 +261,22 @@ def test_replay_applies_the_same_limits(tmp_path: Path) -> None:
         assert result.rejected == rejected, name
 
 
+def _send_carmen(client: zenoh.Session, scan: Any, stamp: int) -> None:
+    """A CARMEN scan and its (corrected) pose as odometry, laser at the base."""
+    x, y, th = (float(v) for v in scan.pose)
+    odom = Odometry(stamp_ns=stamp, x=x, y=y, theta=th)
+    client.put("rlutf/robots/intel/odom", encode(odom), encoding=JSON)
+    msg = LaserScan(
+        stamp_ns=stamp,
+        angle_min=float(scan.angles[0]),
+        angle_increment=float(scan.angles[1] - scan.angles[0]),
+        range_min=0.05,
+        range_max=float(scan.max_range) - 1e-3,  # at max: no return
+        ranges=[float(r) for r in scan.ranges],
+    )
+    client.put("rlutf/robots/intel/scan", encode(msg), encoding=JSON)
+
+
 def test_a_map_built_from_a_real_log_live_and_in_replay(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -292,22 +308,19 @@ def test_a_map_built_from_a_real_log_live_and_in_replay(
             client.put("rlutf/robots/intel/odom", encode(odom0), encoding=JSON)
             client.put("rlutf/robots/intel/initialpose", encode(init), encoding=JSON)
             steps = 30
-            for k, scan in enumerate(carmen.scans[1 : steps + 1], start=1):
-                stamp = t0 + k * 100_000_000
-                x, y, th = (float(v) for v in scan.pose)
-                odom = Odometry(stamp_ns=stamp, x=x, y=y, theta=th)
-                client.put("rlutf/robots/intel/odom", encode(odom), encoding=JSON)
-                msg = LaserScan(
-                    stamp_ns=stamp,
-                    angle_min=float(scan.angles[0]),
-                    angle_increment=float(scan.angles[1] - scan.angles[0]),
-                    range_min=0.05,
-                    range_max=float(scan.max_range) - 1e-3,  # at max: no return
-                    ranges=[float(r) for r in scan.ranges],
-                )
-                client.put("rlutf/robots/intel/scan", encode(msg), encoding=JSON)
-                time.sleep(0.3 if k == 1 else 0.1)  # the first update builds the map
-            last = t0 + steps * 100_000_000
+            # The first scan until the first pose (the worker builds the map meanwhile; scans
+            # sent then would be superseded), then one scan every 0.1 s.
+            stamp = t0
+            end = time.monotonic() + 120.0
+            while not poses and time.monotonic() < end:
+                stamp += 100_000_000
+                _send_carmen(client, carmen.scans[1], stamp)
+                time.sleep(0.2)
+            for scan in carmen.scans[2 : steps + 1]:
+                stamp += 100_000_000
+                _send_carmen(client, scan, stamp)
+                time.sleep(0.1)
+            last = stamp
             _wait(lambda: any(p["stamp_ns"] == last for p in poses), 60.0)
             sub.undeclare()
     finally:
