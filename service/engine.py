@@ -28,7 +28,6 @@ import numpy as np
 from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
 from rlutf.motion import interpolate, relative
-from rlutf.scan import Scan
 from schemas import (
     Event,
     EventCode,
@@ -39,39 +38,14 @@ from schemas import (
     encode,
 )
 from schemas.fastpose import encode_pose
+from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
 from service.prepared import MapShelf, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
+__all__ = ["FleetEngine", "Outbound"]
+
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped"]
-
-
-@dataclass(frozen=True)
-class Outbound:
-    """Something the engine wants published.
-
-    Attributes:
-        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published) or
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published).
-        key: the Zenoh key to put on.
-        payload: encoded JSON.
-        stamp_ns: the message's own stamp (MCAP ``publish_time``).
-        robot: the robot concerned, if any.
-        map_id: for ``need_map``.
-        status: for ``pose``: the pose status.
-        received_ns: for ``pose``: when the scan it answers was received.
-    """
-
-    kind: OutKind
-    key: str
-    payload: bytes
-    stamp_ns: int
-    robot: str | None = None
-    map_id: str | None = None
-    status: str | None = None
-    received_ns: int | None = None
 
 
 @dataclass
@@ -100,14 +74,20 @@ class FleetEngine:
         keys: the key layout.
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
+        limits: what is accepted beyond the schema (:mod:`service.guard`).
     """
 
     def __init__(
-        self, keys: Keys, config: LocalizerConfig, event_interval_ns: int = 1_000_000_000
+        self,
+        keys: Keys,
+        config: LocalizerConfig,
+        event_interval_ns: int = 1_000_000_000,
+        limits: Limits | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
+        self.limits = limits or Limits()
         self._maps = MapShelf(config)
         self._robots: dict[str, _Robot] = {}
 
@@ -179,8 +159,20 @@ class FleetEngine:
         message: LaserScan | Odometry | InitialPose | Relocalize,
         received_ns: int,
     ) -> list[Outbound]:
-        """Apply one input of one robot and return what to publish."""
-        robot = self._robot(robot_id)
+        """Apply one input of one robot and return what to publish.
+
+        An input over a limit (:func:`service.guard.check_input`) changes nothing and gives an
+        Event ``invalid_message``; an update that raises is undone (the robot's state is as
+        before the input) and gives an Event ``internal_error``.
+        """
+        return guarded(self, self._robot(robot_id), message, received_ns)
+
+    def _handle(
+        self,
+        robot: _Robot,
+        message: LaserScan | Odometry | InitialPose | Relocalize,
+        received_ns: int,
+    ) -> list[Outbound]:
         if isinstance(message, Odometry):
             self._add_odometry(robot, message)
             return []
@@ -284,7 +276,7 @@ class FleetEngine:
         if req.kind == "initialpose":
             robot.episode = None
             return []
-        robot.localizer.relocalize(req.region)
+        robot.localizer.relocalize(region_on(req.region, world))
         robot.episode = Episode(f"requested on {req.describe()}")
         return self._events(robot, received_ns, key, robot.episode.start())
 
@@ -347,14 +339,8 @@ class FleetEngine:
             motion = relative(robot.anchor, odom)
         if odom is not None:
             robot.anchor = odom
-        scan = Scan.create(
-            np.array(msg.ranges, dtype=np.float64),  # None (no return) becomes NaN
-            msg.angle_min,
-            msg.angle_increment,
-            msg.range_min,
-            msg.range_max,
-            (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
-        )
+        # Ranges no wall of the map can be at are no return: bounded work before any search.
+        scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
         robot.fresh = False
         episode = self._follow(robot, result)

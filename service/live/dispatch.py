@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
+from service.guard import Limits
 from service.keys import InputKind, Keys, Message
 from service.live.shards import (
     IN_FLIGHT,
@@ -67,6 +68,7 @@ class Dispatcher:
         clock: the receive clock (re-seeds get fresh receive times).
         on_seed: records an input made to re-seed a robot whose worker died (lock held).
         on_lost: reports a dead worker (called without the lock).
+        limits: what inputs may hold beyond the schema (:mod:`service.guard`).
     """
 
     def __init__(
@@ -81,8 +83,10 @@ class Dispatcher:
         clock: Callable[[], int] = time.time_ns,
         on_seed: OnSeed | None = None,
         on_lost: OnLost | None = None,
+        limits: Limits | None = None,
     ) -> None:
         self.keys = keys
+        self.limits = limits or Limits()
         self.clock = clock
         self.on_seed: OnSeed = on_seed or (lambda robot, entry: None)
         self.on_lost: OnLost = on_lost or (lambda index, code, robots: None)

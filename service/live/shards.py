@@ -22,6 +22,7 @@ from typing import Any, Protocol
 
 from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import Keys
 from service.live.supervise import History
 from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
@@ -86,6 +87,7 @@ class Dispatcher(Protocol):
     config: LocalizerConfig
     event_interval_ns: int
     threads: int
+    limits: Limits
     lock: threading.Lock
     boxes: dict[str, Mailbox]
     stopping: bool
@@ -178,7 +180,7 @@ class ThreadShard(Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
+        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, d.limits)
 
     def start(self) -> None:
         for i in range(self.dispatcher.threads):
@@ -246,7 +248,7 @@ class ProcessShard(Shard):
         d = self.dispatcher
         process = ctx.Process(
             target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads, d.limits),
             name=f"rlutf-worker-{self.index}",
             daemon=True,
         )

@@ -26,6 +26,7 @@ from rlutf.map import Map as World
 from rlutf.warmup import warm_up
 from schemas import Map, SchemaError, decode
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import MODELS, InputKind, Keys, Message
 from service.live.memory import HeapTrimmer
 
@@ -111,7 +112,12 @@ def tune_gc() -> None:
 
 
 def worker_main(
-    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
+    conn: Connection,
+    prefix: str,
+    config: LocalizerConfig,
+    interval: int,
+    threads: int,
+    limits: Limits | None = None,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
@@ -126,7 +132,7 @@ def worker_main(
     thread hand-off per scan.
     """
     warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval)
+    engine = FleetEngine(Keys(prefix), config, interval, limits)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()

@@ -51,7 +51,14 @@ from service.engine import FleetEngine
 from service.keys import Keys
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
-from service.logs.mcapread import LogError, LogFile, map_topic, merged_messages, robot_topic
+from service.logs.mcapread import (
+    LogError,
+    LogFile,
+    UnreadableConfig,
+    map_topic,
+    merged_messages,
+    robot_topic,
+)
 from service.logs.replayconfig import ReplayConfig, resolve
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id, run_tag
 from service.maps.book import MapBook, MapRejected
@@ -212,7 +219,9 @@ class _Run:
         self.result = result
         self.drops = drops
         self.writer = writer
-        self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
+        self.engine = FleetEngine(
+            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits
+        )
         self.book = MapBook(cfg.max_map_bytes, cfg.map_limits)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
         self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
@@ -293,7 +302,9 @@ class _Run:
             log.exception("update of %s failed", robot)
             return
         for out in outputs:
-            if out.kind == "need_map":
+            if out.kind == "rejected":  # over a limit (service.guard): its Event follows
+                self.result.rejected += 1
+            if out.kind not in ("pose", "event"):
                 continue
             schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
@@ -336,7 +347,13 @@ def replay(
         logs = [stack.enter_context(LogFile(p)) for p in inputs]
         source_run = _source_run(logs)
         if config is None:
-            recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            try:
+                recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            except UnreadableConfig as err:
+                if settings_file is None and not assignments:
+                    raise
+                log.warning("%s; replaying on the defaults, --settings and --set", err)
+                recorded = None
             config = resolve(
                 recorded,
                 prefix_hint=_prefix_hint(logs),

@@ -14,7 +14,7 @@ import copy
 import json
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,7 @@ from pydantic import TypeAdapter, ValidationError
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from service.config import Settings
+from service.guard import Limits
 
 _DEFAULT_LIMITS = MapLimits(
     Settings.model_fields["max_map_area"].default,
@@ -44,6 +45,7 @@ class ReplayConfig:
         event_interval_ns: least time between two events of one code for one robot.
         max_payload_bytes: largest accepted payload of a robot's message.
         settings: the merged configuration, stored as ``rlutf.config`` in the output.
+        limits: what inputs may hold beyond the schema.
         max_map_bytes: largest accepted Map payload (the live service's ``max_map_bytes``).
         map_limits: extent and vertex limits of a map, as live, so that an audit reproduces
             which maps were refused.
@@ -54,6 +56,7 @@ class ReplayConfig:
     event_interval_ns: int
     max_payload_bytes: int
     settings: dict[str, Any]
+    limits: Limits = field(default_factory=Limits)
     max_map_bytes: int = Settings.model_fields["max_map_bytes"].default
     map_limits: MapLimits = _DEFAULT_LIMITS
 
@@ -72,6 +75,7 @@ def default_settings(prefix: str | None) -> dict[str, Any]:
         "max_map_area": _default("max_map_area"),
         "max_map_vertices": _default("max_map_vertices"),
         "localizer": asdict(LocalizerConfig()),
+        "limits": Limits().model_dump(mode="json"),
     }
 
 
@@ -165,13 +169,21 @@ def resolve(
         localizer = TypeAdapter(LocalizerConfig).validate_python(loc)
         interval = float(merged["event_interval_s"])
         max_bytes = int(merged["max_payload_bytes"])
+        limits = Limits.model_validate(merged.get("limits") or {})
         max_map_bytes = int(merged["max_map_bytes"])
-        limits = MapLimits(float(merged["max_map_area"]), int(merged["max_map_vertices"]))
+        map_limits = MapLimits(float(merged["max_map_area"]), int(merged["max_map_vertices"]))
     except (ValidationError, TypeError, ValueError) as err:
         raise ReplayConfigError(f"invalid configuration: {err}") from err
     prefix = merged.get("prefix")
     if not isinstance(prefix, str) or not prefix:
         raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")
     return ReplayConfig(
-        prefix, localizer, int(interval * 1e9), max_bytes, merged, max_map_bytes, limits
+        prefix,
+        localizer,
+        int(interval * 1e9),
+        max_bytes,
+        merged,
+        limits,
+        max_map_bytes,
+        map_limits,
     )
