@@ -222,7 +222,7 @@ class _Run:
         self.engine = FleetEngine(
             Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits
         )
-        self.book = MapBook(cfg.max_payload_bytes)
+        self.book = MapBook(cfg.max_map_bytes, cfg.map_limits)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
         self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
         self._next_eviction = 0
@@ -266,6 +266,7 @@ class _Run:
             return
         self._write(rec)
         if loaded is not None:
+            assert loaded.world is not None  # checked in this process
             self.engine.register_map(
                 loaded.map_id, loaded.version, loaded.world, loaded.received_ns
             )
