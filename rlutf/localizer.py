@@ -44,6 +44,7 @@ from rlutf.field import WideSearch, wide_search
 from rlutf.map import Map
 from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
+from rlutf.quality import farthest_on_map, pose_quality
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, refine_pose
 from rlutf.relocalize import (
@@ -79,6 +80,11 @@ class LocalizeResult:
             first (``pose`` is the first); empty otherwise.
         relocalizing: this update belongs to a relocalization (the map was searched or its
             hypotheses followed); the one where a hypothesis wins has status ``corrected``.
+        score: the localization score in [0, 1] (:func:`rlutf.quality.localization_score`):
+            under 0.5 when ``lost``.
+        deviation_range: the radius around the position that holds the true one with 95 %
+            probability, metres (:func:`rlutf.quality.deviation_range`); for a lost pose, the
+            distance to the farthest corner of the map.
     """
 
     pose: FloatArray
@@ -92,6 +98,8 @@ class LocalizeResult:
     refine_casts: int = 0
     hypotheses: tuple[Hypothesis, ...] = ()
     relocalizing: bool = False
+    score: float = 0.0
+    deviation_range: float = math.inf
 
 
 class Localizer:
@@ -233,6 +241,7 @@ class Localizer:
                 "lost",
                 0,
                 relocalizing=self._follower is not None,
+                deviation_range=self._unknown_range(self._pose),
             )
         if self._follower is not None:
             return self._relocalizing(problem, predicted, mot, scan)
@@ -290,6 +299,7 @@ class Localizer:
             if self._probation:
                 margin = min(margin, cfg.probation_margin)
             floor = max(floor, self._typical_fit - margin)
+        typical_fit = self._typical_fit
         if share < floor:
             status: Status = "lost"
             # Look wider at the next scan (default mode): a lost robot comes back by itself,
@@ -310,6 +320,7 @@ class Localizer:
             else:
                 self._typical_fit = share
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
+        score, deviation = self._quality(fit, status == "lost", floor, typical_fit)
         # Free the previous update's arrays only now that this one has made its own: freed
         # first, they would leave free memory at the top of the heap, which malloc gives back to
         # the system, and every update would pay page faults to map it again.
@@ -324,6 +335,8 @@ class Localizer:
             share,
             fit.sigma,
             fit.casts if cfg.refine else 0,
+            score=score,
+            deviation_range=deviation,
         )
 
     def _relocalizing(
@@ -353,6 +366,7 @@ class Localizer:
                 step.nodes,
                 fit=0.0,
                 relocalizing=True,
+                deviation_range=self._unknown_range(predicted),
             )
         pose = fit.pose
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
@@ -360,6 +374,11 @@ class Localizer:
         self._typical = math.inf
         self._lost_run = 0
         discrepancy = float(problem.of_ranges(fit.ranges[None])[0])
+        # A hypothesis that wins must fit relocalize_fit of the returns; until one wins, the
+        # place is not known.
+        score, deviation = self._quality(
+            fit, status == "lost", self.config.min_fit, self.config.relocalize_fit
+        )
         return LocalizeResult(
             self._pose.copy(),
             discrepancy if math.isfinite(discrepancy) else math.inf,
@@ -372,7 +391,25 @@ class Localizer:
             fit.casts,
             hypotheses,
             True,
+            score,
+            deviation,
         )
+
+    def _quality(
+        self, fit: Refinement, lost: bool, floor: float, typical: float
+    ) -> tuple[float, float]:
+        """``(score, deviation range)`` at the pose just set; ``typical``: NaN if not known."""
+        cfg = self.config
+        typical = typical if math.isfinite(typical) else cfg.relocalize_fit
+        x, y = float(self._pose[0]), float(self._pose[1])
+        return pose_quality(
+            fit.fit, fit.covariance, (x, y), self._map.bounds, lost, floor, typical,
+            cfg.quality_range,
+        )  # fmt: skip
+
+    def _unknown_range(self, pose: FloatArray) -> float:
+        """The deviation range of a pose that is not known: anywhere on the map."""
+        return farthest_on_map(float(pose[0]), float(pose[1]), self._map.bounds)
 
     def _fit(self, problem: Problem, pose: FloatArray, gate: bool = False) -> Refinement:
         """The refinement from ``pose`` (or, without ``refine``, ``pose`` evaluated); with
