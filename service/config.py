@@ -95,6 +95,11 @@ class Ros2Settings(BaseModel):
         description="Longest a scan waits for the odometry at its stamp (as AMCL's tf filter), s.",
     )
     publish_tf: bool = Field(True, description="Publish map -> odom on the robot's tf.")
+    diagnostics_topic: str | None = Field(
+        "diagnostics",
+        description="DiagnosticArray topic each pose's localization_score and deviation_range "
+        "go out on, relative to the namespace (null: off).",
+    )
     transform_tolerance_s: float = Field(
         1.0, ge=0, description="map -> odom is stamped this far ahead (AMCL's default), s."
     )

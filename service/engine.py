@@ -417,6 +417,8 @@ class FleetEngine:
             int(result.iterations),
             None if result.covariance is None else result.covariance.ravel().tolist(),
             wire_hypotheses(result),
+            float(result.score),
+            float(result.deviation_range),
         )
         robot.last_pose = payload
         robot.last_status = result.status

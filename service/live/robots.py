@@ -9,7 +9,8 @@ Answer (JSON, :class:`RobotsAnswer`)::
     {"instance": "rlutf-a", "stamp_ns": 1732300000123456789,
      "robots": [{"robot_id": "r1", "map_id": "warehouse-1", "status": "tracking",
                  "x": 1.02, "y": 2.01, "theta": 0.003, "age_s": 0.04,
-                 "latency_ms": 3.1, "owner": "rlutf-a"}]}
+                 "latency_ms": 3.1, "owner": "rlutf-a",
+                 "localization_score": 0.98, "deviation_range": 0.004}]}
 
 ``age_s`` is the instance's clock now minus when the latest pose was published; ``age_s`` and
 ``latency_ms`` are ``null`` for a pose this instance holds but did not publish (a seed).
@@ -55,6 +56,12 @@ class RobotState(BaseModel):
         None, description="Latest pose's scan receipt to publication, milliseconds."
     )
     owner: str = Field(description="The instance holding the robot.")
+    localization_score: float | None = Field(
+        None, description="Latest pose's localization score, 0 to 1 (null: the pose has none)."
+    )
+    deviation_range: float | None = Field(
+        None, description="Latest pose's 95 % deviation range, metres (null: the pose has none)."
+    )
 
 
 class RobotsAnswer(BaseModel):
@@ -140,6 +147,8 @@ class RobotView:
                     age_s=age,
                     latency_ms=latency,
                     owner=self.instance,
+                    localization_score=pose.localization_score,
+                    deviation_range=pose.deviation_range,
                 )
             )
         return out
@@ -190,7 +199,19 @@ def _fresher(a: RobotState, b: RobotState) -> bool:
     return b.age_s is None or a.age_s < b.age_s
 
 
-COLUMNS = ("robot", "map", "status", "x", "y", "theta", "age s", "latency ms", "owner")
+COLUMNS = (
+    "robot",
+    "map",
+    "status",
+    "x",
+    "y",
+    "theta",
+    "score",
+    "range m",
+    "age s",
+    "latency ms",
+    "owner",
+)
 
 
 def robots_table(states: Iterable[RobotState]) -> str:
@@ -208,6 +229,8 @@ def robots_table(states: Iterable[RobotState]) -> str:
             num(s.x, 3),
             num(s.y, 3),
             num(s.theta, 3),
+            num(s.localization_score, 2),
+            num(s.deviation_range, 3),
             num(s.age_s, 2),
             num(s.latency_ms, 1),
             s.owner,
@@ -215,7 +238,7 @@ def robots_table(states: Iterable[RobotState]) -> str:
         for s in states
     ]
     widths = [max(len(r[i]) for r in rows) for i in range(len(COLUMNS))]
-    numeric = {3, 4, 5, 6, 7}  # right-aligned
+    numeric = {3, 4, 5, 6, 7, 8, 9}  # right-aligned
     lines = [
         "  ".join(
             cell.rjust(widths[i]) if i in numeric else cell.ljust(widths[i])

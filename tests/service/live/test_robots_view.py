@@ -62,6 +62,8 @@ def test_answers_every_robot_held_with_its_latest_pose(bench: Bench) -> None:
         assert r["status"] == pose["status"] in ("tracking", "corrected", "lost")
         assert (r["x"], r["y"], r["theta"]) == (pose["x"], pose["y"], pose["theta"])
         assert r["owner"] == me
+        assert r["localization_score"] == pose["localization_score"]
+        assert r["deviation_range"] == pose["deviation_range"] > 0.0
         assert 0 <= r["age_s"] < 5.0
         assert 0 < r["latency_ms"] < 1000.0
     # ages grow with the instance's clock while no scan comes
@@ -90,6 +92,8 @@ def _state(robot: str, age: float | None, owner: str, x: float = 0.0) -> RobotSt
         age_s=age,
         latency_ms=None if age is None else 2.25,
         owner=owner,
+        localization_score=None if age is None else 0.97,
+        deviation_range=None if age is None else 0.0042,
     )
 
 
@@ -115,13 +119,28 @@ def test_table_has_a_header_and_aligned_rows() -> None:
         "x",
         "y",
         "theta",
+        "score",
+        "range",
+        "m",
         "age",
         "s",
         "latency",
         "ms",
         "owner",
     ]
-    assert first.split() == ["r1", "m", "tracking", "12.346", "-1.500", "1.571", "0.12", "2.2", "a"]
+    assert first.split() == [
+        "r1",
+        "m",
+        "tracking",
+        "12.346",
+        "-1.500",
+        "1.571",
+        "0.97",
+        "0.004",
+        "0.12",
+        "2.2",
+        "a",
+    ]
     assert second.split() == [
         "robot-22",
         "m",
@@ -129,6 +148,8 @@ def test_table_has_a_header_and_aligned_rows() -> None:
         "0.000",
         "-1.500",
         "1.571",
+        "-",
+        "-",
         "-",
         "-",
         "b",
