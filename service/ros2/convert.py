@@ -308,12 +308,13 @@ def quality_diagnostics(pose: PoseEstimate) -> bytes:
     t = typestore().types
     status = t["diagnostic_msgs/msg/DiagnosticStatus"]
     score = pose.localization_score
+    # DiagnosticStatus's constants OK, WARN and ERROR
     if pose.status == "lost":
-        level = status.ERROR
+        level = 2
     elif score is not None and score < 0.5:
-        level = status.WARN
+        level = 1
     else:
-        level = status.OK
+        level = 0
     pairs = {
         "localization_score": "" if score is None else repr(score),
         "deviation_range": "" if pose.deviation_range is None else repr(pose.deviation_range),
