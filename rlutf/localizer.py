@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from rlutf.config import LocalizerConfig, Status
 from rlutf.field import WideSearch, wide_search
 from rlutf.map import Map
+from rlutf.mapchange import Returns
 from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
 from rlutf.quality import farthest_on_map, pose_quality
@@ -85,6 +86,8 @@ class LocalizeResult:
         deviation_range: the radius around the position that holds the true one with 95 %
             probability, metres (:func:`rlutf.quality.deviation_range`); for a lost pose, the
             distance to the farthest corner of the map.
+        returns: the scan's returns beside the ranges cast at ``pose`` (for map health,
+            :mod:`rlutf.mapchange`); ``None`` when the update compared none.
     """
 
     pose: FloatArray
@@ -100,6 +103,7 @@ class LocalizeResult:
     relocalizing: bool = False
     score: float = 0.0
     deviation_range: float = math.inf
+    returns: Returns | None = None
 
 
 class Localizer:
@@ -337,6 +341,14 @@ class Localizer:
             fit.casts if cfg.refine else 0,
             score=score,
             deviation_range=deviation,
+            returns=Returns(
+                self._pose,
+                problem.offset,
+                problem.beams.cos,
+                problem.beams.sin,
+                problem.real_ranges,
+                fit.ranges,
+            ),
         )
 
     def _relocalizing(

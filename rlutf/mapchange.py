@@ -1,0 +1,306 @@
+"""Where the world no longer matches the map: evidence from scans at good poses, and reports.
+
+Per scan (:func:`scan_evidence`, beside the localizer, from the ranges it cast anyway): a return
+well short of the range the map predicts hit something the map lacks (*short*: its cell is
+marked at the return); a return well beyond it went through a wall the map has (*through*: its
+cell is marked where the map's wall is). Only scans at poses that fit well count (the caller
+decides), so a mislocalized robot's scans say nothing.
+
+Over all robots (:class:`ChangeGrid`): per cell of a fixed grid over the map, for each kind, the
+scans that marked it, the time windows they fell in (a 32-bit mask of ``stamp // window`` mod
+32), the robots (a 32-bit mask of a hash of the robot id), and the first and last stamps. Every
+update is a sum, an OR, a min or a max: the grid is the same whatever order the scans come in,
+so the live service (scans from several worker processes) and replay (scans in log order) hold
+the same grid once they have seen the same scans. Its size is fixed by the map.
+
+:func:`find_changes` reports the places where the disagreement persists across time: cells
+marked in at least ``min_windows`` windows spanning ``min_span_s`` seconds, densely (a person
+walking through marks a cell in a scan or three per crossing; a rack's face is marked by most
+scans that see it). Short cells near the map's walls are left out (a map traced from a log is
+a few centimetres off along every wall), as are through cells not on a wall.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon, box
+
+from rlutf.map import Map
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+SHORT, THROUGH = 0, 1
+_NEVER = np.iinfo(np.int64).max
+
+
+@dataclass(frozen=True)
+class Returns:
+    """The returns of one scan as the localizer compared them at its pose.
+
+    Attributes:
+        pose: ``(3,)`` the robot base's pose.
+        offset: ``(3,)`` the sensor's pose in the base frame.
+        cos: ``(N,)`` cosines of the beams with a return (sensor frame).
+        sin: ``(N,)`` their sines.
+        measured: ``(N,)`` measured ranges, metres.
+        cast: ``(N,)`` ranges cast on the map from ``pose``, metres (``inf``: no wall hit).
+    """
+
+    pose: FloatArray
+    offset: FloatArray
+    cos: FloatArray
+    sin: FloatArray
+    measured: FloatArray
+    cast: FloatArray
+
+
+@dataclass(frozen=True)
+class ChangeSettings:
+    """Parameters of the evidence and of the reports.
+
+    Attributes:
+        cell: grid cell side, metres.
+        margin: the grid extends this far past the map's bounds, metres.
+        tolerance: a return counts when it is this much shorter or longer than the map's
+            range, metres.
+        window_s: length of a time window, seconds.
+        min_windows: a change is reported once it was seen in this many windows ...
+        min_span_s: ... spanning at least this long, seconds.
+        min_density: ... and its cells were marked by this many scans per window they were
+            marked in (a person walking by marks a cell in one to three scans).
+        min_evidence: ... and by this many scans in all (summed over its cells).
+        clearance: short cells closer than this to a map wall are not reported, metres.
+        wall_distance: through cells farther than this from a map wall are not reported.
+        min_area: smallest ``added`` region reported, m^2.
+        min_length: shortest ``removed`` wall reported, metres.
+    """
+
+    cell: float = 0.2
+    margin: float = 1.0
+    tolerance: float = 0.3
+    window_s: float = 5.0
+    min_windows: int = 3
+    min_span_s: float = 20.0
+    min_density: float = 4.0
+    min_evidence: int = 40
+    clearance: float = 0.25
+    wall_distance: float = 0.3
+    min_area: float = 0.08
+    min_length: float = 0.4
+
+
+@dataclass(frozen=True)
+class Change:
+    """One place where the world and the map disagree.
+
+    Attributes:
+        kind: ``"added"`` (something the map lacks) or ``"removed"`` (a wall beams pass).
+        geometry: a Polygon or MultiPolygon (added), a LineString or MultiLineString (removed).
+        evidence: scans that marked its cells, summed over the cells.
+        robots: distinct robots that saw it (by a 32-bit hash of the ids: at most 32).
+        first_ns: stamp of the first scan that marked it.
+        last_ns: stamp of the last.
+        confidence: in [0, 1]: rises with the evidence, the windows and the robots.
+    """
+
+    kind: str
+    geometry: Polygon | MultiPolygon | LineString | MultiLineString
+    evidence: int
+    robots: int
+    first_ns: int
+    last_ns: int
+    confidence: float
+
+
+def robot_bit(robot_id: str) -> int:
+    """The bit of a robot in the robot masks (a hash of the id, stable across processes)."""
+    import zlib
+
+    return 1 << (zlib.crc32(robot_id.encode()) % 32)
+
+
+@dataclass
+class ChangeGrid:
+    """The evidence of one map version, over all robots.
+
+    Args:
+        world: the map.
+        settings: parameters.
+    """
+
+    world: Map
+    settings: ChangeSettings = field(default_factory=ChangeSettings)
+
+    def __post_init__(self) -> None:
+        s = self.settings
+        minx, miny, maxx, maxy = self.world.bounds
+        self.origin = (minx - s.margin, miny - s.margin)
+        self.nx = math.ceil((maxx - minx + 2 * s.margin) / s.cell)
+        self.ny = math.ceil((maxy - miny + 2 * s.margin) / s.cell)
+        n = self.nx * self.ny
+        self.marks = np.zeros((2, n), dtype=np.int32)
+        self.windows = np.zeros((2, n), dtype=np.uint32)
+        self.robots = np.zeros((2, n), dtype=np.uint32)
+        self.first = np.full((2, n), _NEVER, dtype=np.int64)
+        self.last = np.zeros((2, n), dtype=np.int64)
+        self.scans = 0
+
+    def cells(self, points: FloatArray) -> IntArray:
+        """The flat cell index of each ``(K, 2)`` point, those off the grid left out, each cell
+        once."""
+        s = self.settings
+        ij = np.floor((points - np.asarray(self.origin)) / s.cell).astype(np.int64)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.nx) & (ij[:, 1] >= 0) & (ij[:, 1] < self.ny)
+        return np.unique(ij[ok, 1] * self.nx + ij[ok, 0])
+
+    def evidence(self, returns: Returns) -> tuple[IntArray, IntArray]:
+        """``(short cells, through cells)`` of one scan (:func:`scan_evidence`)."""
+        return scan_evidence(self, returns)
+
+    def add(self, short: IntArray, through: IntArray, stamp_ns: int, robot: int) -> None:
+        """Count one scan's evidence (``robot``: its :func:`robot_bit`)."""
+        from rlutf import _changes
+
+        window = np.uint32(1 << ((stamp_ns // int(self.settings.window_s * 1e9)) % 32))
+        bit = np.uint32(robot)
+        for kind, cells in ((SHORT, short), (THROUGH, through)):
+            if len(cells):
+                _changes.accumulate(
+                    self.marks[kind], self.windows[kind], self.robots[kind], self.first[kind],
+                    self.last[kind], cells, stamp_ns, window, bit,
+                )  # fmt: skip
+        self.scans += 1
+
+    def centre(self, cells: IntArray) -> FloatArray:
+        """``(K, 2)`` centres of flat cells."""
+        s = self.settings
+        iy, ix = np.divmod(cells, self.nx)
+        return np.column_stack(
+            [self.origin[0] + (ix + 0.5) * s.cell, self.origin[1] + (iy + 0.5) * s.cell]
+        )
+
+
+def scan_evidence(grid: ChangeGrid, returns: Returns) -> tuple[IntArray, IntArray]:
+    """The cells one scan marks: ``(short, through)``, flat indices, each once, sorted.
+
+    A return shorter than the map's range by more than ``tolerance`` marks the cell it hit; a
+    return longer by more than ``tolerance`` marks the cell of the map's wall it passed (a
+    quarter cell past the map's range, inside the wall).
+    """
+    from rlutf import _changes
+
+    r = returns
+    x, y, th = float(r.pose[0]), float(r.pose[1]), float(r.pose[2])
+    c, s = math.cos(th), math.sin(th)
+    ox, oy, ot = float(r.offset[0]), float(r.offset[1]), float(r.offset[2])
+    g = grid.settings
+    return _changes.evidence(  # type: ignore[no-any-return]
+        x + c * ox - s * oy, y + s * ox + c * oy, th + ot, r.cos, r.sin, r.measured, r.cast,
+        g.tolerance, 0.25 * g.cell, grid.origin[0], grid.origin[1], g.cell, grid.nx, grid.ny,
+    )  # fmt: skip
+
+
+def _popcount(masks: NDArray[np.uint32]) -> IntArray:
+    """Bits set in each mask."""
+    bits = np.unpackbits(np.ascontiguousarray(masks, dtype="<u4").view(np.uint8))
+    return bits.reshape(*np.shape(masks), 32).sum(axis=-1, dtype=np.int64)
+
+
+def _components(cells: IntArray, nx: int) -> list[IntArray]:
+    """The 8-connected groups of ``cells`` (flat indices, sorted), each sorted, in order of
+    their first cell."""
+    index = {int(c): i for i, c in enumerate(cells)}
+    parent = list(range(len(cells)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, c in enumerate(cells.tolist()):
+        cy, cx = divmod(c, nx)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if (dy, dx) <= (0, 0) or not 0 <= cx + dx < nx:
+                    continue
+                j = index.get((cy + dy) * nx + cx + dx)
+                if j is not None:
+                    a, b = root(i), root(j)
+                    if a != b:
+                        parent[max(a, b)] = min(a, b)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(cells)):
+        groups.setdefault(root(i), []).append(i)
+    return [cells[np.array(g)] for _, g in sorted(groups.items())]
+
+
+def find_changes(grid: ChangeGrid) -> list[Change]:
+    """The changes the grid holds evidence of, ``added`` first, each kind in grid order."""
+    s = grid.settings
+    world = grid.world
+    walls = world.geometry.boundary
+    out: list[Change] = []
+    for kind in (SHORT, THROUGH):
+        marks = grid.marks[kind]
+        seen = np.flatnonzero(marks >= 2)
+        if len(seen) == 0:
+            continue
+        windows = _popcount(grid.windows[kind, seen])
+        dense = seen[marks[seen] >= s.min_density * np.maximum(windows, 1)]
+        if len(dense) == 0:
+            continue
+        centres = grid.centre(dense)
+        distance = shapely.distance(shapely.points(centres), walls)
+        if kind == SHORT:
+            keep = world.contains(centres) & (distance >= s.clearance)
+        else:
+            keep = distance <= s.wall_distance
+        for group in _components(dense[keep], grid.nx):
+            change = _change(grid, kind, group)
+            if change is not None:
+                out.append(change)
+    return out
+
+
+def _change(grid: ChangeGrid, kind: int, cells: IntArray) -> Change | None:
+    """The change a group of cells makes, or ``None`` when it is not persistent enough."""
+    s = grid.settings
+    evidence = int(grid.marks[kind, cells].sum())
+    windows = int(_popcount(np.bitwise_or.reduce(grid.windows[kind, cells])))
+    robots = int(_popcount(np.bitwise_or.reduce(grid.robots[kind, cells])))
+    first, last = int(grid.first[kind, cells].min()), int(grid.last[kind, cells].max())
+    if evidence < s.min_evidence or windows < s.min_windows or last - first < s.min_span_s * 1e9:
+        return None
+    h = 0.5 * s.cell
+    boxes = shapely.union_all([box(x - h, y - h, x + h, y + h) for x, y in grid.centre(cells)])
+    geometry: Polygon | MultiPolygon | LineString | MultiLineString
+    if kind == SHORT:
+        # what a robot sees of an object is its faces: the hull of the cells marked
+        shape = shapely.convex_hull(boxes)
+        if not isinstance(shape, Polygon) or shape.area < s.min_area:
+            return None
+        geometry = shape
+    else:
+        line = shapely.line_merge(grid.world.geometry.boundary.intersection(boxes.buffer(h)))
+        if not isinstance(line, LineString | MultiLineString) or line.length < s.min_length:
+            return None
+        geometry = line
+    confidence = (1.0 - 0.5 ** (evidence / s.min_evidence)) * (
+        1.0 - 0.5 ** (windows / s.min_windows)
+    )
+    return Change(
+        "added" if kind == SHORT else "removed",
+        geometry,
+        evidence,
+        robots,
+        first,
+        last,
+        round(min(max(confidence, 0.0), 1.0), 6),
+    )
