@@ -1,4 +1,4 @@
-"""Compiled kernels of map health (see :mod:`rlutf.mapchange`): a scan's evidence and its count."""
+"""Compiled kernel of map health (see :mod:`rlutf.mapchange`): one scan counted into a grid."""
 
 from __future__ import annotations
 
@@ -7,56 +7,59 @@ import math
 import numpy as np
 from numba import njit
 
+#: Rows of the counts: marks of each kind, free passes, window masks and robot masks of each
+#: kind; of the times: first and last stamp of each kind.
+MARKS, FREE, WINDOWS, ROBOTS = 0, 2, 3, 5
+FIRST, LAST = 0, 2
+
 
 @njit(cache=True, nogil=True)
-def evidence(
+def observe(
     sx: float, sy: float, st: float, cos: np.ndarray, sin: np.ndarray, measured: np.ndarray,
-    cast: np.ndarray, tolerance: float, nudge: float, ox: float, oy: float, cell: float,
-    nx: int, ny: int,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """``(short, through)`` flat cells of one scan from the sensor pose ``(sx, sy, st)``, each
-    cell once, sorted (see :func:`rlutf.mapchange.scan_evidence`)."""
+    cast: np.ndarray, tolerance: float, nudge: float, stride: int, ox: float, oy: float,
+    cell: float, nx: int, ny: int, counts: np.ndarray, times: np.ndarray, stamp: int,
+    window: int, robot: int,
+) -> tuple[int, int]:  # fmt: skip
+    """Count one scan from the sensor pose ``(sx, sy, st)``: each return well short of the map's
+    range marks its cell ``short`` (kind 0), each well beyond it marks the map wall's cell
+    ``through`` (kind 1); every ``stride``-th beam counts the cells it crossed as ``free`` up to
+    ``tolerance`` before where it ended. Sums, ORs, min and max: any order, same grid.
+    Returns the beams marked short and through."""
     n = measured.shape[0]
     cs, ss = math.cos(st), math.sin(st)
-    short = np.empty(n, dtype=np.int64)
-    through = np.empty(n, dtype=np.int64)
-    ns = 0
-    nt = 0
+    marked = np.zeros(2, dtype=np.int64)
     for i in range(n):
         m, c = measured[i], cast[i]
         if not (math.isfinite(m) and math.isfinite(c)):
             continue
-        if m < c - tolerance:
-            at = m
-        elif m > c + tolerance:
-            at = c + nudge
-        else:
-            continue
         dx = cs * cos[i] - ss * sin[i]
         dy = ss * cos[i] + cs * sin[i]
+        if i % stride == 0:
+            t = 0.5 * cell
+            end = min(m, c) - tolerance
+            while t < end:
+                ix = int(math.floor((sx + t * dx - ox) / cell))
+                iy = int(math.floor((sy + t * dy - oy) / cell))
+                if 0 <= ix < nx and 0 <= iy < ny:
+                    counts[FREE, iy * nx + ix] += 1
+                t += cell
+        if m < c - tolerance:
+            at = m
+            kind = 0
+        elif m > c + tolerance:
+            at = c + nudge
+            kind = 1
+        else:
+            continue
         ix = int(math.floor((sx + at * dx - ox) / cell))
         iy = int(math.floor((sy + at * dy - oy) / cell))
         if ix < 0 or ix >= nx or iy < 0 or iy >= ny:
             continue
-        if m < c:
-            short[ns] = iy * nx + ix
-            ns += 1
-        else:
-            through[nt] = iy * nx + ix
-            nt += 1
-    return np.unique(short[:ns]), np.unique(through[:nt])
-
-
-@njit(cache=True, nogil=True)
-def accumulate(
-    marks: np.ndarray, windows: np.ndarray, robots: np.ndarray, first: np.ndarray,
-    last: np.ndarray, cells: np.ndarray, stamp: int, window: np.uint32, robot: np.uint32,
-) -> None:  # fmt: skip
-    """Count one scan's cells of one kind (sums, ORs, min and max: any order, same result)."""
-    for k in range(cells.shape[0]):
-        c = cells[k]
-        marks[c] += 1
-        windows[c] |= window
-        robots[c] |= robot
-        first[c] = min(first[c], stamp)
-        last[c] = max(last[c], stamp)
+        k = iy * nx + ix
+        counts[MARKS + kind, k] += 1
+        counts[WINDOWS + kind, k] |= window
+        counts[ROBOTS + kind, k] |= robot
+        times[FIRST + kind, k] = min(times[FIRST + kind, k], stamp)
+        times[LAST + kind, k] = max(times[LAST + kind, k], stamp)
+        marked[kind] += 1
+    return marked[0], marked[1]

@@ -7,8 +7,8 @@ cell is marked where the map's wall is). Only scans at poses that fit well count
 decides), so a mislocalized robot's scans say nothing.
 
 Over all robots (:class:`ChangeGrid`): per cell of a fixed grid over the map, for each kind, the
-scans that marked it, the time windows they fell in (a 32-bit mask of ``stamp // window`` mod
-32), the robots (a 32-bit mask of a hash of the robot id), and the first and last stamps. Every
+scans that marked it, the time windows they fell in (a 31-bit mask of ``stamp // window`` mod
+31), the robots (a 31-bit mask of a hash of the robot id), and the first and last stamps. Every
 update is a sum, an OR, a min or a max: the grid is the same whatever order the scans come in,
 so the live service (scans from several worker processes) and replay (scans in log order) hold
 the same grid once they have seen the same scans. Its size is fixed by the map.
@@ -70,6 +70,10 @@ class ChangeSettings:
         tolerance: a return counts when it is this much shorter or longer than the map's
             range, metres.
         window_s: length of a time window, seconds.
+        free_stride: every this many beams count the cells they cross as seen free.
+        occupied: a short cell counts only when at least this share of the beams that reached
+            it ended there (a person's path is seen free far more often than not) ...
+        cell_windows: ... and it was marked in this many windows ...
         min_windows: a change is reported once it was seen in this many windows ...
         min_span_s: ... spanning at least this long, seconds.
         min_density: ... and its cells were marked by this many scans per window they were
@@ -85,6 +89,9 @@ class ChangeSettings:
     margin: float = 1.0
     tolerance: float = 0.3
     window_s: float = 5.0
+    free_stride: int = 4
+    occupied: float = 0.5
+    cell_windows: int = 2
     min_windows: int = 3
     min_span_s: float = 20.0
     min_density: float = 4.0
@@ -103,7 +110,7 @@ class Change:
         kind: ``"added"`` (something the map lacks) or ``"removed"`` (a wall beams pass).
         geometry: a Polygon or MultiPolygon (added), a LineString or MultiLineString (removed).
         evidence: scans that marked its cells, summed over the cells.
-        robots: distinct robots that saw it (by a 32-bit hash of the ids: at most 32).
+        robots: distinct robots that saw it (by a hash of the ids into 31 bits: at most 31).
         first_ns: stamp of the first scan that marked it.
         last_ns: stamp of the last.
         confidence: in [0, 1]: rises with the evidence, the windows and the robots.
@@ -122,7 +129,7 @@ def robot_bit(robot_id: str) -> int:
     """The bit of a robot in the robot masks (a hash of the id, stable across processes)."""
     import zlib
 
-    return 1 << (zlib.crc32(robot_id.encode()) % 32)
+    return 1 << (zlib.crc32(robot_id.encode()) % 31)
 
 
 @dataclass
@@ -144,38 +151,75 @@ class ChangeGrid:
         self.nx = math.ceil((maxx - minx + 2 * s.margin) / s.cell)
         self.ny = math.ceil((maxy - miny + 2 * s.margin) / s.cell)
         n = self.nx * self.ny
-        self.marks = np.zeros((2, n), dtype=np.int32)
-        self.windows = np.zeros((2, n), dtype=np.uint32)
-        self.robots = np.zeros((2, n), dtype=np.uint32)
-        self.first = np.full((2, n), _NEVER, dtype=np.int64)
-        self.last = np.zeros((2, n), dtype=np.int64)
+        # one block of counts and one of stamps: the kernel takes two arrays, not eleven
+        self.counts = np.zeros((7, n), dtype=np.int32)
+        self.times = np.zeros((4, n), dtype=np.int64)
+        self.times[:2] = _NEVER
+        self.marks = self.counts[0:2]
+        self.free = self.counts[2]
+        self.windows = self.counts[3:5]
+        self.robots = self.counts[5:7]
+        self.first = self.times[0:2]
+        self.last = self.times[2:4]
+        self.oldest_ns = _NEVER  # stamps of the first and last scan counted
+        self.newest_ns = 0
+        self.robot_ids: set[str] = set()
         self.scans = 0
 
-    def cells(self, points: FloatArray) -> IntArray:
-        """The flat cell index of each ``(K, 2)`` point, those off the grid left out, each cell
-        once."""
-        s = self.settings
-        ij = np.floor((points - np.asarray(self.origin)) / s.cell).astype(np.int64)
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.nx) & (ij[:, 1] >= 0) & (ij[:, 1] < self.ny)
-        return np.unique(ij[ok, 1] * self.nx + ij[ok, 0])
-
-    def evidence(self, returns: Returns) -> tuple[IntArray, IntArray]:
-        """``(short cells, through cells)`` of one scan (:func:`scan_evidence`)."""
-        return scan_evidence(self, returns)
-
-    def add(self, short: IntArray, through: IntArray, stamp_ns: int, robot: int) -> None:
-        """Count one scan's evidence (``robot``: its :func:`robot_bit`)."""
+    def add(self, returns: Returns, stamp_ns: int, robot: str) -> tuple[int, int]:
+        """Count one scan of ``robot``: a return shorter than the map's
+        range by more than ``tolerance`` marks the cell it hit (``short``), one longer by more
+        than ``tolerance`` the cell of the map's wall it passed (``through``, a quarter cell
+        past the map's range, inside the wall); every ``free_stride``-th beam counts the cells
+        it crossed as seen free. Returns the beams marked ``(short, through)``."""
         from rlutf import _changes
 
-        window = np.uint32(1 << ((stamp_ns // int(self.settings.window_s * 1e9)) % 32))
-        bit = np.uint32(robot)
-        for kind, cells in ((SHORT, short), (THROUGH, through)):
-            if len(cells):
-                _changes.accumulate(
-                    self.marks[kind], self.windows[kind], self.robots[kind], self.first[kind],
-                    self.last[kind], cells, stamp_ns, window, bit,
-                )  # fmt: skip
+        r = returns
+        s = self.settings
+        x, y, th = float(r.pose[0]), float(r.pose[1]), float(r.pose[2])
+        c, sn = math.cos(th), math.sin(th)
+        ox, oy, ot = float(r.offset[0]), float(r.offset[1]), float(r.offset[2])
+        window = 1 << ((stamp_ns // int(s.window_s * 1e9)) % 31)
         self.scans += 1
+        self.oldest_ns = min(self.oldest_ns, stamp_ns)
+        self.newest_ns = max(self.newest_ns, stamp_ns)
+        self.robot_ids.add(robot)
+        return _changes.observe(
+            x + c * ox - sn * oy, y + sn * ox + c * oy, th + ot, r.cos, r.sin, r.measured,
+            r.cast, s.tolerance, 0.25 * s.cell, s.free_stride, self.origin[0], self.origin[1],
+            s.cell, self.nx, self.ny, self.counts, self.times, stamp_ns, window, robot_bit(robot),
+        )  # fmt: skip
+
+    def merge(self, other: ChangeGrid) -> None:
+        """Add another grid of the same map's evidence (another worker's scans) to this one:
+        the result is the grid of both grids' scans, whatever the order of the merges."""
+        if other.counts.shape != self.counts.shape or other.origin != self.origin:
+            raise ValueError(
+                f"grid: cannot merge a {other.nx} x {other.ny} grid at {other.origin} into a "
+                f"{self.nx} x {self.ny} grid at {self.origin}"
+            )
+        self.counts[0:3] += other.counts[0:3]
+        self.counts[3:7] |= other.counts[3:7]
+        np.minimum(self.times[0:2], other.times[0:2], out=self.times[0:2])
+        np.maximum(self.times[2:4], other.times[2:4], out=self.times[2:4])
+        self.scans += other.scans
+        self.oldest_ns = min(self.oldest_ns, other.oldest_ns)
+        self.newest_ns = max(self.newest_ns, other.newest_ns)
+        self.robot_ids |= other.robot_ids
+
+    def clear(self) -> None:
+        """Forget every scan (after its evidence was handed on with :meth:`merge`)."""
+        self.counts[:] = 0
+        self.times[:2] = _NEVER
+        self.times[2:] = 0
+        self.scans = 0
+        self.oldest_ns = _NEVER
+        self.newest_ns = 0
+        self.robot_ids = set()
+
+    def empty(self) -> ChangeGrid:
+        """A grid of the same map and settings with no scans."""
+        return ChangeGrid(self.world, self.settings)
 
     def centre(self, cells: IntArray) -> FloatArray:
         """``(K, 2)`` centres of flat cells."""
@@ -186,30 +230,11 @@ class ChangeGrid:
         )
 
 
-def scan_evidence(grid: ChangeGrid, returns: Returns) -> tuple[IntArray, IntArray]:
-    """The cells one scan marks: ``(short, through)``, flat indices, each once, sorted.
-
-    A return shorter than the map's range by more than ``tolerance`` marks the cell it hit; a
-    return longer by more than ``tolerance`` marks the cell of the map's wall it passed (a
-    quarter cell past the map's range, inside the wall).
-    """
-    from rlutf import _changes
-
-    r = returns
-    x, y, th = float(r.pose[0]), float(r.pose[1]), float(r.pose[2])
-    c, s = math.cos(th), math.sin(th)
-    ox, oy, ot = float(r.offset[0]), float(r.offset[1]), float(r.offset[2])
-    g = grid.settings
-    return _changes.evidence(  # type: ignore[no-any-return]
-        x + c * ox - s * oy, y + s * ox + c * oy, th + ot, r.cos, r.sin, r.measured, r.cast,
-        g.tolerance, 0.25 * g.cell, grid.origin[0], grid.origin[1], g.cell, grid.nx, grid.ny,
-    )  # fmt: skip
-
-
-def _popcount(masks: NDArray[np.uint32]) -> IntArray:
+def _popcount(masks: NDArray[np.int32]) -> IntArray:
     """Bits set in each mask."""
-    bits = np.unpackbits(np.ascontiguousarray(masks, dtype="<u4").view(np.uint8))
-    return bits.reshape(*np.shape(masks), 32).sum(axis=-1, dtype=np.int64)
+    bits = np.unpackbits(np.ascontiguousarray(masks, dtype="<i4").view(np.uint8))
+    out: IntArray = bits.reshape(*np.shape(masks), 32).sum(axis=-1, dtype=np.int64)
+    return out
 
 
 def _components(cells: IntArray, nx: int) -> list[IntArray]:
@@ -253,7 +278,11 @@ def find_changes(grid: ChangeGrid) -> list[Change]:
         if len(seen) == 0:
             continue
         windows = _popcount(grid.windows[kind, seen])
-        dense = seen[marks[seen] >= s.min_density * np.maximum(windows, 1)]
+        keep = (windows >= s.cell_windows) & (marks[seen] >= s.min_density * windows)
+        if kind == SHORT:
+            passed = s.free_stride * grid.free[seen].astype(np.float64)
+            keep &= marks[seen] >= s.occupied * (marks[seen] + passed)
+        dense = seen[keep]
         if len(dense) == 0:
             continue
         centres = grid.centre(dense)

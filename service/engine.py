@@ -42,6 +42,7 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.keys import Keys
+from service.maphealth import NullEvidence, ScanEvidence
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
@@ -116,14 +117,23 @@ class FleetEngine:
         keys: the key layout.
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
+        evidence: where each scan's map health evidence is counted (:mod:`service.maphealth`;
+            default: nowhere). Different robots' scans may be counted from different threads:
+            it is called under a lock.
     """
 
     def __init__(
-        self, keys: Keys, config: LocalizerConfig, event_interval_ns: int = 1_000_000_000
+        self,
+        keys: Keys,
+        config: LocalizerConfig,
+        event_interval_ns: int = 1_000_000_000,
+        evidence: ScanEvidence | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
+        self.evidence = evidence if evidence is not None else NullEvidence()
+        self.evidence_lock = threading.Lock()
         self._maps: dict[str, _MapVersions] = {}
         self._maps_lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
@@ -320,7 +330,8 @@ class FleetEngine:
                 key,
                 "scan before an initial pose; publish an InitialPose first",
             )
-        if self._world_for(robot, received_ns) is None or robot.localizer is None:
+        world = self._world_for(robot, received_ns)
+        if world is None or robot.localizer is None:
             return skipped + self._event(
                 robot,
                 received_ns,
@@ -351,6 +362,10 @@ class FleetEngine:
             (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
         )
         result = robot.localizer.update(motion, scan)
+        with self.evidence_lock:
+            self.evidence.observe(
+                robot.map_id, robot.map_version, world, robot.robot_id, msg.stamp_ns, result
+            )
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (

@@ -46,6 +46,7 @@ from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
 from service.logs.mcapread import LogFile, map_topic, merged_messages, robot_topic
 from service.logs.replayconfig import ReplayConfig, resolve
+from service.maphealth import MapHealthEngine, ScanEvidence
 from service.maps.book import MapBook, MapRejected
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,10 @@ INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose | Relocalize]] =
 MAP_SCHEMA = "rlutf.Map"
 POSE_SCHEMA = "rlutf.PoseEstimate"
 EVENT_SCHEMA = "rlutf.Event"
+MAPHEALTH_SCHEMA = "rlutf.MapHealth"
+#: Replay hands the scans' map health evidence on once per this much log time, as the live
+#: workers do.
+HEALTH_HANDOVER_NS = 1_000_000_000
 REPLAYED = frozenset({*INPUT_MODELS, MAP_SCHEMA, POSE_SCHEMA})
 REPLAY_METADATA = "rlutf.replay"
 
@@ -90,6 +95,7 @@ class ReplayResult:
         odometry: ``(stamp_ns, x, y, theta)`` per robot.
         initial_poses: ``(stamp_ns, map_id, x, y, theta)`` per robot.
         maps: newest accepted Map payload per map id.
+        maphealth: the recomputed MapHealth payloads per map id, in order.
         inputs: input messages handled (maps included).
         dropped: scans skipped because they were dropped live.
         rejected: inputs rejected as invalid (the live service would not have recorded them).
@@ -107,6 +113,7 @@ class ReplayResult:
         default_factory=lambda: defaultdict(list)
     )
     maps: dict[str, bytes] = field(default_factory=dict)
+    maphealth: dict[str, list[bytes]] = field(default_factory=lambda: defaultdict(list))
     inputs: int = 0
     dropped: int = 0
     rejected: int = 0
@@ -162,7 +169,12 @@ class _Run:
         self.result = result
         self.drops = drops
         self.writer = writer
-        self.engine = FleetEngine(Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns)
+        self.evidence = ScanEvidence()
+        self.engine = FleetEngine(
+            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, self.evidence
+        )
+        self.health = MapHealthEngine(Keys(cfg.prefix))
+        self.handed_ns: int | None = None
         self.book = MapBook(cfg.max_payload_bytes)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
 
@@ -201,6 +213,8 @@ class _Run:
             self.engine.register_map(
                 loaded.map_id, loaded.version, loaded.world, loaded.received_ns
             )
+            self.finish_health(rec.log_time_ns)  # the old version's last evidence first
+            self.health.register_map(loaded.map_id, loaded.version, loaded.world)
             self.result.maps[loaded.map_id] = loaded.payload
 
     def _input(self, rec: Record) -> None:
@@ -239,6 +253,22 @@ class _Run:
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
             if out.kind == "pose":
                 self.result.recomputed[robot].append(pose_record(out.payload))
+        self._health(rec.log_time_ns)
+
+    def _health(self, now_ns: int, force: bool = False) -> None:
+        """Hand the evidence on once a second of log time; write the MapHealth that is due."""
+        if self.handed_ns is None:
+            self.handed_ns = now_ns
+        if force or now_ns - self.handed_ns >= HEALTH_HANDOVER_NS:
+            self.handed_ns = now_ns
+            self.health.merge(self.evidence.take())
+        for out in self.health.due(now_ns):
+            self._write(Record(out.key, MAPHEALTH_SCHEMA, out.payload, now_ns, out.stamp_ns))
+            self.result.maphealth[out.map_id].append(out.payload)
+
+    def finish_health(self, now_ns: int) -> None:
+        """The evidence not handed on yet, and a MapHealth of it (the end of the inputs)."""
+        self._health(now_ns + self.health.interval_ns, force=True)
 
 
 def replay(
@@ -302,10 +332,13 @@ def replay(
                 )
                 writer.write_all(drop_records)
             run = _Run(result, drops, writer)
+            last_ns = 0
             for rec in merged_messages(logs, REPLAYED):
                 run.handle(rec)
+                last_ns = rec.log_time_ns
                 if progress is not None:
                     progress(1)
+            run.finish_health(last_ns)
             if writer is not None and stream is not None:
                 writer.finish()
                 stream.flush()

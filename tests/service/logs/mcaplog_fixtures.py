@@ -32,8 +32,10 @@ def simulated_inputs(
     seed: int = 3,
     beams: int = 120,
     prefix: str = "rlutf",
+    seen: Any = None,
 ) -> list[Record]:
-    """A map, initial poses, then odometry and a scan per robot per step, in log order.
+    """A map, initial poses, then odometry and a scan per robot per step, in log order; the
+    scans are of ``seen`` (a :class:`rlutf.map.Map`; default: the map itself).
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
@@ -81,7 +83,7 @@ def simulated_inputs(
             )
             if i == 0:
                 continue
-            s = simulate_scan(WORLD, truth[i], lidar, rng)
+            s = simulate_scan(WORLD if seen is None else seen, truth[i], lidar, rng)
             scan = LaserScan(
                 stamp_ns=stamp,
                 angle_min=s.angle_min,
