@@ -89,7 +89,7 @@ class ChangeSettings:
     margin: float = 1.0
     tolerance: float = 0.3
     window_s: float = 5.0
-    free_stride: int = 4
+    free_stride: int = 8
     occupied: float = 0.5
     cell_windows: int = 2
     min_windows: int = 3

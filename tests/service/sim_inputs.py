@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -63,3 +64,25 @@ def wire_scan(s: Scan, stamp_ns: int) -> LaserScan:
         range_max=s.range_max,
         ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
     )
+
+
+def rack_beside(world: World, paths: list[np.ndarray]) -> Any:
+    """A 1.2 m x 0.5 m rack (shapely box) the map lacks: clear of the walls and of every path
+    by 0.7 m, within 3 m of the first path for half of its poses (seen over several windows)."""
+    import shapely
+    from shapely.geometry import box
+
+    rng = np.random.default_rng(0)
+    points = shapely.points(np.vstack([p[:, :2] for p in paths]))
+    first = shapely.points(paths[0][:, :2])
+    inner = world.geometry.buffer(-0.5)
+    for _ in range(5000):
+        p = paths[0][rng.integers(len(paths[0]))][:2] + rng.uniform(-2.5, 2.5, 2)
+        rack = box(p[0] - 0.6, p[1] - 0.25, p[0] + 0.6, p[1] + 0.25)
+        if (
+            inner.contains(rack)
+            and shapely.distance(rack, points).min() > 0.7
+            and np.mean(shapely.distance(rack, first) < 3.0) > 0.5
+        ):
+            return rack
+    raise AssertionError("no place for a rack")

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import shapely
-from shapely.geometry import box, shape
-from sim_inputs import Run
+from shapely.geometry import shape
+from sim_inputs import Run, rack_beside
 
 from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
@@ -32,25 +32,12 @@ class Inputs:
     steps: list[tuple[Odometry, LaserScan, int]]  # odometry, scan, receive time
 
 
-def _rack_beside(world: World, paths: list[np.ndarray]) -> shapely.Polygon:
-    """A 1.2 m x 0.5 m rack 1 to 2.5 m beside the first path, clear of both and the walls."""
-    rng = np.random.default_rng(0)
-    points = shapely.points(np.vstack([p[:, :2] for p in paths]))
-    inner = world.geometry.buffer(-0.5)
-    for _ in range(5000):
-        p = paths[0][rng.integers(len(paths[0]))][:2] + rng.uniform(-2.5, 2.5, 2)
-        rack = box(p[0] - 0.6, p[1] - 0.25, p[0] + 0.6, p[1] + 0.25)
-        if inner.contains(rack) and shapely.distance(rack, points).min() > 0.7:
-            return rack
-    raise AssertionError("no place for a rack")
-
-
 @pytest.fixture(scope="module")
 def changed() -> tuple[World, shapely.Polygon, dict[str, Inputs]]:
     """The map, a rack the map lacks, and two robots' inputs in the world with the rack."""
     world = make_building(np.random.default_rng(5))
     paths = [make_trajectory(world, np.random.default_rng(s), STEPS + 1) for s in (1, 2)]
-    rack = _rack_beside(world, paths)
+    rack = rack_beside(world, paths)
     seen = World.from_shapely(world.geometry.difference(rack))
     inputs = {}
     for robot, seed, path in (("a", 1, paths[0]), ("b", 2, paths[1])):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,10 +32,11 @@ def simulated_inputs(
     seed: int = 3,
     beams: int = 120,
     prefix: str = "rlutf",
-    seen: Any = None,
+    seen: Callable[[list[np.ndarray]], Any] | None = None,
 ) -> list[Record]:
     """A map, initial poses, then odometry and a scan per robot per step, in log order; the
-    scans are of ``seen`` (a :class:`rlutf.map.Map`; default: the map itself).
+    scans are of the world ``seen`` makes of the robots' paths (a :class:`rlutf.map.Map`;
+    default: the map itself).
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
@@ -71,6 +72,7 @@ def simulated_inputs(
             )
         )
     lidar = LidarModel(beams=beams)
+    world = WORLD if seen is None else seen([truth for truth, _ in runs.values()])
     for i in range(steps + 1):
         stamp = T0 + i * STEP_NS
         for k, (robot, (truth, odom)) in enumerate(runs.items()):
@@ -83,7 +85,7 @@ def simulated_inputs(
             )
             if i == 0:
                 continue
-            s = simulate_scan(WORLD if seen is None else seen, truth[i], lidar, rng)
+            s = simulate_scan(world, truth[i], lidar, rng)
             scan = LaserScan(
                 stamp_ns=stamp,
                 angle_min=s.angle_min,
