@@ -143,7 +143,8 @@ class Outcome:
     """One case's grading."""
 
     name: str
-    found: list[tuple[str, float | None, int | None]]  # (change, seconds, passes) or None
+    # (change, seconds until reported, passes until then (None: not reported), passes in all)
+    found: list[tuple[str, float | None, int | None, int]]
     false_area: float
     false_length: float
     reported: list[Change]
@@ -224,7 +225,7 @@ def run_case(
                 update_cpu = health_cpu = 0.0
             t = k * DT
             for i, (_, g) in enumerate(targets):
-                if first[i] is None and g.distance(shapely.Point(paths[r][k][:2])) < 5.0:
+                if g.distance(shapely.Point(paths[r][k][:2])) < 5.0:
                     if t - last_pass.get((i, r), -math.inf) > 10.0:
                         passes[i] += 1
                     last_pass[(i, r)] = t
@@ -240,7 +241,9 @@ def run_case(
     for i, (kind, g) in enumerate(targets):
         ok = _matches(changes, kind, g)
         at = first[i]
-        found.append((truth.names[i], at[0] if ok and at else None, at[1] if ok and at else None))
+        found.append(
+            (truth.names[i], at[0] if ok and at else None, at[1] if ok and at else None, passes[i])
+        )
     area, length = _false(changes, truth)
     return Outcome(
         f"building {seed}" + ("" if change else " (nothing changed)"),
@@ -356,17 +359,18 @@ def render(
     controls = [run_case(s, robots, seconds, change=False) for s in seeds]
     controls += [o for o in (real_case("intel"),) if o is not None]
     rows = [
-        "| case | change | reported | after s | robot passes until reported |",
-        "| --- | --- | --- | ---: | ---: |",
+        "| case | change | reported | after s | robot passes until reported | passes in the run |",
+        "| --- | --- | --- | ---: | ---: | ---: |",
     ]
     total = found = 0
     for o in outcomes:
-        for name, at, passes in o.found:
+        for name, at, passes, every in o.found:
             total += 1
             found += at is not None
             rows.append(
                 f"| {o.name} | {name} | {'yes' if at is not None else 'no'} | "
-                f"{'-' if at is None else f'{at:.0f}'} | {'-' if passes is None else passes} |"
+                f"{'-' if at is None else f'{at:.0f}'} | {'-' if passes is None else passes} | "
+                f"{every} |"
             )
     false_rows = [
         "| case | reports | false added m2 | false removed m | scans | scans counted | "

@@ -184,11 +184,14 @@ class ChangeGrid:
         self.oldest_ns = min(self.oldest_ns, stamp_ns)
         self.newest_ns = max(self.newest_ns, stamp_ns)
         self.robot_ids.add(robot)
-        return _changes.observe(
-            x + c * ox - sn * oy, y + sn * ox + c * oy, th + ot, r.cos, r.sin, r.measured,
-            r.cast, s.tolerance, 0.25 * s.cell, s.free_stride, self.origin[0], self.origin[1],
-            s.cell, self.nx, self.ny, self.counts, self.times, stamp_ns, window, robot_bit(robot),
+        reals = np.array(
+            [x + c * ox - sn * oy, y + sn * ox + c * oy, th + ot, s.tolerance, 0.25 * s.cell,
+             self.origin[0], self.origin[1], s.cell]
         )  # fmt: skip
+        ints = np.array([s.free_stride, self.nx, self.ny, stamp_ns, window, robot_bit(robot)])
+        return _changes.observe(
+            r.cos, r.sin, r.measured, r.cast, reals, ints, self.counts, self.times
+        )
 
     def merge(self, other: ChangeGrid) -> None:
         """Add another grid of the same map's evidence (another worker's scans) to this one:

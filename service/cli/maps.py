@@ -1,4 +1,4 @@
-"""``rlutf map put|get|import|build|show``: maps into and out of the store, from grids and logs."""
+"""``rlutf map put|get|import|build|show|health``: maps into and out of the store, and checks."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from service.cli import maphealth
 from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
 
 
@@ -88,6 +89,7 @@ def register(sub: Any) -> None:
     show.add_argument("--timeout", type=float, default=3.0)
     zenoh_flags(show, client=True)
     show.set_defaults(func=cmd_show)
+    maphealth.register(msub)
 
 
 def _map_output_flags(p: argparse.ArgumentParser) -> None:
@@ -123,7 +125,7 @@ def cmd_map(args: argparse.Namespace) -> int:
         with session:
             return get_map(session, settings.prefix, args.map_id, args.out, args.timeout)
     print(
-        "rlutf map: choose an action: put, get, import, build, show (see rlutf map --help)",
+        "rlutf map: choose an action: put, get, import, build, show, health (see rlutf map --help)",
         file=sys.stderr,
     )
     return EXIT_USAGE
