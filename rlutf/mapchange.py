@@ -132,6 +132,31 @@ def robot_bit(robot_id: str) -> int:
     return 1 << (zlib.crc32(robot_id.encode()) % 31)
 
 
+@dataclass(frozen=True, eq=False)
+class GridCounts:
+    """What a grid counted, in the cells it touched: to hand it to another process.
+
+    Attributes:
+        shape: ``(nx, ny)`` of the grid.
+        cells: ``(K,)`` flat indices of the cells with any count.
+        counts: ``(7, K)`` the grid's counts there.
+        times: ``(4, K)`` its first and last stamps there.
+        scans: scans counted.
+        oldest_ns: stamp of the first scan counted.
+        newest_ns: stamp of the last.
+        robot_ids: robots whose scans were counted.
+    """
+
+    shape: tuple[int, int]
+    cells: IntArray
+    counts: NDArray[np.int32]
+    times: NDArray[np.int64]
+    scans: int
+    oldest_ns: int
+    newest_ns: int
+    robot_ids: frozenset[str]
+
+
 @dataclass
 class ChangeGrid:
     """The evidence of one map version, over all robots.
@@ -193,28 +218,41 @@ class ChangeGrid:
             r.cos, r.sin, r.measured, r.cast, reals, ints, self.counts, self.times
         )
 
-    def merge(self, other: ChangeGrid) -> None:
+    def snapshot(self) -> GridCounts:
+        """What this grid counted, in the cells it touched."""
+        cells = np.flatnonzero(self.counts.any(axis=0))
+        return GridCounts(
+            (self.nx, self.ny), cells, self.counts[:, cells], self.times[:, cells], self.scans,
+            self.oldest_ns, self.newest_ns, frozenset(self.robot_ids),
+        )  # fmt: skip
+
+    def merge(self, other: ChangeGrid | GridCounts) -> None:
         """Add another grid of the same map's evidence (another worker's scans) to this one:
         the result is the grid of both grids' scans, whatever the order of the merges."""
-        if other.counts.shape != self.counts.shape or other.origin != self.origin:
+        if isinstance(other, ChangeGrid):
+            other = other.snapshot()
+        if other.shape != (self.nx, self.ny):
             raise ValueError(
-                f"grid: cannot merge a {other.nx} x {other.ny} grid at {other.origin} into a "
-                f"{self.nx} x {self.ny} grid at {self.origin}"
+                f"grid: cannot merge a {other.shape[0]} x {other.shape[1]} grid into a "
+                f"{self.nx} x {self.ny} grid"
             )
-        self.counts[0:3] += other.counts[0:3]
-        self.counts[3:7] |= other.counts[3:7]
-        np.minimum(self.times[0:2], other.times[0:2], out=self.times[0:2])
-        np.maximum(self.times[2:4], other.times[2:4], out=self.times[2:4])
+        c = other.cells
+        self.counts[0:3, c] += other.counts[0:3]
+        self.counts[3:7, c] |= other.counts[3:7]
+        self.times[0:2, c] = np.minimum(self.times[0:2, c], other.times[0:2])
+        self.times[2:4, c] = np.maximum(self.times[2:4, c], other.times[2:4])
         self.scans += other.scans
         self.oldest_ns = min(self.oldest_ns, other.oldest_ns)
         self.newest_ns = max(self.newest_ns, other.newest_ns)
         self.robot_ids |= other.robot_ids
 
-    def clear(self) -> None:
-        """Forget every scan (after its evidence was handed on with :meth:`merge`)."""
-        self.counts[:] = 0
-        self.times[:2] = _NEVER
-        self.times[2:] = 0
+    def clear(self, cells: IntArray | None = None) -> None:
+        """Forget every scan (after its evidence was handed on with :meth:`merge`); ``cells``:
+        the only cells with counts (:attr:`GridCounts.cells`), to clear just those."""
+        at = slice(None) if cells is None else cells
+        self.counts[:, at] = 0
+        self.times[:2, at] = _NEVER
+        self.times[2:, at] = 0
         self.scans = 0
         self.oldest_ns = _NEVER
         self.newest_ns = 0

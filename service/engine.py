@@ -42,11 +42,11 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.keys import Keys
-from service.maphealth import NullEvidence, ScanEvidence
+from service.maphealth import Handed, NullEvidence, ScanEvidence
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped"]
+OutKind = Literal["pose", "event", "need_map", "skipped", "evidence"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
@@ -58,8 +58,9 @@ class Outbound:
 
     Attributes:
         kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published) or
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published).
+            ``need_map`` (``map_id`` is wanted from the store; nothing is published),
+            ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
+            ``evidence`` (map health evidence handed on, :meth:`FleetEngine.hand_over`).
         key: the Zenoh key to put on.
         payload: encoded JSON.
         stamp_ns: the message's own stamp (MCAP ``publish_time``).
@@ -67,6 +68,7 @@ class Outbound:
         map_id: for ``need_map``.
         status: for ``pose``: the pose status.
         received_ns: for ``pose``: when the scan it answers was received.
+        evidence: for ``evidence``: the grids counted since the last hand-over.
     """
 
     kind: OutKind
@@ -77,6 +79,7 @@ class Outbound:
     map_id: str | None = None
     status: str | None = None
     received_ns: int | None = None
+    evidence: tuple[Handed, ...] = ()
 
 
 @dataclass
@@ -155,6 +158,13 @@ class FleetEngine:
         with self._maps_lock:
             book = self._maps.get(map_id)
             return book.at(received_ns) if book else None
+
+    def hand_over(self) -> Outbound | None:
+        """The map health evidence counted since the last call, as an ``evidence`` output
+        (``None`` when there is none); the engine starts counting afresh."""
+        with self.evidence_lock:
+            handed = self.evidence.take()
+        return Outbound("evidence", "", b"", 0, evidence=tuple(handed)) if handed else None
 
     # ----------------------------------------------------------------------------- state
     @property

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from rlutf.localizer import LocalizeResult
 from rlutf.map import Map as World
-from rlutf.mapchange import Change, ChangeGrid, ChangeSettings, find_changes
+from rlutf.mapchange import Change, ChangeGrid, ChangeSettings, GridCounts, find_changes
 from schemas import MapHealth, encode
 from schemas.maphealth import MapChange
 from service.keys import Keys
@@ -37,11 +37,12 @@ MAX_RANGE = 0.1
 
 @dataclass(frozen=True)
 class Handed:
-    """The evidence of one map version counted since the last hand-over."""
+    """The evidence of one map version counted since the last hand-over (small to pickle: the
+    touched cells only, no map)."""
 
     map_id: str
     version: int
-    grid: ChangeGrid
+    counts: GridCounts
 
 
 class ScanEvidence:
@@ -84,15 +85,23 @@ class ScanEvidence:
         key = (map_id, version)
         grid = self._grids.get(key)
         if grid is None or grid.world is not world:
+            # an older version's grid has been handed on: nothing more comes for it
+            for old in [k for k in self._grids if k[0] == map_id and k[1] < version]:
+                if not self._grids[old].scans:
+                    del self._grids[old]
             grid = self._grids[key] = ChangeGrid(world, self.settings)
         grid.add(result.returns, stamp_ns, robot)
         return True
 
     def take(self) -> list[Handed]:
         """The grids with scans counted since the last call, in map order; counting starts
-        afresh (a map version's grid is dropped once handed on)."""
-        out = [Handed(m, v, g) for (m, v), g in sorted(self._grids.items()) if g.scans]
-        self._grids = {}
+        afresh (the cells handed on are zeroed, the grids kept)."""
+        out = []
+        for (map_id, version), grid in sorted(self._grids.items()):
+            if grid.scans:
+                snapshot = grid.snapshot()
+                grid.clear(snapshot.cells)
+                out.append(Handed(map_id, version, snapshot))
         return out
 
 
@@ -144,7 +153,13 @@ class MapHealthEngine:
 
     keys: Keys
     interval_ns: int = 1_000_000_000
+    settings: ChangeSettings = field(default_factory=ChangeSettings)
     _maps: dict[str, _MapState] = field(default_factory=dict)
+
+    def version(self, map_id: str) -> int | None:
+        """The map version the evidence of ``map_id`` is about, if any is registered."""
+        state = self._maps.get(map_id)
+        return None if state is None else state.version
 
     def register_map(self, map_id: str, version: int, world: World) -> None:
         """A map version is loaded: a newer one starts the map's evidence afresh."""
@@ -161,8 +176,8 @@ class MapHealthEngine:
             if state is None or h.version != state.version:
                 continue
             if state.grid is None:
-                state.grid = ChangeGrid(state.world, h.grid.settings)
-            state.grid.merge(h.grid)
+                state.grid = ChangeGrid(state.world, self.settings)
+            state.grid.merge(h.counts)
             state.changed = True
 
     def due(self, now_ns: int) -> list[HealthOut]:

@@ -33,7 +33,16 @@ from typing import Any
 from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
 from service.keys import InputKind, Keys, Message
-from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
+from service.live.worker import (
+    Entry,
+    HandOver,
+    apply_control,
+    recv,
+    run_batch,
+    send,
+    worker_main,
+)
+from service.maphealth import ScanEvidence
 from service.maps.book import LoadedMap
 
 log = logging.getLogger(__name__)
@@ -165,7 +174,8 @@ class _ThreadShard(_Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns)
+        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, ScanEvidence())
+        self.hand_over = HandOver(self.engine)
 
     def start(self) -> None:
         for i in range(self.dispatcher.threads):
@@ -190,6 +200,7 @@ class _ThreadShard(_Shard):
             assert robot is not None
             t0 = time.perf_counter()
             outputs = run_batch(self.engine, robot, item)  # type: ignore[arg-type]
+            self.hand_over(outputs)
             # Published before the robot's next batch may start on another thread: its poses
             # go out (and into the log) in order.
             d.deliver(Done(robot, outputs, time.perf_counter() - t0))

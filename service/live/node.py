@@ -47,6 +47,7 @@ from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher, Done
+from service.live.healthfeed import HealthFeed
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
@@ -160,6 +161,8 @@ class LocalizationService:
                 settings.max_payload_bytes,
                 self.keys,
             )
+        rec = self.recorder.record
+        self.healthfeed = HealthFeed(self.keys, self.maps, self._publish, rec, self.clock)
         self.closed = threading.Event()
 
     # ------------------------------------------------------------------------ lifecycle
@@ -203,6 +206,7 @@ class LocalizationService:
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
             session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
+            session.declare_queryable(self.keys.all_maphealth, self.healthfeed.on_query),
         ]
         restored, problems = self.posestate.open()  # the poses kept across a restart
         for problem in problems:
@@ -343,6 +347,9 @@ class LocalizationService:
                 continue
             if out.kind == "skipped":
                 self.stats.add("skipped")
+                continue
+            if out.kind == "evidence":
+                self.healthfeed.on_evidence(out.evidence)
                 continue
             if out.kind == "pose":
                 with self.ownership.lock:  # a robot released meanwhile is not answered for
