@@ -1,23 +1,26 @@
 """Where the world no longer matches the map: evidence from scans at good poses, and reports.
 
-Per scan (:func:`scan_evidence`, beside the localizer, from the ranges it cast anyway): a return
-well short of the range the map predicts hit something the map lacks (*short*: its cell is
-marked at the return); a return well beyond it went through a wall the map has (*through*: its
-cell is marked where the map's wall is). Only scans at poses that fit well count (the caller
-decides), so a mislocalized robot's scans say nothing.
+Per scan (:meth:`ChangeGrid.add`, beside the localizer, from the ranges it cast anyway): a
+return well short of the range the map predicts hit something the map lacks (*short*: its cell
+is marked at the return); a return well beyond it went through a wall the map has (*through*:
+the cell of the map's wall is marked); every few beams count the cells they crossed as seen
+free. Only scans at poses that fit well count (the caller decides), so a mislocalized robot's
+scans say nothing.
 
 Over all robots (:class:`ChangeGrid`): per cell of a fixed grid over the map, for each kind, the
-scans that marked it, the time windows they fell in (a 31-bit mask of ``stamp // window`` mod
-31), the robots (a 31-bit mask of a hash of the robot id), and the first and last stamps. Every
-update is a sum, an OR, a min or a max: the grid is the same whatever order the scans come in,
-so the live service (scans from several worker processes) and replay (scans in log order) hold
-the same grid once they have seen the same scans. Its size is fixed by the map.
+returns that marked it, the time windows they fell in (a 31-bit mask of ``stamp // window`` mod
+31), the robots (a 31-bit mask of a hash of the robot id), and the first and last stamps; and
+the free passes. Every update is a sum, an OR, a min or a max: the grid is the same whatever
+order the scans come in, so the live service (scans from several worker processes, merged with
+:meth:`ChangeGrid.merge`) and replay (scans in log order) hold the same grid once they have
+counted the same scans. Its size is fixed by the map.
 
 :func:`find_changes` reports the places where the disagreement persists across time: cells
-marked in at least ``min_windows`` windows spanning ``min_span_s`` seconds, densely (a person
-walking through marks a cell in a scan or three per crossing; a rack's face is marked by most
-scans that see it). Short cells near the map's walls are left out (a map traced from a log is
-a few centimetres off along every wall), as are through cells not on a wall.
+marked in at least ``min_windows`` windows spanning ``min_span_s`` seconds, densely, and (short
+cells) occupied when seen (a person walking through is in a cell for a scan or three, and the
+cell is seen free far more often; a rack's face stops most beams that reach it). Short cells
+near the map's walls are left out (a map traced from a log is a few centimetres off along every
+wall), as are through cells not on a wall.
 """
 
 from __future__ import annotations
@@ -76,9 +79,9 @@ class ChangeSettings:
         cell_windows: ... and it was marked in this many windows ...
         min_windows: a change is reported once it was seen in this many windows ...
         min_span_s: ... spanning at least this long, seconds.
-        min_density: ... and its cells were marked by this many scans per window they were
+        min_density: ... and its cells were marked by this many returns per window they were
             marked in (a person walking by marks a cell in one to three scans).
-        min_evidence: ... and by this many scans in all (summed over its cells).
+        min_evidence: ... and by this many returns in all (summed over its cells).
         clearance: short cells closer than this to a map wall are not reported, metres.
         wall_distance: through cells farther than this from a map wall are not reported.
         min_area: smallest ``added`` region reported, m^2.
@@ -109,7 +112,7 @@ class Change:
     Attributes:
         kind: ``"added"`` (something the map lacks) or ``"removed"`` (a wall beams pass).
         geometry: a Polygon or MultiPolygon (added), a LineString or MultiLineString (removed).
-        evidence: scans that marked its cells, summed over the cells.
+        evidence: returns that marked its cells, summed over the cells.
         robots: distinct robots that saw it (by a hash of the ids into 31 bits: at most 31).
         first_ns: stamp of the first scan that marked it.
         last_ns: stamp of the last.

@@ -157,6 +157,11 @@ class Settings(BaseSettings):
         description="Folder of the durable pose state (default: 'state' in the store folder).",
     )
     no_state: bool = Field(False, description="Keep no durable pose state across restarts.")
+    map_health: bool = Field(
+        True,
+        description="Count the scans' disagreement with the maps and publish MapHealth on "
+        "{prefix}/maphealth/{map_id} (off: nothing counted, nothing published).",
+    )
     state_interval_s: float = Field(
         1.0, gt=0, description="Seconds between two writes of the pose state (when changed)."
     )

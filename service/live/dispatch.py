@@ -37,12 +37,12 @@ from service.live.worker import (
     Entry,
     HandOver,
     apply_control,
+    evidence,
     recv,
     run_batch,
     send,
     worker_main,
 )
-from service.maphealth import ScanEvidence
 from service.maps.book import LoadedMap
 
 log = logging.getLogger(__name__)
@@ -174,7 +174,7 @@ class _ThreadShard(_Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, ScanEvidence())
+        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, evidence(d.map_health))
         self.hand_over = HandOver(self.engine)
 
     def start(self) -> None:
@@ -228,7 +228,7 @@ class _ProcessShard(_Shard):
         d = dispatcher
         self.process = ctx.Process(
             target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads),
+            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads, d.map_health),
             name=f"rlutf-worker-{index}",
             daemon=True,
         )
@@ -332,6 +332,7 @@ class Dispatcher:
         on_done: called (from a shard's thread) with each finished batch.
         on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced.
         threads: threads per shard running different robots' batches at once.
+        map_health: count the scans' map health evidence (:mod:`service.maphealth`).
     """
 
     def __init__(
@@ -343,8 +344,10 @@ class Dispatcher:
         on_done: OnDone,
         on_drop: OnDrop,
         threads: int = _IN_FLIGHT,
+        map_health: bool = True,
     ) -> None:
         self.keys = keys
+        self.map_health = map_health
         self.threads = max(1, threads)
         self.config = config
         self.event_interval_ns = event_interval_ns

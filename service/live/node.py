@@ -120,6 +120,7 @@ class LocalizationService:
             self._on_done,
             self._on_drop,
             threads=settings.worker_threads,
+            map_health=settings.map_health,
         )
         self.mapfeed = MapFeed(
             self.keys,

@@ -26,7 +26,7 @@ from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
 from service.keys import MODELS, InputKind, Keys, Message
 from service.live.memory import HeapTrimmer
-from service.maphealth import ScanEvidence
+from service.maphealth import NullEvidence, ScanEvidence
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,11 @@ def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Out
     return outputs
 
 
+def evidence(map_health: bool) -> ScanEvidence:
+    """Where an engine counts map health evidence: a grid per map, or nowhere."""
+    return ScanEvidence() if map_health else NullEvidence()
+
+
 class HandOver:
     """Appends the engine's map health evidence to a batch's outputs, at most once a second
     (:mod:`service.maphealth`): the main process merges it and publishes the MapHealth."""
@@ -121,7 +126,12 @@ def tune_gc() -> None:
 
 
 def worker_main(
-    conn: Connection, prefix: str, config: LocalizerConfig, interval: int, threads: int
+    conn: Connection,
+    prefix: str,
+    config: LocalizerConfig,
+    interval: int,
+    threads: int,
+    map_health: bool = True,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
@@ -136,7 +146,7 @@ def worker_main(
     thread hand-off per scan.
     """
     warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval, ScanEvidence())
+    engine = FleetEngine(Keys(prefix), config, interval, evidence(map_health))
     hand_over = HandOver(engine)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
