@@ -15,22 +15,25 @@ FIRST, LAST = 0, 2
 
 @njit(cache=True, nogil=True)
 def observe(
-    cos: np.ndarray, sin: np.ndarray, measured: np.ndarray, cast: np.ndarray,
-    reals: np.ndarray, ints: np.ndarray, counts: np.ndarray, times: np.ndarray,
+    pose: np.ndarray, offset: np.ndarray, cos: np.ndarray, sin: np.ndarray,
+    measured: np.ndarray, cast: np.ndarray, reals: np.ndarray, ints: np.ndarray,
+    counts: np.ndarray, times: np.ndarray, stamp: int, window: int, robot: int,
 ) -> tuple[int, int]:  # fmt: skip
-    """Count one scan. ``reals``: the sensor pose ``(sx, sy, st)``, ``tolerance``, ``nudge``,
-    the grid's origin ``(ox, oy)`` and ``cell``; ``ints``: ``stride``, the grid's ``nx``,
-    ``ny``, the scan's ``stamp``, ``window`` and ``robot`` bits (few arguments: each costs a
-    conversion per call).
+    """Count one scan of the robot base at ``pose`` (sensor at ``offset`` in the base frame).
+    ``reals``: ``tolerance``, ``nudge``, the grid's origin ``(ox, oy)`` and ``cell``; ``ints``:
+    ``stride`` and the grid's ``nx``, ``ny`` (the grid's constants, made once: every argument
+    costs a conversion per call).
 
-    Each return well short of the map's
-    range marks its cell ``short`` (kind 0), each well beyond it marks the map wall's cell
-    ``through`` (kind 1); every ``stride``-th beam counts the cells it crossed as ``free`` up to
-    ``tolerance`` before where it ended. Sums, ORs, min and max: any order, same grid.
-    Returns the beams marked short and through."""
-    sx, sy, st, tolerance = reals[0], reals[1], reals[2], reals[3]
-    nudge, ox, oy, cell = reals[4], reals[5], reals[6], reals[7]
-    stride, nx, ny, stamp, window, robot = ints[0], ints[1], ints[2], ints[3], ints[4], ints[5]
+    Each return well short of the map's range marks its cell ``short`` (kind 0), each well
+    beyond it marks the map wall's cell ``through`` (kind 1); every ``stride``-th beam counts
+    the cells it crossed as ``free`` up to ``tolerance`` before where it ended. Sums, ORs, min
+    and max: any order, same grid. Returns the beams marked short and through."""
+    tolerance, nudge, ox, oy, cell = reals[0], reals[1], reals[2], reals[3], reals[4]
+    stride, nx, ny = ints[0], ints[1], ints[2]
+    c0, s0 = math.cos(pose[2]), math.sin(pose[2])
+    sx = pose[0] + c0 * offset[0] - s0 * offset[1]
+    sy = pose[1] + s0 * offset[0] + c0 * offset[1]
+    st = pose[2] + offset[2]
     n = measured.shape[0]
     cs, ss = math.cos(st), math.sin(st)
     marked = np.zeros(2, dtype=np.int64)

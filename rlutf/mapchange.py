@@ -192,6 +192,11 @@ class ChangeGrid:
         self.oldest_ns = _NEVER  # stamps of the first and last scan counted
         self.newest_ns = 0
         self.robot_ids: set[str] = set()
+        # the kernel's constants, made once
+        self._reals = np.array([s.tolerance, 0.25 * s.cell, *self.origin, s.cell])
+        self._ints = np.array([s.free_stride, self.nx, self.ny], dtype=np.int64)
+        self._window_ns = int(s.window_s * 1e9)
+        self._bits: dict[str, int] = {}
         self.scans = 0
 
     def add(self, returns: Returns, stamp_ns: int, robot: str) -> tuple[int, int]:
@@ -203,23 +208,18 @@ class ChangeGrid:
         from rlutf import _changes
 
         r = returns
-        s = self.settings
-        x, y, th = float(r.pose[0]), float(r.pose[1]), float(r.pose[2])
-        c, sn = math.cos(th), math.sin(th)
-        ox, oy, ot = float(r.offset[0]), float(r.offset[1]), float(r.offset[2])
-        window = 1 << ((stamp_ns // int(s.window_s * 1e9)) % 31)
+        window = 1 << ((stamp_ns // self._window_ns) % 31)
+        bit = self._bits.get(robot)
+        if bit is None:
+            bit = self._bits[robot] = robot_bit(robot)
+            self.robot_ids.add(robot)
         self.scans += 1
         self.oldest_ns = min(self.oldest_ns, stamp_ns)
         self.newest_ns = max(self.newest_ns, stamp_ns)
-        self.robot_ids.add(robot)
-        reals = np.array(
-            [x + c * ox - sn * oy, y + sn * ox + c * oy, th + ot, s.tolerance, 0.25 * s.cell,
-             self.origin[0], self.origin[1], s.cell]
-        )  # fmt: skip
-        ints = np.array([s.free_stride, self.nx, self.ny, stamp_ns, window, robot_bit(robot)])
         return _changes.observe(
-            r.cos, r.sin, r.measured, r.cast, reals, ints, self.counts, self.times
-        )
+            r.pose, r.offset, r.cos, r.sin, r.measured, r.cast, self._reals, self._ints,
+            self.counts, self.times, stamp_ns, window, bit,
+        )  # fmt: skip
 
     def snapshot(self) -> GridCounts:
         """What this grid counted, in the cells it touched."""
@@ -260,6 +260,7 @@ class ChangeGrid:
         self.oldest_ns = _NEVER
         self.newest_ns = 0
         self.robot_ids = set()
+        self._bits = {}
 
     def empty(self) -> ChangeGrid:
         """A grid of the same map and settings with no scans."""
