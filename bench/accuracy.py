@@ -107,7 +107,7 @@ class ScenarioResult:
 
 
 def has_data(world: str) -> bool:
-    """Whether the shared data a world needs is there (procedural buildings need none)."""
+    """Whether the data a world needs is there (procedural buildings need none)."""
     if world in ("building", "rooms"):
         return True
     if world in REAL_RUNS:
@@ -127,7 +127,7 @@ def build_runs(
 ) -> list[ScenarioResult]:
     """Simulate (or load) the runs of every scenario, without tracking them yet.
 
-    Scenarios whose shared data (``shared/data/maps``, ``shared/data/carmen``) is missing are
+    Scenarios whose data (``bench/data/maps``, ``bench/data/carmen``) is missing are
     left out.
 
     Args:

@@ -1,4 +1,4 @@
-"""Real runs from the CARMEN logs of ``shared/data/carmen`` (Intel lab, ACES building).
+"""Real runs from the CARMEN logs of ``bench/data/carmen`` (Intel lab, ACES building).
 
 The map is built from the logs' corrected scans (:func:`service.maps.mapimport.build_from_carmen`,
 then :func:`service.maps.mapimport.grid_to_map`, the path of ``rlutf map build``). The motion input
@@ -108,7 +108,7 @@ def slam_odometry(
 
 
 def carmen_run(name: str, limit: int | None = None, odometry: str = "log") -> Run:
-    """A real run from ``shared/data/carmen/{name}-corrected.log.gz``.
+    """A real run from ``bench/data/carmen/{name}-corrected.log.gz``.
 
     Args:
         name: ``"intel"`` or ``"aces"``.

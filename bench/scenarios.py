@@ -36,8 +36,8 @@ from rlutf.sim import (
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: Shared data (maps, CARMEN logs) beside the repository, as the data README describes.
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: Real data (maps, CARMEN logs) kept in the repository: ``bench/data``, see its README.
+DATA = Path(__file__).resolve().parent / "data"
 #: Stamp of the first scan of every simulated run, ns since the epoch.
 T0_NS = 1_700_000_000_000_000_000
 #: Building sizes ``(width, height, rooms_x, rooms_y)`` cycled over the seeds.
@@ -53,7 +53,7 @@ class Scenario:
         description: one line for the tables.
         world: ``"building"`` (a procedural building per seed, size cycled over
             :data:`BUILDING_SIZES`), ``"rooms"`` (small rooms off a corridor per seed,
-            :func:`make_rooms`) or the stem of a map in ``shared/data/maps``.
+            :func:`make_rooms`) or the stem of a map in ``bench/data/maps``.
         lidar: the sensor.
         odometry: the odometry drift model.
         people: people walking, not on the map.
@@ -222,7 +222,7 @@ def make_rooms(
 
 @cache
 def imported_map(stem: str) -> Map:
-    """A map of ``shared/data/maps`` imported with the default options (largest component).
+    """A map of ``bench/data/maps`` imported with the default options (largest component).
 
     Depot's largest free component includes a band between the outer walls and the image
     border, reached through gaps in the walls: rays leave through those gaps as they would on

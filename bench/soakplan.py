@@ -254,6 +254,8 @@ class FileCheck(NamedTuple):
         poses: PoseEstimate messages read.
         span_s: first to last pose message, seconds.
         error: why it could not be read, or ``None``.
+        run: the run its ``rlutf.run`` metadata names, or ``None``.
+        sequence: its number within that run, or ``None``.
     """
 
     name: str
@@ -263,6 +265,8 @@ class FileCheck(NamedTuple):
     poses: int
     span_s: float
     error: str | None
+    run: str | None = None
+    sequence: int | None = None
 
 
 def expected_files(run_seconds: float, rotate_seconds: float) -> int:
@@ -278,14 +282,17 @@ def logs_verdicts(
     poses_published: int,
     recorder_overflow: int,
 ) -> list[Verdict]:
-    """Rotation happened, nothing is left as ``.part``, every file reads end to end, and the
-    pose messages of all files are the poses published (less what the recorder reported lost).
+    """Rotation happened, nothing is left as ``.part``, every file reads end to end, the pose
+    messages of all files are the poses published (less what the recorder reported lost), and
+    the files name one run (the service started once), numbered 0, 1, 2 ... in file order.
     """
     need = expected_files(run_seconds, rotate_seconds)
     longest = max((f.span_s for f in files), default=math.nan)
     bad = [f for f in files if f.error is not None or f.messages != f.indexed]
     recorded = sum(f.poses for f in files)
     missing = poses_published - recorded
+    runs = {f.run for f in files}
+    numbers = [f.sequence for f in files]
     return [
         Verdict(
             "logs rotated",
@@ -315,6 +322,13 @@ def logs_verdicts(
             0 <= missing <= recorder_overflow,
             f"{recorded} pose messages in the files, {poses_published} published, "
             f"{recorder_overflow} messages reported not recorded",
+            hard=True,
+        ),
+        Verdict(
+            "the files are one run, numbered in order",
+            len(runs) == 1 and None not in runs and numbers == list(range(len(files))),
+            f"{len(runs)} run(s) named ({', '.join(sorted(str(r)[:8] for r in runs))}); "
+            f"file numbers {numbers}",
             hard=True,
         ),
     ]

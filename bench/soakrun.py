@@ -247,15 +247,17 @@ def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
     """Every finished log file read end to end, and the names of ``.part`` files left."""
     from schemas import SCHEMA_NAMES, PoseEstimate
     from service.logs.mcapread import LogError, LogFile
+    from service.logs.runs import run_tag
 
     pose_schema = SCHEMA_NAMES[PoseEstimate]
     checks = []
     for path in sorted(record_dir.glob("*.mcap")):
         messages = poses = indexed = 0
         first, last = math.inf, -math.inf
-        error = None
+        error = tag = None
         try:
             with LogFile(path) as log:
+                tag = run_tag(log)
                 indexed = log.count()
                 for record in log.messages():
                     messages += 1
@@ -269,7 +271,17 @@ def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
             error = str(err)
         span = (last - first) / 1e9 if last >= first else math.nan
         checks.append(
-            FileCheck(path.name, path.stat().st_size, messages, indexed, poses, span, error)
+            FileCheck(
+                path.name,
+                path.stat().st_size,
+                messages,
+                indexed,
+                poses,
+                span,
+                error,
+                tag.run_id if tag is not None else None,
+                tag.sequence if tag is not None else None,
+            )
         )
     return checks, sorted(p.name for p in record_dir.glob("*.part"))
 

@@ -127,6 +127,10 @@ class LocalizerConfig:
         relocalize_after: after this many ``lost`` updates in a row the localizer relocalizes
             by itself (:meth:`Localizer.relocalize` on the whole map); 0 never.
         relocalize_resolution: cell side of the relocalization's search grid, metres.
+        seed_fit: the first update after a seeded pose (an initial pose, a handover, a
+            restart) must fit at least this share of the scan's returns, or the update is
+            ``lost`` and the robot is relocalized at once (default mode, with
+            ``relocalize_after`` > 0): a seed is a claim, not a fact. 0: not checked.
         relocalize_fit: a relocalization's answer must fit at least this share of the scan's
             returns (within ``fit_distance``) to be taken; and the first scan's answer only
             if no other distinct pose fits within 5 points of it.
@@ -187,6 +191,7 @@ class LocalizerConfig:
     relocalize_after: int = 5
     relocalize_resolution: float = 0.1
     relocalize_fit: float = 0.8
+    seed_fit: float = 0.8
     follow_scans: int = 10
     win_margin: float = 0.3
     quality_range: float = 0.5
@@ -263,6 +268,8 @@ class LocalizerConfig:
             raise ConfigError(f"relocalize_after: must be >= 0, got {self.relocalize_after}")
         if self.follow_scans < 1:
             raise ConfigError(f"follow_scans: must be at least 1, got {self.follow_scans}")
+        if not 0.0 <= self.seed_fit <= 1.0:
+            raise ConfigError(f"seed_fit: must be within [0, 1], got {self.seed_fit}")
         if not 0.0 < self.relocalize_fit <= 1.0:
             raise ConfigError(f"relocalize_fit: must be within (0, 1], got {self.relocalize_fit}")
         if self.wide_keep < 1:

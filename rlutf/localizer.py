@@ -148,6 +148,9 @@ class Localizer:
         self._typical_fit = math.nan
         self._fit_deviation = 0.0
         self._probation = False
+        # A seeded pose (an initial pose, a handover, a restart) is a claim until a scan fits
+        # it: the first update after it must fit at least ``seed_fit`` of its returns.
+        self._unverified = True
 
     @property
     def pose(self) -> FloatArray:
@@ -171,6 +174,7 @@ class Localizer:
         self._spread = self._spread_of(spread)
         self._follower = None
         self._lost_run = 0
+        self._unverified = True
 
     def set_map(self, world: Map) -> None:
         """Switch to a new version of the map, keeping the pose."""
@@ -303,6 +307,9 @@ class Localizer:
             if self._probation:
                 margin = min(margin, cfg.probation_margin)
             floor = max(floor, self._typical_fit - margin)
+        verifying = self._unverified and cfg.mode != "paper"
+        if verifying:
+            floor = max(floor, cfg.seed_fit)
         typical_fit = self._typical_fit
         if share < floor:
             status: Status = "lost"
@@ -311,10 +318,14 @@ class Localizer:
             self._spread = (cfg.spread, cfg.spread_heading) if wide else None
             self._probation = True
             self._lost_run += 1
-            if cfg.relocalize_after and self._lost_run >= cfg.relocalize_after:
+            if cfg.relocalize_after and (verifying or self._lost_run >= cfg.relocalize_after):
+                # A seed that the scan does not confirm is no place to search around: a robot
+                # handed over (or restarted, or placed) from a wrong pose would otherwise be
+                # "corrected" to a place near it that fits half of its beams.
                 self.relocalize()
         else:
             status = "tracking" if rounds == 0 else "corrected"
+            self._unverified = False
             self._lost_run = 0
             self._probation = False
             rate = cfg.typical_rate

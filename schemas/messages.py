@@ -224,6 +224,14 @@ class EventCode:
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
     STATE_UNREADABLE: Final = "state_unreadable"
     """The durable pose state could not be read or its folder made; started without it."""
+    WORKER_LOST: Final = "worker_lost"
+    """A worker process died; a new one starts and its robots are re-seeded from their poses."""
+    ROBOT_EVICTED: Final = "robot_evicted"
+    """A robot sent nothing for ``robot_idle_s``: its state was dropped (it starts anew)."""
+    ROBOT_LIMIT: Final = "robot_limit"
+    """An input for a new robot id was refused: the instance holds ``max_robots`` already."""
+    STAMP_REJECTED: Final = "stamp_rejected"
+    """A message's stamp is too far ahead of the service's clock to be trusted."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(
@@ -282,6 +290,13 @@ class Health(WireModel):
     )
     latency_ms: LatencyPercentiles = Field(
         default=LatencyPercentiles(), description="Per-update latency, milliseconds."
+    )
+    ready: bool | None = Field(
+        default=None,
+        description=(
+            "v1.2: true once every process of the instance can localize (kernels compiled or "
+            "loaded); the instance declares its liveliness token only then."
+        ),
     )
     extra: FreeForm = Field(
         default_factory=dict, description="Further implementation-defined figures."

@@ -196,6 +196,24 @@ class Settings(BaseSettings):
     metrics_addr: str = Field("0.0.0.0", description="Address the metrics endpoint listens on.")
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
+    max_stamp_ahead_s: float = Field(
+        60.0,
+        gt=0,
+        description=(
+            "Inputs and followed poses stamped further ahead of the service's clock are "
+            "rejected (Event stamp_rejected): a far-future stamp would pin a robot's pose."
+        ),
+    )
+    robot_idle_s: float = Field(
+        3600.0,
+        gt=0,
+        description="A robot that sends nothing for this long is evicted (Event robot_evicted).",
+    )
+    max_robots: int = Field(
+        10_000,
+        gt=0,
+        description="Robot ids an instance holds at once; inputs for more get robot_limit.",
+    )
     event_interval_s: float = Field(
         1.0, ge=0, description="Least time between two events of one code for one robot."
     )

@@ -110,6 +110,7 @@ class _Robot:
     start_stamp: int = 0  # stamp of the initial pose
     last_pose: bytes | None = None
     last_status: str = ""  # of the last pose: a lost robot's next updates search wide
+    fresh: bool = False  # a new localizer (seeded) whose first update searches wide
     last_event: dict[str, int] = field(default_factory=dict)
 
 
@@ -184,14 +185,22 @@ class FleetEngine:
         Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
         are. Call it while none of the robot's inputs is being handled.
         """
-        if "relocalize" in kinds:
+        if "relocalize" in kinds or "initialpose" in kinds:
             return True
         r = self._robots.get(robot_id)
         if r is None:
             return False
-        if r.pending is not None and r.pending.kind == "relocalize":
-            return True
-        return r.last_status == "lost" or (r.localizer is not None and r.localizer.relocalizing)
+        if r.pending is not None:
+            return True  # applied at the next input: its first update searches wide
+        return (
+            r.fresh
+            or r.last_status == "lost"
+            or (r.localizer is not None and r.localizer.relocalizing)
+        )
+
+    def forget(self, robot_id: str) -> None:
+        """Drop everything held for a robot (evicted after it sent nothing for long)."""
+        self._robots.pop(robot_id, None)
 
     def _robot(self, robot_id: str) -> _Robot:
         r = self._robots.get(robot_id)
@@ -303,6 +312,7 @@ class FleetEngine:
                 robot.localizer.set_map(world)
         else:
             robot.localizer = Localizer(world, req.pose, self.config, seed=robot.seed)
+            robot.fresh = True
             if req.kind == "initialpose" or robot.anchor is None:
                 robot.anchor = req.anchor
                 robot.start_stamp = req.stamp_ns
@@ -372,6 +382,7 @@ class FleetEngine:
             (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
         )
         result = robot.localizer.update(motion, scan)
+        robot.fresh = False
         with self.evidence_lock:
             self.evidence.observe(
                 robot.map_id, robot.map_version, world, robot.robot_id, msg.stamp_ns, result

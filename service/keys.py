@@ -50,6 +50,10 @@ class Keys:
         """Key expression of every robot key (inputs and outputs)."""
         return f"{self.prefix}/robots/*/*"
 
+    def robot_leaf(self, leaf: str) -> str:
+        """Key expression of one leaf (``scan``, ``pose``, ...) of every robot."""
+        return f"{self.prefix}/robots/*/{leaf}"
+
     @property
     def all_poses(self) -> str:
         """Key expression of every robot's pose."""

@@ -4,9 +4,11 @@ Exit codes:
 
 * ``0``: done (replay: every recorded pose reproduced within the tolerance, or nothing to
   audit; recover: something was salvaged);
-* ``1``: the audit failed (a recorded pose was not reproduced within the tolerance);
+* ``1``: the audit failed (a recorded pose of any run was not reproduced within the tolerance);
 * ``2``: an input is missing, not MCAP, truncated or damaged (the message says to run
-  ``rlutf log recover``), or the arguments or configuration are invalid.
+  ``rlutf log recover``), or the arguments or configuration are invalid. Given several
+  files, replay names each unreadable file or run and audits the others first; an audit
+  that failed then still exits 1.
 
 Errors are one line on stderr, never a traceback.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,22 +36,29 @@ def register(sub: Any) -> None:
     replay = sub.add_parser(
         "replay",
         help="recompute the poses of a log and audit them",
-        description="Run the service's localization over the inputs of one or more MCAP logs "
-        "(maps, initial poses, odometry, scans; merged in log_time order) with the recorded "
-        "configuration, write OUT with the inputs and the recomputed poses and events, and "
-        "compare them with the poses the log holds. Scans the live service dropped under load "
-        "(scan_dropped events) are dropped again. Exit 1 when a recorded pose deviates "
-        "beyond the tolerance, 2 when an input cannot be read.",
+        description="Sort the MCAP logs given into runs (metadata rlutf.run: the files one "
+        "start of a service or replay wrote, in sequence order; files without it form one run), "
+        "and for each run on its own: run the service's localization over its inputs (maps, "
+        "initial poses, odometry, scans; merged in log_time order) with the recorded "
+        "configuration, write its output log with the inputs and the recomputed poses and "
+        "events, and compare them with the poses the run recorded. Scans the live service "
+        "dropped under load (scan_dropped events) are dropped again. Prints a table per run "
+        "and, for several runs, one line per run. Exit 1 when a recorded pose of any run "
+        "deviates beyond the tolerance, 2 when an input cannot be read.",
     )
     replay.add_argument(
         "inputs",
         nargs="+",
         type=Path,
         metavar="IN",
-        help="MCAP log(s), e.g. the rotated files of one run",
+        help="MCAP logs, e.g. logs/*.mcap: the files of one or several runs",
     )
     replay.add_argument(
-        "--out", type=Path, required=True, metavar="OUT.mcap", help="the output log"
+        "--out",
+        required=True,
+        metavar="OUT",
+        help="the output log (one run); with several runs OUT-run1.mcap, OUT-run2.mcap ...; "
+        "a folder (existing, or written with a trailing /) gets one RUN.replay.mcap per run",
     )
     replay.add_argument(
         "--tolerance",
@@ -101,20 +111,26 @@ def register(sub: Any) -> None:
     info = lsub.add_parser(
         "info",
         help="channels, counts, time range, robots, maps",
-        description="Describe a log. Exit 2 if it cannot be read.",
+        description="Describe logs. One file: its run, channels, time range, robots, maps. "
+        "Several files (e.g. logs/*.mcap): grouped by run (metadata rlutf.run; files without "
+        "it form one run), per run its files in sequence order, time range, robots and maps; "
+        'with --json an object {"runs": [...], "unreadable": [...]}. Exit 2 if a file cannot '
+        "be read (among several: after describing the others).",
     )
-    info.add_argument("file", type=Path)
+    info.add_argument("files", type=Path, nargs="+", metavar="FILE")
     info.add_argument("--json", action="store_true", help="print JSON instead of tables")
     info.set_defaults(func=cmd_info)
     rec = lsub.add_parser(
         "recover",
         help="repair a log cut short by a crash",
         description="Copy every complete chunk (schemas, channels, messages) and every metadata "
-        "record of a truncated or damaged MCAP file, such as a .mcap.part left by a crash, "
-        "into a new valid file. Exit 2 if the input is not MCAP.",
+        "record (rlutf.run included) of a truncated or damaged MCAP file, such as a .mcap.part "
+        "left by a crash, into a new valid file. Several inputs, or an existing folder OUT: OUT "
+        "is a folder (created if missing) that gets each one under its name without .part; the "
+        "recovered files are listed by run. Exit 2 if an input is not MCAP.",
     )
-    rec.add_argument("broken", type=Path, metavar="BROKEN.mcap")
-    rec.add_argument("out", type=Path, metavar="OUT.mcap")
+    rec.add_argument("broken", type=Path, nargs="+", metavar="BROKEN.mcap")
+    rec.add_argument("out", type=Path, metavar="OUT")
     rec.set_defaults(func=cmd_recover)
 
 
@@ -137,59 +153,121 @@ def _fail(command: str, err: Exception) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """``rlutf replay``."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-    from service.logs.audit import all_passed, audit, render
+    """``rlutf replay``: sort the inputs into runs, replay and audit each on its own."""
+    from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
     from service.logs.mcapread import LogError
-    from service.logs.replay import replay
     from service.logs.replayconfig import ReplayConfigError
+    from service.logs.runs import group_runs, run_outputs
 
-    out: Path = args.out
-    if any(out.resolve() == p.resolve() for p in args.inputs):
-        return _fail("replay", ValueError(f"{out}: the output must not be an input"))
-    err_console = _console(stderr=True)
-    progress = Progress(
-        "replaying",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        disable=args.quiet,
-        transient=False,
-    )
-    task = progress.add_task("replay", total=None)
     inputs, summary = list(args.inputs), None
     if args.ros2:
         from service.cli.ros2bags import bag_to_log
 
         if len(inputs) != 1:
             return _fail("replay", ValueError("--ros2 replays one bag"))
-        inputs = [out.with_name(out.name + ".inputs.mcap")]
+        target = Path(args.out)
+        inputs = [target.with_name(target.name + ".inputs.mcap")]
         try:
             summary = bag_to_log(args, args.inputs[0], inputs[0])
         except (ValueError, OSError) as err:
             inputs[0].unlink(missing_ok=True)
             return _fail("replay", err)
+    unreadable: list[tuple[Path, LogError]] = []
     try:
-        with progress:
-            result = replay(
-                inputs,
-                out,
-                settings_file=args.settings,
-                assignments=args.assignments,
-                foxglove=not args.no_foxglove,
-                progress=lambda n: progress.advance(task, n),
-                on_total=lambda total: progress.update(task, total=total),
-            )
-    except (LogError, ReplayConfigError) as err:
+        # One file that cannot be read stops a replay of one file; of several, it is named
+        # and the other runs are audited (exit 2 at the end unless an audit failed).
+        runs = group_runs(inputs, unreadable if len(inputs) > 1 else None)
+        for _path, bad in unreadable:
+            _fail("replay", bad)
+        if not runs:
+            return EXIT_BAD_INPUT
+        outs = run_outputs(args.out, runs)
+        clash = next((o for o in outs for p in args.inputs if o.resolve() == p.resolve()), None)
+        if clash is not None:
+            raise ValueError(f"{clash}: the output must not be an input")
+        if len(outs) > 1 or str(args.out).endswith(("/", "\\")):
+            outs[0].parent.mkdir(parents=True, exist_ok=True)
+        console = _console()
+        verdicts = []
+        for k, (run, out) in enumerate(zip(runs, outs, strict=True), 1):
+            if len(runs) > 1:
+                console.rule(f"run {k} of {len(runs)}: {run.label}")
+                console.print(f"files: {' '.join(str(f) for f in run.files)}")
+            if run.missing:
+                console.print(
+                    f"[yellow]run {run.run_id}: file(s) {', '.join(map(str, run.missing))} "
+                    "of the run not given: poses after a missing file may not reproduce[/yellow]"
+                )
+            label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
+            try:
+                result = _replay_one(args, run.files, out, label)
+            except LogError as err:  # a damaged chunk: this run cannot be audited
+                if len(runs) == 1:
+                    raise
+                _fail("replay", err)
+                verdicts.append(run_verdict(run, out, 0, 0, UNREADABLE))
+                continue
+            verdicts.append(_report(args, console, result, summary, out, run, (k, len(runs))))
+    except (LogError, ReplayConfigError, ValueError) as err:
         return _fail("replay", err)
     except OSError as err:
-        return _fail("replay", ValueError(f"{err.filename or out}: {err.strerror or err}"))
+        return _fail("replay", ValueError(f"{err.filename or args.out}: {err.strerror or err}"))
     finally:
         if summary is not None:
             inputs[0].unlink(missing_ok=True)
-    console = _console()
+    if len(verdicts) > 1:
+        render_verdicts(verdicts, console)
+    if len(verdicts) > 1 or unreadable:
+        console.print(verdict_line(verdicts, len(unreadable)))
+    if any(v.result == "FAILED" for v in verdicts):
+        return EXIT_AUDIT_FAILED
+    if unreadable or any(v.result == UNREADABLE for v in verdicts):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, label: str) -> Any:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from service.logs.replay import replay
+
+    progress = Progress(
+        label,
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=_console(stderr=True),
+        disable=args.quiet,
+        transient=False,
+    )
+    task = progress.add_task("replay", total=None)
+    with progress:
+        return replay(
+            files,
+            out,
+            settings_file=args.settings,
+            assignments=args.assignments,
+            foxglove=not args.no_foxglove,
+            progress=lambda n: progress.advance(task, n),
+            on_total=lambda total: progress.update(task, total=total),
+        )
+
+
+def _report(
+    args: argparse.Namespace,
+    console: Console,
+    result: Any,
+    summary: Any,
+    out: Path,
+    run: Any,
+    place: tuple[int, int],
+) -> Any:
+    """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
+    final summary."""
+    from service.logs.audit import all_passed, audit, render, run_verdict
+
+    k, n = place
+    heading = "Audit" if n == 1 else f"Audit of run {k}"
     if summary is not None:
         console.print(_bag_report(summary))
     recomputed = sum(len(v) for v in result.recomputed.values())
@@ -203,27 +281,30 @@ def cmd_replay(args: argparse.Namespace) -> int:
         try:
             n = write_out(args, result, summary)
         except Exception as err:  # rosbags' writer raises its own errors
-            return _fail("replay", ValueError(f"{args.ros2_out}: {err}"))
+            raise ValueError(f"{args.ros2_out}: {err}") from err
         console.print(f"wrote {n} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
     if args.plot is not None:
         from service.logs.plots import plot_all
 
-        for path in plot_all(result, args.plot):
+        folder = args.plot if n == 1 else args.plot / f"run{k}"
+        for path in plot_all(result, folder):
             console.print(f"wrote {path}")
     tol_m = args.tolerance
     tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
     audits = audit(result.recorded, result.recomputed)
+    poses = sum(len(v) for v in result.recorded.values())
+
     if not audits:
         console.print("no recorded poses in the input: nothing to audit")
-        return EXIT_OK
-    render(audits, tol_m, tol_rad, console, args.strict)
+        return run_verdict(run, out, 0, poses, "nothing to audit")
+    render(audits, tol_m, tol_rad, console, args.strict, heading)
     ok = all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
     if result.unreadable_poses:
         console.print(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
         )
     console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
-    return EXIT_OK if ok else EXIT_AUDIT_FAILED
+    return run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
 
 
 def _bag_report(summary: Any) -> str:
@@ -236,44 +317,71 @@ def _bag_report(summary: Any) -> str:
 
 def cmd_info(args: argparse.Namespace) -> int:
     """``rlutf log info``."""
-    from service.logs.logtools import log_info, render_info
+    from service.logs.logtools import log_info, render_info, render_runs, runs_info
     from service.logs.mcapread import LogError
 
+    unreadable: list[tuple[Path, LogError]] = []
     try:
-        info = log_info(args.file)
+        if len(args.files) == 1:
+            info = log_info(args.files[0])
+        else:  # one unreadable file among several is named, the others described
+            runs = runs_info(args.files, unreadable)
     except LogError as err:
         return _fail("log info", err)
+    if len(args.files) == 1:
+        if args.json:
+            print(json.dumps(info.to_json(), indent=2))
+        else:
+            render_info(info, _console())
+        return EXIT_OK
+    for _path, bad in unreadable:
+        _fail("log info", bad)
     if args.json:
-        print(json.dumps(info.to_json(), indent=2))
+        named = [{"path": str(p), "error": str(e)} for p, e in unreadable]
+        print(json.dumps({"runs": [r.to_json() for r in runs], "unreadable": named}, indent=2))
     else:
-        render_info(info, _console())
-    return EXIT_OK
+        render_runs(runs, _console())
+    return EXIT_BAD_INPUT if unreadable else EXIT_OK
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
     """``rlutf log recover``."""
     from service.logs.logtools import recover
     from service.logs.mcapread import LogError
+    from service.logs.runs import group_runs
 
-    try:
-        report = recover(args.broken, args.out)
-    except LogError as err:
-        return _fail("log recover", err)
-    except OSError as err:
-        return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
-    state = (
-        "complete (nothing was missing)"
-        if report.complete
-        else f"cut at byte {report.stopped_at} ({report.stopped})"
-    )
-    print(
-        f"recovered {report.messages} messages in {report.chunks} chunks, "
-        f"{report.metadata} metadata records -> {args.out}; input {state}"
-    )
-    if report.bad_chunks or report.lost_messages:
-        print(
-            f"skipped {report.bad_chunks} damaged chunks and {report.lost_messages} messages "
-            "whose channel was lost",
-            file=sys.stderr,
+    outs = [args.out]
+    if len(args.broken) > 1 or args.out.is_dir():
+        args.out.mkdir(parents=True, exist_ok=True)
+        outs = [args.out / p.name.removesuffix(".part") for p in args.broken]
+    for broken, out in zip(args.broken, outs, strict=True):
+        try:
+            report = recover(broken, out)
+        except LogError as err:
+            return _fail("log recover", err)
+        except OSError as err:
+            return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
+        state = (
+            "complete (nothing was missing)"
+            if report.complete
+            else f"cut at byte {report.stopped_at} ({report.stopped})"
         )
+        print(
+            f"recovered {report.messages} messages in {report.chunks} chunks, "
+            f"{report.metadata} metadata records -> {out}; input {state}"
+        )
+        if report.bad_chunks or report.lost_messages:
+            print(
+                f"{broken}: skipped {report.bad_chunks} damaged chunks and "
+                f"{report.lost_messages} messages whose channel was lost",
+                file=sys.stderr,
+            )
+    if len(outs) > 1:
+        try:
+            runs = group_runs(outs)
+        except LogError as err:
+            return _fail("log recover", err)
+        for k, run in enumerate(runs, 1):
+            tags = ", ".join("-" if t is None else str(t.sequence) for t in run.tags)
+            print(f"run {k}: {run.label}: file(s) {tags}: {' '.join(map(str, run.files))}")
     return EXIT_OK

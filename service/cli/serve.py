@@ -19,6 +19,7 @@ from service.cli.flags import (
     settings_flags,
     zenoh_flags,
 )
+from service.cli.progress import starting_status
 
 
 def register(sub: Any) -> None:
@@ -97,7 +98,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        service = LocalizationService(settings, recorder=make_recorder(settings)).start()
+        service = LocalizationService(settings, recorder=make_recorder(settings))
+        with starting_status("rlutf serve") as progress:
+            service.start(progress)
         tune_gc()
     except zenoh.ZError as err:
         print(f"rlutf serve: cannot open the zenoh session: {err}", file=sys.stderr)
@@ -105,8 +108,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except OSError as err:  # the metrics port is taken or the address is not local
         print(f"rlutf serve: cannot serve metrics: {err}", file=sys.stderr)
         return EXIT_FAILURE
+    except RuntimeError as err:  # a worker process could not start
+        print(f"rlutf serve: {err}", file=sys.stderr)
+        return EXIT_FAILURE
     print(
-        f"rlutf serve: instance {settings.instance}, mode {settings.mode}, "
+        f"rlutf serve: ready: instance {settings.instance}, mode {settings.mode}, "
         f"listening on {', '.join(settings.listen) if settings.mode != 'client' else '-'}"
         f"{', connecting to ' + ', '.join(settings.connect) if settings.connect else ''}",
         file=sys.stderr,

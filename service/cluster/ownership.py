@@ -38,7 +38,7 @@ import logging
 import queue
 import threading
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
@@ -56,6 +56,8 @@ FetchPose = Callable[[str], PoseEstimate | None]
 HOLD_MAX = 256
 #: Odometry readings kept per robot not owned, whatever their stamps.
 TAIL_MAX = 1024
+#: Robot ids Health lists at most (``owned_count`` counts them all).
+OWNED_LISTED = 50
 
 
 @dataclass(frozen=True)
@@ -117,6 +119,11 @@ class Ownership:
         self.held_dropped = 0
         self.resumed = 0
         self.resumed_relocalize = 0
+        self.poses_rejected = 0
+        #: Poses stamped further ahead of the clock are not followed (None: no bound).
+        self.max_ahead_ns: int | None = None
+        #: Robots whose poses and odometry are followed at most (others' are ignored).
+        self.max_robots: int | None = None
         membership.on_change = self.rebalance
 
     # ------------------------------------------------------------------------ lifecycle
@@ -133,22 +140,63 @@ class Ownership:
             self._thread.join(timeout)
 
     # ------------------------------------------------------------------------ followers
-    def follow_pose(self, robot: str, payload: bytes, max_bytes: int) -> None:
-        """Keep a pose put on the bus (by any instance) if it is the robot's newest."""
+    def follow_pose(self, robot: str, payload: bytes, max_bytes: int) -> str | None:
+        """Keep a pose put on the bus (by any instance) if it is the robot's newest.
+
+        Returns:
+            Why the pose was rejected when its stamp is too far ahead of the clock (a pose
+            is kept by stamp, so a forged far-future one would be every later seed), else
+            ``None``.
+        """
         try:
             pose = decode(PoseEstimate, payload, max_bytes=max_bytes)
         except SchemaError:
-            return
-        if pose.robot_id == robot:
-            self.remember(pose)
+            return None
+        if pose.robot_id != robot:
+            return None
+        if not self._trusted(pose):
+            ahead = (pose.stamp_ns - self._clock()) / 1e9
+            return (
+                f"pose stamped {ahead:.3g} s ahead of the service's clock not followed: a seed "
+                "comes only from a pose stamped no later than now (max_stamp_ahead_s)"
+            )
+        self.remember(pose)
+        return None
+
+    def _trusted(self, pose: PoseEstimate) -> bool:
+        if self.max_ahead_ns is None or pose.stamp_ns - self._clock() <= self.max_ahead_ns:
+            return True
+        self.poses_rejected += 1
+        return False
 
     def remember(self, *poses: PoseEstimate) -> None:
-        """Keep each robot's pose if it is the newest known."""
+        """Keep each robot's pose if it is the newest known (and not stamped in the future)."""
         with self.lock:
             for pose in poses:
                 held = self._poses.get(pose.robot_id)
+                if held is None and self._full(self._poses):
+                    continue
+                if not self._trusted(pose):
+                    continue
                 if held is None or pose.stamp_ns >= held.stamp_ns:
                     self._poses[pose.robot_id] = pose
+
+    def _full(self, held: Mapping[str, object]) -> bool:
+        return self.max_robots is not None and len(held) >= self.max_robots
+
+    def forget(self, robot: str) -> None:
+        """Drop everything held for ``robot`` (evicted: it sent nothing for long)."""
+        with self.lock:
+            self._active.discard(robot)
+            for held in (
+                self._held,
+                self._last_in,
+                self._poses,
+                self._tails,
+                self._placed,
+                self._restored,
+            ):
+                held.pop(robot, None)
 
     def restore(self, pose: PoseEstimate, odometry: Sequence[Odometry], published_ns: int) -> None:
         """Hand in a robot's pose from the durable state, as read back at start.
@@ -202,6 +250,8 @@ class Ownership:
             assert isinstance(msg, Odometry)
             tail = self._tails.get(robot)
             if tail is None:
+                if self._full(self._tails):
+                    return
                 tail = self._tails[robot] = deque(maxlen=TAIL_MAX)
             tail.append(_Odom(msg.stamp_ns, bytes(payload), msg))
             while tail[0].stamp_ns < msg.stamp_ns - self._tail_ns:
@@ -346,6 +396,16 @@ class Ownership:
         self._on_release(robot)
         log.info("%s: now owned by %s", robot, self.membership.owner(robot))
 
+    def acquiring(self) -> int:
+        """Robots whose inputs wait for their pose to be fetched."""
+        with self.lock:
+            return len(self._held)
+
+    def holds(self, robot: str) -> bool:
+        """Whether ``robot`` is localized here or waits for its seed."""
+        with self.lock:
+            return robot in self._active or robot in self._held
+
     def active(self, robot: str) -> bool:
         """Whether ``robot`` is localized here (owned and seeded)."""
         with self.lock:
@@ -363,7 +423,8 @@ class Ownership:
             return {
                 "members": len(members),
                 "member_names": members,
-                "owned": sorted(self._active),
+                # A summary: a few ids, not thousands (the robots view lists them all).
+                "owned": sorted(self._active)[:OWNED_LISTED],
                 "owned_count": len(self._active),
                 "acquiring": len(self._held),
                 "ignored_not_owner": self.ignored_not_owner,
@@ -372,4 +433,5 @@ class Ownership:
                 "handover_held_dropped": self.held_dropped,
                 "resumed": self.resumed,
                 "resumed_relocalize": self.resumed_relocalize,
+                "poses_rejected": self.poses_rejected,
             }

@@ -164,6 +164,9 @@ class PoseKeeper(Protocol):
     def odom(self, robot: str, stamp_ns: int, payload: bytes) -> None:
         """An odometry reading of a robot localized here (hot path)."""
 
+    def forget(self, robot: str) -> None:
+        """Drop a robot (evicted): no longer kept nor written."""
+
     def pose(self, robot: str, payload: bytes, stamp_ns: int, published_ns: int) -> None:
         """A pose published for a robot (hot path)."""
 
@@ -182,6 +185,9 @@ class NullPoseState:
         return [], []
 
     def odom(self, robot: str, stamp_ns: int, payload: bytes) -> None:
+        """Nothing kept."""
+
+    def forget(self, robot: str) -> None:
         """Nothing kept."""
 
     def pose(self, robot: str, payload: bytes, stamp_ns: int, published_ns: int) -> None:
@@ -299,6 +305,12 @@ class PoseState:
         if ring is None:
             ring = self._rings[robot] = deque(maxlen=ODOM_RING)
         ring.append((stamp_ns, payload))
+
+    def forget(self, robot: str) -> None:
+        """Drop a robot's readings and pose (evicted; left out of the next snapshot)."""
+        self._rings.pop(robot, None)
+        if self._poses.pop(robot, None) is not None:
+            self._dirty = True
 
     def pose(self, robot: str, payload: bytes, stamp_ns: int, published_ns: int) -> None:
         """Keep a pose published for ``robot`` (its encoded PoseEstimate)."""

@@ -291,7 +291,10 @@ def run_demo(args: argparse.Namespace) -> int:
         )
         world = make_building(np.random.default_rng(args.seed))
         fleet = Fleet(args, endpoint, world)
-        service = LocalizationService(settings, recorder=make_recorder(settings)).start()
+        # Returns once every worker can localize: the robots' clocks start only then.
+        service = LocalizationService(settings, recorder=make_recorder(settings)).start(
+            lambda message: console.print(f"service: {message}")
+        )
         try:
             with zenoh.open(client_config(endpoint)) as operator:
                 payload = encode(

@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -36,24 +37,28 @@ from schemas import (
     Odometry,
     PoseEstimate,
     Relocalize,
-    SchemaError,
-    decode,
     encode,
 )
 from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
-from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.keys import INPUT_KINDS, InputKind, Keys, Message
+from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
-from service.live.dispatch import Dispatcher, Done
+from service.live.dispatch import Dispatcher
 from service.live.healthfeed import HealthFeed
+from service.live.intake import Intake
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
+from service.live.outbox import Outbox
+from service.live.publishing import EVENT_SCHEMA, Announcer
 from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
+from service.live.shards import Done
 from service.live.stats import Stats
+from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import MapBook
 from service.maps.store import FileMapStore, MapStorage
@@ -69,7 +74,6 @@ SCHEMA_OF_LEAF = {
     "pose": SCHEMA_NAMES[PoseEstimate],
     "events": SCHEMA_NAMES[Event],
 }
-EVENT_SCHEMA = SCHEMA_NAMES[Event]
 #: Events counted in health, by how their code reads in an encoded Event.
 COUNTED_EVENTS = {
     f'"code":"{EventCode.RELOCALIZING}"'.encode(): "relocalizations",
@@ -106,10 +110,20 @@ class LocalizationService:
         self._session = session
         self._poses: dict[str, bytes] = {}
         self.robot_view = RobotView(settings.instance, self._poses, self.clock)
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._lock = threading.Lock()
         self._declared: list[Any] = []
-        self._input_sub: Any = None
+        self._input_subs: list[Any] = []
+        self.outbox = Outbox()  # Events go out from its thread, never from a callback's
+        self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox)
+        self._publish = self.out.publish
+        self._event = self.out.event
+        self._robot_event = self.out.robot_event
+        self._global_event = self.out.global_event
+        self._on_drop = self.out.on_drop
+        self.ready = False
+        self.intake = Intake(self)
+        self._on_robot_sample = self.intake.on_robot_sample
+        self._offer = self.intake.offer
+        self._reject = self.intake.reject
         self._token: Any = None
         self._storage: MapStorage | None = None
         self.dispatcher = Dispatcher(
@@ -120,6 +134,9 @@ class LocalizationService:
             self._on_done,
             self._on_drop,
             threads=settings.worker_threads,
+            clock=self.clock,
+            on_seed=self._record_seed,
+            on_lost=self._on_worker_lost,
             map_health=settings.map_health,
         )
         self.mapfeed = MapFeed(
@@ -162,6 +179,12 @@ class LocalizationService:
                 settings.max_payload_bytes,
                 self.keys,
             )
+        self.gate = Gate(self.clock, int(settings.max_stamp_ahead_s * 1e9), settings.max_robots)
+        self.ownership.max_ahead_ns = self.gate.max_ahead_ns
+        self.ownership.max_robots = settings.max_robots
+        self.sweeper = Sweeper(
+            self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
+        )
         rec = self.recorder.record
         self.healthfeed = HealthFeed(self.keys, self.maps, self._publish, rec, self.clock)
         self.closed = threading.Event()
@@ -174,8 +197,16 @@ class LocalizationService:
             raise RuntimeError("the service is not started")
         return self._session
 
-    def start(self) -> LocalizationService:
-        """Start workers, open the session and declare everything."""
+    def start(self, progress: Callable[[str], None] | None = None) -> LocalizationService:
+        """Start workers, open the session and declare everything; return once ready.
+
+        Ready means that every process of the instance can localize: the liveliness token
+        (which routes robots here) is declared, and Health says ``ready``, only then.
+
+        Args:
+            progress: told what the start waits for when it takes more than a few seconds (the
+                first start after an install compiles the localizer's kernels).
+        """
         s = self.settings
         self.metrics.start(self)  # first: a port in use fails the start before anything runs
         # Compile the localizer's kernels (or load them from numba's cache) now, not at the
@@ -187,10 +218,12 @@ class LocalizationService:
         if hasattr(self.recorder, "on_overflow"):
             # Already in the log; published so operators see it live.
             self.recorder.on_overflow = lambda ev: self._publish(self.keys.events, encode(ev))
-        self.dispatcher.start()
+        self.dispatcher.start(progress)
         if self._session is None:
             self._session = zenoh.open(zenoh_config(s))
         session = self._session
+        self.outbox.start(session)
+        self.out.attach(session)
         if not s.no_store:
             self._storage = MapStorage(
                 session,
@@ -217,7 +250,13 @@ class LocalizationService:
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
-        self._input_sub = session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
+        # One subscriber per input leaf and one for poses: none of them receives what this
+        # service itself puts (Events go to other sessions only), so no callback can wait on
+        # a queue that only its own thread drains.
+        self._input_subs = [
+            session.declare_subscriber(self.keys.robot_leaf(leaf), self._on_robot_sample)
+            for leaf in (*INPUT_KINDS, "pose")
+        ]
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -233,6 +272,8 @@ class LocalizationService:
             time.sleep(s.join_warmup_s)
         self._token = session.liveliness().declare_token(self.keys.service(s.instance))
         self.ownership.ready = True
+        self.sweeper.start()
+        self.ready = True
         log.info("rlutf service %s started (mode %s, prefix %s)", s.instance, s.mode, s.prefix)
         return self
 
@@ -243,8 +284,9 @@ class LocalizationService:
         self.closed.set()
         if self._token is not None:
             self._token.undeclare()  # the other instances take the robots over at once
-        if self._input_sub is not None:
-            self._input_sub.undeclare()
+        for sub in self._input_subs:
+            sub.undeclare()
+        self.sweeper.close()
         self.dispatcher.stop()
         self.posestate.close()  # after the last pose is out
         if self.ros2 is not None:
@@ -257,10 +299,10 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
-        for pub in self._publishers.values():
-            pub.undeclare()
+        self.out.close()
         if self._storage is not None:
             self._storage.close()
+        self.outbox.close()
         self.recorder.close()
         self.metrics.close()
         if self._own_session and self._session is not None:
@@ -274,57 +316,32 @@ class LocalizationService:
         self.close()
 
     # ------------------------------------------------------------------------ inputs
-    def _on_robot_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        received = self.clock()
-        try:
-            parsed = self.keys.parse_robot_key(key)
-        except KeyError_ as err:
-            if self.ownership.ready and self.membership.owns_key(key):  # one instance reports
-                self.stats.add("received")
-                self.stats.add("rejected")
-                self._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
-            return
-        if parsed is None:
-            return
-        robot, leaf = parsed
-        limit = self.settings.max_payload_bytes
-        if leaf == "pose":  # every instance follows every pose, for handovers
-            self.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
-            return
-        if leaf not in INPUT_KINDS:
-            return  # events, or keys of other tools
-        payload = sample.payload.to_bytes()
-        if not self.ownership.owns(robot):
-            self.ownership.ignore(robot, leaf, payload, limit)
-            return
-        self.stats.add("received")
-        try:
-            msg = decode(MODELS[leaf], payload, max_bytes=limit)
-        except SchemaError as err:
-            self.stats.add("rejected")
-            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
-            return
-        self.ownership.offer(robot, leaf, payload, msg, received)
+    def robots_held(self) -> int:
+        """Robots with a mailbox here or waiting for their seed (the gate's bound)."""
+        return len(self.dispatcher.boxes) + self.ownership.acquiring()
 
-    def _offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
-        """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
-        if not self.ownership.owns(robot):
-            self.ownership.ignore(robot, kind, payload, self.settings.max_payload_bytes)
-            return
-        self.stats.add("received")
-        self.ownership.offer(robot, kind, payload, msg, at)
+    def holds(self, robot: str) -> bool:
+        """Whether ``robot`` is held here."""
+        return robot in self.dispatcher.boxes or self.ownership.holds(robot)
 
-    def _reject(self, robot: str | None, key: str, message: str, at: int) -> None:
-        """Bad input from the ROS 2 front door: an Event, nothing else."""
-        if robot is not None and not self.ownership.owns(robot):
-            return  # its owner reports it
-        self.stats.add("received")
-        self.stats.add("rejected")
-        if robot is None:
-            self._global_event("error", EventCode.INVALID_KEY, key, message, at)
-        else:
-            self._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message, at)
+    def _evict(self, robot: str) -> bool:
+        """Drop a robot that sent nothing for ``robot_idle_s`` (see service.live.admission)."""
+        with self.ownership.lock:  # no input of the robot is admitted meanwhile
+            if not self.dispatcher.forget(robot):
+                return False
+            self.ownership.forget(robot)
+            self._poses.pop(robot, None)
+            self.robot_view.forget(robot)
+            self.posestate.forget(robot)
+            self._robot_event(
+                robot,
+                "info",
+                EventCode.ROBOT_EVICTED,
+                self.keys.robot(robot, "scan"),
+                f"no input for {self.settings.robot_idle_s:g} s (robot_idle_s): the robot's state "
+                "is dropped; it starts anew at its next input (publish an InitialPose)",
+            )
+        return True
 
     def _admit(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
         """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
@@ -333,6 +350,26 @@ class LocalizationService:
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
+
+    def _record_seed(self, robot: str, entry: Entry) -> None:
+        """Record an input made to re-seed a robot whose worker died (dispatcher lock held)."""
+        key = self.keys.robot(robot, entry.kind)
+        self.recorder.record(
+            key, SCHEMA_OF_LEAF[entry.kind], entry.payload, entry.received_ns, entry.stamp_ns
+        )
+
+    def _on_worker_lost(self, index: int, code: int | None, robots: list[str]) -> None:
+        more = f" and {len(robots) - 10} more" if len(robots) > 10 else ""
+        shown = ", ".join(robots[:10]) + more
+        self._global_event(
+            "error",
+            EventCode.WORKER_LOST,
+            self.keys.service(self.settings.instance),
+            f"worker process {index} died (exit code {code}); a new one is starting; "
+            f"{len(robots)} robots re-seeded from their last published poses"
+            + (f" ({shown})" if robots else "")
+            + "; the scans it had not answered are dropped",
+        )
 
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
@@ -381,76 +418,6 @@ class LocalizationService:
                     if code in out.payload:
                         self.stats.add(counter)
 
-    def _on_drop(self, robot: str, stamp_ns: int, received_ns: int) -> None:
-        # Recorded (not published: under overload that would add load) so replay drops the
-        # same scans; counted in health.
-        ev = Event(
-            stamp_ns=stamp_ns,
-            level="info",
-            code=EventCode.SCAN_DROPPED,
-            key=self.keys.robot(robot, "scan"),
-            message=f"scan {stamp_ns} replaced by a newer scan before processing",
-        )
-        self.recorder.record(
-            self.keys.robot_events(robot), EVENT_SCHEMA, encode(ev), self.clock(), stamp_ns
-        )
-
-    def _publish(self, key: str, payload: bytes, pose: bool = False) -> None:
-        if self.closed.is_set() and self._session is None:
-            return
-        try:
-            if pose:
-                pub = self._publishers.get(key)
-                if pub is None:
-                    with self._lock:
-                        pub = self._publishers.get(key)
-                        if pub is None:
-                            pub = self.session.declare_publisher(
-                                key,
-                                encoding=JSON,
-                                congestion_control=zenoh.CongestionControl.DROP,
-                                priority=zenoh.Priority.DATA_HIGH,
-                                # Not express: batched with other messages. Express, every
-                                # pose took a slot of the link's short queue, and under CPU
-                                # load Zenoh dropped some (measured at 50 robots: ~1 %).
-                                express=False,
-                                # Not to our own subscriber on {prefix}/robots/*/*: a callback
-                                # per pose only to follow what _on_done already has.
-                                allowed_destination=zenoh.Locality.REMOTE,
-                            )
-                            self._publishers[key] = pub
-                pub.put(payload)
-            else:
-                self.session.put(key, payload, encoding=JSON)
-        except zenoh.ZError:
-            log.warning("could not publish on %s", key, exc_info=True)
-
-    def _event(
-        self, key: str, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        stamp = now if now is not None else self.clock()
-        ev = Event(stamp_ns=stamp, level=level, code=code, key=about, message=message)
-        payload = encode(ev)
-        log.log(
-            logging.WARNING if level in ("warning", "error") else logging.INFO,
-            "%s %s: %s",
-            code,
-            about,
-            message,
-        )
-        self._publish(key, payload)
-        self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)
-
-    def _robot_event(
-        self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        self._event(self.keys.robot_events(robot), level, code, about, message, now)
-
-    def _global_event(
-        self, level: str, code: str, about: str, message: str, now: int | None = None
-    ) -> None:
-        self._event(self.keys.events, level, code, about, message, now)
-
     # ------------------------------------------------------------------------ queries
     def _on_pose_query(self, query: zenoh.Query) -> None:
         with query:
@@ -464,19 +431,27 @@ class LocalizationService:
         """The current Health message, encoded."""
         extra: dict[str, Any] = {
             "pending_inputs": self.dispatcher.pending(),
-            "workers": len(self.dispatcher.shards) if self.dispatcher.processes else 0,
+            "workers": self.dispatcher.alive_workers(),
+            "workers_replaced": self.dispatcher.workers_replaced,
+            "robots_reseeded": self.dispatcher.reseeded,
+            "events_unsent": self.outbox.dropped,
             "recorder_overflow": self.recorder.overflowed,
             "recorder_queue": self.recorder.queued,
-            "maps": sorted(self.maps_held()),
+            "maps": sorted(self.maps_held())[:50],  # a summary; maps_count counts them all
+            "maps_count": len(self.maps_held()),
             **self.ownership.figures(),
             **self.posestate.figures(),
+            **self.gate.figures(),
+            "robots_evicted": self.sweeper.evicted,
         }
         if self.ros2 is not None:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
             extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
             extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
-        return encode(self.stats.health(len(self._poses), self.dispatcher.dropped, extra))
+        return encode(
+            self.stats.health(len(self._poses), self.dispatcher.dropped, extra, ready=self.ready)
+        )
 
     def maps_held(self) -> list[str]:
         """Ids of the maps loaded."""

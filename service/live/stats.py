@@ -87,7 +87,9 @@ class Stats:
             count=len(values),
         )
 
-    def health(self, robots: int, dropped: int, extra: dict[str, object]) -> Health:
+    def health(
+        self, robots: int, dropped: int, extra: dict[str, object], ready: bool | None = None
+    ) -> Health:
         """A Health message of the current figures."""
         with self._lock:
             lat = list(self._latency_ms)
@@ -108,6 +110,7 @@ class Stats:
             rejected=counts[1],
             processed=counts[2],
             dropped=dropped,
+            ready=ready,
             latency_ms=self._percentiles(lat),
             extra={
                 "lost": counts[3],

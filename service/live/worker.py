@@ -2,8 +2,9 @@
 
 A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
 it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
-[(kind, payload, received_ns), ...])``, ``("stop",)``, or ``("many", [those])``; the worker
-answers each batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
+[(kind, payload, received_ns), ...])``, ``("forget", robot)``, ``("stop",)``, or ``("many",
+[those])``; the worker says ``("ready",)`` once its kernels are compiled or loaded, answers each
+batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
 """
 
 from __future__ import annotations
@@ -102,7 +103,9 @@ class HandOver:
 
 
 def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
-    if msg[0] == "map":
+    if msg[0] == "forget":
+        engine.forget(msg[1])
+    elif msg[0] == "map":
         _, map_id, version, geometry_or_world, received_ns = msg
         w = (
             geometry_or_world
@@ -151,6 +154,7 @@ def worker_main(
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
+    send(conn, ("ready",))  # the kernels are compiled or loaded: this process can localize
 
     def answer(msg: tuple[Any, ...]) -> None:
         try:
@@ -184,7 +188,7 @@ def worker_main(
                     slow.shutdown(wait=True)
                     answer(("stopped",))
                     return
-                if kind == "map":
+                if kind in ("map", "forget"):
                     apply_control(engine, item)
                     continue
                 _, robot, batch = item

@@ -19,14 +19,19 @@ import math
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
 from rlutf.motion import wrap_scalar
 from service.logs.replay import PoseRecord
+from service.logs.runs import LogRun
 
 DEFAULT_TOLERANCE = 1e-9
+UNREADABLE = "unreadable"
+"""A run's result when one of its files could not be read."""
 
 
 @dataclass(frozen=True)
@@ -121,10 +126,11 @@ def render(
     tolerance_rad: float,
     console: Console,
     strict: bool = False,
+    heading: str = "Audit",
 ) -> None:
-    """Print the per-robot table."""
+    """Print the per-robot table, titled ``heading`` (e.g. which run)."""
     table = Table(
-        title=f"Audit: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
+        title=f"{heading}: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
         f"{tolerance_rad:g} rad)"
     )
     for name in (
@@ -157,5 +163,78 @@ def render(
             f"{a.max_heading:.3g}",
             f"{a.rms_heading:.3g}",
             "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]",
+        )
+    console.print(table)
+
+
+@dataclass(frozen=True)
+class RunVerdict:
+    """One run's line in the final summary of an audit over several runs.
+
+    Attributes:
+        label: how the run is named (short id and instance).
+        started: when the run started (UTC, ISO 8601), or ``-``.
+        files: its files.
+        robots: robots audited.
+        poses: recorded poses compared.
+        result: ``passed``, ``FAILED``, ``nothing to audit`` or :data:`UNREADABLE`.
+        out: the run's replay output.
+    """
+
+    label: str
+    started: str
+    files: int
+    robots: int
+    poses: int
+    result: str
+    out: str
+
+
+def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int) -> str:
+    """The last line of an audit over several runs (or files)."""
+    counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED", UNREADABLE)}
+    empty = len(verdicts) - sum(counts.values())
+    if counts["FAILED"]:
+        return f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
+    if counts[UNREADABLE] or unreadable_files:
+        return (
+            f"audit: [bold red]incomplete[/bold red]: {counts[UNREADABLE]} run(s) and "
+            f"{unreadable_files} file(s) could not be read; {counts['passed']} run(s) passed"
+        )
+    if not counts["passed"]:
+        return f"audit: nothing to audit in {len(verdicts)} runs"
+    also = f"; {empty} with nothing to audit" if empty else ""
+    runs = "run" if counts["passed"] == 1 else "runs"
+    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also})"
+
+
+def run_verdict(run: LogRun, out: Path, robots: int, poses: int, result: str) -> RunVerdict:
+    """One run's line in the final summary."""
+    tag = run.tags[0]
+    started = "-"
+    if tag is not None:
+        when = datetime.fromtimestamp(tag.started_ns / 1e9, UTC)
+        started = when.isoformat(timespec="seconds").removesuffix("+00:00")
+    return RunVerdict(run.short_label, started, len(run.files), robots, poses, result, out.name)
+
+
+def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:
+    """Print one line per run: the summary of an audit over several runs."""
+    table = Table(title=f"Audit of {len(verdicts)} runs")
+    for name in ("run", "started (UTC)", "id (instance)", "files", "robots", "recorded poses"):
+        table.add_column(name, justify="left" if "(" in name else "right")
+    table.add_column("result")
+    table.add_column("output", overflow="fold")
+    for k, v in enumerate(verdicts, 1):
+        colour = {"passed": "green", "FAILED": "bold red"}.get(v.result, "yellow")
+        table.add_row(
+            str(k),
+            v.started,
+            v.label,
+            str(v.files),
+            str(v.robots),
+            str(v.poses),
+            f"[{colour}]{v.result}[/{colour}]",
+            v.out,
         )
     console.print(table)

@@ -14,6 +14,12 @@ the recorder closes. A ``.part`` file left by a crash is repaired by ``rlutf log
 file is opened at the first message after start or rotation; each file starts with the
 ``rlutf.config`` metadata and the newest version of every map seen so far (with its original
 ``log_time``), so every file opens in Foxglove with its map.
+
+Every file also holds the ``rlutf.run`` metadata (:mod:`service.logs.runs`): the recorder's run id
+(new for every recorder, that is every start of the service), the instance, when the recorder
+started and the file's sequence number within the run (0, 1, 2 ... as files rotate; the number
+in the file name counts from 1 and skips names already taken), so the log tools can tell which
+files of a folder belong together.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from typing import IO, Any, NamedTuple
 from schemas import Event, EventCode, encode
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
+from service.logs.runs import RUN_METADATA, RunTag, new_run_id
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +167,11 @@ class McapRecorder:
         self._unchecked = 0  # message bytes written since the last rotation check
         self._file: _OpenFile | None = None
         self._sequence = 0
+        self._opened = 0  # files opened: the next file's sequence number within the run
+        self.run_id = new_run_id()
+        """This recorder's run (``rlutf.run`` metadata of every file it writes)."""
+        self.started_ns = time.time_ns()
+        """When the run started, ns since the epoch."""
         self.files: list[Path] = []
         """Finished files, oldest first."""
         self.errors = 0
@@ -266,17 +278,23 @@ class McapRecorder:
                 self._file.writer.write_config(item.config)
             return
         self._unchecked += len(item.payload)
-        writer = self._writer()  # before latching: a new file starts with the maps seen before
+        # Before latching: a new file starts with the maps seen before.
+        writer = self._writer(item.log_time_ns)
         if item.schema_name == _MAP_SCHEMA:
             self._maps[item.topic] = item
         writer.write(item)
 
-    def _writer(self) -> LogWriter:
+    def _writer(self, first_ns: int) -> LogWriter:
+        """The open file's writer; a new file if none is open, whose first own message is
+        logged at ``first_ns``."""
         if self._file is None:
             self._file = self._open()
             writer = self._file.writer
             if self._config is not None:
                 writer.write_config(self._config)
+            tag = RunTag(self.run_id, self.instance or "", self.started_ns, self._opened, first_ns)
+            self._opened += 1
+            writer.write_metadata(RUN_METADATA, tag.to_metadata())
             writer.write_all(self._maps.values())
         return self._file.writer
 
@@ -309,7 +327,7 @@ class McapRecorder:
             f"({self.queue_size} messages) was full",
         )
         log.warning("recorder queue full: %d messages not recorded", lost)
-        self._writer().write(Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now))
+        self._writer(now).write(Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now))
         if self.on_overflow is not None:
             try:
                 self.on_overflow(event)

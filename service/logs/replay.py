@@ -15,7 +15,13 @@ and records an Event ``scan_dropped`` (``stamp_ns`` = the dropped scan's stamp) 
 
 The output holds the inputs, the recorded ``scan_dropped`` events, the recomputed poses and
 events (``log_time`` = the receive time of the input they answer), the Foxglove views, the
-configuration used (``rlutf.config``) and ``rlutf.replay`` metadata naming the inputs.
+configuration used (``rlutf.config``), ``rlutf.replay`` metadata naming the inputs, and
+``rlutf.run`` metadata (:mod:`service.logs.runs`): a replay is a run of its own (instance
+``replay``, ``replayed_run`` naming the run it recomputed).
+
+One replay is one run: inputs from several runs (files whose ``rlutf.run`` names different
+runs) raise :class:`MixedRuns`, since merging them would carry each robot's state from one run
+into the next; :func:`service.logs.runs.group_runs` sorts files into runs first.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
@@ -44,8 +51,9 @@ from service.engine import FleetEngine
 from service.keys import Keys
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
-from service.logs.mcapread import LogFile, map_topic, merged_messages, robot_topic
+from service.logs.mcapread import LogError, LogFile, map_topic, merged_messages, robot_topic
 from service.logs.replayconfig import ReplayConfig, resolve
+from service.logs.runs import RUN_METADATA, RunTag, new_run_id, run_tag
 from service.maphealth import MapHealthEngine, ScanEvidence
 from service.maps.book import MapBook, MapRejected
 
@@ -66,6 +74,9 @@ MAPHEALTH_SCHEMA = "rlutf.MapHealth"
 HEALTH_HANDOVER_NS = 1_000_000_000
 REPLAYED = frozenset({*INPUT_MODELS, MAP_SCHEMA, POSE_SCHEMA})
 REPLAY_METADATA = "rlutf.replay"
+
+REPLAY_INSTANCE = "replay"
+"""The ``instance`` of a replay's ``rlutf.run`` metadata."""
 
 Progress = Callable[[int], None]
 """Called with the number of messages just handled."""
@@ -121,6 +132,31 @@ class ReplayResult:
     out: Path | None = None
 
 
+class MixedRuns(LogError):
+    """The inputs of one replay belong to several runs."""
+
+
+def _source_run(logs: Sequence[LogFile]) -> str | None:
+    """The run the inputs belong to (``None``: files without ``rlutf.run``).
+
+    Raises:
+        MixedRuns: they belong to several.
+    """
+    runs: dict[Path, str | None] = {}
+    for lf in logs:
+        tag = run_tag(lf)
+        runs[lf.path] = tag.run_id if tag is not None else None
+    distinct = sorted(set(runs.values()), key=str)
+    if len(distinct) > 1:
+        names = ", ".join(f"{p.name}: {r or 'no rlutf.run'}" for p, r in runs.items())
+        raise MixedRuns(
+            f"the inputs belong to {len(distinct)} runs ({names}); replaying them together "
+            "would carry each robot's state from one run into the next: replay each run on "
+            "its own (rlutf replay sorts its inputs into runs)"
+        )
+    return distinct[0] if distinct else None
+
+
 def pose_record(payload: bytes) -> PoseRecord:
     """A PoseRecord from a PoseEstimate payload.
 
@@ -131,7 +167,14 @@ def pose_record(payload: bytes) -> PoseRecord:
     return PoseRecord(p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload)
 
 
-def _dropped_scans(logs: Sequence[LogFile]) -> tuple[Counter[tuple[str, int]], list[Record]]:
+def _dropped_scans(
+    logs: Sequence[LogFile], evictions: list[tuple[int, str]] | None = None
+) -> tuple[Counter[tuple[str, int]], list[Record]]:
+    """The scans the live service dropped (per robot and stamp) and the events saying so.
+
+    Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
+    ``(log_time_ns, robot)``, in log order, and their records to the events returned.
+    """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
     for rec in merged_messages(logs, {EVENT_SCHEMA}):
@@ -147,6 +190,13 @@ def _dropped_scans(logs: Sequence[LogFile]) -> tuple[Counter[tuple[str, int]], l
             if isinstance(stamp, int):
                 drops[(where.robot, stamp)] += 1
                 records.append(rec)
+        elif (
+            isinstance(data, dict)
+            and data.get("code") == EventCode.ROBOT_EVICTED
+            and evictions is not None
+        ):
+            evictions.append((rec.log_time_ns, where.robot))
+            records.append(rec)
     return drops, records
 
 
@@ -177,8 +227,17 @@ class _Run:
         self.handed_ns: int | None = None
         self.book = MapBook(cfg.max_payload_bytes)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
+        self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
+        self._next_eviction = 0
 
     def handle(self, rec: Record) -> None:
+        # Robots the live service evicted are forgotten at the same point of the inputs.
+        while (
+            self._next_eviction < len(self.evictions)
+            and self.evictions[self._next_eviction][0] <= rec.log_time_ns
+        ):
+            self.engine.forget(self.evictions[self._next_eviction][1])
+            self._next_eviction += 1
         if rec.schema_name == POSE_SCHEMA:
             try:
                 pose = pose_record(rec.payload)
@@ -299,10 +358,12 @@ def replay(
 
     Raises:
         service.logs.mcapread.LogError: an input is missing, not MCAP, or damaged.
+        MixedRuns: the inputs belong to several runs.
         service.logs.replayconfig.ReplayConfigError: the configuration is invalid.
     """
     with ExitStack() as stack:
         logs = [stack.enter_context(LogFile(p)) for p in inputs]
+        source_run = _source_run(logs)
         if config is None:
             recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
             config = resolve(
@@ -312,7 +373,8 @@ def replay(
                 assignments=assignments,
             )
         result = ReplayResult(config)
-        drops, drop_records = _dropped_scans(logs)
+        evictions: list[tuple[int, str]] = []
+        drops, drop_records = _dropped_scans(logs, evictions)
         if on_total is not None:
             on_total(sum(lf.count(REPLAYED) for lf in logs))
         part = out.with_name(out.name + ".part") if out is not None else None
@@ -322,6 +384,14 @@ def replay(
             writer = LogWriter(stream, converter, chunk_size) if stream is not None else None
             if writer is not None:
                 writer.write_config(config.settings)
+                tag = RunTag(
+                    new_run_id(),
+                    REPLAY_INSTANCE,
+                    time.time_ns(),
+                    0,
+                    extra=(("replayed_run", source_run or ""),),
+                )
+                writer.write_metadata(RUN_METADATA, tag.to_metadata())
                 writer.write_metadata(
                     REPLAY_METADATA,
                     {
@@ -332,6 +402,7 @@ def replay(
                 )
                 writer.write_all(drop_records)
             run = _Run(result, drops, writer)
+            run.evictions = sorted(evictions)
             last_ns = 0
             for rec in merged_messages(logs, REPLAYED):
                 run.handle(rec)

@@ -134,22 +134,31 @@ def test_every_scan_answered_or_counted() -> None:
     assert not counted_verdict(1000, 1000, -1, 0).ok  # no health: dropped unknown
 
 
-def _file(name: str, messages: int = 10, poses: int = 4, error: str | None = None) -> FileCheck:
-    return FileCheck(name, 1000, messages, messages, poses, 14.9, error)
+def _file(
+    name: str, messages: int = 10, poses: int = 4, error: str | None = None, sequence: int = 0
+) -> FileCheck:
+    return FileCheck(name, 1000, messages, messages, poses, 14.9, error, "run-a", sequence)
 
 
 def test_logs_verdicts() -> None:
-    files = [_file(f"f{i}.mcap") for i in range(4)]
+    files = [_file(f"f{i}.mcap", sequence=i) for i in range(4)]
     good = logs_verdicts(files, [], 60.0, 15.0, poses_published=16, recorder_overflow=0)
     assert all(v.ok and v.hard for v in good)
     few = logs_verdicts(files[:1], [], 60.0, 15.0, 4, 0)
-    assert [v.ok for v in few] == [False, True, True, True]
+    assert [v.ok for v in few] == [False, True, True, True, True]
     part = logs_verdicts(files, ["f4.mcap.part"], 60.0, 15.0, 16, 0)
-    assert [v.ok for v in part] == [True, False, True, True]
-    broken = [*files[:3], _file("f3.mcap", error="damaged")]
+    assert [v.ok for v in part] == [True, False, True, True, True]
+    broken = [*files[:3], _file("f3.mcap", error="damaged", sequence=3)]
     assert [v.ok for v in logs_verdicts(broken, [], 60.0, 15.0, 16, 0)][2] is False
-    short_read = [*files[:3], FileCheck("f3.mcap", 1000, 9, 10, 4, 14.9, None)]
+    short_read = [*files[:3], FileCheck("f3.mcap", 1000, 9, 10, 4, 14.9, None, "run-a", 3)]
     assert [v.ok for v in logs_verdicts(short_read, [], 60.0, 15.0, 16, 0)][2] is False
+    # the files of one start of the service: one run, numbered from 0 in file order
+    two_runs = [*files[:3], files[3]._replace(run="run-b")]
+    assert not logs_verdicts(two_runs, [], 60.0, 15.0, 16, 0)[4].ok
+    gap = [*files[:3], files[3]._replace(sequence=4)]
+    assert not logs_verdicts(gap, [], 60.0, 15.0, 16, 0)[4].ok
+    untagged = [f._replace(run=None) for f in files]
+    assert not logs_verdicts(untagged, [], 60.0, 15.0, 16, 0)[4].ok
     # poses missing from the files are allowed only as far as the recorder reported overflow
     assert logs_verdicts(files, [], 60.0, 15.0, 20, 4)[3].ok
     assert not logs_verdicts(files, [], 60.0, 15.0, 20, 3)[3].ok

@@ -21,6 +21,7 @@ from schemas import InitialPose, LaserScan, Map, Odometry, encode
 from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
+from service.logs.recording import make_recorder
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -125,16 +126,17 @@ WORLD = make_building(np.random.default_rng(11))
 
 
 def start_service(store: Path, port: int, workers: int = 0, **kw: Any) -> LocalizationService:
-    settings = Settings(
-        listen=[f"tcp/127.0.0.1:{port}"],
-        store_dir=store,
-        no_record=True,
-        workers=workers,
-        instance=f"test-{port}",
-        event_interval_s=0.0,
-        **kw,
-    )
-    return LocalizationService(settings).start()
+    values: dict[str, Any] = {
+        "listen": [f"tcp/127.0.0.1:{port}"],
+        "store_dir": store,
+        "no_record": True,
+        "workers": workers,
+        "instance": f"test-{port}",
+        "event_interval_s": 0.0,
+    }
+    settings = Settings(**{**values, **kw})
+    recorder = None if settings.no_record else make_recorder(settings)
+    return LocalizationService(settings, recorder=recorder).start()
 
 
 @contextmanager

@@ -8,7 +8,7 @@ thresholds (occupied above ``occupied_thresh``, free below ``free_thresh``, unkn
 Beams without a return (range not finite, at most ``range_min``, or at least the scan's max
 range) mark nothing: a missing echo says little about where the free space ends.
 
-CARMEN logs (``FLASER`` lines, see ``../shared/data/README.md``): a scan of ``n`` beams starts
+CARMEN logs (``FLASER`` lines, see ``bench/data/README.md``): a scan of ``n`` beams starts
 at -pi/2 and is spaced pi/n for even n and pi/(n - 1) for odd n; its ``x y theta`` is the
 laser's pose. Other message types are skipped. Gzip-compressed logs are read transparently.
 """

@@ -249,9 +249,9 @@ def test_a_corrupt_state_file_is_reported_and_the_service_runs(
     (store / "state").mkdir(parents=True)
     (store / "state" / FILE_NAME).write_bytes(b'{"version": 1, "robots": {"r0": {"po')
     port = free_port()
-    caplog.set_level("WARNING", logger="service.live.node")
+    caplog.set_level("WARNING", logger="service.live.publishing")
     service = start_service(store, port)  # the Event goes out before any client can hear it
-    events = [r.getMessage() for r in caplog.records if r.name == "service.live.node"]
+    events = [r.getMessage() for r in caplog.records if r.name == "service.live.publishing"]
     assert any(m.startswith("state_unreadable rlutf/events") for m in events), events
     try:
         with zenoh.open(client_config(f"tcp/127.0.0.1:{port}")) as client:

@@ -7,7 +7,8 @@ import gc
 from rlutf.localizer import LocalizerConfig
 from schemas import LaserScan, Odometry
 from service.keys import Keys
-from service.live.dispatch import _ODOM_ALONE, Dispatcher
+from service.live.dispatch import Dispatcher
+from service.live.shards import ODOM_ALONE as _ODOM_ALONE
 from service.live.worker import _GC_THRESHOLDS, tune_gc
 
 

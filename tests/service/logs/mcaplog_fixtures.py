@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from rlutf.map import Map as World
 from rlutf.sim import (
     LidarModel,
     OdometryModel,
@@ -32,27 +33,29 @@ def simulated_inputs(
     seed: int = 3,
     beams: int = 120,
     prefix: str = "rlutf",
+    world: World | None = None,
     seen: Callable[[list[np.ndarray]], Any] | None = None,
 ) -> list[Record]:
-    """A map, initial poses, then odometry and a scan per robot per step, in log order; the
-    scans are of the world ``seen`` makes of the robots' paths (a :class:`rlutf.map.Map`;
-    default: the map itself).
+    """A map (``world``, default :data:`WORLD`), initial poses, then odometry and a scan per
+    robot per step, in log order; the scans are of the world ``seen`` makes of the robots'
+    paths (a :class:`rlutf.map.Map`; default: the map itself).
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
     rng = np.random.default_rng(seed)
+    building = WORLD if world is None else world
     out = [
         Record(
             f"{prefix}/maps/m1",
             "rlutf.Map",
-            encode(Map(map_id="m1", version=1, geometry=WORLD.to_geojson())),
+            encode(Map(map_id="m1", version=1, geometry=building.to_geojson())),
             T0 - 1_000_000,
             T0 - 1_000_000,
         )
     ]
     runs = {}
     for k, robot in enumerate(robots):
-        truth = make_trajectory(WORLD, rng, steps + 1)
+        truth = make_trajectory(building, rng, steps + 1)
         odom = drift_odometry(truth, OdometryModel(), rng)
         runs[robot] = (truth, odom)
         start = InitialPose(
@@ -72,7 +75,7 @@ def simulated_inputs(
             )
         )
     lidar = LidarModel(beams=beams)
-    world = WORLD if seen is None else seen([truth for truth, _ in runs.values()])
+    scanned = building if seen is None else seen([truth for truth, _ in runs.values()])
     for i in range(steps + 1):
         stamp = T0 + i * STEP_NS
         for k, (robot, (truth, odom)) in enumerate(runs.items()):
@@ -85,7 +88,7 @@ def simulated_inputs(
             )
             if i == 0:
                 continue
-            s = simulate_scan(world, truth[i], lidar, rng)
+            s = simulate_scan(scanned, truth[i], lidar, rng)
             scan = LaserScan(
                 stamp_ns=stamp,
                 angle_min=s.angle_min,

@@ -25,6 +25,7 @@ from service.logs.mcapfile import (
 )
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
+from service.logs.runs import run_tag
 
 CONFIG = {"prefix": "rlutf", "instance": "t1", "localizer": {"epsilon": 0.006}}
 REPO = Path(__file__).resolve().parents[3]
@@ -92,9 +93,14 @@ def test_rotation_by_size_keeps_config_and_maps_in_every_file(tmp_path: Path) ->
     rec.close()
     assert len(rec.files) >= 3
     total = []
-    for path in rec.files:
+    for sequence, path in enumerate(rec.files):
         with LogFile(path) as lf:
             assert lf.config() == CONFIG
+            # every file names its run and its place in it (WIRE.md v1.2)
+            tag = run_tag(lf)
+            assert tag is not None
+            assert (tag.run_id, tag.instance, tag.sequence) == (rec.run_id, "n", sequence)
+            assert tag.started_ns == rec.started_ns
             maps = list(lf.messages({"rlutf.Map"}))
             assert [m.payload for m in maps][:1] == [inputs[0].payload]
             total += [r for r in lf.messages() if r.schema_name != "rlutf.Map"]

@@ -14,6 +14,7 @@ import shapely
 import shapely.affinity
 from shapely.geometry import Polygon, box
 
+from bench.scenarios import DATA
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
 from service.maps.mapimport import (
@@ -30,7 +31,7 @@ from service.maps.mapimport import (
     read_carmen,
 )
 
-CARMEN = Path(__file__).parents[3].parent / "shared" / "data" / "carmen"
+CARMEN = DATA / "carmen"
 ROOM = box(0.0, 0.0, 6.0, 4.0).difference(box(2.5, 1.5, 3.0, 2.0))
 NO_RETURN = 81.83
 
@@ -159,7 +160,6 @@ def test_build_grid_takes_any_iterable_of_tuples() -> None:
         build_grid([(np.zeros(2), np.ones(3), np.ones(3), 5.0)])
 
 
-@pytest.mark.skipif(not CARMEN.exists(), reason=f"shared CARMEN logs not found at {CARMEN}")
 @pytest.mark.parametrize(("name", "area"), [("intel", (450.0, 600.0)), ("aces", (700.0, 900.0))])
 def test_build_real_logs(name: str, area: tuple[float, float]) -> None:
     start = time.perf_counter()

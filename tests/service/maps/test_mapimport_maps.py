@@ -1,4 +1,4 @@
-"""Import of the real map_server maps in ../shared/data/maps: area, rays, JSON, rendering."""
+"""Import of the real map_server maps in bench/data/maps: area, rays, JSON, rendering."""
 
 from __future__ import annotations
 
@@ -11,17 +11,13 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
+from bench.scenarios import DATA
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
 from service.maps.mapimport import ImportResult, import_grid, march_rays, render_map
 
-DATA = Path(__file__).parents[3].parent / "shared" / "data"
 MAPS = DATA / "maps"
 NAMES = ["depot", "tb3_sandbox"]
-
-pytestmark = pytest.mark.skipif(
-    not (MAPS / "depot.yaml").exists(), reason=f"shared map data not found at {MAPS}"
-)
 
 
 @cache

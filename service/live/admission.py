@@ -1,0 +1,153 @@
+"""Bounds on what the service holds for robots: stamps it trusts, ids it takes, idle robots.
+
+Any number of clients may send anything. What one input costs is bounded by validation; what
+the service keeps is bounded here:
+
+- **Stamps.** A message stamped far ahead of the service's clock is rejected: a pose is the
+  newest by its stamp, so one far-future stamp (a forged pose on the bus, or a robot's own scan)
+  would pin the robot's seed for good.
+- **Robot ids.** At most ``max_robots`` robots are held; an input for one more id is refused
+  (Event ``robot_limit``, at most one a second) until idle robots are evicted.
+- **Idle robots.** A robot that sent nothing for ``robot_idle_s`` is evicted: its mailbox, its
+  localizer, its followed pose and its durable state go, with an Event ``robot_evicted``
+  (recorded, so replay forgets it at the same point). A robot that comes back starts anew, like
+  one never seen: an InitialPose (or its last pose, followed on the bus) places it again.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+log = logging.getLogger(__name__)
+
+#: Least time between two ``robot_limit`` Events, ns.
+LIMIT_EVENT_INTERVAL_NS = 1_000_000_000
+#: Stamp rejections reported per second at most (the others are counted).
+EVENTS_PER_S = 10
+#: How often idle robots are looked for, seconds.
+SWEEP_INTERVAL_S = 1.0
+
+
+class Holder(Protocol):
+    """What the gate needs of the service."""
+
+    def robots_held(self) -> int: ...
+
+    def holds(self, robot: str) -> bool: ...
+
+
+class Gate:
+    """Decides, before any work, whether an input is taken.
+
+    Args:
+        clock: the service's receive clock, ns.
+        max_ahead_ns: largest accepted lead of a stamp over the clock.
+        max_robots: most robots held at once.
+    """
+
+    def __init__(self, clock: Callable[[], int], max_ahead_ns: int, max_robots: int) -> None:
+        self._clock = clock
+        self.max_ahead_ns = max_ahead_ns
+        self.max_robots = max_robots
+        self.stamps_rejected = 0
+        self.robots_refused = 0
+        self._last_limit_event = -LIMIT_EVENT_INTERVAL_NS
+        self._window_ns = 0
+        self._window_events = 0
+
+    def stamp_problem(self, stamp_ns: int, now_ns: int) -> str | None:
+        """Why a stamp is not trusted, or ``None``."""
+        ahead = stamp_ns - now_ns
+        if ahead <= self.max_ahead_ns:
+            return None
+        self.stamps_rejected += 1
+        return (
+            f"stamp_ns {stamp_ns} is {ahead / 1e9:.3g} s ahead of the service's clock (at most "
+            f"{self.max_ahead_ns / 1e9:g} s accepted: max_stamp_ahead_s); the message is "
+            "dropped. Synchronise the robot's clock (chrony, NTP) with the service's host"
+        )
+
+    def refuse_new(self, holder: Holder, robot: str, now_ns: int) -> str | None:
+        """Why a robot id is refused (the service is full), or ``None``.
+
+        Returns the message of a ``robot_limit`` Event at most once a second; refusals in
+        between are only counted.
+        """
+        if holder.holds(robot) or holder.robots_held() < self.max_robots:
+            return None
+        self.robots_refused += 1
+        if now_ns - self._last_limit_event < LIMIT_EVENT_INTERVAL_NS:
+            return ""
+        self._last_limit_event = now_ns
+        return (
+            f"robot {robot!r} refused: this instance holds {self.max_robots} robots "
+            f"(max_robots); {self.robots_refused} inputs of new robot ids refused so far. Idle "
+            "robots are evicted after robot_idle_s; raise max_robots or add instances"
+        )
+
+    def allow_event(self, now_ns: int) -> bool:
+        """Whether a rejection may be reported now: at most :data:`EVENTS_PER_S` a second
+        (a flood of forged messages must not become a flood of Events and log records)."""
+        if now_ns - self._window_ns >= 1_000_000_000:
+            self._window_ns, self._window_events = now_ns, 0
+        self._window_events += 1
+        return self._window_events <= EVENTS_PER_S
+
+    def figures(self) -> dict[str, object]:
+        """Figures for the health message."""
+        return {"stamps_rejected": self.stamps_rejected, "robots_refused": self.robots_refused}
+
+
+class Sweeper:
+    """A thread that evicts robots idle for longer than ``idle_ns``.
+
+    Args:
+        clock: the service's receive clock, ns.
+        idle_ns: how long a robot may send nothing.
+        idle_since: the robots whose last input was received before a given time.
+        evict: evicts one robot; returns ``False`` when it is busy after all (kept for now).
+    """
+
+    def __init__(
+        self,
+        clock: Callable[[], int],
+        idle_ns: int,
+        idle_since: Callable[[int], list[str]],
+        evict: Callable[[str], bool],
+    ) -> None:
+        self._clock = clock
+        self._idle_ns = idle_ns
+        self._idle_since = idle_since
+        self._evict = evict
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.evicted = 0
+
+    def start(self) -> None:
+        """Start sweeping."""
+        self._thread = threading.Thread(target=self._run, name="rlutf-sweeper", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop sweeping."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+
+    def sweep(self) -> int:
+        """Evict the robots idle now; returns how many went."""
+        gone = 0
+        for robot in self._idle_since(self._clock() - self._idle_ns):
+            try:
+                gone += self._evict(robot)
+            except Exception:
+                log.exception("evicting %s failed", robot)
+        self.evicted += gone
+        return gone
+
+    def _run(self) -> None:
+        while not self._stop.wait(SWEEP_INTERVAL_S):
+            self.sweep()

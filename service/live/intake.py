@@ -1,0 +1,124 @@
+"""Inputs on the bus: from a robot key to the robot's owner, with everything checked first.
+
+A Zenoh callback only decodes, validates and hands the input on (``STYLE.md``): what the key
+says (a robot id, an input leaf), whether this instance owns the robot, whether the service
+takes one more robot id (:class:`service.live.admission.Gate`), the message's schema and its
+stamp. Rejections are Events; nothing here waits on the bus.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import zenoh
+
+from schemas import EventCode, SchemaError, decode
+from service.cluster.membership import Membership
+from service.cluster.ownership import Ownership
+from service.config import Settings
+from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
+from service.live.admission import Gate
+from service.live.stats import Stats
+
+
+class Service(Protocol):
+    """What the intake needs of :class:`service.live.node.LocalizationService`."""
+
+    settings: Settings
+    keys: Keys
+    stats: Stats
+    ownership: Ownership
+    membership: Membership
+    gate: Gate
+
+    def clock(self) -> int: ...
+
+    def robots_held(self) -> int: ...
+
+    def holds(self, robot: str) -> bool: ...
+
+    def _robot_event(
+        self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
+    ) -> None: ...
+
+    def _global_event(
+        self, level: str, code: str, about: str, message: str, now: int | None = None
+    ) -> None: ...
+
+
+class Intake:
+    """The service's input callbacks (JSON keys) and the ROS 2 front door's hand-over."""
+
+    def __init__(self, svc: Service) -> None:
+        self.svc = svc
+
+    def on_robot_sample(self, sample: zenoh.Sample) -> None:
+        """Subscriber callback on `{prefix}/robots/*/{leaf}`: check, then hand to the owner."""
+        svc = self.svc
+        key = str(sample.key_expr)
+        received = svc.clock()
+        try:
+            parsed = svc.keys.parse_robot_key(key)
+        except KeyError_ as err:
+            if svc.ownership.ready and svc.membership.owns_key(key):  # one instance reports
+                svc.stats.add("received")
+                svc.stats.add("rejected")
+                svc._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
+            return
+        if parsed is None:
+            return
+        robot, leaf = parsed
+        limit = svc.settings.max_payload_bytes
+        if leaf == "pose":  # every instance follows every pose, for handovers
+            problem = svc.ownership.follow_pose(robot, sample.payload.to_bytes(), limit)
+            if problem and svc.gate.allow_event(received):
+                code = EventCode.STAMP_REJECTED
+                svc._robot_event(robot, "warning", code, key, problem, received)
+            return
+        if leaf not in INPUT_KINDS:
+            return  # events, or keys of other tools
+        payload = sample.payload.to_bytes()
+        if not svc.ownership.owns(robot):
+            svc.ownership.ignore(robot, leaf, payload, limit)
+            return
+        svc.stats.add("received")
+        refused = svc.gate.refuse_new(svc, robot, received)
+        if refused is not None:
+            svc.stats.add("rejected")
+            if refused:
+                svc._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, received)
+            return
+        try:
+            msg = decode(MODELS[leaf], payload, max_bytes=limit)
+        except SchemaError as err:
+            svc.stats.add("rejected")
+            svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
+            return
+        problem = svc.gate.stamp_problem(msg.stamp_ns, received)
+        if problem is not None:
+            svc.stats.add("rejected")
+            if svc.gate.allow_event(received):
+                svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, received)
+            return
+        svc.ownership.offer(robot, leaf, payload, msg, received)
+
+    def offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
+        """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
+        svc = self.svc
+        if not svc.ownership.owns(robot):
+            svc.ownership.ignore(robot, kind, payload, svc.settings.max_payload_bytes)
+            return
+        svc.stats.add("received")
+        svc.ownership.offer(robot, kind, payload, msg, at)
+
+    def reject(self, robot: str | None, key: str, message: str, at: int) -> None:
+        """Bad input from the ROS 2 front door: an Event, nothing else."""
+        svc = self.svc
+        if robot is not None and not svc.ownership.owns(robot):
+            return  # its owner reports it
+        svc.stats.add("received")
+        svc.stats.add("rejected")
+        if robot is None:
+            svc._global_event("error", EventCode.INVALID_KEY, key, message, at)
+        else:
+            svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message, at)

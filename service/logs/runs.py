@@ -1,0 +1,236 @@
+"""Runs: which log files belong together (WIRE.md v1.2, metadata ``rlutf.run``).
+
+Every file the service's recorder or ``rlutf replay`` writes holds one ``rlutf.run`` metadata
+record naming its run: ``run_id`` (new at every start of a service or a replay), ``instance``,
+``started_ns`` (when the run started) and ``sequence`` (the file's number within the run: 0, 1,
+2 ... as the recorder rotates). The recorder also writes ``opened_ns``: the ``log_time`` of the
+first message of the file's own; a rotated file starts with the maps recorded before it, at
+their original ``log_time``, and those are the maps logged before ``opened_ns``.
+
+:func:`group_runs` sorts a list of files (a shell glob over a log folder matches several runs)
+into runs, each with its files in sequence order; files without ``rlutf.run`` (written by
+another tool) form one run of their own, in the order given. Replay and audit then treat each
+run on its own, so no robot's state or map is carried from one run into another.
+"""
+
+from __future__ import annotations
+
+import itertools
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from service.logs.mcapread import LogError, LogFile
+
+RUN_METADATA = "rlutf.run"
+"""Name of the metadata record that names a file's run."""
+
+
+class RunConflict(LogError):
+    """Two different files claim the same place in the same run."""
+
+
+@dataclass(frozen=True)
+class RunTag:
+    """The ``rlutf.run`` record of one file.
+
+    Attributes:
+        run_id: unique per start of a service or a replay.
+        instance: the service instance (``replay`` for a replay's output).
+        started_ns: when the run started, ns since the epoch.
+        sequence: the file's number within the run, from 0.
+        opened_ns: ``log_time`` of the file's first own message (``None``: not recorded);
+            maps logged before it were carried over from the run's earlier files.
+        extra: any other keys of the record (e.g. ``replayed_run``).
+    """
+
+    run_id: str
+    instance: str
+    started_ns: int
+    sequence: int
+    opened_ns: int | None = None
+    extra: tuple[tuple[str, str], ...] = ()
+
+    def to_metadata(self) -> dict[str, str]:
+        """The record's data (MCAP metadata values are strings)."""
+        data = {
+            "run_id": self.run_id,
+            "instance": self.instance,
+            "started_ns": str(self.started_ns),
+            "sequence": str(self.sequence),
+        }
+        if self.opened_ns is not None:
+            data["opened_ns"] = str(self.opened_ns)
+        data.update(self.extra)
+        return data
+
+    @classmethod
+    def from_metadata(cls, data: Mapping[str, str]) -> RunTag | None:
+        """The tag in a record's data; ``None`` if ``run_id`` is missing or a number is not."""
+        run_id = data.get("run_id")
+        if not run_id:
+            return None
+        try:
+            started = int(data.get("started_ns", "0"))
+            sequence = int(data.get("sequence", "0"))
+            opened = int(data["opened_ns"]) if "opened_ns" in data else None
+        except ValueError:
+            return None
+        known = {"run_id", "instance", "started_ns", "sequence", "opened_ns"}
+        extra = tuple(sorted((k, v) for k, v in data.items() if k not in known))
+        return cls(run_id, data.get("instance", ""), started, sequence, opened, extra)
+
+
+def new_run_id() -> str:
+    """A fresh run id (a random UUID: unique across machines and restarts)."""
+    return str(uuid.uuid4())
+
+
+def run_tag(log: LogFile) -> RunTag | None:
+    """The file's ``rlutf.run`` tag (the last valid one); ``None`` if it has none."""
+    found = None
+    for name, data in log.metadata():
+        if name == RUN_METADATA:
+            found = RunTag.from_metadata(data) or found
+    return found
+
+
+@dataclass(frozen=True)
+class LogRun:
+    """The files of one run, in sequence order.
+
+    Attributes:
+        files: the files.
+        tags: their ``rlutf.run`` tags (all ``None`` for the run of untagged files).
+        start_ns: when the run started (untagged: its earliest ``log_time``), for ordering.
+    """
+
+    files: tuple[Path, ...]
+    tags: tuple[RunTag | None, ...]
+    start_ns: int | None
+
+    @property
+    def run_id(self) -> str | None:
+        """The run's id; ``None`` for files without ``rlutf.run``."""
+        first = self.tags[0] if self.tags else None
+        return first.run_id if first is not None else None
+
+    @property
+    def instance(self) -> str | None:
+        """The instance that wrote the run, if the files say."""
+        first = self.tags[0] if self.tags else None
+        return first.instance if first is not None else None
+
+    @property
+    def missing(self) -> list[int]:
+        """Sequence numbers absent between 0 and the highest given (files not passed in)."""
+        seen = {t.sequence for t in self.tags if t is not None}
+        if not seen:
+            return []
+        return [n for n in range(max(seen) + 1) if n not in seen]
+
+    @property
+    def short_label(self) -> str:
+        """The label with the run id cut to its first 8 characters (for tables)."""
+        if self.run_id is None:
+            return "no rlutf.run"
+        return f"{self.run_id[:8]} ({self.instance or '?'})"
+
+    @property
+    def label(self) -> str:
+        """How reports name the run."""
+        if self.run_id is None:
+            return "files without rlutf.run"
+        return f"{self.run_id} ({self.instance or '?'})"
+
+
+def group_runs(
+    paths: Sequence[Path], unreadable: list[tuple[Path, LogError]] | None = None
+) -> list[LogRun]:
+    """Sort files into runs (see the module docstring), ordered by start.
+
+    A file given twice (the same path) counts once.
+
+    Args:
+        paths: the files.
+        unreadable: if given, files that cannot be read are added to it with their error and
+            left out, instead of raising.
+
+    Raises:
+        service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged (unless
+            ``unreadable`` is given).
+        RunConflict: two different files are the same file number of the same run.
+    """
+    tagged: dict[str, list[tuple[RunTag, Path]]] = {}
+    untagged: list[Path] = []
+    untagged_start: int | None = None
+    seen: set[Path] = set()
+    for path in paths:
+        key = Path(path).resolve()
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            with LogFile(path) as log:
+                tag = run_tag(log)
+                span = log.time_range
+        except LogError as err:
+            if unreadable is None:
+                raise
+            unreadable.append((Path(path), err))
+            continue
+        if tag is None:
+            untagged.append(Path(path))
+            if span is not None:
+                untagged_start = span[0] if untagged_start is None else min(untagged_start, span[0])
+        else:
+            tagged.setdefault(tag.run_id, []).append((tag, Path(path)))
+    runs = [_tagged_run(run_id, members) for run_id, members in tagged.items()]
+    if untagged:
+        runs.append(LogRun(tuple(untagged), (None,) * len(untagged), untagged_start))
+    return sorted(runs, key=lambda r: (r.start_ns is None, r.start_ns or 0, r.run_id or ""))
+
+
+def _tagged_run(run_id: str, members: Iterable[tuple[RunTag, Path]]) -> LogRun:
+    ordered = sorted(members, key=lambda m: (m[0].sequence, str(m[1])))
+    for (a, path_a), (b, path_b) in itertools.pairwise(ordered):
+        if a.sequence == b.sequence:
+            raise RunConflict(
+                f"{path_a} and {path_b} are both file {a.sequence} of run {run_id}: "
+                "pass only one of them (a copy, or a recovered file beside its original?)"
+            )
+    return LogRun(
+        tuple(p for _, p in ordered),
+        tuple(t for t, _ in ordered),
+        min(t.started_ns for t, _ in ordered),
+    )
+
+
+def run_outputs(out: str | Path, runs: Sequence[LogRun]) -> list[Path]:
+    """Where ``rlutf replay --out OUT`` writes each run's output.
+
+    * OUT is a folder (it exists as one, or is written with a trailing ``/``): every run is
+      written into it as ``{stem of the run's first file}.replay.mcap`` (``-2``, ``-3`` ...
+      added when two runs' first files share a stem); the folder is created if missing.
+    * Otherwise OUT is a file: the output of a single run; with several runs, run ``k`` (in
+      the order of :func:`group_runs`, from 1) goes to OUT with ``-run{k}`` before its suffix
+      (``x.mcap``: ``x-run1.mcap``, ``x-run2.mcap`` ...).
+    """
+    text = str(out)
+    path = Path(text)
+    if text.endswith(("/", "\\")) or path.is_dir():
+        names: list[Path] = []
+        for run in runs:
+            stem = run.files[0].name.removesuffix(".mcap") if run.files else "run"
+            name, n = f"{stem}.replay.mcap", 1
+            while path / name in names:
+                n += 1
+                name = f"{stem}-{n}.replay.mcap"
+            names.append(path / name)
+        return names
+    if len(runs) <= 1:
+        return [path]
+    suffix = path.suffix or ".mcap"
+    stem = path.name.removesuffix(path.suffix)
+    return [path.with_name(f"{stem}-run{k}{suffix}") for k in range(1, len(runs) + 1)]

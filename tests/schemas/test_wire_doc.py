@@ -1,0 +1,58 @@
+"""docs/wire.md, the wire contract in the repository: its examples are valid messages, and
+every key and schema name it lists is the one the code uses."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from schemas import SCHEMA_NAMES, decode
+from service.keys import Keys
+
+WIRE = Path(__file__).resolve().parents[2] / "docs" / "wire.md"
+TEXT = WIRE.read_text(encoding="utf-8")
+MODELS = {name.removeprefix("rlutf."): model for model, name in SCHEMA_NAMES.items()}
+
+
+def examples() -> list[tuple[str, str]]:
+    """``(heading, JSON text)`` of each example, with the ``###`` heading it stands under."""
+    out = []
+    for m in re.finditer(r"^### (\w+).*?(?=^### |^## |\Z)", TEXT, flags=re.M | re.S):
+        blocks = re.findall(r"^```json\n(.*?)^```", m.group(0), flags=re.M | re.S)
+        out += [(m.group(1), text) for text in blocks]
+    return out
+
+
+def test_every_example_is_a_valid_message() -> None:
+    found = examples()
+    names = [name for name, _ in found]
+    assert set(MODELS) - {"Health"} <= set(names), names
+    for name, text in found:
+        data = json.loads(text)
+        if name in MODELS:
+            assert decode(MODELS[name], text).model_dump(exclude_unset=True).keys() <= data.keys()
+
+
+@pytest.mark.parametrize("schema", sorted(SCHEMA_NAMES.values()))
+def test_every_schema_name_is_listed(schema: str) -> None:
+    if schema == "rlutf.Health":  # answered on a query, never logged
+        return
+    assert f"`{schema}`" in TEXT
+
+
+def test_keys_are_the_ones_the_service_uses() -> None:
+    keys = Keys("{prefix}")
+    for key in (
+        keys.robot("{robot}", "scan"),
+        keys.robot("{robot}", "odom"),
+        keys.robot("{robot}", "initialpose"),
+        keys.robot("{robot}", "relocalize"),
+        keys.robot("{robot}", "pose"),
+        keys.robot("{robot}", "events"),
+        keys.map("{map_id}"),
+    ):
+        assert f"`{key}`" in TEXT, key
+    assert "version 1.2" in TEXT and "`rlutf.run`" in TEXT and "`rlutf.config`" in TEXT

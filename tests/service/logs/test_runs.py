@@ -1,0 +1,316 @@
+"""Runs (WIRE.md v1.2, ``rlutf.run``): a folder of several runs is replayed, audited and
+described run by run, never carrying a robot's state from one run into the next.
+
+The runs are recorded by the service's own recorder (:class:`McapRecorder`, one per run as one
+per start of the service) from the poses the engine computes for simulated inputs, one after
+the other in one folder, as ``rlutf demo --seed K`` run several times leaves them: each run
+puts its own building as version 1 of the same map id (the demo's store is temporary).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+from mcaplog_fixtures import read_all, simulated_inputs, write_log
+from numpy.random import default_rng as rng
+
+from rlutf.sim import make_building
+from service.cli.main import main
+from service.logs.audit import all_passed, audit
+from service.logs.logtools import log_info, runs_info
+from service.logs.mcapfile import Record
+from service.logs.mcaplog import McapRecorder
+from service.logs.mcapread import LogFile
+from service.logs.replay import REPLAY_INSTANCE, MixedRuns, replay
+from service.logs.runs import LogRun, RunConflict, group_runs, run_outputs, run_tag
+
+RUNS = 10
+GAP_NS = 60_000_000_000  # the runs follow one another a minute apart
+
+
+def record_run(
+    folder: Path, tmp: Path, k: int, max_bytes: int = 1 << 28, tamper: bool = False
+) -> McapRecorder:
+    """Run ``k``: simulated inputs (seed ``k``) and the poses the engine computes for them,
+    recorded as the live service records them (a pose at its scan's receive time)."""
+    shift = k * GAP_NS
+    inputs = [
+        r._replace(log_time_ns=r.log_time_ns + shift)
+        for r in simulated_inputs(seed=k, steps=12, beams=90, world=make_building(rng(100 + k)))
+    ]
+    computed = replay([write_log(tmp / f"inputs-{k}.mcap", inputs)])
+    received = {
+        (r.topic.split("/")[2], r.publish_time_ns): r.log_time_ns
+        for r in inputs
+        if r.schema_name == "rlutf.LaserScan"
+    }
+    poses = []
+    for robot, records in computed.recomputed.items():
+        for i, p in enumerate(records):
+            payload = p.payload
+            if tamper and i == 5:
+                data = json.loads(payload)
+                data["x"] += 0.25
+                payload = json.dumps(data).encode()
+            at = received[(robot, p.stamp_ns)]
+            poses.append(
+                Record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", payload, at, p.stamp_ns)
+            )
+    rec = McapRecorder(folder, instance="demo", max_bytes=max_bytes, chunk_size=4096)
+    rec.set_config(computed.config.settings)
+    for r in sorted([*inputs, *poses], key=lambda r: r.log_time_ns):
+        rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+    rec.close()
+    return rec
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[McapRecorder]]:
+    """Ten runs in one folder; runs 2 and 7 rotated into several files."""
+    tmp = tmp_path_factory.mktemp("runs")
+    logs = tmp / "logs"
+    recorders = [
+        record_run(logs, tmp, k, max_bytes=15_000 if k in (2, 7) else 1 << 28) for k in range(RUNS)
+    ]
+    return logs, recorders
+
+
+def logs_of(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*.mcap"))
+
+
+def test_each_run_names_itself_and_files_group_by_run(
+    folder: tuple[Path, list[McapRecorder]],
+) -> None:
+    logs, recorders = folder
+    assert len(recorders[2].files) >= 2 and len(recorders[0].files) == 1
+    # a shell glob sorts the files by name; reversed, they must group the same
+    runs = group_runs(list(reversed(logs_of(logs))))
+    assert [r.run_id for r in runs] == [rec.run_id for rec in recorders]
+    assert len({r.run_id for r in runs}) == RUNS
+    for run, rec in zip(runs, recorders, strict=True):
+        assert list(run.files) == rec.files
+        assert [t.sequence for t in run.tags if t is not None] == list(range(len(rec.files)))
+        assert run.instance == "demo" and run.missing == []
+    # the files of one run without its first: reported as missing, not an error
+    assert group_runs(recorders[2].files[1:])[0].missing == [0]
+
+
+def test_replay_of_a_folder_audits_ten_passing_runs(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs, recorders = folder
+    out = tmp_path / "replayed"
+    assert main(["replay", *map(str, logs_of(logs)), "--out", f"{out}/", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert f"audit: passed ({RUNS} runs)" in text and "FAILED" not in text
+    assert text.count("recorded vs recomputed poses") == RUNS
+    outputs = sorted(out.glob("*.replay.mcap"))
+    assert len(outputs) == RUNS
+    for path in outputs:
+        with LogFile(path) as lf:
+            tag = run_tag(lf)
+        assert tag is not None and tag.instance == REPLAY_INSTANCE and tag.sequence == 0
+        assert dict(tag.extra)["replayed_run"] in {r.run_id for r in recorders}
+    # a replay's outputs are runs of their own: auditing them again passes, run by run
+    again = tmp_path / "again.mcap"
+    assert main(["replay", *map(str, outputs), "--out", str(again), "--quiet"]) == 0
+    assert sorted(tmp_path.glob("again-run*.mcap")) == [
+        tmp_path / f"again-run{k}.mcap" for k in sorted(range(1, RUNS + 1), key=str)
+    ]
+
+
+def test_merging_two_runs_is_refused(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path
+) -> None:
+    _, recorders = folder
+    runs = [recorders[0].files[0], recorders[1].files[0]]
+    with pytest.raises(MixedRuns, match="2 runs"):
+        replay(runs)
+    # why: the same messages in files that do not name their run are one run, and replayed
+    # as one the second run is localized on the first run's map (a false tamper alarm)
+    merged = [write_log(tmp_path / f"{k}.mcap", read_all(p)) for k, p in enumerate(runs)]
+    result = replay(merged)
+    assert not all_passed(audit(result.recorded, result.recomputed), 1e-9, 1e-9)
+
+
+def test_a_tampered_run_fails_alone(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs, _ = folder
+    mixed = tmp_path / "logs"
+    shutil.copytree(logs, mixed)
+    bad = record_run(mixed, tmp_path, RUNS, tamper=True)
+    code = main(["replay", *map(str, logs_of(mixed)), "--out", str(tmp_path / "x.mcap"), "--quiet"])
+    assert code == 1
+    text = capsys.readouterr().out
+    assert f"FAILED (1 of {RUNS + 1} runs)" in text
+    # the summary's last row is the tampered run (the latest started), and only it failed
+    failed = [line.split("│") for line in text.splitlines() if "FAILED │" in line]
+    assert len(failed) == 1 and failed[0][1].strip() == str(RUNS + 1)
+    assert bad.run_id[:8] in failed[0][3]
+    assert f"run {RUNS + 1} of {RUNS + 1}: {bad.run_id}" in text
+
+
+def test_log_info_describes_each_run(
+    folder: tuple[Path, list[McapRecorder]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs, recorders = folder
+    assert main(["log", "info", *map(str, logs_of(logs)), "--json"]) == 0
+    runs = json.loads(capsys.readouterr().out)["runs"]
+    assert [r["run_id"] for r in runs] == [rec.run_id for rec in recorders]
+    for run, rec in zip(runs, recorders, strict=True):
+        assert [f["path"] for f in run["files"]] == [str(p) for p in rec.files]
+        assert run["robots"]["r1"]["scan"] == 12 and run["robots"]["r1"]["pose"] == 12
+        assert run["maps"] == {"m1": [1]}
+    assert main(["log", "info", *map(str, logs_of(logs))]) == 0
+    text = capsys.readouterr().out
+    assert text.count("files of run") == RUNS and f"run {RUNS} of {RUNS}" in text
+
+
+def test_rotated_files_carry_maps_outside_their_own_time(
+    folder: tuple[Path, list[McapRecorder]],
+) -> None:
+    _, recorders = folder
+    files = recorders[2].files
+    infos = [log_info(p) for p in files]
+    assert infos[0].carried_maps == 0 and all(i.carried_maps == 1 for i in infos[1:])
+    runs = [(i.run or {}).get("run_id") for i in infos]
+    assert runs == [recorders[2].run_id] * len(files)
+    assert [(i.run or {}).get("sequence") for i in infos] == [str(n) for n in range(len(files))]
+    # each file's time starts at its own first message, not at the carried map's log_time
+    spans = [i.time_range for i in infos]
+    assert all(s is not None for s in spans)
+    for before, after in itertools.pairwise(spans):
+        assert before is not None and after is not None and before[1] <= after[0]
+    with LogFile(files[1]) as lf:
+        first_map = next(iter(lf.messages({"rlutf.Map"})))
+        assert lf.time_range is not None and lf.time_range[0] == first_map.log_time_ns
+    (run,) = runs_info(files)
+    assert run.time_range == (spans[0][0], spans[-1][1])  # type: ignore[index]
+
+
+def test_files_without_run_metadata_form_one_run(tmp_path: Path) -> None:
+    records = simulated_inputs(steps=6)
+    half = len(records) // 2
+    parts = [
+        write_log(tmp_path / "b.mcap", records[half:]),
+        write_log(tmp_path / "a.mcap", records[:half]),
+    ]
+    (run,) = group_runs(parts)
+    assert run.run_id is None and list(run.files) == parts
+    assert run.label == "files without rlutf.run"
+    assert len(replay(parts).recomputed["r1"]) == 6
+
+
+def test_the_same_file_twice_counts_once_and_a_copy_is_a_conflict(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path
+) -> None:
+    _, recorders = folder
+    first = recorders[0].files[0]
+    assert len(group_runs([first, first])[0].files) == 1
+    copy = tmp_path / "copy.mcap"
+    shutil.copy(first, copy)
+    with pytest.raises(RunConflict, match="both file 0 of run"):
+        group_runs([first, copy])
+
+
+def test_recover_several_files_lists_them_by_run(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    files = recorders[7].files
+    broken = []
+    for path in files:
+        cut = tmp_path / (path.name + ".part")
+        cut.write_bytes(path.read_bytes()[: path.stat().st_size * 3 // 4])
+        broken.append(cut)
+    assert main(["log", "recover", *map(str, broken), str(tmp_path / "fixed")]) == 0
+    text = capsys.readouterr().out
+    fixed = [tmp_path / "fixed" / p.name for p in files]
+    assert all(p.exists() for p in fixed)
+    assert f"run 1: {recorders[7].run_id}" in text
+    (run,) = group_runs(fixed)
+    assert run.run_id == recorders[7].run_id and list(run.files) == fixed
+
+
+@pytest.mark.parametrize(
+    ("out", "names"),
+    [
+        ("x.mcap", ["x-run1.mcap", "x-run2.mcap"]),
+        ("dir/", ["dir/a.replay.mcap", "dir/a-2.replay.mcap"]),
+    ],
+)
+def test_outputs_of_several_runs(out: str, names: Sequence[str]) -> None:
+    runs = [LogRun((Path("logs/a.mcap"),), (None,), 0), LogRun((Path("old/a.mcap"),), (None,), 1)]
+    assert run_outputs(out, runs) == [Path(n) for n in names]
+    assert run_outputs("x.mcap", runs[:1]) == [Path("x.mcap")]
+
+
+def test_plots_of_several_runs_go_to_a_folder_per_run(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    files = [str(p) for rec in recorders[:2] for p in rec.files]
+    plots = tmp_path / "plots"
+    argv = ["replay", *files, "--out", str(tmp_path / "x.mcap"), "--plot", str(plots), "--quiet"]
+    assert main(argv) == 0
+    capsys.readouterr()
+    for k in (1, 2):
+        for robot in ("r1", "r2"):
+            assert (plots / f"run{k}" / f"{robot}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_run_without_poses_is_named_but_fails_nothing(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    inputs_only = write_log(tmp_path / "other-tool.mcap", simulated_inputs(steps=3))
+    files = [str(recorders[0].files[0]), str(inputs_only)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "nothing to audit" in text and "audit: passed (1 run; 1 with nothing to audit)" in text
+    assert (tmp_path / "other-tool.replay.mcap").exists()
+
+
+def test_an_unreadable_file_or_run_is_named_and_the_others_audited(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    garbage = tmp_path / "notes.mcap"
+    garbage.write_text("not a log")
+    damaged = tmp_path / "damaged.mcap"
+    data = bytearray(recorders[1].files[0].read_bytes())
+    middle = len(data) // 3
+    data[middle : middle + 64] = bytes(64)  # inside a chunk: its CRC no longer matches
+    damaged.write_bytes(bytes(data))
+    files = [str(recorders[0].files[0]), str(garbage), str(damaged)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/out/", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "notes.mcap: not an MCAP file" in captured.err
+    assert "damaged.mcap" in captured.err and "rlutf log recover" in captured.err
+    assert "1 run(s) and 1 file(s) could not be read; 1 run(s) passed" in captured.out
+    # an audit that fails still says so first: exit 1, not 2
+    bad = record_run(tmp_path / "tampered", tmp_path, RUNS + 1, tamper=True)
+    files = [*map(str, bad.files), str(garbage)]
+    assert main(["replay", *files, "--out", f"{tmp_path}/out2/", "--quiet"]) == 1
+
+
+def test_log_info_names_an_unreadable_file_and_describes_the_others(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, recorders = folder
+    garbage = tmp_path / "notes.mcap"
+    garbage.write_text("not a log")
+    files = [*map(str, recorders[2].files), str(garbage)]
+    assert main(["log", "info", *files, "--json"]) == 2
+    captured = capsys.readouterr()
+    data = json.loads(captured.out)
+    assert [r["run_id"] for r in data["runs"]] == [recorders[2].run_id]
+    assert [u["path"] for u in data["unreadable"]] == [str(garbage)]
+    assert "notes.mcap: not an MCAP file" in captured.err
