@@ -21,7 +21,7 @@ COMMANDS = [
     "replay",
     "log",
 ]
-ACTIONS = {"map": ["put", "get", "import", "build", "show"], "log": ["info", "recover"]}
+ACTIONS = {"map": ["put", "get", "import", "build", "show", "health"], "log": ["info", "recover"]}
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
