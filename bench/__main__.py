@@ -24,15 +24,23 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from bench import plots as figures
-from bench.accuracy import FULL, QUICK, Profile, build_runs, run_accuracy, total_updates
+from bench.accuracy import (
+    FULL,
+    QUICK,
+    Profile,
+    ScenarioResult,
+    build_runs,
+    run_accuracy,
+    total_updates,
+)
 from bench.logs import write_run_files
 from bench.methods import DEFAULT_METHOD, Method, table_methods
 from bench.priors import priors_section
-from bench.relocalize import FULL as RELOC_FULL
-from bench.relocalize import QUICK as RELOC_QUICK
 from bench.relocalize import relocalize_section
+from bench.reloccases import FULL as RELOC_FULL
+from bench.reloccases import QUICK as RELOC_QUICK
 from bench.report import replace_section
-from bench.speed import growth, latency_vs_beams, latency_vs_map, speed_methods, sweep_maps
+from bench.speed import Point, growth, latency_vs_beams, latency_vs_map, speed_methods, sweep_maps
 from bench.tables import overview_table, scenario_table, speed_tables, targets
 
 ACCURACY = "accuracy"
@@ -100,7 +108,7 @@ def accuracy_section(
     rel: Path,
     only: Sequence[str] | None,
     command: str,
-) -> tuple[str, list]:
+) -> tuple[str, list[ScenarioResult]]:
     """Run the accuracy benchmark; return its Markdown and the results."""
 
     results = build_runs(profile, only)
@@ -200,7 +208,9 @@ def accuracy_section(
     return "\n".join(lines), results
 
 
-def speed_section(profile: Profile, plots: Path, rel: Path, command: str) -> tuple[str, list, list]:
+def speed_section(
+    profile: Profile, plots: Path, rel: Path, command: str
+) -> tuple[str, list[Point], list[Point]]:
     """Run the speed sweeps; return their Markdown and the points by beams and by map."""
 
     methods = speed_methods()
@@ -284,9 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     command = _command(args_list)
     started = time.perf_counter()
     sections: list[tuple[str, str]] = []
-    results: list = []
-    by_beams: list = []
-    by_map: list = []
+    results: list[ScenarioResult] = []
+    by_beams: list[Point] = []
+    by_map: list[Point] = []
     if args.only in (None, "accuracy"):
         text, results = accuracy_section(profile, methods, plots, rel, only, command)
         sections.append((ACCURACY, text))

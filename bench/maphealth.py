@@ -78,7 +78,7 @@ def _door(world: Map) -> Polygon | None:
         for j in range(i + 1, len(ends)):
             if abs(math.dist(mids[i], mids[j]) - 1.0) < 1e-3:
                 hull = shapely.MultiPoint([*ends[i].reshape(2, 2), *ends[j].reshape(2, 2)])
-                return shapely.convex_hull(hull)  # type: ignore[no-any-return]
+                return shapely.convex_hull(hull)
     return None
 
 
@@ -364,13 +364,13 @@ def render(
     ]
     total = found = 0
     for o in outcomes:
-        for name, at, passes, every in o.found:
+        for name, at, passes, passed in o.found:
             total += 1
             found += at is not None
             rows.append(
                 f"| {o.name} | {name} | {'yes' if at is not None else 'no'} | "
                 f"{'-' if at is None else f'{at:.0f}'} | {'-' if passes is None else passes} | "
-                f"{every} |"
+                f"{passed} |"
             )
     false_rows = [
         "| case | reports | false added m2 | false removed m | scans | scans counted | "

@@ -37,7 +37,7 @@ from bench.methods import (
     track,
     warm_up,
 )
-from bench.scenarios import FloatArray, Run, named_scenarios, simulate
+from bench.scenarios import FloatArray, IntArray, Run, named_scenarios, simulate
 from bench.tables import cm, deg, pct
 from rlutf.config import LocalizerConfig
 from rlutf.raycast import Beams
@@ -157,7 +157,7 @@ class PriorResult:
         return float(np.mean(ok)) if len(ok) else math.nan
 
 
-def scan_indices(count: int, quick: bool) -> FloatArray:
+def scan_indices(count: int, quick: bool) -> IntArray:
     """The scans used: about 20 spread over the log (quick), else every 2nd."""
     if quick:
         return np.unique(np.linspace(1, count - 1, min(20, count - 1)).astype(np.int64))
@@ -167,7 +167,7 @@ def scan_indices(count: int, quick: bool) -> FloatArray:
 def one_shot(
     method: Method,
     run: Run,
-    indices: Sequence[int],
+    indices: Sequence[int] | IntArray,
     offsets: FloatArray,
     seed: int = 0,
     on_update: Callable[[], None] | None = None,
@@ -246,7 +246,11 @@ def run_priors(
 
 
 def data_prefers(
-    run: Run, indices: Sequence[int], poses: FloatArray, trans: FloatArray, heading: FloatArray
+    run: Run,
+    indices: Sequence[int] | IntArray,
+    poses: FloatArray,
+    trans: FloatArray,
+    heading: FloatArray,
 ) -> int:
     """How many of the answers that miss 5 cm / 1 deg fit their scan better than the SLAM
     pose: each refined (the default localizer's refinement), compared by the robust cost the

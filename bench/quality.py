@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.accuracy import has_data
-from bench.relocalize import BUILDING_SIZES_KIDNAP, kidnap_path
+from bench.kidnap import kidnap_path
+from bench.reloccases import BUILDING_SIZES_KIDNAP
 from bench.report import section_main
 from bench.scenarios import FloatArray, Run, named_scenarios, simulate
 from rlutf.localizer import Localizer, LocalizeResult

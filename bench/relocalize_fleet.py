@@ -25,9 +25,6 @@ import math
 import os
 import platform
 import shutil
-import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -36,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.fleet import _health
+from bench.fleetrun import health, start_service, stop_service
 from bench.report import section_main
 
 SECTION = "relocalize-fleet"
@@ -44,63 +41,36 @@ RATE_HZ = 10.0
 KIDNAPPED = "kidnapped"
 
 
-def _plans(robots: int, steps: int, seed: int) -> tuple[Any, dict[str, Any]]:
-    """The map and, per robot, its truth and (odometry, scan) payloads per step."""
-    from rlutf.sim import (
-        LidarModel,
-        OdometryModel,
-        drift_odometry,
-        make_building,
-        make_trajectory,
-        simulate_scan,
+def _plan(robots: int, steps: int, seed: int, every: float, first: int) -> Any:
+    """The fleet: ``robots`` steady robots and the kidnapped one (last), a Relocalize for it
+    every ``every`` seconds from step ``first``."""
+    from service.sim.plan import Building, FleetSpec, Schedule, plan_fleet
+
+    spec = FleetSpec(
+        robots=robots + 1,
+        poses=steps,
+        rate_hz=RATE_HZ,
+        seed=seed,
+        building=Building(width=100.0, height=60.0, rooms_x=10, rooms_y=6),
+        map_id="big",
+        robot_ids=(*(f"r{i:03d}" for i in range(robots)), KIDNAPPED),
+        relocalize=Schedule(every=max(1, round(every * RATE_HZ)), first=first, robots=(robots,)),
     )
-    from schemas import LaserScan, Odometry, encode
-
-    rng = np.random.default_rng(seed)
-    world = make_building(rng, width=100.0, height=60.0, rooms_x=10, rooms_y=6)
-    lidar = LidarModel(beams=360)
-    plans = {}
-    for i in range(robots + 1):
-        rid = KIDNAPPED if i == robots else f"r{i:03d}"
-        truth = make_trajectory(world, rng, steps, dt=1.0 / RATE_HZ)
-        odom = drift_odometry(truth, OdometryModel(), rng)
-        msgs = []
-        for k in range(steps):
-            s = simulate_scan(world, truth[k], lidar, rng)
-            o = odom[k]
-            msgs.append(
-                (
-                    encode(Odometry(stamp_ns=k, x=float(o[0]), y=float(o[1]), theta=float(o[2]))),
-                    s,
-                )
-            )
-        plans[rid] = (truth, msgs)
-
-    def scan_payload(s: Any, stamp: int) -> bytes:
-        return encode(
-            LaserScan(
-                stamp_ns=stamp,
-                angle_min=s.angle_min,
-                angle_increment=s.angle_increment,
-                range_min=s.range_min,
-                range_max=s.range_max,
-                ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-            )
-        )
-
-    return world, {"plans": plans, "scan_payload": scan_payload}
+    return plan_fleet(spec)
 
 
 def _drive(endpoint: str, robots: int, duration: float, every: float, seed: int) -> dict[str, Any]:
     import zenoh
 
-    from schemas import InitialPose, Map, Relocalize, encode
     from service.live.sessions import client_config
+    from service.sim.fleet import SimFleet, drive
+    from service.sim.wire import JsonWire
 
     steps = int(2 * duration * RATE_HZ) + 20
-    world, built = _plans(robots, steps, seed)
-    plans, scan_payload = built["plans"], built["scan_payload"]
-    json_enc = zenoh.Encoding.APPLICATION_JSON
+    warm = 10  # steps before the first phase: localizers made, maps' fields built
+    first_with = warm + steps // 2 - 10
+    plan = _plan(robots, steps, seed, every, first_with)
+    ids = [r.robot_id for r in plan.robots]
     put_at: dict[tuple[str, int], float] = {}
     got: dict[tuple[str, int], tuple[float, dict[str, Any]]] = {}
     events: list[tuple[float, dict[str, Any]]] = []
@@ -116,75 +86,46 @@ def _drive(endpoint: str, robots: int, duration: float, every: float, seed: int)
         with lock:
             events.append((time.monotonic(), json.loads(sample.payload.to_bytes())))
 
-    with zenoh.open(client_config(endpoint)) as session:
-        subs = [
-            session.declare_subscriber("rlutf/robots/*/pose", on_pose),
-            session.declare_subscriber(f"rlutf/robots/{KIDNAPPED}/events", on_event),
-        ]
-        session.put(
-            "rlutf/maps/big", encode(Map(map_id="big", version=1, geometry=world.to_geojson()))
-        )
-        time.sleep(1.0)
-        t0 = time.time_ns()
-        for rid, (truth, msgs) in plans.items():
-            session.put(f"rlutf/robots/{rid}/odom", _restamp(msgs[0][0], t0), encoding=json_enc)
-            start = InitialPose(
-                stamp_ns=t0,
-                map_id="big",
-                x=float(truth[0, 0]),
-                y=float(truth[0, 1]),
-                theta=float(truth[0, 2]),
-            )
-            session.put(f"rlutf/robots/{rid}/initialpose", encode(start), encoding=json_enc)
-        ids = list(plans)
-        period = 1.0 / RATE_HZ
-        begin = time.monotonic()
-        warm = 10  # steps before the first phase: localizers made, maps' fields built
-        phase_of: dict[int, str] = {}
-        requests: list[tuple[float, int]] = []
-        next_request = math.inf
-        for k in range(1, steps):
-            tick = begin + k * period
-            phase = "warm-up" if k < warm else "without" if k < warm + steps // 2 - 10 else "with"
-            phase_of[k] = phase
-            if phase == "with" and next_request == math.inf:
-                next_request = time.monotonic()
-            for j, rid in enumerate(ids):
-                # Phases staggered over the period, as independent robots' scanners are.
-                at = tick + period * j / len(ids)
-                delay = at - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                if rid == KIDNAPPED and time.monotonic() >= next_request:
-                    msg = Relocalize(stamp_ns=time.time_ns(), map_id="big")
-                    session.put(f"rlutf/robots/{rid}/relocalize", encode(msg), encoding=json_enc)
-                    requests.append((time.monotonic(), k))
-                    next_request += every
-                stamp = t0 + k * int(1e9 * period)
-                odom, scan = plans[rid][1][k]
-                session.put(f"rlutf/robots/{rid}/odom", _restamp(odom, stamp), encoding=json_enc)
-                payload = scan_payload(scan, stamp)
-                put_at[(rid, stamp)] = time.monotonic()
-                session.put(f"rlutf/robots/{rid}/scan", payload, encoding=json_enc)
-        time.sleep(3.0)
-        for s in subs:
-            s.undeclare()
+    fleet = SimFleet(plan, JsonWire(plan), lambda: zenoh.open(client_config(endpoint)), 1)
+    session = fleet.operator
+    subs = [
+        session.declare_subscriber("rlutf/robots/*/pose", on_pose),
+        session.declare_subscriber(f"rlutf/robots/{KIDNAPPED}/events", on_event),
+    ]
+    fleet.put_map()
+    time.sleep(1.0)
+    t0 = time.time_ns()
+    period = plan.spec.period_ns
+    fleet.start(t0)
+    phase_of: dict[int, str] = {}
+    requests: list[tuple[float, int]] = []
+
+    def on_step(k: int) -> None:
+        phase_of[k] = "warm-up" if k < warm else "without" if k < first_with else "with"
+        if fleet.extras(k, t0 + k * period):
+            requests.append((time.monotonic(), k))
+
+    def send(i: int, k: int) -> None:
+        stamp = t0 + k * period
+        fleet.odometry(i, k, stamp)
+        put_at[(ids[i], stamp)] = time.monotonic()
+        fleet.scan(i, k, stamp)
+
+    drive(len(ids), 1.0 / RATE_HZ, send, steps - 1, on_step=on_step)
+    time.sleep(3.0)
+    for s in subs:
+        s.undeclare()
+    fleet.close()
     return {
         "t0": t0,
-        "period_ns": int(1e9 * period),
+        "period_ns": period,
         "put_at": put_at,
         "got": got,
         "phase_of": phase_of,
         "requests": requests,
         "events": events,
-        "truth": {rid: plans[rid][0] for rid in plans},
+        "truth": {r.robot_id: r.truth for r in plan.robots},
     }
-
-
-def _restamp(payload: bytes, stamp: int) -> bytes:
-    data = json.loads(payload)
-    data["stamp_ns"] = stamp
-    return json.dumps(data, separators=(",", ":")).encode()
 
 
 def run(robots: int, duration: float, every: float, workers: int, threads: int) -> dict[str, Any]:
@@ -194,21 +135,14 @@ def run(robots: int, duration: float, every: float, workers: int, threads: int) 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-relocfleet-"))
-    exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
-    cmd = [exe, "serve", "--listen", endpoint, "--store", str(tmp / "store")]
-    cmd += ["--instance", "relocbench", "--workers", str(workers), "--no-record"]
-    env = {**os.environ, "RLUTF_WORKER_THREADS": str(threads)}
-    proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL, env=env)
+    env = {"RLUTF_WORKER_THREADS": str(threads)}
+    proc = start_service(endpoint, tmp, False, workers, env=env, instance="relocbench")
     try:
         time.sleep(3.0)
         data = _drive(endpoint, robots, duration, every, seed=5)
-        data["health"] = _health(endpoint)
+        data["health"] = health(endpoint)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
         shutil.rmtree(tmp, ignore_errors=True)
     return data
 

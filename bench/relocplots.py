@@ -11,19 +11,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from bench.kidnap import KidnapRun
 from bench.plots import _draw_map, _save
 from rlutf.map import Map
 from rlutf.raycast import Beams
 from rlutf.relocalize import Relocalization
 from rlutf.scan import Scan, beam_points
-
-if TYPE_CHECKING:
-    from bench.relocalize import KidnapRun
 
 #: Colours of the hypotheses, best first.
 COLOURS = ("#1f5fbf", "#d1495b", "#2e9e44", "#e08a1e", "#9b59b6", "#17a2b8", "#8c564b", "#7f7f7f")

@@ -6,10 +6,11 @@ Run: ``python -m bench.ros2 [--robots 25,50] [--duration 15] [--write]``.
    parse and validate) against the ROS front door's (``service.ros2.convert.laser_scan``: CDR
    decode with rosbags and the same validation, then ``schemas.encode`` of the message, which
    the log records), for 360, 720 and 1440 beams; median of batches, wall and CPU time.
-2. The fleet benchmark of :mod:`bench.fleet` with ROS robots: each robot publishes
-   ``nav_msgs/Odometry`` and a 360-beam ``sensor_msgs/LaserScan`` in CDR on rmw_zenoh's keys
-   (Jazzy naming, with the 33-byte attachment) at 10 Hz, its initial pose on ``initialpose``,
-   and the generator times each scan put to its ``amcl_pose``; the JSON fleet runs at the same
+2. The fleet benchmark of :mod:`bench.fleet` with ROS robots (:class:`service.sim.wire.CdrWire`):
+   each robot publishes ``nav_msgs/Odometry`` and a 360-beam ``sensor_msgs/LaserScan`` in CDR
+   on rmw_zenoh's keys (Jazzy naming, with the 33-byte attachment) at 10 Hz, its initial pose on
+   ``initialpose``, and the generator times each scan put to its ``amcl_pose`` (after each
+   robot's first 2 s, as for the JSON robots); the JSON fleet runs at the same
    sizes in the same session for comparison. ``rlutf serve --ros2`` also publishes ``tf``
    and the JSON pose for every ROS robot, which the ROS rows pay for.
 """
@@ -20,14 +21,12 @@ import argparse
 import math
 import os
 import platform
-import struct
-import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from bench.fleet import RATE_HZ, generator_result, run_size, timed_publishing
+from bench.fleetrun import run_size
 from bench.report import section_main
 
 SECTION = "ros2"
@@ -36,19 +35,18 @@ SECTION = "ros2"
 # ----------------------------------------------------------------------------- codec
 def _scan_payloads(beams: int, seed: int = 1) -> tuple[bytes, bytes]:
     """One simulated scan as the JSON and as the CDR a robot would put."""
-    from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
     from schemas import LaserScan, encode
-    from service.ros2 import convert
+    from service.sim.plan import FleetSpec, plan_fleet
+    from service.sim.wire import CdrWire
 
-    rng = np.random.default_rng(seed)
-    world = make_building(rng)
-    pose = make_trajectory(world, rng, 2)[0]
-    s = simulate_scan(world, pose, LidarModel(beams=beams), rng)
+    plan = plan_fleet(FleetSpec(robots=1, poses=2, beams=beams, seed=seed))
+    s = plan.robots[0].scans[0]
+    stamp = 1_732_300_000_000_000_000
     ranges32 = np.asarray(s.ranges, dtype=np.float32)
     f32 = [float(np.float32(v)) for v in (s.angle_min, s.angle_increment, s.range_min, s.range_max)]
     js = encode(  # the same numbers: LaserScan's fields are float32
         LaserScan(
-            stamp_ns=1_732_300_000_000_000_000,
+            stamp_ns=stamp,
             angle_min=f32[0],
             angle_increment=f32[1],
             range_min=f32[2],
@@ -56,22 +54,7 @@ def _scan_payloads(beams: int, seed: int = 1) -> tuple[bytes, bytes]:
             ranges=[float(r) if math.isfinite(r) else None for r in ranges32.tolist()],
         )
     )
-    t = convert.typestore().types
-    msg = t[convert.LASER_SCAN](
-        header=t["std_msgs/msg/Header"](
-            stamp=t["builtin_interfaces/msg/Time"](sec=1_732_300_000, nanosec=0), frame_id="laser"
-        ),
-        angle_min=s.angle_min,
-        angle_max=s.angle_min + s.angle_increment * (beams - 1),
-        angle_increment=s.angle_increment,
-        time_increment=0.0,
-        scan_time=0.1,
-        range_min=s.range_min,
-        range_max=s.range_max,
-        ranges=ranges32,
-        intensities=np.zeros(0, dtype=np.float32),
-    )
-    return js, convert.serialize(msg, convert.LASER_SCAN)
+    return js, CdrWire(plan).scan(0, 0, stamp)
 
 
 def _per_call_us(fn: Any, reps: int, batches: int = 5) -> tuple[float, float]:
@@ -110,162 +93,6 @@ def codec_rows(reps: int) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- fleet
-def _ros_generator(
-    endpoint: str,
-    robots: int,
-    duration: float,
-    seed: int,
-    out: Any,
-    ready: Any,
-    go: Any,
-    began: Any,
-    ended: Any,
-) -> None:
-    """Load generator of ROS robots (a separate process), as :func:`bench.fleet._generator`."""
-    import zenoh
-
-    from rlutf.sim import (
-        LidarModel,
-        OdometryModel,
-        drift_odometry,
-        make_building,
-        make_trajectory,
-        simulate_scan,
-    )
-    from schemas import Map, encode
-    from service.live.sessions import client_config
-    from service.ros2 import convert, names
-
-    ts = convert.typestore()
-    t = ts.types
-    rng = np.random.default_rng(seed)
-    world = make_building(rng)
-    steps = int(duration * RATE_HZ) + 1
-    lidar = LidarModel(beams=360)
-
-    def header(stamp: int, frame: str) -> Any:
-        sec, ns = divmod(stamp, 1_000_000_000)
-        return t["std_msgs/msg/Header"](
-            stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns), frame_id=frame
-        )
-
-    def pose_msg(p: np.ndarray) -> Any:
-        return t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=0.0),
-            orientation=t["geometry_msgs/msg/Quaternion"](
-                x=0.0, y=0.0, z=math.sin(p[2] / 2), w=math.cos(p[2] / 2)
-            ),
-        )
-
-    cov = np.zeros(36)
-    zero = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    twist = t["geometry_msgs/msg/TwistWithCovariance"](
-        twist=t["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=cov
-    )
-    plans = []
-    for i in range(robots):
-        truth = make_trajectory(world, rng, steps, dt=1.0 / RATE_HZ)
-        odom = drift_odometry(truth, OdometryModel(), rng)
-        scans = []
-        for k in range(steps):
-            s = simulate_scan(world, truth[k], lidar, rng)
-            scans.append(
-                t[convert.LASER_SCAN](
-                    header=header(0, "laser"),
-                    angle_min=s.angle_min,
-                    angle_max=s.angle_min + s.angle_increment * (len(s.ranges) - 1),
-                    angle_increment=s.angle_increment,
-                    time_increment=0.0,
-                    scan_time=0.1,
-                    range_min=s.range_min,
-                    range_max=s.range_max,
-                    ranges=np.asarray(s.ranges, dtype=np.float32),
-                    intensities=np.zeros(0, dtype=np.float32),
-                )
-            )
-        odoms = [
-            t[convert.ODOMETRY](
-                header=header(0, "odom"),
-                child_frame_id="base_footprint",
-                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg(o), covariance=cov),
-                twist=twist,
-            )
-            for o in odom
-        ]
-        plans.append((f"r{i:03d}", truth, odoms, scans))
-    sessions = [zenoh.open(client_config(endpoint)) for _ in range(max(1, min(8, robots // 12)))]
-    op = sessions[0]
-    geometry = world.to_geojson()
-    op.put(
-        "rlutf/maps/bench",
-        encode(Map.model_validate({"map_id": "bench", "version": 1, "geometry": geometry})),
-    )
-    sent: dict[tuple[str, int], int] = {}
-    latencies: list[float] = []
-    poses = 0
-    lock = threading.Lock()
-
-    def on_pose(sample: Any) -> None:
-        nonlocal poses
-        now = time.time_ns()
-        robot = str(sample.key_expr).split("/")[1]
-        h = ts.deserialize_cdr(sample.payload.to_bytes(), convert.POSE_COV).header
-        stamp = h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
-        with lock:
-            sent_at = sent.pop((robot, stamp), None)
-            poses += 1
-            if sent_at is not None:
-                latencies.append((now - sent_at) / 1e6)
-
-    sub = op.declare_subscriber("0/*/amcl_pose/*/*", on_pose)
-    time.sleep(1.0)
-    t0 = time.time_ns()
-    seq = [0] * robots
-    gids = [struct.pack("<QQ", i + 1, seed) for i in range(robots)]
-
-    def put(pub: Any, i: int, raw: bytes) -> None:
-        seq[i] += 1
-        pub.put(raw, attachment=struct.pack("<qqB", seq[i], time.time_ns(), 16) + gids[i])
-
-    pubs = []
-    for idx, (rid, truth, odoms, _) in enumerate(plans):
-        sess = sessions[idx % len(sessions)]
-        key = {
-            name: names.data_key(0, f"/{rid}/{name}", mt, "jazzy")
-            for name, mt in (
-                ("odom", convert.ODOMETRY),
-                ("scan", convert.LASER_SCAN),
-                ("initialpose", convert.POSE_COV),
-            )
-        }
-        p_odom, p_scan = sess.declare_publisher(key["odom"]), sess.declare_publisher(key["scan"])
-        odoms[0].header = header(t0, "odom")
-        put(p_odom, idx, convert.serialize(odoms[0], convert.ODOMETRY))
-        ip = t[convert.POSE_COV](
-            header=header(t0, "map"),
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg(truth[0]), covariance=cov),
-        )
-        sess.put(key["initialpose"], convert.serialize(ip, convert.POSE_COV))
-        pubs.append((p_odom, p_scan))
-
-    def send(i: int, k: int, stamp: int) -> None:
-        rid, _, odoms, scans = plans[i]
-        # Serialized at publication, as a ROS node does (a few microseconds with rosbags).
-        odoms[k + 1].header = header(stamp, "odom")
-        scans[k + 1].header = header(stamp, "laser")
-        put(pubs[i][0], i, convert.serialize(odoms[k + 1], convert.ODOMETRY))
-        with lock:
-            sent[(rid, stamp)] = time.time_ns()
-        put(pubs[i][1], i, convert.serialize(scans[k + 1], convert.LASER_SCAN))
-
-    scans_sent, behind, cpu = timed_publishing(robots, steps, t0, send, ready, go, began, ended)
-    time.sleep(2.0)  # the last poses
-    sub.undeclare()
-    for s in sessions:
-        s.close()
-    out.put(generator_result(scans_sent, poses, latencies, behind, cpu))
-
-
 def fleet_rows(sizes: list[int], duration: float, workers: int) -> list[str]:
     """Table rows: the JSON and the ROS fleet at each size."""
     rows = []
@@ -275,7 +102,7 @@ def fleet_rows(sizes: list[int], duration: float, workers: int) -> list[str]:
                 r = run_size(n, duration, True, workers)
             else:
                 flags = ("--ros2", "--ros-map", "bench")
-                r = run_size(n, duration, True, workers, _ros_generator, flags)
+                r = run_size(n, duration, True, workers, "ros2", flags)
             ok = r["p99"] <= 50.0 and r["uncounted"] == 0 and r["dropped"] <= 0.01 * r["sent"]
             rows.append(
                 f"| {door} | {n} | {r['sent']} | {r['poses']} | {r['dropped']} "

@@ -246,19 +246,19 @@ def world_of(scenario: Scenario, seed: int) -> tuple[str, Map]:
     return scenario.world.replace("_", "-"), imported_map(scenario.world)
 
 
-def simulate(scenario: Scenario, seed: int, world: tuple[str, Map] | None = None) -> Run:
+def simulate(scenario: Scenario, seed: int, given: tuple[str, Map] | None = None) -> Run:
     """Simulate one run of a scenario.
 
     Args:
         scenario: the recipe.
         seed: the run's seed; the world, path, odometry, scans and people each use
             ``default_rng([seed, part])``.
-        world: ``(map_id, map)`` to use instead of the scenario's world.
+        given: ``(map_id, map)`` to use instead of the scenario's world.
 
     Returns:
         The run.
     """
-    map_id, world = world if world is not None else world_of(scenario, seed)
+    map_id, world = given if given is not None else world_of(scenario, seed)
     steps = scenario.steps
     truth = make_trajectory(
         world,

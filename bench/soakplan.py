@@ -1,12 +1,9 @@
-"""The pure parts of the soak benchmark (:mod:`bench.soak`): the looped robot plan and verdicts.
+"""The pure parts of the soak benchmark (:mod:`bench.soak`): the verdicts.
 
 A soak run is too long to precompute (100 robots for 30 minutes at 10 Hz is 18,000 scans each,
-about 5 GB of JSON), so each robot drives a loop: a path of ``L`` poses forward, then the same
-path backwards to its start (ping-pong, ``2 L - 2`` steps), over and over. Scans are simulated
-once per pose of the forward path (the way back reuses them), and the odometry is kept as the
-loop's ``2 L - 2`` relative increments (with drift), accumulated step after step by
-:class:`OdometryStream`, so that the odometry a robot reports is one continuous stream however
-many loops it drives. What the generator holds is fixed by ``L``, not by the run's length.
+about 5 GB of JSON), so each robot drives its path out and back, over and over, with odometry
+that goes on drifting (:mod:`service.sim.plan`): what the generator holds is fixed by the
+path's length, not by the run's.
 
 The verdicts take the sampled time series and return :class:`Verdict` values; ``hard`` ones
 (scans counted, logs rotated and readable) decide the exit code of every run, the others (memory
@@ -17,14 +14,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-
-from rlutf.motion import relative
-from rlutf.sim import OdometryModel, drift_odometry
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -33,88 +26,6 @@ IntArray = NDArray[np.intp]
 SLOPE_TARGET_MB_PER_10MIN = 1.0
 #: Runs at least this long have their memory and queue verdicts count toward the exit code.
 LONG_RUN_MINUTES = 10.0
-
-
-@dataclass(frozen=True)
-class RobotLoop:
-    """One robot's ping-pong loop.
-
-    Attributes:
-        truth: ``(n, 3)`` true pose at each loop step (m, m, rad), ``n = 2 L - 2``; the step after
-            the last is step 0 again.
-        increments: ``(n, 3)`` odometry motion from loop step ``j`` to step ``(j + 1) % n``, in
-            the robot's frame at step ``j`` (m, m, rad), with drift.
-        scan_of_step: ``(n,)`` index of each step's scan among the ``L`` forward poses.
-    """
-
-    truth: FloatArray
-    increments: FloatArray
-    scan_of_step: IntArray
-
-    @property
-    def steps(self) -> int:
-        """Steps in one loop."""
-        return len(self.truth)
-
-
-def ping_pong(forward: FloatArray) -> tuple[FloatArray, IntArray]:
-    """A path and the same path backwards: ``forward[0 .. L-1]`` then ``forward[L-2 .. 1]``.
-
-    Args:
-        forward: ``(L, 3)`` poses, ``L >= 2``.
-
-    Returns:
-        ``(2 L - 2, 3)`` poses of the loop and, per loop step, its index into ``forward``.
-    """
-    n = len(forward)
-    if n < 2:
-        raise ValueError(f"a loop needs at least 2 forward poses, got {n}")
-    index = np.concatenate([np.arange(n), np.arange(n - 2, 0, -1)]).astype(np.intp)
-    return forward[index], index
-
-
-def make_loop(forward: FloatArray, model: OdometryModel, rng: np.random.Generator) -> RobotLoop:
-    """The loop of a forward path, with drifting odometry increments (one draw per step).
-
-    Args:
-        forward: ``(L, 3)`` true poses, ``L >= 2``.
-        model: odometry noise.
-        rng: random generator.
-    """
-    truth, index = ping_pong(forward)
-    closed = np.vstack([truth, truth[:1]])  # back to the start: the wrap-around increment
-    odom = drift_odometry(closed, model, rng)
-    increments = relative(odom[:-1], odom[1:])
-    return RobotLoop(truth, increments, index)
-
-
-class OdometryStream:
-    """A robot's odometry, step after step, from a loop's increments (any number of loops).
-
-    Args:
-        start: the odometry pose at step 0 (x, y, theta).
-        increments: ``(n, 3)`` the loop's increments.
-    """
-
-    def __init__(self, start: Sequence[float], increments: FloatArray) -> None:
-        self._pose = (float(start[0]), float(start[1]), float(start[2]))
-        self._inc = [(float(d[0]), float(d[1]), float(d[2])) for d in increments]
-        self._step = 0
-
-    @property
-    def pose(self) -> tuple[float, float, float]:
-        """The odometry pose at the current step."""
-        return self._pose
-
-    def advance(self) -> tuple[float, float, float]:
-        """Move to the next step and return its odometry pose."""
-        x, y, th = self._pose
-        dx, dy, dth = self._inc[self._step % len(self._inc)]
-        c, s = math.cos(th), math.sin(th)
-        th = math.remainder(th + dth, math.tau)
-        self._pose = (x + c * dx - s * dy, y + s * dx + c * dy, th)
-        self._step += 1
-        return self._pose
 
 
 # ---------------------------------------------------------------------------------- verdicts
@@ -350,7 +261,7 @@ class LatencyHistogram:
     def __init__(self) -> None:
         self.counts = np.zeros(self.BINS, dtype=np.int64)
 
-    def add(self, latencies_ms: Sequence[float]) -> None:
+    def add(self, latencies_ms: Sequence[float] | FloatArray) -> None:
         """Count latencies (ms)."""
         if len(latencies_ms):
             idx = np.minimum(

@@ -18,23 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from bench.fleet import (
+from bench.fleetrun import (
     RATE_HZ,
-    _children,
-    _cpu_seconds,
-    _rss_tree_mb,
-    open_fleet,
     query_health,
     start_service,
     stop_service,
     timed_publishing,
 )
-from bench.soakplan import (
-    FileCheck,
-    LatencyHistogram,
-    OdometryStream,
-    make_loop,
-)
+from bench.procstat import children, cpu_seconds, rss_tree_mb
+from bench.soakplan import FileCheck, LatencyHistogram
 
 #: Longest wait, after the last scan, for the service to drain before the final counts, s.
 DRAIN_S = 60.0
@@ -64,42 +56,17 @@ def _generator(
     """
     import zenoh
 
-    from rlutf.sim import (
-        LidarModel,
-        OdometryModel,
-        make_building,
-        make_trajectory,
-        simulate_scan,
-    )
+    from service.live.sessions import client_config
+    from service.sim.fleet import SimFleet
+    from service.sim.plan import FleetSpec, plan_fleet
+    from service.sim.wire import JsonWire
 
-    rng = np.random.default_rng(seed)
-    world = make_building(rng)
+    # Each robot drives a path of half a loop and back (service.sim.plan): what the generator
+    # holds is fixed by the loop's length, not by the run's.
     forward = max(2, round(loop_seconds * RATE_HZ / 2) + 1)
-    lidar = LidarModel(beams=360)
-    rids, loops, tails = [], [], []
-    for i in range(robots):
-        loop = make_loop(
-            make_trajectory(world, rng, forward, dt=1.0 / RATE_HZ), OdometryModel(), rng
-        )
-        scans = []
-        for pose in loop.truth[:forward]:
-            s = simulate_scan(world, pose, lidar, rng)
-            ranges = [round(float(r), 4) if math.isfinite(r) else None for r in s.ranges]
-            scans.append(
-                json.dumps(
-                    {
-                        "angle_min": s.angle_min,
-                        "angle_increment": s.angle_increment,
-                        "range_min": s.range_min,
-                        "range_max": s.range_max,
-                        "ranges": ranges,
-                    }
-                )[1:]
-            )
-        rids.append(f"r{i:03d}")
-        loops.append(loop)
-        tails.append([scans[j] for j in loop.scan_of_step])  # references, one per loop step
-    streams = [OdometryStream(loop.truth[0], loop.increments) for loop in loops]
+    spec = FleetSpec(robots=robots, poses=forward, rate_hz=RATE_HZ, seed=seed, map_id="bench")
+    plan = plan_fleet(spec)
+    rids = [r.robot_id for r in plan.robots]
 
     sent: dict[tuple[str, int], int] = {}
     latencies: list[float] = []
@@ -132,34 +99,36 @@ def _generator(
         while (n := requests.get()) is not None:
             replies.put((n, figures()))
 
-    starts = [
-        (rid, stream.pose, loop.truth[0])
-        for rid, stream, loop in zip(rids, streams, loops, strict=True)
-    ]
     # Blocking publishers: a scan the generator's own transport dropped (Zenoh's default when
     # its queue is full, as on two starved cores) would be counted by no one; blocked, the
     # generator falls behind its schedule instead, and says so.
-    sessions, sub, pubs, t0 = open_fleet(
-        endpoint, world, starts, on_pose, congestion_control=zenoh.CongestionControl.BLOCK
+    fleet = SimFleet(
+        plan,
+        JsonWire(plan),
+        lambda: zenoh.open(client_config(endpoint)),
+        congestion_control=zenoh.CongestionControl.BLOCK,
     )
+    fleet.put_map()
+    sub = fleet.operator.declare_subscriber("rlutf/robots/*/pose", on_pose)
+    time.sleep(1.0)
+    t0 = time.time_ns()
+    fleet.start(t0)
     threading.Thread(target=answer, daemon=True).start()
 
-    def send(i: int, k: int, stamp: int) -> None:
-        x, y, th = streams[i].advance()  # step k + 1
-        head = f'{{"stamp_ns": {stamp}, '
-        pubs[i][0].put(f'{head}"x": {x!r}, "y": {y!r}, "theta": {th!r}}}')
+    def send(i: int, step: int) -> None:
+        stamp = t0 + step * spec.period_ns
+        fleet.odometry(i, step, stamp)
         with lock:
             sent[(rids[i], stamp)] = time.time_ns()
             counts["sent"] += 1
-        pubs[i][1].put(head + tails[i][(k + 1) % len(tails[i])])
+        fleet.scan(i, step, stamp)
 
-    steps = int(minutes * 60 * RATE_HZ) + 1
-    scans_sent, behind, cpu = timed_publishing(robots, steps, t0, send, ready, go, began, ended)
+    steps = int(minutes * 60 * RATE_HZ)
+    scans_sent, behind, cpu = timed_publishing(robots, steps, send, ready, go, began, ended)
     finish.wait(120)
     last = figures()
     sub.undeclare()
-    for s in sessions:
-        s.close()
+    fleet.close()
     out.put(
         {
             "scans_sent": scans_sent,
@@ -180,22 +149,22 @@ class _Sampler:
         self.proc, self.gen, self.session = proc, gen, session
         self.requests, self.replies = requests, replies
         self.t0 = time.monotonic()
-        self.main0 = _cpu_seconds(proc.pid)
-        self.workers: dict[int, float] = {p: _cpu_seconds(p) for p in _children(proc.pid)}
+        self.main0 = cpu_seconds(proc.pid)
+        self.workers: dict[int, float] = {p: cpu_seconds(p) for p in children(proc.pid)}
         self.workers0 = sum(self.workers.values())
-        self.gen0 = _cpu_seconds(gen.pid)
+        self.gen0 = cpu_seconds(gen.pid)
         self.n = 0
 
     def cpu(self) -> tuple[float, float, float]:
         """CPU seconds since the start: service main, its workers (each as last seen), generator."""
-        for p in _children(self.proc.pid):
-            c = _cpu_seconds(p)
+        for p in children(self.proc.pid):
+            c = cpu_seconds(p)
             if math.isfinite(c):
                 self.workers[p] = c
         return (
-            _cpu_seconds(self.proc.pid) - self.main0,
+            cpu_seconds(self.proc.pid) - self.main0,
             sum(self.workers.values()) - self.workers0,
-            _cpu_seconds(self.gen.pid) - self.gen0,
+            cpu_seconds(self.gen.pid) - self.gen0,
         )
 
     def _generator_figures(self, timeout: float) -> dict[str, Any]:
@@ -222,8 +191,8 @@ class _Sampler:
         nan = math.nan
         return {
             "minute": minute,
-            "rss_service_mb": _rss_tree_mb(self.proc.pid),
-            "rss_generator_mb": _rss_tree_mb(self.gen.pid),
+            "rss_service_mb": rss_tree_mb(self.proc.pid),
+            "rss_generator_mb": rss_tree_mb(self.gen.pid),
             "cpu_main_s": main,
             "cpu_workers_s": workers,
             "cpu_generator_s": gen_cpu,

@@ -131,7 +131,7 @@ def latency_vs_map(
     base = _nominal(profile)
     points = []
     for label, world in sweep_maps(profile):
-        run = simulate(base, 1, world=("sweep", world))
+        run = simulate(base, 1, given=("sweep", world))
         points += _measure(run, methods, len(world.segments), label, on_update)
     return points
 

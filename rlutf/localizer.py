@@ -88,6 +88,9 @@ class LocalizeResult:
             distance to the farthest corner of the map.
         returns: the scan's returns beside the ranges cast at ``pose`` (for map health,
             :mod:`rlutf.mapchange`); ``None`` when the update compared none.
+        fit_needed: the share of the returns that had to fit for the pose to be trusted:
+            ``min_fit``, or more for a robot whose scans usually fit better (its typical share
+            less a margin); NaN where the update did not apply it (relocalizations).
     """
 
     pose: FloatArray
@@ -104,6 +107,7 @@ class LocalizeResult:
     score: float = 0.0
     deviation_range: float = math.inf
     returns: Returns | None = None
+    fit_needed: float = math.nan
 
 
 class Localizer:
@@ -360,6 +364,7 @@ class Localizer:
                 problem.real_ranges,
                 fit.ranges,
             ),
+            fit_needed=floor,
         )
 
     def _relocalizing(

@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
+import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
@@ -85,6 +88,11 @@ class Ros2Settings(BaseModel):
     )
     map_topic: str | None = Field(
         None, description="OccupancyGrid topic to import maps from (off unless given)."
+    )
+    global_localization_service: str | None = Field(
+        "reinitialize_global_localization",
+        description="std_srvs/srv/Empty service, relative to the namespace, that relocalizes the "
+        "robot globally on its map, as AMCL's (null: off).",
     )
     global_frame: str = Field("map", description="Frame of poses and initial poses.")
     odom_frame: str = Field("odom", description="The odometry frame.")
@@ -194,6 +202,20 @@ class Settings(BaseSettings):
         "port).",
     )
     metrics_addr: str = Field("0.0.0.0", description="Address the metrics endpoint listens on.")
+    foxglove_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="Port of the live view, a Foxglove WebSocket server an operator opens in the "
+        "Foxglove app (off unless given; 0: any free port).",
+    )
+    foxglove_addr: str = Field(
+        "127.0.0.1",
+        description="Address the live view listens on (0.0.0.0 to open it from other hosts).",
+    )
+    foxglove_rate_hz: float = Field(
+        10.0, gt=0, le=100, description="Most refreshes a second of each robot's live view."
+    )
     max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     max_stamp_ahead_s: float = Field(
@@ -280,17 +302,80 @@ class Settings(BaseSettings):
         return self.model_dump(mode="json")
 
 
+class SettingsFileError(ValueError):
+    """A settings file that is missing, of an unknown kind or not well-formed; the message names
+    the file, the line where the parser could tell, and the fix."""
+
+
 def _file_source(settings_cls: type[BaseSettings], path: Path) -> PydanticBaseSettingsSource:
     if not path.is_file():
-        raise FileNotFoundError(f"settings file not found: {path}")
+        raise SettingsFileError(
+            f"settings file {path} not found: give an existing file with --settings or "
+            "RLUTF_SETTINGS"
+        )
     suffix = path.suffix.lower()
-    if suffix == ".json":
-        return JsonConfigSettingsSource(settings_cls, json_file=path)
-    if suffix == ".toml":
-        return TomlConfigSettingsSource(settings_cls, toml_file=path)
-    if suffix in (".yaml", ".yml"):
-        return YamlConfigSettingsSource(settings_cls, yaml_file=path)
-    raise ValueError(f"settings file {path}: use .json, .toml or .yaml")
+    sources = {
+        ".json": lambda: JsonConfigSettingsSource(settings_cls, json_file=path),
+        ".toml": lambda: TomlConfigSettingsSource(settings_cls, toml_file=path),
+        ".yaml": lambda: YamlConfigSettingsSource(settings_cls, yaml_file=path),
+        ".yml": lambda: YamlConfigSettingsSource(settings_cls, yaml_file=path),
+    }
+    if suffix not in sources:
+        raise SettingsFileError(
+            f"settings file {path}: unknown kind {suffix or '(no suffix)'!r}; "
+            "name it .json, .toml, .yaml or .yml"
+        )
+    _check_file(path, suffix)
+    return sources[suffix]()
+
+
+def _check_file(path: Path, suffix: str) -> None:
+    """Parse the file as the source will, so that a bad one is named with its line."""
+    kind = "YAML" if suffix in (".yaml", ".yml") else suffix[1:].upper()
+    try:
+        text = path.read_text(encoding="utf-8")
+        if kind == "JSON":
+            data: Any = json.loads(text)
+        elif kind == "TOML":
+            data = tomllib.loads(text)
+        else:
+            data = yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError, OSError) as err:
+        raise SettingsFileError(
+            f"settings file {path}{_where(err)}: not valid {kind} ({_problem(err)}); fix the "
+            "file, or leave out --settings and RLUTF_SETTINGS"
+        ) from err
+    if data is not None and not isinstance(data, dict):
+        raise SettingsFileError(
+            f"settings file {path}: holds a {type(data).__name__}, not settings; write one "
+            "'name: value' per setting at the top level (see `rlutf config`)"
+        )
+
+
+def _where(err: BaseException) -> str:
+    """``, line N`` of a parser's error, where the parser says."""
+    if isinstance(err, json.JSONDecodeError):
+        return f", line {err.lineno}"
+    mark = getattr(err, "problem_mark", None)  # yaml's MarkedYAMLError
+    if mark is not None:
+        return f", line {mark.line + 1}"
+    found = re.search(r"line (\d+)", str(err))  # tomllib: "... (at line 3, column 5)"
+    if found:
+        return f", line {found.group(1)}"
+    return ", at its end" if "end of document" in str(err) else ""
+
+
+def _problem(err: BaseException) -> str:
+    if isinstance(err, json.JSONDecodeError):
+        return err.msg
+    problem = getattr(err, "problem", None)  # yaml
+    if problem:
+        return str(problem)
+    if isinstance(err, UnicodeDecodeError):
+        return "not UTF-8 text"
+    if isinstance(err, OSError):
+        return err.strerror or str(err)
+    return re.sub(r"\s*\(at (line \d+, column \d+|end of document)\)", "", str(err).splitlines()[0])
 
 
 def load_settings(settings_file: Path | None = None, **overrides: Any) -> Settings:

@@ -341,6 +341,16 @@ class FleetEngine:
         key = self.keys.robot(robot.robot_id, "scan")
         applied = self._apply(robot, received_ns)
         skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        if robot.map_id is None and robot.pending is not None:
+            return skipped + self._event(
+                robot,
+                received_ns,
+                "warning",
+                EventCode.MAP_NOT_FOUND,
+                key,
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
+            )
         if robot.map_id is None:
             return skipped + self._event(
                 robot,
@@ -348,7 +358,8 @@ class FleetEngine:
                 "warning",
                 EventCode.NOT_INITIALIZED,
                 key,
-                "scan before an initial pose; publish an InitialPose first",
+                "scan before an initial pose; publish an InitialPose first (`rlutf "
+                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
             )
         world = self._world_for(robot, received_ns)
         if world is None or robot.localizer is None:
@@ -411,9 +422,7 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 pose_key,
-                f"the scan does not fit the map: {100 * result.fit:.0f} % of its returns within "
-                f"{self.config.fit_distance:g} m of the map at the best pose (at least "
-                f"{100 * self.config.min_fit:.0f} % needed); "
+                _unfit(result, self.config.fit_distance, self.config.min_fit)
                 + (
                     "relocalizing on the whole map"
                     if result.relocalizing
@@ -498,3 +507,22 @@ class FleetEngine:
                 "event", self.keys.robot_events(robot.robot_id), encode(ev), now_ns, robot.robot_id
             )
         ]
+
+
+def _unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
+    """Why a pose is lost, with the share of the returns that fit and the share needed."""
+    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
+    fit = result.fit if math.isfinite(result.fit) else 0.0
+    digits = 0  # enough digits that the two shares never read the same
+    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
+        digits += 1
+    shares = (
+        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
+        f"the best pose, under the {100 * needed:.{digits}f} % needed"
+    )
+    if needed > min_fit:
+        return (
+            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
+            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
+        )
+    return f"the scan does not fit the map: {shares}; "

@@ -7,12 +7,121 @@ Zenoh flags are named like zenoh's own tools (``--mode``, ``--listen``, ``--conn
 from __future__ import annotations
 
 import argparse
+import math
+import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
+from service.cli.errors import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    UNREACHABLE_HINT,
+    CliError,
+    zenoh_text,
+)
+
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "client",
+    "load",
+    "number",
+    "timeout_flag",
+    "usable_folder",
+    "writable",
+]
+
+
+def number(
+    kind: Callable[[str], float] = float,
+    *,
+    minimum: float | None = None,
+    above: float | None = None,
+    maximum: float | None = None,
+) -> Callable[[str], Any]:
+    """An argparse ``type`` that reads a finite number within bounds; a bad one is refused with
+    the bounds (argparse names the flag)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not {'a whole number' if kind is int else 'a number'}"
+            ) from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text!r}: give a finite number")
+        if above is not None and value <= above:
+            raise argparse.ArgumentTypeError(f"{text}: must be more than {above:g}")
+        if minimum is not None and value < minimum:
+            raise argparse.ArgumentTypeError(f"{text}: must be at least {minimum:g}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"{text}: must be at most {maximum:g}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
+    return parse
+
+
+#: A TCP port (0: any free one).
+PORT = number(int, minimum=0, maximum=65535)
+
+
+def writable(path: Path, flag: str) -> None:
+    """Refuse an output path that cannot be written (before any work is done).
+
+    Raises:
+        CliError: naming the flag, the path and the fix.
+    """
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise CliError(f"{flag} {path}: is a folder; give a file name in it", EXIT_USAGE)
+    if not folder.is_dir():
+        raise CliError(
+            f"{flag} {path}: the folder {folder} does not exist; create it or choose another",
+            EXIT_USAGE,
+        )
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise CliError(
+            f"{flag} {path}: not writable (permission denied); choose a path you may write",
+            EXIT_USAGE,
+        )
+
+
+def usable_folder(path: Path, flag: str) -> None:
+    """Refuse a folder that cannot be created or written (its nearest existing part is a file,
+    or not writable).
+
+    Raises:
+        CliError: naming the flag, the path and the fix.
+    """
+    part = path.absolute()
+    while not part.exists() and part != part.parent:
+        part = part.parent
+    if not part.is_dir():
+        raise CliError(
+            f"{flag} {path}: {part} is a file, not a folder; choose another folder", EXIT_USAGE
+        )
+    if not os.access(part, os.W_OK | os.X_OK):
+        raise CliError(
+            f"{flag} {path}: cannot write in {part} (permission denied); choose a folder you "
+            "may write",
+            EXIT_USAGE,
+        )
+
+
+def timeout_flag(p: argparse.ArgumentParser, default: float = 3.0, what: str = "answers") -> None:
+    """Add ``--timeout SECONDS`` (more than 0) with its help."""
+    p.add_argument(
+        "--timeout",
+        type=number(above=0),
+        default=default,
+        metavar="SECONDS",
+        help=f"seconds to wait for {what} (default {default:g})",
+    )
 
 
 def zenoh_flags(p: argparse.ArgumentParser, *, client: bool) -> None:
@@ -70,19 +179,31 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-record", action="store_true", default=None, help="do not record")
     p.add_argument(
         "--workers",
-        type=int,
+        type=number(int, minimum=-1),
         metavar="N",
         help="worker processes (-1: one per core, the default; 0: in-process thread)",
     )
     p.add_argument(
         "--metrics-port",
-        type=int,
+        type=PORT,
         metavar="PORT",
         help="serve Prometheus metrics on http://ADDR:PORT/metrics (default: off); "
         "also RLUTF_METRICS_PORT",
     )
     p.add_argument(
         "--metrics-addr", metavar="ADDR", help="address of the metrics endpoint (default 0.0.0.0)"
+    )
+    p.add_argument(
+        "--foxglove-port",
+        type=int,
+        metavar="PORT",
+        help="serve a live view on ws://ADDR:PORT for the Foxglove app (Open connection, "
+        "Foxglove WebSocket; default: off; 0: any free port); also RLUTF_FOXGLOVE_PORT",
+    )
+    p.add_argument(
+        "--foxglove-addr",
+        metavar="ADDR",
+        help="address of the live view (default 127.0.0.1; 0.0.0.0 for other hosts)",
     )
 
 
@@ -94,7 +215,7 @@ def ros2_flags(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--ros-domain-id",
-        type=int,
+        type=number(int, minimum=0, maximum=232),
         metavar="N",
         help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
     )
@@ -129,14 +250,12 @@ def load(args: argparse.Namespace) -> Any:
     """The effective settings of :func:`zenoh_flags` and :func:`settings_flags`.
 
     Raises:
-        SystemExit: the configuration is invalid or the settings file cannot be read.
+        CliError: the configuration is invalid or the settings file cannot be read.
     """
-    from pydantic import ValidationError
-
     from service.config import load_settings
 
-    try:
-        return load_settings(
+    return _settings(
+        lambda: load_settings(
             args.settings,
             mode=args.mode,
             listen=args.listen,
@@ -153,36 +272,95 @@ def load(args: argparse.Namespace) -> Any:
             workers=args.workers,
             metrics_port=args.metrics_port,
             metrics_addr=args.metrics_addr,
+            foxglove_port=getattr(args, "foxglove_port", None),
+            foxglove_addr=getattr(args, "foxglove_addr", None),
             ros2=_ros2_overrides(args),
         )
+    )
+
+
+def _settings(make: Callable[[], Any]) -> Any:
+    """``make()`` with its errors (settings file, values) as a :class:`CliError`."""
+    from pydantic import ValidationError
+
+    from service.config import SettingsFileError
+
+    try:
+        return make()
+    except SettingsFileError as err:
+        raise CliError(str(err), EXIT_USAGE) from err
     except ValidationError as err:
-        raise SystemExit(f"rlutf: invalid configuration:\n{err}") from err
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"rlutf: {err}") from err
+        raise CliError(_invalid(err), EXIT_USAGE) from err
+
+
+def _invalid(err: Any) -> str:
+    """A pydantic ValidationError of the settings in a few lines, naming each setting."""
+    source = os.environ.get("RLUTF_SETTINGS")
+    where = f"settings file {source}, " if source else ""
+    lines = [f"invalid configuration (from the {where}RLUTF_* environment or the flags):"]
+    problems = err.errors()
+    for e in problems[:5]:
+        loc = ".".join(str(p) for p in e["loc"]) or "(the whole file)"
+        msg = "unknown setting" if e["type"] == "extra_forbidden" else e["msg"]
+        got = repr(e.get("input"))
+        lines.append(f"  {loc}: {msg} (got {got[:60] + '...' if len(got) > 60 else got})")
+    if len(problems) > 5:
+        lines.append(f"  ... and {len(problems) - 5} more")
+    lines.append("fix these values; `rlutf config` prints the settings in effect")
+    return "\n".join(lines)
 
 
 def client(args: argparse.Namespace) -> Any:
     """The settings and an open client session of a tool's :func:`zenoh_flags` (``client``).
 
     Raises:
-        SystemExit: no zenoh router is reachable.
+        CliError: the settings are invalid or no zenoh router is reachable.
     """
     import zenoh
 
     from service.config import Settings
 
-    settings = Settings(
-        mode=args.mode or "client",
-        connect=args.connect or ["tcp/127.0.0.1:7447"],
-        listen=[],
-        zenoh_config=args.config,
-        **({"prefix": args.prefix} if args.prefix else {}),
+    settings = _settings(
+        lambda: Settings(
+            mode=args.mode or "client",
+            connect=args.connect or ["tcp/127.0.0.1:7447"],
+            listen=[],
+            zenoh_config=args.config,
+            **({"prefix": args.prefix} if args.prefix else {}),
+        )
     )
+    config = zenoh_file_config(settings)
+    try:
+        return settings, zenoh.open(config)
+    except zenoh.ZError as err:
+        raise CliError(
+            f"cannot reach zenoh at {', '.join(settings.connect)} ({zenoh_text(err)}); "
+            + UNREACHABLE_HINT
+        ) from err
+
+
+def zenoh_file_config(settings: Any) -> Any:
+    """The zenoh configuration of ``settings`` (a bad ``-c/--config`` file: :class:`CliError`)."""
+    import zenoh
+
     from service.live.sessions import zenoh_config
 
     try:
-        return settings, zenoh.open(zenoh_config(settings))
+        return zenoh_config(settings)
     except zenoh.ZError as err:
-        raise SystemExit(
-            f"rlutf: cannot reach zenoh at {', '.join(settings.connect)}: {err}"
+        raise CliError(
+            f"zenoh config file {settings.zenoh_config}{_json5_problem(zenoh_text(err))}; fix "
+            "it (JSON5, as zenohd reads it) or leave out -c/--config",
+            EXIT_USAGE,
         ) from err
+
+
+def _json5_problem(text: str) -> str:
+    """``, line L, column C: what`` from a JSON5 parser's multi-line report."""
+    import re
+
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r"^\s*=\s*(.+)$", text, re.MULTILINE)
+    if where is None:
+        return ": " + " ".join(text.split())
+    return f", line {where[1]}, column {where[2]}: " + (what[1] if what else "not valid JSON5")

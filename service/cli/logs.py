@@ -361,19 +361,22 @@ def cmd_recover(args: argparse.Namespace) -> int:
             return _fail("log recover", err)
         except OSError as err:
             return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
-        state = (
-            "complete (nothing was missing)"
-            if report.complete
-            else f"cut at byte {report.stopped_at} ({report.stopped})"
-        )
+        damaged = report.bad_chunks or report.lost_messages
+        if not report.complete:
+            state = f"the input is cut at byte {report.stopped_at} ({report.stopped})"
+        elif damaged:
+            state = "the input was read to its end"
+        else:
+            state = "the input was read to its end, nothing was missing"
         print(
             f"recovered {report.messages} messages in {report.chunks} chunks, "
-            f"{report.metadata} metadata records -> {out}; input {state}"
+            f"{report.metadata} metadata records -> {out}; {state}"
         )
-        if report.bad_chunks or report.lost_messages:
+        if damaged:
             print(
-                f"{broken}: skipped {report.bad_chunks} damaged chunks and "
-                f"{report.lost_messages} messages whose channel was lost",
+                f"{broken}: skipped {report.bad_chunks} damaged chunk(s) and "
+                f"{report.lost_messages} message(s) whose channel was lost: those messages "
+                "are not in the output",
                 file=sys.stderr,
             )
     if len(outs) > 1:

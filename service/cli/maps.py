@@ -1,4 +1,5 @@
-"""``rlutf map put|get|import|build|show|health``: maps into and out of the store, and checks."""
+"""``rlutf map put|get|list|remove|import|build|show|health``: maps into and out of the store,
+from grids and logs, and where the fleet's scans disagree with them."""
 
 from __future__ import annotations
 
@@ -9,12 +10,21 @@ from pathlib import Path
 from typing import Any
 
 from service.cli import maphealth
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
+from service.cli.errors import CliError
+from service.cli.flags import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    client,
+    timeout_flag,
+    writable,
+    zenoh_flags,
+)
 
 
 def register(sub: Any) -> None:
     """Add ``map`` and its actions to the ``rlutf`` subcommands."""
-    maps = sub.add_parser("map", help="put, get, import, build and show maps")
+    maps = sub.add_parser("map", help="put, get, list, remove, import, build and show maps")
     msub = maps.add_subparsers(dest="map_command", metavar="ACTION")
     maps.set_defaults(func=cmd_map)
     put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
@@ -25,8 +35,32 @@ def register(sub: Any) -> None:
     get = msub.add_parser("get", help="print a stored map")
     get.add_argument("map_id")
     get.add_argument("--out", type=Path, help="write to a file instead of stdout")
-    get.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(get, what="the storage's answer")
     zenoh_flags(get, client=True)
+
+    ls = msub.add_parser(
+        "list",
+        help="list the stored maps: id, version, size, and the robots on each",
+        description="Ask every storage of {prefix}/maps/* and the live instances: one line per "
+        "map with its version, payload size, extent (width x height of its bounding box) and "
+        "the robots localized on it. Exit 1 if no storage answers.",
+    )
+    timeout_flag(ls, what="the storages' answers")
+    ls.add_argument("--json", action="store_true", help="print one JSON array instead of text")
+    zenoh_flags(ls, client=True)
+
+    rm = msub.add_parser(
+        "remove",
+        help="delete a stored map",
+        description="Delete {prefix}/maps/ID from the storages (a Zenoh delete on the key) and "
+        "check that none answers for it any more. Robots on the map keep the copy their "
+        "service holds until it restarts; a new initial pose on it gets map_not_found. A map "
+        "that robots are on is removed only with --force.",
+    )
+    rm.add_argument("map_id", metavar="ID", help="the map's id")
+    rm.add_argument("--force", action="store_true", help="remove it even if robots are on it")
+    timeout_flag(rm, what="the storages to drop the map")
+    zenoh_flags(rm, client=True)
 
     imp = msub.add_parser(
         "import",
@@ -86,7 +120,7 @@ def register(sub: Any) -> None:
     )
     show.add_argument("source", help="a map JSON file, or the id of a stored map")
     show.add_argument("--out", type=Path, default=Path("map.png"), help="PNG (default map.png)")
-    show.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(show, what="the storage's answer")
     zenoh_flags(show, client=True)
     show.set_defaults(func=cmd_show)
     maphealth.register(msub)
@@ -113,19 +147,32 @@ def _map_output_flags(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
-    """``rlutf map put|get``, and the usage of ``rlutf map`` without an action."""
+    """``rlutf map put|get|list|remove``, and the usage of ``rlutf map`` without an action."""
     from service.maps.client import get_map, put_map
 
+    if args.map_command in ("list", "remove"):
+        from service.cli.mapcatalog import cmd_catalog
+
+        return cmd_catalog(args)
     if args.map_command == "put":
+        if not args.file.is_file():
+            raise CliError(
+                f"{args.file}: no such file; give a Map JSON or GeoJSON file (`rlutf map import` "
+                "writes one from a map_server grid)",
+                EXIT_USAGE,
+            )
         settings, session = client(args)
         with session:
             return put_map(session, settings.prefix, args.file, args.map_id, args.version)
     if args.map_command == "get":
+        if args.out is not None:
+            writable(args.out, "--out")
         settings, session = client(args)
         with session:
             return get_map(session, settings.prefix, args.map_id, args.out, args.timeout)
     print(
-        "rlutf map: choose an action: put, get, import, build, show, health (see rlutf map --help)",
+        "rlutf map: choose an action: put, get, list, remove, import, build, show, health "
+        "(see rlutf map --help)",
         file=sys.stderr,
     )
     return EXIT_USAGE
@@ -164,10 +211,19 @@ def _finish(args: argparse.Namespace, result: Any) -> int:
     return EXIT_OK
 
 
+def _outputs(args: argparse.Namespace) -> None:
+    """Refuse output paths that cannot be written before the work starts."""
+    for flag in ("out", "png", "save_grid"):
+        path = getattr(args, flag, None)
+        if path is not None:
+            writable(path, "--" + flag.replace("_", "-"))
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """``rlutf map import``."""
     from service.maps.mapimport import MapImportError, import_grid
 
+    _outputs(args)
     try:
         result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
     except MapImportError as err:
@@ -188,6 +244,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         save_grid,
     )
 
+    _outputs(args)
     try:
         if args.ros2:
             from service.ros2.bags import BagError
@@ -223,12 +280,23 @@ def cmd_show(args: argparse.Namespace) -> int:
     from service.maps.mapimport import MapImportError, render_map
 
     path = Path(args.source)
+    writable(args.out, "--out")
     if path.is_file():
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as err:
-            print(f"rlutf map show: cannot read {path}: {err}", file=sys.stderr)
-            return EXIT_FAILURE
+        except OSError as err:
+            raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            where = (
+                f" (line {err.lineno}, column {err.colno}: {err.msg})"
+                if isinstance(err, json.JSONDecodeError)
+                else " (not UTF-8 text)"
+            )
+            raise CliError(
+                f"{path}: not a map JSON file{where}; give a Map JSON (`rlutf map get` and "
+                "`rlutf map import` write one) or the id of a stored map",
+                EXIT_USAGE,
+            ) from err
     else:
         from schemas import valid_id
         from service.keys import Keys
@@ -246,7 +314,11 @@ def cmd_show(args: argparse.Namespace) -> int:
                 if r.ok
             ]
         if not replies:
-            print(f"rlutf map show: no storage answered for map {args.source!r}", file=sys.stderr)
+            print(
+                f"rlutf map show: {args.source!r} is no file, and no storage answered for a map "
+                "of that id (`rlutf map list` shows the stored maps)",
+                file=sys.stderr,
+            )
             return EXIT_FAILURE
         data = json.loads(replies[0].payload.to_bytes())
     try:

@@ -8,14 +8,23 @@ import sys
 import time
 from typing import Any
 
-from service.cli.flags import client, zenoh_flags
+from schemas import Event, encode
+from service.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CliError
+from service.cli.flags import client, number, timeout_flag, zenoh_flags
 
 
 def register(sub: Any) -> None:
-    """Add ``pose`` and ``health`` to the ``rlutf`` subcommands."""
-    pose = sub.add_parser("pose", help="query the latest pose of one robot or all")
+    """Add ``pose``, ``relocalize`` and ``health`` to the ``rlutf`` subcommands."""
+    pose = sub.add_parser(
+        "pose",
+        help="query the latest pose of one robot or all",
+        description="Print the latest pose of each robot the live instances hold: position in "
+        "metres, heading and its 1-sigma in degrees, position 1-sigma in centimetres, the "
+        "scan's age. Exit 1 if no pose answers.",
+    )
     pose.add_argument("robot", nargs="?", default="*", help="robot id (default: all)")
-    pose.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(pose, what="the poses")
+    json_flag(pose, "one PoseEstimate (WIRE.md) per line")
     zenoh_flags(pose, client=True)
     pose.set_defaults(func=cmd_pose)
 
@@ -30,8 +39,7 @@ def register(sub: Any) -> None:
         "robot's Events are printed until it is relocalized (exit 0) or the request fails or "
         "the time runs out (exit 1).",
     )
-    reloc.add_argument("robot", help="robot id")
-    reloc.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
+    request_flags(reloc, 10.0, "until it is relocalized")
     reloc.add_argument(
         "--near",
         metavar="X,Y,RADIUS",
@@ -39,30 +47,84 @@ def register(sub: Any) -> None:
         help="search only within RADIUS metres of (X, Y) in map coordinates (default: the "
         "whole map)",
     )
-    reloc.add_argument(
-        "--wait",
-        type=float,
-        default=10.0,
-        metavar="SECONDS",
-        help="follow the robot's events this long (default 10; 0: put and exit)",
-    )
-    zenoh_flags(reloc, client=True)
     reloc.set_defaults(func=cmd_relocalize)
 
-    health = sub.add_parser("health", help="query instances' health; exit 1 if none answers")
-    health.add_argument("--timeout", type=float, default=3.0)
+    health = sub.add_parser(
+        "health",
+        help="query instances' health; exit 1 if none answers",
+        description="One line per live instance: ready, uptime, robots, message counters and "
+        "the scan-to-pose latency percentiles. --json prints every figure.",
+    )
+    timeout_flag(health)
     health.add_argument("--instance", default="*", help="instance name (default: all)")
+    json_flag(health, "one Health (WIRE.md) per line")
     zenoh_flags(health, client=True)
     health.set_defaults(func=cmd_health)
 
 
+def request_flags(p: argparse.ArgumentParser, wait: float, until: str) -> None:
+    """The arguments of a request about one robot: ROBOT, ``--map``, ``--wait``, ``--json`` and
+    the zenoh flags."""
+    p.add_argument("robot", help="robot id")
+    p.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
+    p.add_argument(
+        "--wait",
+        type=number(minimum=0),
+        default=wait,
+        metavar="SECONDS",
+        help=f"follow the robot's events {until}, at most this long (default {wait:g}; 0: put "
+        "and exit)",
+    )
+    json_flag(p, "the robot's Events as JSON, one per line")
+    zenoh_flags(p, client=True)
+
+
+def json_flag(p: argparse.ArgumentParser, what: str) -> None:
+    """Add ``--json`` (print ``what`` instead of the readable text)."""
+    p.add_argument("--json", action="store_true", help=f"print {what} instead of text")
+
+
+def check_ids(command: str, **ids: str) -> None:
+    """Refuse an id that cannot be a key (before any connection).
+
+    Raises:
+        CliError: naming the argument and the pattern.
+    """
+    from schemas import valid_id
+
+    for what, value in ids.items():
+        if not valid_id(value):
+            raise CliError(
+                f"invalid {what} id {value!r}: use 1 to 64 of A-Z a-z 0-9 _ -", EXIT_USAGE
+            )
+
+
 def cmd_pose(args: argparse.Namespace) -> int:
     """``rlutf pose [ROBOT]``."""
-    from service.live.queries import query_poses
+    from service.cli.present import poses_table
+    from service.live.queries import fetch_poses
 
+    if args.robot != "*":
+        check_ids("pose", robot=args.robot)
     settings, session = client(args)
     with session:
-        return query_poses(session, settings.prefix, args.robot, args.timeout)
+        poses, bad = fetch_poses(session, settings.prefix, args.robot, args.timeout)
+    for key in bad:
+        print(f"rlutf pose: undecodable answer on {key}, skipped", file=sys.stderr)
+    if not poses:
+        whom = "no robot has a pose" if args.robot == "*" else f"no pose for {args.robot}"
+        print(
+            f"rlutf pose: {whom} (within {args.timeout:g} s); `rlutf robots` lists the robots "
+            "and those waiting for an initial pose",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    if args.json:
+        for p in poses:
+            print(encode(p).decode())
+    else:
+        print(poses_table(poses))
+    return EXIT_OK
 
 
 def _region(text: str) -> tuple[float, float, float]:
@@ -80,18 +142,40 @@ def _region(text: str) -> tuple[float, float, float]:
     return x, y, radius
 
 
+def show_event(as_json: bool) -> Any:
+    """A callback that prints each Event followed, as JSON or as a line."""
+    from service.cli.present import event_line
+
+    def show(robot: str | None, ev: Event) -> None:
+        line = encode(ev).decode() if as_json else event_line(robot, ev)
+        print(line, flush=True)
+
+    return show
+
+
+def require_service(session: Any, prefix: str, endpoints: list[str]) -> None:
+    """Refuse to go on when no instance of the service is live.
+
+    Raises:
+        CliError: no liveliness token on ``{prefix}/service/*``.
+    """
+    from service.cli.errors import UNREACHABLE_HINT
+    from service.live.queries import live_instances
+
+    if not live_instances(session, prefix):
+        raise CliError(
+            f"no rlutf service is live on prefix {prefix!r} at {', '.join(endpoints)} (or it "
+            f"is still starting): {UNREACHABLE_HINT}; --prefix if it runs with another"
+        )
+
+
 def cmd_relocalize(args: argparse.Namespace) -> int:
     """``rlutf relocalize ROBOT --map ID [--near X,Y,RADIUS] [--wait SECONDS]``."""
-    from schemas import Region, Relocalize, valid_id
-    from service.live.queries import request_relocalize
+    from schemas import Region, Relocalize
+    from service.cli.present import pose_line
+    from service.live.queries import put_request
 
-    for what, value in (("robot", args.robot), ("map", args.map)):
-        if not valid_id(value):
-            print(
-                f"rlutf relocalize: invalid {what} id {value!r} (use [A-Za-z0-9_-]{{1,64}})",
-                file=sys.stderr,
-            )
-            return 2
+    check_ids("relocalize", robot=args.robot, map=args.map)
     region = None
     if args.near is not None:
         x, y, radius = args.near
@@ -99,13 +183,58 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
     request = Relocalize(stamp_ns=time.time_ns(), map_id=args.map, region=region)
     settings, session = client(args)
     with session:
-        return request_relocalize(session, settings.prefix, args.robot, request, args.wait)
+        require_service(session, settings.prefix, settings.connect)
+        outcome = put_request(
+            session, settings.prefix, args.robot, request, args.wait, show_event(args.json)
+        )
+    if args.wait <= 0:
+        print(f"asked the service to relocalize {args.robot} on map {args.map}")
+        return EXIT_OK
+    if outcome.result == "done":
+        if outcome.pose is not None and not args.json:
+            print(pose_line(outcome.pose))
+        return EXIT_OK
+    if outcome.result == "refused":
+        print(refused_hint("relocalize", args.map), file=sys.stderr)
+    else:
+        last = outcome.pose
+        state: str = "no pose received" if last is None else last.status
+        if last is not None and last.hypotheses:
+            state += f", {len(last.hypotheses)} hypotheses"
+        print(
+            f"rlutf relocalize: {args.robot} not relocalized within {args.wait:g} s (last "
+            f"status: {state}); is it sending scans? watch with `rlutf events {args.robot}`",
+            file=sys.stderr,
+        )
+    return EXIT_FAILURE
 
 
 def cmd_health(args: argparse.Namespace) -> int:
     """``rlutf health``: 0 if an instance answers."""
-    from service.live.queries import query_health
+    from service.cli.present import health_table
+    from service.live.queries import fetch_health
 
     settings, session = client(args)
     with session:
-        return query_health(session, settings.prefix, args.instance, args.timeout)
+        healths = fetch_health(session, settings.prefix, args.instance, args.timeout)
+    if not healths:
+        print(
+            f"rlutf health: no instance answered on prefix {settings.prefix!r} within "
+            f"{args.timeout:g} s; is `rlutf serve` running? use -e/--connect and --prefix",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    if args.json:
+        for h in healths:
+            print(encode(h).decode())
+    else:
+        print(health_table(healths))
+    return EXIT_OK
+
+
+def refused_hint(command: str, map_id: str) -> str:
+    """What to do when the service refused a request (its Event was printed above)."""
+    return (
+        f"rlutf {command}: the service refused the request (see the Event above); "
+        f"`rlutf map list` shows the stored maps (is {map_id!r} one?)"
+    )

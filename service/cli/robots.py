@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, client, zenoh_flags
+from service.cli.errors import EXIT_FAILURE, EXIT_OK
+from service.cli.flags import client, number, timeout_flag, zenoh_flags
+from service.cli.present import SILENT_AFTER_S
 
 
 def register(sub: Any) -> None:
@@ -15,18 +18,29 @@ def register(sub: Any) -> None:
         "robots",
         help="list the robots every live instance holds; exit 1 if none answers",
         description="Ask every live instance on {prefix}/service/*/robots and print one line per "
-        "robot, sorted by robot id: its map, the status and x, y, theta of its latest pose, "
-        "the pose's age (seconds since the instance published it, on that instance's clock), "
-        "its scan-to-pose latency in milliseconds and the instance that owns it. A robot two "
-        "instances answer for (during a handover) is shown once, with the fresher pose. "
-        "'-' marks a figure the instance does not have (a pose it was handed, not one it "
-        "published). Exit 1 if no instance answers.",
+        "robot, sorted by robot id: its map, the status and x, y (metres), heading (degrees) of "
+        "its latest pose, the pose's 1-sigma uncertainty (position in centimetres, heading in "
+        "degrees), the pose's age (since the instance published it, on that instance's clock), "
+        "its scan-to-pose latency in milliseconds and the instance that owns it. A robot with "
+        "no pose for over --silent seconds shows as 'silent (last status)'. Robots that send "
+        "scans but have no pose yet (no initial pose, or their map not loaded) follow with "
+        "status 'waiting'. A robot two instances answer for (during a handover) is shown once, "
+        "with the fresher pose. '-' marks a figure the instance does not have. Exit 1 if no "
+        "instance answers.",
+    )
+    timeout_flag(robots)
+    robots.add_argument(
+        "--silent",
+        type=number(above=0),
+        default=SILENT_AFTER_S,
+        metavar="SECONDS",
+        help=f"mark robots with no pose for this long as silent (default {SILENT_AFTER_S:g})",
     )
     robots.add_argument(
-        "--timeout", type=float, default=3.0, help="seconds to wait for answers (default 3)"
-    )
-    robots.add_argument(
-        "--json", action="store_true", help="print one JSON array of robots instead of a table"
+        "--json",
+        action="store_true",
+        help="print one JSON array of robots instead of a table (each with 'silent'; waiting "
+        "robots have status 'waiting' and no pose)",
     )
     zenoh_flags(robots, client=True)
     robots.set_defaults(func=cmd_robots)
@@ -34,14 +48,42 @@ def register(sub: Any) -> None:
 
 def cmd_robots(args: argparse.Namespace) -> int:
     """``rlutf robots``: 0 if at least one instance answers."""
-    from service.live.robots import fetch_robots, merge_robots, robots_json, robots_table
+    from service.cli.present import robots_table
+    from service.live.robots import fetch_robots, merge_robots, merge_waiting
 
     settings, session = client(args)
     with session:
         answers = fetch_robots(session, settings.prefix, args.timeout)
     if not answers:
-        print("rlutf robots: no instance answered", file=sys.stderr)
+        print(
+            f"rlutf robots: no instance answered on prefix {settings.prefix!r} within "
+            f"{args.timeout:g} s; is `rlutf serve` running? use -e/--connect and --prefix",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
     states = merge_robots(answers)
-    print(robots_json(states) if args.json else robots_table(states))
+    waiting = merge_waiting(answers)
+    if args.json:
+        rows: list[dict[str, Any]] = [
+            {
+                **s.model_dump(mode="json"),
+                "silent": s.age_s is not None and s.age_s > args.silent,
+            }
+            for s in states
+        ]
+        rows += [
+            {
+                "robot_id": w.robot_id,
+                "map_id": None,
+                "status": "waiting",
+                "reason": w.reason,
+                "age_s": w.age_s,
+                "owner": w.owner,
+                "silent": w.age_s > args.silent,
+            }
+            for w in waiting
+        ]
+        print(json.dumps(rows))
+    else:
+        print(robots_table(states, waiting, args.silent))
     return EXIT_OK

@@ -11,12 +11,17 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from service.cli.errors import zenoh_text
 from service.cli.flags import (
     EXIT_FAILURE,
     EXIT_OK,
+    PORT,
     load,
+    number,
     ros2_flags,
     settings_flags,
+    usable_folder,
+    zenoh_file_config,
     zenoh_flags,
 )
 from service.cli.progress import starting_status
@@ -55,20 +60,37 @@ def register(sub: Any) -> None:
         "Zenoh client session) at 10 Hz with drifting odometry. Shows a "
         "live table and a summary.",
     )
-    demo.add_argument("--robots", type=int, default=5, help="simulated robots (default 5)")
-    demo.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
-    demo.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
-    demo.add_argument("--beams", type=int, default=360, help="beams per scan (default 360)")
+    demo.add_argument(
+        "--robots", type=number(int, minimum=1), default=5, help="simulated robots (default 5)"
+    )
+    demo.add_argument("--duration", type=number(above=0), default=20.0, help="seconds (default 20)")
+    demo.add_argument(
+        "--rate",
+        type=number(above=0, maximum=1000),
+        default=10.0,
+        help="scans per second per robot (default 10)",
+    )
+    demo.add_argument(
+        "--beams",
+        type=number(int, minimum=8, maximum=100_000),
+        default=360,
+        help="beams per scan (default 360)",
+    )
     demo.add_argument("--seed", type=int, default=0, help="world and fleet seed")
     demo.add_argument(
-        "--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)"
+        "--port", type=PORT, default=0, help="router port on 127.0.0.1 (default: a free one)"
     )
     demo.add_argument("--store", type=Path, help="map store folder (default: a temporary one)")
     demo.add_argument(
         "--record", type=Path, default=Path("logs"), help="MCAP log folder (default: logs)"
     )
     demo.add_argument("--no-record", action="store_true", help="do not record")
-    demo.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    demo.add_argument(
+        "--workers",
+        type=number(int, minimum=-1),
+        default=-1,
+        help="service worker processes (-1: one per core, the default; 0: in-process thread)",
+    )
     demo.add_argument("--quiet", action="store_true", help="no live table, summary only")
     demo.add_argument("--verbose-health", action="store_true", help="print the final health")
     demo.set_defaults(func=cmd_demo)
@@ -84,11 +106,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.live.foxview import LiveViewError
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
 
     settings = load(args)
+    zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
+    if not settings.no_store:
+        usable_folder(settings.store_dir, "--store")
+    if not settings.no_record:
+        usable_folder(settings.record_dir, "--record")
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -103,10 +131,26 @@ def cmd_serve(args: argparse.Namespace) -> int:
             service.start(progress)
         tune_gc()
     except zenoh.ZError as err:
-        print(f"rlutf serve: cannot open the zenoh session: {err}", file=sys.stderr)
+        print(
+            f"rlutf serve: cannot open the zenoh session ({zenoh_text(err)}); is the port "
+            f"taken (another `rlutf serve` or zenohd on {', '.join(settings.listen)})? choose "
+            "another with -l/--listen, or join it with -m client -e ENDPOINT",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
-    except OSError as err:  # the metrics port is taken or the address is not local
-        print(f"rlutf serve: cannot serve metrics: {err}", file=sys.stderr)
+    except LiveViewError as err:  # --foxglove-port taken or --foxglove-addr not local
+        print(f"rlutf serve: {err} (choose another --foxglove-port)", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as err:
+        if err.filename is not None:  # a folder of the store, the state or the logs
+            raise
+        # the metrics port is taken or the address is not local
+        print(
+            f"rlutf serve: cannot serve metrics on {settings.metrics_addr}:"
+            f"{settings.metrics_port} ({err.strerror or err}); choose another --metrics-port "
+            "(0: any free one) or --metrics-addr",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
     except RuntimeError as err:  # a worker process could not start
         print(f"rlutf serve: {err}", file=sys.stderr)
@@ -118,6 +162,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
+    if service.metrics.port is not None:
+        print(
+            f"rlutf serve: metrics on http://{settings.metrics_addr}:{service.metrics.port}/metrics",
+            file=sys.stderr,
+            flush=True,
+        )
+    if service.live.url is not None:
+        print(
+            f"rlutf serve: live view on {service.live.url} (Foxglove app: Open connection, "
+            "Foxglove WebSocket)",
+            file=sys.stderr,
+            flush=True,
+        )
     try:
         service.wait(stop)
     finally:
@@ -127,6 +184,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
-    from service.live.demo import run_demo
+    from service.sim.demo import run_demo
+
+    if args.store is not None:
+        usable_folder(args.store, "--store")
+    if not args.no_record:
+        usable_folder(args.record, "--record")
 
     return run_demo(args)

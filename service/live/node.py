@@ -49,6 +49,7 @@ from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher
 from service.live.healthfeed import HealthFeed
 from service.live.intake import Intake
+from service.live.liveview import LiveView, make_live_view
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
@@ -106,6 +107,7 @@ class LocalizationService:
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
         self.maps = MapBook(settings.max_payload_bytes)
+        self.live: LiveView = make_live_view(settings, self.maps)  # Foxglove, or nothing
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}
@@ -209,6 +211,7 @@ class LocalizationService:
         """
         s = self.settings
         self.metrics.start(self)  # first: a port in use fails the start before anything runs
+        self.live.start()
         # Compile the localizer's kernels (or load them from numba's cache) now, not at the
         # first scan. Worker processes do it as they start; with them, this process never runs
         # an update, and loaded kernels cost ~60 MB of resident memory a process.
@@ -304,6 +307,7 @@ class LocalizationService:
             self._storage.close()
         self.outbox.close()
         self.recorder.close()
+        self.live.close()
         self.metrics.close()
         if self._own_session and self._session is not None:
             self._session.close()
@@ -347,6 +351,7 @@ class LocalizationService:
         """Record an input received at ``at`` (or a handover seed) and hand it to its mailbox."""
         key = self.keys.robot(robot, kind)
         self.recorder.record(key, SCHEMA_OF_LEAF[kind], payload, at, msg.stamp_ns)
+        self.live.record(key, SCHEMA_OF_LEAF[kind], payload, at, msg.stamp_ns)
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
@@ -404,6 +409,7 @@ class LocalizationService:
                 self.recorder.record(
                     out.key, SCHEMA_OF_LEAF["pose"], out.payload, now, out.stamp_ns
                 )
+                self.live.record(out.key, SCHEMA_OF_LEAF["pose"], out.payload, now, out.stamp_ns)
                 self.stats.add("processed")
                 if out.received_ns is not None:
                     self.stats.latency((now - out.received_ns) / 1e6)
@@ -413,7 +419,9 @@ class LocalizationService:
                 self.metrics.pose(out.status)
             else:
                 self._publish(out.key, out.payload)
-                self.recorder.record(out.key, EVENT_SCHEMA, out.payload, self.clock(), out.stamp_ns)
+                now = self.clock()
+                self.recorder.record(out.key, EVENT_SCHEMA, out.payload, now, out.stamp_ns)
+                self.robot_view.event(done.robot, out.payload, now)
                 for code, counter in COUNTED_EVENTS.items():
                     if code in out.payload:
                         self.stats.add(counter)

@@ -1,9 +1,16 @@
-"""Client tools over Zenoh for a running fleet: query poses and instances' health, relocalize."""
+"""Client tools over Zenoh for a running fleet: poses, health, live instances, the operator's
+requests (InitialPose, Relocalize) followed to their outcome, and the fleet's Events.
+
+Nothing here prints: the command line formats what these functions return or hand to their
+callbacks.
+"""
 
 from __future__ import annotations
 
 import queue
-import sys
+import threading
+from collections.abc import Callable
+from typing import Literal, NamedTuple
 
 import zenoh
 
@@ -11,125 +18,173 @@ from schemas import (
     Event,
     EventCode,
     Health,
+    InitialPose,
     PoseEstimate,
     Relocalize,
     SchemaError,
     decode,
     encode,
-    valid_id,
 )
 from service.keys import Keys
 
+JSON = zenoh.Encoding.APPLICATION_JSON
 
-def query_poses(session: zenoh.Session, prefix: str, robot: str, timeout: float) -> int:
-    """Print the latest PoseEstimate of one robot (or ``*``: all), one JSON per line."""
-    if robot != "*" and not valid_id(robot):
-        print(f"rlutf pose: invalid robot id {robot!r}", file=sys.stderr)
-        return 2
-    key = Keys(prefix).pose(robot)
-    found = 0
-    for reply in session.get(key, timeout=timeout):
+
+def fetch_poses(
+    session: zenoh.Session, prefix: str, robot: str, timeout: float
+) -> tuple[list[PoseEstimate], list[str]]:
+    """The latest PoseEstimate of one robot (or ``*``: every robot), by robot id, and the keys
+    whose answer could not be decoded."""
+    poses: dict[str, PoseEstimate] = {}
+    bad: list[str] = []
+    for reply in session.get(Keys(prefix).pose(robot), timeout=timeout):
         if reply.ok is None:
             continue
         try:
             pose = decode(PoseEstimate, reply.ok.payload.to_bytes())
-        except SchemaError as err:
-            print(f"rlutf pose: bad reply on {reply.ok.key_expr}: {err}", file=sys.stderr)
+        except SchemaError:
+            bad.append(str(reply.ok.key_expr))
             continue
-        print(encode(pose).decode())
-        found += 1
-    if not found:
-        print(f"rlutf pose: no pose for {robot!r}", file=sys.stderr)
-        return 1
-    return 0
+        old = poses.get(pose.robot_id)
+        if old is None or pose.stamp_ns > old.stamp_ns:
+            poses[pose.robot_id] = pose
+    return [poses[r] for r in sorted(poses)], bad
 
 
-def query_health(session: zenoh.Session, prefix: str, instance: str, timeout: float) -> int:
-    """Print each live instance's Health; 0 if at least one answered."""
-    key = Keys(prefix).health(instance)
-    found = 0
-    for reply in session.get(key, timeout=timeout):
+def fetch_health(
+    session: zenoh.Session, prefix: str, instance: str, timeout: float
+) -> list[Health]:
+    """The Health of each live instance that answers (``*``: all), by instance name."""
+    found: list[Health] = []
+    for reply in session.get(Keys(prefix).health(instance), timeout=timeout):
         if reply.ok is None:
             continue
         try:
-            health = decode(Health, reply.ok.payload.to_bytes())
+            found.append(decode(Health, reply.ok.payload.to_bytes()))
         except SchemaError:
             continue
-        print(encode(health).decode())
-        found += 1
-    if not found:
-        print("rlutf health: no instance answered", file=sys.stderr)
-        return 1
-    return 0
+    return sorted(found, key=lambda h: h.instance)
 
 
-def request_relocalize(
+def live_instances(session: zenoh.Session, prefix: str, timeout: float = 1.0) -> list[str]:
+    """The instances whose liveliness token is declared on ``{prefix}/service/*``."""
+    base = f"{prefix}/service/"
+    names = {
+        str(r.ok.key_expr).removeprefix(base)
+        for r in session.liveliness().get(f"{base}*", timeout=timeout)
+        if r.ok is not None
+    }
+    return sorted(names)
+
+
+def robot_of(prefix: str, events_key: str) -> str | None:
+    """The robot of ``{prefix}/robots/{robot}/events``; ``None`` for ``{prefix}/events``."""
+    head = f"{prefix}/robots/"
+    if events_key.startswith(head) and events_key.endswith("/events"):
+        return events_key[len(head) : -len("/events")]
+    return None
+
+
+#: ``(robot or None, event)`` for each Event followed.
+EventCallback = Callable[[str | None, Event], None]
+
+
+def follow_events(
+    session: zenoh.Session,
+    prefix: str,
+    robot: str | None,
+    on_event: EventCallback,
+    stop: threading.Event,
+    seconds: float | None = None,
+) -> None:
+    """Hand every Event of ``robot`` (``None``: every robot's and the service-wide ones) to
+    ``on_event`` as it arrives, until ``stop`` is set or ``seconds`` have passed."""
+    keys = Keys(prefix)
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            ev = decode(Event, sample.payload.to_bytes())
+        except SchemaError:
+            return
+        on_event(robot_of(prefix, str(sample.key_expr)), ev)
+
+    wanted = [keys.robot_events(robot)] if robot else [keys.robot_events("*"), f"{prefix}/events"]
+    subs = [session.declare_subscriber(k, on_sample) for k in wanted]
+    try:
+        stop.wait(seconds)
+    finally:
+        for s in subs:
+            s.undeclare()
+
+
+class Outcome(NamedTuple):
+    """How a request ended: ``done`` (the service acted on it), ``refused`` (an Event said why),
+    or ``waiting`` (nothing within the time given); the last pose seen, if any."""
+
+    result: Literal["done", "refused", "waiting"]
+    pose: PoseEstimate | None
+
+
+def put_request(
     session: zenoh.Session,
     prefix: str,
     robot: str,
-    request: Relocalize,
+    request: InitialPose | Relocalize,
     wait: float,
-) -> int:
-    """Put a Relocalize for ``robot``; with ``wait`` > 0, follow its events until it ends.
+    on_event: EventCallback,
+) -> Outcome:
+    """Put an InitialPose or Relocalize for ``robot`` and follow its Events for up to ``wait``
+    seconds (0: put only).
 
-    Prints each Event about the robot (and, while hypotheses remain, their count) as it comes,
-    one JSON per line.
-
-    Returns:
-        0 when the request was put (``wait`` = 0) or the robot was relocalized; 1 when the
-        service answered ``map_not_found`` or ``invalid_message``, or nothing ended the episode
-        within ``wait`` seconds.
+    Done means: for a Relocalize, the Event ``relocalized``; for an InitialPose, a pose of the
+    robot on the requested map published after the put. Refused: ``map_not_found`` for the
+    requested map or the request's key, or ``invalid_message`` for the request's key.
     """
     keys = Keys(prefix)
-    key = keys.robot(robot, "relocalize")
+    kind = "initialpose" if isinstance(request, InitialPose) else "relocalize"
+    key = keys.robot(robot, kind)
     if wait <= 0:
-        session.put(key, encode(request), encoding=zenoh.Encoding.APPLICATION_JSON)
-        print(f"put {key}: {encode(request).decode()}")
-        return 0
-    ended: queue.Queue[int] = queue.Queue()
-    seen: dict[str, str] = {"status": "", "hypotheses": ""}
-    # What ends the wait: success, or a failure of this request (the map's or the request's key).
+        session.put(key, encode(request), encoding=JSON)
+        return Outcome("waiting", None)
+    ended: queue.Queue[Literal["done", "refused"]] = queue.Queue()
+    last: list[PoseEstimate] = []
     failures = {
         (EventCode.MAP_NOT_FOUND, keys.map(request.map_id)),
         (EventCode.MAP_NOT_FOUND, key),
         (EventCode.INVALID_MESSAGE, key),
     }
 
-    def on_event(sample: zenoh.Sample) -> None:
+    def on_sample(sample: zenoh.Sample) -> None:
         try:
             ev = decode(Event, sample.payload.to_bytes())
         except SchemaError:
             return
-        print(encode(ev).decode(), flush=True)
-        if ev.code == EventCode.RELOCALIZED:
-            ended.put(0)
+        on_event(robot, ev)
+        if ev.code == EventCode.RELOCALIZED and kind == "relocalize":
+            ended.put("done")
         elif (ev.code, ev.key) in failures:
-            ended.put(1)
+            ended.put("refused")
 
     def on_pose(sample: zenoh.Sample) -> None:
         try:
             pose = decode(PoseEstimate, sample.payload.to_bytes())
         except SchemaError:
             return
-        seen["status"] = pose.status
-        seen["hypotheses"] = f", {len(pose.hypotheses)} hypotheses" if pose.hypotheses else ""
+        last[:] = [pose]
+        if kind == "initialpose" and pose.map_id == request.map_id:
+            ended.put("done")
 
     subs = [
-        session.declare_subscriber(keys.robot_events(robot), on_event),
+        session.declare_subscriber(keys.robot_events(robot), on_sample),
         session.declare_subscriber(keys.pose(robot), on_pose),
     ]
     try:
-        session.put(key, encode(request), encoding=zenoh.Encoding.APPLICATION_JSON)
+        session.put(key, encode(request), encoding=JSON)
         try:
-            return ended.get(timeout=wait)
+            result = ended.get(timeout=wait)
         except queue.Empty:
-            last = seen["status"] or "no pose received"
-            print(
-                f"rlutf relocalize: {robot} not relocalized within {wait:g} s "
-                f"(last status: {last}{seen['hypotheses']})",
-                file=sys.stderr,
-            )
-            return 1
+            return Outcome("waiting", last[0] if last else None)
+        return Outcome(result, last[0] if last else None)
     finally:
         for s in subs:
             s.undeclare()

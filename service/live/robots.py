@@ -14,13 +14,18 @@ Answer (JSON, :class:`RobotsAnswer`)::
 
 ``age_s`` is the instance's clock now minus when the latest pose was published; ``age_s`` and
 ``latency_ms`` are ``null`` for a pose this instance holds but did not publish (a seed).
+``sigma_xy_m`` and ``sigma_theta_rad`` are the pose's 1-sigma uncertainty (from its covariance).
+``waiting`` lists the robots that send scans but have no pose yet (no initial pose, or a map
+not loaded), with the age of the latest such scan's Event: at most :data:`MAX_WAITING`, the
+longest silent forgotten first.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-from collections.abc import Callable, Iterable, Mapping
+import math
+import threading
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import NamedTuple
 
 import zenoh
@@ -62,6 +67,21 @@ class RobotState(BaseModel):
     deviation_range: float | None = Field(
         None, description="Latest pose's 95 % deviation range, metres (null: the pose has none)."
     )
+    sigma_xy_m: float | None = Field(
+        None, description="1-sigma position uncertainty (the covariance's larger axis), metres."
+    )
+    sigma_theta_rad: float | None = Field(None, description="1-sigma heading uncertainty, rad.")
+
+
+class WaitingRobot(BaseModel):
+    """A robot that sends scans but has no pose yet."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    robot_id: str = Field(description="Robot id.")
+    reason: str = Field(description="The Event code: not_initialized or map_not_found.")
+    age_s: float = Field(description="Seconds since the latest such Event (instance's clock).")
+    owner: str = Field(description="The instance holding the robot.")
 
 
 class RobotsAnswer(BaseModel):
@@ -72,11 +92,32 @@ class RobotsAnswer(BaseModel):
     instance: str = Field(description="The answering instance.")
     stamp_ns: int = Field(description="When the answer was made, ns since the Unix epoch.")
     robots: list[RobotState] = Field(default_factory=list, description="By robot id.")
+    waiting: list[WaitingRobot] = Field(
+        default_factory=list, description="Robots with scans but no pose yet, by robot id."
+    )
+
+
+def one_sigma(covariance: Sequence[float] | None) -> tuple[float | None, float | None]:
+    """1-sigma uncertainty of a row-major 3x3 covariance (x, y, theta): the larger semi-axis of
+    the position's 1-sigma ellipse (metres) and the heading's (radians); ``None`` without one."""
+    if covariance is None or len(covariance) != 9:
+        return None, None
+    xx, xy, yy, tt = covariance[0], covariance[1], covariance[4], covariance[8]
+    half = (xx + yy) / 2
+    largest = half + math.sqrt(max(((xx - yy) / 2) ** 2 + xy * xy, 0.0))
+    return math.sqrt(max(largest, 0.0)), math.sqrt(max(tt, 0.0))
 
 
 #: How the status lost reads in an encoded PoseEstimate (compact JSON, as :func:`schemas.encode`
 #: writes it): counting lost robots needs no decoding.
 _LOST = b'"status":"lost"'
+#: Events that say a robot sends scans but gets no pose, as their code reads in an Event.
+_WAITING = {
+    b'"code":"not_initialized"': "not_initialized",
+    b'"code":"map_not_found"': "map_not_found",
+}
+#: Robots remembered as waiting, at most (the longest silent are forgotten first).
+MAX_WAITING = 1000
 
 
 class _Published(NamedTuple):
@@ -98,6 +139,8 @@ class RobotView:
         self._poses = poses
         self._clock = clock
         self._published: dict[str, _Published] = {}
+        self._waiting: dict[str, tuple[int, str]] = {}  # robot -> (when, event code)
+        self._lock = threading.Lock()  # for the waiting robots only (not the hot path)
 
     # ------------------------------------------------------------------ hot path
     def published(self, robot: str, at_ns: int, received_ns: int | None) -> None:
@@ -107,9 +150,23 @@ class RobotView:
             at_ns, None if received_ns is None else at_ns - received_ns
         )
 
+    def event(self, robot: str, payload: bytes, at_ns: int) -> None:
+        """An Event about ``robot`` was published at ``at_ns``: remembers a robot whose scans get
+        no pose (rate-limited Events, so not per scan)."""
+        for code, reason in _WAITING.items():
+            if code in payload:
+                with self._lock:
+                    self._waiting.pop(robot, None)  # re-inserted last: the freshest at the end
+                    self._waiting[robot] = (at_ns, reason)
+                    while len(self._waiting) > MAX_WAITING:
+                        del self._waiting[next(iter(self._waiting))]
+                return
+
     def forget(self, robot: str) -> None:
         """``robot`` is no longer held here (moved to another instance)."""
         self._published.pop(robot, None)
+        with self._lock:
+            self._waiting.pop(robot, None)
 
     # ------------------------------------------------------------------ scrape and query time
     def held(self) -> int:
@@ -132,6 +189,7 @@ class RobotView:
                 log.warning("robot view: undecodable pose of %s", robot, exc_info=True)
                 continue
             seen = self._published.get(robot)
+            sigma_xy, sigma_theta = one_sigma(pose.covariance)
             age = latency = None
             if seen is not None:
                 age = max(now - seen.at_ns, 0) / 1e9
@@ -149,14 +207,32 @@ class RobotView:
                     owner=self.instance,
                     localization_score=pose.localization_score,
                     deviation_range=pose.deviation_range,
+                    sigma_xy_m=sigma_xy,
+                    sigma_theta_rad=sigma_theta,
                 )
             )
         return out
 
+    def waiting(self) -> list[WaitingRobot]:
+        """Robots whose scans get no pose, by robot id (those with a pose since left out)."""
+        now = self._clock()
+        return [
+            WaitingRobot(
+                robot_id=robot, reason=reason, age_s=max(now - at, 0) / 1e9, owner=self.instance
+            )
+            for robot, (at, reason) in sorted(self._waiting.items())
+            if robot not in self._poses
+        ]
+
     def answer(self) -> bytes:
         """The encoded :class:`RobotsAnswer` of this instance."""
         return (
-            RobotsAnswer(instance=self.instance, stamp_ns=self._clock(), robots=self.states())
+            RobotsAnswer(
+                instance=self.instance,
+                stamp_ns=self._clock(),
+                robots=self.states(),
+                waiting=self.waiting(),
+            )
             .model_dump_json()
             .encode()
         )
@@ -199,56 +275,15 @@ def _fresher(a: RobotState, b: RobotState) -> bool:
     return b.age_s is None or a.age_s < b.age_s
 
 
-COLUMNS = (
-    "robot",
-    "map",
-    "status",
-    "x",
-    "y",
-    "theta",
-    "score",
-    "range m",
-    "age s",
-    "latency ms",
-    "owner",
-)
-
-
-def robots_table(states: Iterable[RobotState]) -> str:
-    """A plain-text table of ``states`` (header and one line per robot, columns aligned)."""
-
-    def num(value: float | None, digits: int) -> str:
-        return "-" if value is None else f"{value:.{digits}f}"
-
-    rows = [list(COLUMNS)]
-    rows += [
-        [
-            s.robot_id,
-            s.map_id,
-            s.status,
-            num(s.x, 3),
-            num(s.y, 3),
-            num(s.theta, 3),
-            num(s.localization_score, 2),
-            num(s.deviation_range, 3),
-            num(s.age_s, 2),
-            num(s.latency_ms, 1),
-            s.owner,
-        ]
-        for s in states
-    ]
-    widths = [max(len(r[i]) for r in rows) for i in range(len(COLUMNS))]
-    numeric = {3, 4, 5, 6, 7, 8, 9}  # right-aligned
-    lines = [
-        "  ".join(
-            cell.rjust(widths[i]) if i in numeric else cell.ljust(widths[i])
-            for i, cell in enumerate(row)
-        ).rstrip()
-        for row in rows
-    ]
-    return "\n".join(lines)
-
-
-def robots_json(states: Iterable[RobotState]) -> str:
-    """``states`` as one JSON array."""
-    return json.dumps([s.model_dump(mode="json") for s in states])
+def merge_waiting(answers: Iterable[RobotsAnswer]) -> list[WaitingRobot]:
+    """All instances' waiting robots by robot id, the freshest of each; a robot some instance
+    holds a pose of is left out."""
+    answers = list(answers)
+    posed = {s.robot_id for a in answers for s in a.robots}
+    best: dict[str, WaitingRobot] = {}
+    for answer in answers:
+        for w in answer.waiting:
+            old = best.get(w.robot_id)
+            if w.robot_id not in posed and (old is None or w.age_s < old.age_s):
+                best[w.robot_id] = w
+    return [best[r] for r in sorted(best)]

@@ -72,6 +72,33 @@ def _pose(x: float, y: float, theta: float) -> dict[str, Any]:
     }
 
 
+def scene_entity(
+    stamp_ns: int,
+    frame: str,
+    entity_id: str,
+    metadata: dict[str, str],
+    frame_locked: bool,
+    **primitives: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """A ``foxglove.SceneEntity``: every primitive list empty but those given (``lines=...``)."""
+    entity: dict[str, Any] = {
+        "timestamp": _time(stamp_ns),
+        "frame_id": frame,
+        "id": entity_id,
+        "lifetime": {"sec": 0, "nsec": 0},
+        "frame_locked": frame_locked,
+        "metadata": [{"key": k, "value": v} for k, v in metadata.items()],
+    }
+    for kind in _PRIMITIVES:
+        entity[kind] = primitives.pop(kind, [])
+    if primitives:
+        raise TypeError(f"not a SceneEntity primitive: {', '.join(primitives)}")
+    return entity
+
+
+_PRIMITIVES = ("arrows", "cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")
+
+
 def _dumps(value: Any) -> bytes:
     return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
 
@@ -165,25 +192,14 @@ class FoxgloveConverter:
                         "indices": [],
                     }
                 )
-        entity = {
-            "timestamp": _time(record.log_time_ns),
-            "frame_id": frame,
-            "id": f"map/{map_id}",
-            "lifetime": {"sec": 0, "nsec": 0},
-            "frame_locked": True,
-            "metadata": [
-                {"key": "map_id", "value": map_id},
-                {"key": "version", "value": str(data.get("version", ""))},
-            ],
-            "arrows": [],
-            "cubes": [],
-            "spheres": [],
-            "cylinders": [],
-            "lines": lines,
-            "triangles": [],
-            "texts": [],
-            "models": [],
-        }
+        entity = scene_entity(
+            record.log_time_ns,
+            frame,
+            f"map/{map_id}",
+            {"map_id": map_id, "version": str(data.get("version", ""))},
+            True,
+            lines=lines,
+        )
         update = {"deletions": [], "entities": [entity]}
         return [
             Record(

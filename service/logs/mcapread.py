@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import heapq
 import io
+import time
 from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,10 +36,43 @@ class DamagedLog(LogError):
 
     def __init__(self, path: Path, detail: str) -> None:
         super().__init__(
-            f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
+            part_message(path)
+            if path.name.endswith(".mcap.part")
+            else f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
             f"short); salvage its complete chunks with: rlutf log recover {path} FIXED.mcap"
         )
         self.path = path
+
+
+#: A ``.mcap.part`` modified this recently is taken to be still recorded, seconds.
+RECENT_S = 60.0
+
+
+def part_message(path: Path, now: float | None = None) -> str:
+    """What a ``.mcap.part`` file is and how to read it now.
+
+    The recorder writes a log as ``NAME.mcap.part`` and renames it ``NAME.mcap`` when it is
+    finished (rotation or a stop); until then it has no summary, and its last chunk may be
+    half-written. Its complete chunks (flushed at least every second) can be copied out.
+    """
+    try:
+        age = (time.time() if now is None else now) - path.stat().st_mtime
+    except OSError:
+        age = None
+    state = (
+        f"is being recorded now (last written {age:.0f} s ago)"
+        if age is not None and age < RECENT_S
+        else "was left unfinished (its recorder crashed or was killed)"
+        if age is not None
+        else "is unfinished"
+    )
+    final = path.name.removesuffix(".part")
+    return (
+        f"{path}: this log {state}: a .mcap.part file has no index until the service finishes "
+        f"it (at rotation, record_max_seconds, or when it stops) and renames it {final}. "
+        f"To read it now, copy its complete chunks: rlutf log recover {path} COPY.mcap "
+        "(the file being recorded is not touched), then use COPY.mcap"
+    )
 
 
 class ChannelInfo(NamedTuple):

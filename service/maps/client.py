@@ -83,5 +83,9 @@ def get_map(
         else:
             sys.stdout.write(payload.decode() + "\n")
         return 0
-    print(f"rlutf map get: no storage answered for {key}", file=sys.stderr)
+    print(
+        f"rlutf map get: no storage answered for {key} within {timeout:g} s (`rlutf map list` "
+        "shows the stored maps)",
+        file=sys.stderr,
+    )
     return 1

@@ -87,9 +87,19 @@ class FileMapStore:
                 os.close(dir_fd)
 
     def delete(self, map_id: str) -> None:
-        """Remove the file if present."""
+        """Remove the file if present, durably (a crash does not bring the map back)."""
+        path = self._path(map_id)
         with self._lock:
-            self._path(map_id).unlink(missing_ok=True)
+            if path.exists():
+                path.unlink(missing_ok=True)
+                self._sync_folder()
+
+    def _sync_folder(self) -> None:
+        dir_fd = os.open(self.root, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
 
     def ids(self) -> list[str]:
         """Ids of the stored maps, sorted."""
@@ -144,9 +154,14 @@ class MapStorage:
             return
         if map_id is None:
             return
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self.store.delete(map_id)
+        if sample.kind == zenoh.SampleKind.DELETE:  # `rlutf map remove`: an operator's choice
+            try:
+                self.store.delete(map_id)
+            except OSError as err:
+                self.on_error(key, f"could not remove map {map_id}: {err}")
+                return
             self._versions.pop(map_id, None)
+            log.info("map %s removed", map_id)
             return
         payload = sample.payload.to_bytes()
         try:

@@ -7,14 +7,16 @@ malformed payload, a wrong type on a topic, a namespace that is not a robot id, 
 in another frame) is dropped with an Event through ``reject``; nothing else is touched.
 
 Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
-transient-local, depth 1: an advanced publisher with a one-sample cache, as rmw_zenoh declares
-it) and as the ``map`` -> ``odom`` transform on the robot's ``tf`` (map -> base composed with the
-inverse of the robot's odometry at the scan's stamp, stamped ahead by the transform tolerance),
-and its quality (``localization_score``, ``deviation_range``) as a DiagnosticArray on the
-robot's ``diagnostics``, each sample with rmw_zenoh's attachment, on the key the robot's own
-distribution listens on.
-Liveliness tokens announce the node and its topics, so ``ros2 node list`` and ``ros2 topic
-list`` show them.
+transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
+heartbeat, as rmw_zenoh declares it) and as the ``map`` -> ``odom`` transform on the robot's
+``tf`` (map -> base composed with the inverse of the robot's odometry at the scan's stamp,
+stamped ahead by the transform tolerance), and its quality (``localization_score``,
+``deviation_range``) as a DiagnosticArray on the robot's ``diagnostics``, each sample with
+rmw_zenoh's attachment, on the key the robot's own distribution listens on. Liveliness tokens
+announce the node and its topics, so ``ros2 node list`` and ``ros2 topic list`` show them. AMCL's
+``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`;
+started without a map, the front door says at once what will be refused
+(:func:`no_map_warning`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from service.keys import InputKind, Keys, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
 from service.ros2.gate import OdometryGate
+from service.ros2.globalloc import EMPTY_SRV, SERVICE_QOS, GlobalLocalization
 from service.ros2.names import Distro
 from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
@@ -120,6 +123,7 @@ class Ros2FrontDoor:
         self._static: dict[str, StaticFrames] = {}
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
+        self.globalloc = GlobalLocalization(settings, self.gate.put, reject, clock, overrides)
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
 
@@ -127,6 +131,9 @@ class Ros2FrontDoor:
     def start(self, session: zenoh.Session) -> None:
         """Declare the node's token and the subscriptions."""
         s = self.settings
+        warning = no_map_warning(s)
+        if warning is not None:
+            log.warning("%s", warning)
         self._session = session
         self._zid = str(session.zid())
         liveliness = session.liveliness()
@@ -147,6 +154,7 @@ class Ros2FrontDoor:
                         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
                     )
                 )
+        self.globalloc.start(session)
         self._flusher = threading.Thread(target=self._flush, name="rlutf-ros2-gate", daemon=True)
         self._flusher.start()
         log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
@@ -159,6 +167,7 @@ class Ros2FrontDoor:
     def close(self) -> None:
         """Undeclare publishers, tokens and subscriptions."""
         self._stop.set()
+        self.globalloc.close()
         if self._flusher is not None:
             self._flusher.join(1.0)
         with self._lock:
@@ -347,7 +356,7 @@ class Ros2FrontDoor:
             "odom": names.ODOM_QOS,
             "initialpose": names.INITIALPOSE_QOS,
         }
-        entities: list[tuple[Literal["MP", "MS"], str, str, names.Qos]] = [
+        entities: list[tuple[Literal["MP", "MS", "SS"], str, str, names.Qos]] = [
             ("MS", name, _EXPECTED[leaf], qos.get(leaf, names.TF_QOS))
             for name, leaf in self._topics.items()
         ]
@@ -358,6 +367,8 @@ class Ros2FrontDoor:
             )
         if s.publish_tf:
             entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
+        if s.global_localization_service:
+            entities.append(("SS", s.global_localization_service, EMPTY_SRV, SERVICE_QOS))
         liveliness = session.liveliness()
         for kind, name, msgtype, q in entities:
             topic = names.join_topic(r.namespace, name)
@@ -379,11 +390,20 @@ class Ros2FrontDoor:
             "allowed_destination": zenoh.Locality.REMOTE,  # not to our own tf subscriber
         }
         if qos.transient_local:
-            # rmw_zenoh's transient-local publisher: a cache late subscribers query.
+            # rmw_zenoh's transient-local publisher: a cache late subscribers query; reliable,
+            # also sequence numbers and a heartbeat (sent each 0.5 s if a sample went out
+            # meanwhile), from which a subscriber with recovery detects a lost last sample and
+            # fetches it from the cache (rmw_publisher_data.cpp, Humble to Rolling).
+            miss = (
+                zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S)
+                if qos.reliable
+                else None
+            )
             return zenoh.ext.declare_advanced_publisher(
                 session,
                 key,
                 cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
+                sample_miss_detection=miss,
                 publisher_detection=True,
                 **common,
             )
@@ -439,6 +459,25 @@ class Ros2FrontDoor:
             pub.publisher.put(payload, attachment=pub.sequencer.next(now))
         except zenoh.ZError:
             log.warning("could not publish on %s", pub.key, exc_info=True)
+
+
+#: rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms, sporadic), seconds.
+HEARTBEAT_S = 0.5
+
+
+def no_map_warning(s: Ros2Settings) -> str | None:
+    """What goes wrong when ROS robots have no map, and the flag that fixes it (``None``: fine)."""
+    if s.map_id is not None:
+        return None
+    without = "ROS robots" if not s.robots else "ROS robots without ros2.robots.NS.map_id"
+    grid = f"; maps on {s.map_topic} will not be imported (they need an id)" if s.map_topic else ""
+    service = f" and {s.global_localization_service} calls" if s.global_localization_service else ""
+    return (
+        f"ROS 2 front door: no map given for {without}: their initial poses (initialpose, "
+        f"RViz's 2D Pose Estimate){service} will be refused with an invalid_message Event, "
+        f"so they will not be localized{grid}. Fix: rlutf serve --ros2 --ros-map MAP_ID "
+        "(or the setting ros2.map_id, or ros2.robots.NS.map_id per robot)"
+    )
 
 
 _EXPECTED: dict[Leaf, str] = {

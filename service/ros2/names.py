@@ -43,6 +43,14 @@ RIHS01: dict[str, str] = {
         "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
     ),
 }
+#: Services: a service's hash covers its request, response and event types (rosbags has no
+#: services; zenoh-ros2-sdk's ``compute_service_type_hash`` gives it, and ROS 2's docs show the
+#: same in ``ros2 service info /clear``).
+SRV_RIHS01: dict[str, str] = {
+    "std_srvs/srv/Empty": (
+        "RIHS01_5888399dedec5ccc85ea6451949fd2c9f97bfdf963f9a588821639fcd31b5d19"
+    ),
+}
 
 _DDS_TYPE = re.compile(r"^([A-Za-z0-9_]+)::(msg|srv|action)::dds_::([A-Za-z0-9_]+)_$")
 
@@ -61,7 +69,9 @@ def ros_type(dds: str) -> str | None:
 
 def type_hash(msgtype: str, distro: Distro) -> str:
     """The hash chunk a robot of ``distro`` uses for ``msgtype``."""
-    return HUMBLE_HASH if distro == "humble" else RIHS01[msgtype]
+    if distro == "humble":
+        return HUMBLE_HASH
+    return RIHS01[msgtype] if "/msg/" in msgtype else SRV_RIHS01[msgtype]
 
 
 def distro_of_hash(chunk: str) -> Distro:
@@ -191,14 +201,14 @@ def entity_token(
     zid: str,
     node_id: int,
     entity_id: int,
-    kind: Literal["MP", "MS"],
+    kind: Literal["MP", "MS", "SS"],
     topic: str,
     msgtype: str,
     distro: Distro,
     qos: Qos,
     name: str = NODE_NAME,
 ) -> str:
-    """The ``MP`` (publisher) or ``MS`` (subscription) token of one topic of the node."""
+    """The ``MP`` (publisher), ``MS`` (subscription) or ``SS`` (service) token of the node."""
     return (
         f"@ros2_lv/{domain}/{zid}/{node_id}/{entity_id}/{kind}/%/%/{mangle(name)}/"
         f"{mangle(topic)}/{dds_type(msgtype)}/{type_hash(msgtype, distro)}/{qos.keyexpr()}"

@@ -8,23 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.relocalize import (
+from bench.kidnap import KidnapRun, kidnap_path
+from bench.reloccases import (
     TWIN_TRUTH,
-    Case,
-    KidnapRun,
     Oracle,
-    Precompute,
     RelocProfile,
-    Summary,
     building,
     close,
-    kidnap_path,
     oracle,
-    reloc_targets,
     sample_queries,
-    summarise,
     twin_rooms,
 )
+from bench.relocgrade import Case, Precompute, Summary, summarise
+from bench.reloctables import reloc_targets
 from rlutf.motion import relative
 from rlutf.relocalize import Hypothesis, Relocalization, relocalize
 from rlutf.sim import LidarModel, make_building, random_free_point, simulate_scan

@@ -1,9 +1,8 @@
-"""The pure parts of the soak benchmark: the looped plan, the slope fit and the verdicts."""
+"""The pure parts of the soak benchmark: the slope fit and the verdicts."""
 
 from __future__ import annotations
 
 import math
-import tracemalloc
 
 import numpy as np
 import pytest
@@ -11,86 +10,14 @@ import pytest
 from bench.soakplan import (
     FileCheck,
     LatencyHistogram,
-    OdometryStream,
     counted_verdict,
     exit_code,
     logs_verdicts,
-    make_loop,
     memory_verdict,
-    ping_pong,
     queue_grows,
     queue_verdict,
     slope_per_10min,
 )
-from rlutf.motion import relative, wrap_angle
-from rlutf.sim import OdometryModel, make_building, make_trajectory
-
-NO_DRIFT = OdometryModel(trans_noise=0.0, rot_noise=0.0, rot_per_metre=0.0, heading_bias=0.0)
-
-
-@pytest.fixture(scope="module")
-def forward() -> np.ndarray:
-    rng = np.random.default_rng(3)
-    return make_trajectory(make_building(rng), rng, 60, dt=0.1)
-
-
-def test_ping_pong_goes_back_to_its_start(forward: np.ndarray) -> None:
-    loop, index = ping_pong(forward)
-    assert len(loop) == 2 * len(forward) - 2
-    np.testing.assert_array_equal(loop[: len(forward)], forward)
-    np.testing.assert_array_equal(loop[len(forward) :], forward[-2:0:-1])
-    np.testing.assert_array_equal(loop, forward[index])
-    # the step after the last is the first again: one ordinary step away
-    step = np.hypot(*(loop[-1, :2] - loop[0, :2]))
-    assert step == pytest.approx(np.hypot(*(forward[1, :2] - forward[0, :2])))
-
-
-def test_ping_pong_needs_two_poses() -> None:
-    with pytest.raises(ValueError, match="at least 2"):
-        ping_pong(np.zeros((1, 3)))
-
-
-def test_odometry_without_drift_follows_the_truth_over_many_loops(forward: np.ndarray) -> None:
-    loop = make_loop(forward, NO_DRIFT, np.random.default_rng(0))
-    stream = OdometryStream(loop.truth[0], loop.increments)
-    for k in range(1, 3 * loop.steps + 1):
-        pose = stream.advance()
-        truth = loop.truth[k % loop.steps]
-        assert pose[:2] == pytest.approx(tuple(truth[:2]), abs=1e-9)
-        assert float(wrap_angle(pose[2] - truth[2])) == pytest.approx(0.0, abs=1e-9)
-
-
-def test_odometry_is_continuous_across_loops(forward: np.ndarray) -> None:
-    loop = make_loop(forward, OdometryModel(), np.random.default_rng(1))
-    stream = OdometryStream(loop.truth[0], loop.increments)
-    poses = [stream.pose] + [stream.advance() for _ in range(4 * loop.steps)]
-    moves = relative(np.array(poses[:-1]), np.array(poses[1:]))
-    # each reported motion is the loop's increment of that step, the wrap-around included
-    np.testing.assert_allclose(moves, np.tile(loop.increments, (4, 1)), atol=1e-9)
-    # and no jump: no step moves farther than the fastest step of the truth (drift is ~3 %)
-    truth_steps = np.hypot(*np.diff(loop.truth[:, :2], axis=0).T)
-    assert np.hypot(moves[:, 0], moves[:, 1]).max() < 1.2 * truth_steps.max()
-    # drift accumulates: the odometry does not snap back to the start at each loop
-    ends = [poses[n * loop.steps] for n in range(5)]
-    assert len({(round(x, 6), round(y, 6)) for x, y, _ in ends}) == 5
-
-
-def test_what_a_robot_holds_does_not_depend_on_the_run_length(forward: np.ndarray) -> None:
-    loop = make_loop(forward, OdometryModel(), np.random.default_rng(2))
-    assert loop.increments.shape == loop.truth.shape == (2 * len(forward) - 2, 3)
-    # scans are drawn from the forward poses only: a loop needs len(forward) distinct scans
-    assert set(loop.scan_of_step.tolist()) == set(range(len(forward)))
-    # and streaming ten loops of odometry allocates nothing that stays
-    stream = OdometryStream(loop.truth[0], loop.increments)
-    tracemalloc.start()
-    try:
-        before = tracemalloc.get_traced_memory()[0]
-        for _ in range(10 * loop.steps):
-            stream.advance()
-        grown = tracemalloc.get_traced_memory()[0] - before
-    finally:
-        tracemalloc.stop()
-    assert grown < 1000
 
 
 def test_slope_is_per_ten_minutes() -> None:

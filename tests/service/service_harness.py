@@ -13,15 +13,16 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from sim_inputs import wire_scan
 
 from rlutf.map import Map as World
-from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
+from rlutf.sim import LidarModel, make_building
 from schemas import InitialPose, LaserScan, Map, Odometry, encode
 from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
 from service.logs.recording import make_recorder
+from service.sim.plan import RobotPlan, plan_robot
+from service.sim.wire import laser_scan
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -54,22 +55,27 @@ class Collector:
 
 @dataclass
 class SimRobot:
-    """A simulated robot driving one trajectory, publishing on a client session."""
+    """A simulated robot (:mod:`service.sim`'s plan, exact odometry) publishing on a session."""
 
-    robot_id: str
-    world: World
-    truth: np.ndarray
+    plan: RobotPlan
     session: zenoh.Session
     t0: int
     step: int = 0
-    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+    @property
+    def robot_id(self) -> str:
+        return self.plan.robot_id
+
+    @property
+    def truth(self) -> np.ndarray:
+        return self.plan.truth
 
     def stamp(self, i: int) -> int:
         return self.t0 + i * 100_000_000
 
     def odom(self, i: int) -> None:
-        p = self.truth[i]
-        msg = Odometry(stamp_ns=self.stamp(i), x=float(p[0]), y=float(p[1]), theta=float(p[2]))
+        x, y, theta = self.plan.odometry_at(i)
+        msg = Odometry(stamp_ns=self.stamp(i), x=x, y=y, theta=theta)
         self.session.put(f"rlutf/robots/{self.robot_id}/odom", encode(msg), encoding=JSON)
 
     def initial_pose(self, map_id: str, offset: tuple[float, float, float] = (0, 0, 0)) -> None:
@@ -85,8 +91,7 @@ class SimRobot:
         self.session.put(f"rlutf/robots/{self.robot_id}/initialpose", encode(msg), encoding=JSON)
 
     def scan_msg(self, i: int) -> LaserScan:
-        s = simulate_scan(self.world, self.truth[i], LidarModel(beams=180), self.rng)
-        return wire_scan(s, self.stamp(i))
+        return laser_scan(self.plan.scans[self.plan.index(i)], self.stamp(i))
 
     def advance(self) -> int:
         """Publish the next odometry and scan; returns the step index."""
@@ -96,6 +101,21 @@ class SimRobot:
             f"rlutf/robots/{self.robot_id}/scan", encode(self.scan_msg(self.step)), encoding=JSON
         )
         return self.step
+
+
+def sim_robot(
+    robot_id: str,
+    world: World,
+    seed: int,
+    session: zenoh.Session,
+    steps: int = 200,
+    t0: int | None = None,
+) -> SimRobot:
+    """A robot on its own path of ``steps`` poses (seeded), 180-beam scans, stamps from ``t0``
+    (default: now) at 10 Hz."""
+    start = time.time_ns() if t0 is None else t0  # before the drawing: no stamp ahead of now
+    plan = plan_robot(robot_id, world, np.random.default_rng(seed), steps, LidarModel(beams=180))
+    return SimRobot(plan, session, start)
 
 
 @dataclass
@@ -117,9 +137,7 @@ class Bench:
         )
 
     def robot(self, robot_id: str, seed: int, steps: int = 200) -> SimRobot:
-        rng = np.random.default_rng(seed)
-        truth = make_trajectory(self.world, rng, steps)
-        return SimRobot(robot_id, self.world, truth, self.client, time.time_ns(), rng=rng)
+        return sim_robot(robot_id, self.world, seed, self.client, steps)
 
 
 WORLD = make_building(np.random.default_rng(11))

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from rlutf.map import Map as World
-from rlutf.scan import Scan
 from rlutf.sim import LidarModel, OdometryModel, drift_odometry, make_trajectory, simulate_scan
 from schemas import LaserScan, Odometry
+from service.sim.wire import laser_scan
 
 T0 = 1_732_300_000_000_000_000
 STEP_NS = 100_000_000
@@ -51,19 +50,7 @@ class Run:
     def scan(self, i: int, at: np.ndarray | None = None) -> LaserScan:
         pose = self.truth[i] if at is None else at
         s = simulate_scan(self.world, pose, LidarModel(beams=self.beams), self.rng)
-        return wire_scan(s, self.stamp(i))
-
-
-def wire_scan(s: Scan, stamp_ns: int) -> LaserScan:
-    """The LaserScan message of a simulated scan (NaN, no return, becomes null)."""
-    return LaserScan(
-        stamp_ns=stamp_ns,
-        angle_min=s.angle_min,
-        angle_increment=s.angle_increment,
-        range_min=s.range_min,
-        range_max=s.range_max,
-        ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-    )
+        return laser_scan(s, self.stamp(i))
 
 
 def rack_beside(world: World, paths: list[np.ndarray], share: float = 0.5) -> Any:

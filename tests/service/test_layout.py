@@ -1,4 +1,4 @@
-"""The layout of ``service/``: imports go one way, and modules stay small.
+"""The layout of ``service/`` and ``bench/``: imports go one way, and modules stay small.
 
 Every import is counted, lazy ones inside functions and ``TYPE_CHECKING`` ones too, since any of
 them can close a circle.
@@ -10,7 +10,9 @@ import ast
 from collections.abc import Iterator
 from pathlib import Path
 
-SERVICE = Path(__file__).resolve().parents[2] / "service"
+ROOT = Path(__file__).resolve().parents[2]
+SERVICE = ROOT / "service"
+BENCH = ROOT / "bench"
 
 #: What each part of ``service`` may import (besides itself, ``rlutf`` and ``schemas``); the
 #: sub-packages' docstrings say the same.
@@ -35,6 +37,8 @@ ALLOWED: dict[str, set[str]] = {
         "cluster",
         "ros2",
     },
+    # the simulated fleet is a client of the service, as the command line is
+    "sim": {"keys", "config", "maps", "logs", "live", "ros2"},
     "cli": {
         "keys",
         "config",
@@ -46,22 +50,23 @@ ALLOWED: dict[str, set[str]] = {
         "cluster",
         "live",
         "ros2",
+        "sim",
     },
     "__main__": {"cli"},
 }
 
 
-def _module_name(path: Path) -> str:
-    parts = ["service", *path.relative_to(SERVICE).with_suffix("").parts]
+def _module_name(path: Path, package: Path = SERVICE) -> str:
+    parts = [package.name, *path.relative_to(package).with_suffix("").parts]
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _modules() -> dict[str, Path]:
-    return {_module_name(p): p for p in sorted(SERVICE.rglob("*.py"))}
+def _modules(package: Path = SERVICE) -> dict[str, Path]:
+    return {_module_name(p, package): p for p in sorted(package.rglob("*.py"))}
 
 
 def _imports(path: Path, name: str, known: set[str]) -> Iterator[str]:
-    """The ``service`` modules that ``path`` (module ``name``) imports."""
+    """The modules of ``known`` that ``path`` (module ``name``) imports."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Import):
@@ -84,8 +89,8 @@ def _imports(path: Path, name: str, known: set[str]) -> Iterator[str]:
                 yield module
 
 
-def _graph() -> dict[str, set[str]]:
-    modules = _modules()
+def _graph(package: Path = SERVICE) -> dict[str, set[str]]:
+    modules = _modules(package)
     known = set(modules)
     return {name: set(_imports(path, name, known)) for name, path in modules.items()}
 
@@ -161,9 +166,31 @@ def test_at_most_a_dozen_modules_directly_in_service() -> None:
     assert len(list(SERVICE.glob("*.py"))) <= 12
 
 
-def test_no_module_over_500_lines() -> None:
+def _long_modules(package: Path) -> dict[str, int]:
     lines = {
-        str(p.relative_to(SERVICE)): len(p.read_text(encoding="utf-8").splitlines())
-        for p in SERVICE.rglob("*.py")
+        str(p.relative_to(package)): len(p.read_text(encoding="utf-8").splitlines())
+        for p in package.rglob("*.py")
     }
-    assert {name: n for name, n in lines.items() if n > 500} == {}
+    return {name: n for name, n in lines.items() if n > 500}
+
+
+def test_no_module_over_500_lines() -> None:
+    assert _long_modules(SERVICE) == {}
+
+
+def test_no_bench_module_over_500_lines() -> None:
+    assert _long_modules(BENCH) == {}
+
+
+def test_no_circle_of_imports_between_bench_modules() -> None:
+    assert _cycles(_graph(BENCH)) == []
+
+
+def test_the_circle_finder_finds_a_circle(tmp_path: Path) -> None:
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from pkg import b\n")
+    (package / "b.py").write_text("def f():\n    from pkg.a import x\n")
+    (package / "c.py").write_text("import pkg.a\n")
+    assert _cycles(_graph(package)) == [["pkg.a", "pkg.b"]]

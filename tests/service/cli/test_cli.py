@@ -13,15 +13,21 @@ COMMANDS = [
     "serve",
     "config",
     "demo",
+    "simulate",
     "map",
     "pose",
     "relocalize",
     "health",
+    "initialpose",
+    "events",
     "robots",
     "replay",
     "log",
 ]
-ACTIONS = {"map": ["put", "get", "import", "build", "show", "health"], "log": ["info", "recover"]}
+ACTIONS = {
+    "map": ["put", "get", "list", "remove", "import", "build", "show", "health"],
+    "log": ["info", "recover"],
+}
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -54,7 +60,9 @@ def test_no_command_prints_help_and_exits_2(capsys: pytest.CaptureFixture[str]) 
 
 def test_map_without_an_action_says_which_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["map"]) == 2
-    assert "choose an action: put, get, import, build, show" in capsys.readouterr().err
+    assert (
+        "choose an action: put, get, list, remove, import, build, show" in capsys.readouterr().err
+    )
 
 
 def test_log_without_an_action_prints_its_help_and_exits_2(
@@ -120,3 +128,21 @@ def test_the_pose_state_follows_the_store_unless_given(
     assert config()["state_dir"] == "/data/store/state"
     monkeypatch.setenv("RLUTF_RESUME_MAX_AGE_S", "60")
     assert config()["resume_max_age_s"] == 60.0
+
+
+@pytest.mark.parametrize(
+    ("argv", "attr", "value"),
+    [
+        (["initialpose", "r1", "--map", "m", "--pose", "-1.5,2.0,0.3"], "pose", (-1.5, 2.0, 0.3)),
+        (["initialpose", "r1", "--map", "m", "--pose", "-1,-2,-0.5"], "pose", (-1.0, -2.0, -0.5)),
+        (["initialpose", "r1", "--pose", "-.5,0,0", "--map", "m"], "pose", (-0.5, 0.0, 0.0)),
+        (["relocalize", "r1", "--map", "m", "--near", "-4,-2.5,3"], "near", (-4.0, -2.5, 3.0)),
+    ],
+)
+def test_negative_numbers_are_read_as_typed(
+    argv: list[str], attr: str, value: tuple[float, ...]
+) -> None:
+    from service.cli.main import _join_number_lists
+
+    args = build_parser().parse_args(_join_number_lists(argv))
+    assert getattr(args, attr) == value

@@ -12,12 +12,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
-from service_harness import JSON, SimRobot
+from service_harness import JSON, SimRobot, sim_robot
 
 from rlutf.map import Map as World
-from rlutf.sim import make_trajectory
 from schemas import Map, encode
 from service.keys import Keys
 from service.live.sessions import session_config
@@ -156,12 +154,7 @@ class Router:
 def make_fleet(session: zenoh.Session, world: World, count: int, steps: int) -> list[SimRobot]:
     """``count`` simulated robots on their own paths, stamps from now at 10 Hz."""
     t0 = time.time_ns()
-    fleet = []
-    for i in range(count):
-        rng = np.random.default_rng(100 + i)
-        truth = make_trajectory(world, rng, steps)
-        fleet.append(SimRobot(f"r{i}", world, truth, session, t0, rng=rng))
-    return fleet
+    return [sim_robot(f"r{i}", world, 100 + i, session, steps, t0) for i in range(count)]
 
 
 class Driver:

@@ -25,9 +25,8 @@ import numpy as np
 import pytest
 import zenoh
 from scaleout_harness import PoseLog, wait_until
-from service_harness import JSON, WORLD, Collector, SimRobot, start_service
+from service_harness import JSON, WORLD, Collector, SimRobot, sim_robot, start_service
 
-from rlutf.sim import make_trajectory
 from schemas import Map, encode
 from service.cluster.posestate import FILE_NAME
 from service.live.sessions import client_config, free_port
@@ -41,12 +40,7 @@ DOWNTIME_STEPS = 15
 
 def _fleet(session: zenoh.Session, count: int) -> list[SimRobot]:
     t0 = time.time_ns()
-    fleet = []
-    for i in range(count):
-        rng = np.random.default_rng(40 + i)
-        truth = make_trajectory(WORLD, rng, 200)
-        fleet.append(SimRobot(f"r{i}", WORLD, truth, session, t0, rng=rng))
-    return fleet
+    return [sim_robot(f"r{i}", WORLD, 40 + i, session, 200, t0) for i in range(count)]
 
 
 def _drive(fleet: list[SimRobot], steps: int, sent: dict[str, float] | None = None) -> None:

@@ -10,10 +10,9 @@ import signal
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
-from service_harness import JSON, Bench, Collector, SimRobot, running_bench
+from service_harness import JSON, Bench, Collector, SimRobot, running_bench, sim_robot
 
 from schemas import PoseEstimate, encode
 from service.cluster.membership import owner_of
@@ -155,11 +154,8 @@ def test_a_forged_pose_and_a_fake_instance_never_give_a_confident_wrong_pose(
         time.sleep(0.3)
         instance = bench.service.settings.instance
         rid = _robot_owned_by("x", instance)
-        rng = np.random.default_rng(3)
-        from rlutf.sim import make_trajectory
-
-        truth = make_trajectory(bench.world, rng, 300)
-        robot = SimRobot(rid, bench.world, truth, bench.client, time.time_ns(), rng=rng)
+        robot = sim_robot(rid, bench.world, 3, bench.client, steps=300)
+        truth = robot.truth
         robot.initial_pose("m1")
         time.sleep(0.3)
         _drive([robot], 5, col, pause=0.1)

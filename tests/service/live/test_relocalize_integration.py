@@ -269,7 +269,7 @@ def test_the_cli_relocalizes_and_reports(
     codes: list[int] = []
 
     def ask(*argv: str) -> threading.Thread:
-        args = ["relocalize", "r1", "--connect", bench.endpoint, "--wait", "8", *argv]
+        args = ["relocalize", "r1", "--connect", bench.endpoint, "--wait", "8", "--json", *argv]
         t = threading.Thread(target=lambda: codes.append(main(args)))
         t.start()
         return t

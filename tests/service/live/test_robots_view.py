@@ -9,7 +9,17 @@ import time
 import pytest
 from service_harness import Bench, Collector
 
-from service.live.robots import RobotsAnswer, RobotState, merge_robots, robots_table
+from schemas import Event, encode
+from service.live.robots import (
+    MAX_WAITING,
+    RobotsAnswer,
+    RobotState,
+    RobotView,
+    WaitingRobot,
+    merge_robots,
+    merge_waiting,
+    one_sigma,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -66,6 +76,8 @@ def test_answers_every_robot_held_with_its_latest_pose(bench: Bench) -> None:
         assert r["deviation_range"] == pose["deviation_range"] > 0.0
         assert 0 <= r["age_s"] < 5.0
         assert 0 < r["latency_ms"] < 1000.0
+        assert (r["sigma_xy_m"], r["sigma_theta_rad"]) == one_sigma(pose.get("covariance"))
+        assert r["sigma_xy_m"] is not None and 0 < r["sigma_xy_m"] < 1.0
     # ages grow with the instance's clock while no scan comes
     time.sleep(0.3)
     (later,) = ask(bench, "rlutf/service/*/robots")
@@ -109,49 +121,65 @@ def test_merge_keeps_one_line_per_robot_the_fresher_pose() -> None:
     assert [(s.robot_id, s.owner) for s in merge_robots([b, a])] == [("r1", "b"), ("r2", "b")]
 
 
-def test_table_has_a_header_and_aligned_rows() -> None:
-    text = robots_table([_state("r1", 0.123, "a", x=12.3456), _state("robot-22", None, "b")])
-    header, first, second = text.splitlines()
-    assert header.split() == [
-        "robot",
-        "map",
-        "status",
-        "x",
-        "y",
-        "theta",
-        "score",
-        "range",
-        "m",
-        "age",
-        "s",
-        "latency",
-        "ms",
-        "owner",
+def test_one_sigma_is_the_larger_axis_and_the_heading() -> None:
+    assert one_sigma(None) == (None, None)
+    assert one_sigma([1.0, 0.0]) == (None, None)
+    sxy, sth = one_sigma([0.0004, 0, 0, 0, 0.0001, 0, 0, 0, 0.0009])
+    assert sxy == pytest.approx(0.02) and sth == pytest.approx(0.03)
+    # an ellipse at 45 degrees: variances 0.5 each, covariance 0.3 -> axes 0.8 and 0.2
+    sxy, _ = one_sigma([0.5, 0.3, 0, 0.3, 0.5, 0, 0, 0, 0.0])
+    assert sxy == pytest.approx(math.sqrt(0.8))
+
+
+def _event(code: str) -> bytes:
+    return encode(Event(stamp_ns=1, level="warning", code=code, key="k", message="m"))
+
+
+def test_the_view_remembers_a_bounded_number_of_waiting_robots() -> None:
+    now = [10**18]
+    poses: dict[str, bytes] = {}
+    view = RobotView("a", poses, lambda: now[0])
+    view.event("r1", _event("not_initialized"), now[0])
+    view.event("r2", _event("lost"), now[0])  # not a reason to wait
+    now[0] += 2_000_000_000
+    view.event("r3", _event("map_not_found"), now[0])
+    waiting = view.waiting()
+    assert [(w.robot_id, w.reason, w.age_s) for w in waiting] == [
+        ("r1", "not_initialized", 2.0),
+        ("r3", "map_not_found", 0.0),
     ]
-    assert first.split() == [
-        "r1",
-        "m",
-        "tracking",
-        "12.346",
-        "-1.500",
-        "1.571",
-        "0.97",
-        "0.004",
-        "0.12",
-        "2.2",
-        "a",
-    ]
-    assert second.split() == [
-        "robot-22",
-        "m",
-        "tracking",
-        "0.000",
-        "-1.500",
-        "1.571",
-        "-",
-        "-",
-        "-",
-        "-",
-        "b",
-    ]
-    assert len({line.index("tracking") for line in (first, second)}) == 1  # columns aligned
+    poses["r1"] = b"{}"  # r1 got a pose: no longer waiting
+    assert [w.robot_id for w in view.waiting()] == ["r3"]
+    for i in range(MAX_WAITING + 10):
+        view.event(f"x{i}", _event("not_initialized"), now[0])
+    ids = {w.robot_id for w in view.waiting()}
+    assert len(ids) == MAX_WAITING and "x0" not in ids and f"x{MAX_WAITING + 9}" in ids
+
+
+def test_merge_waiting_leaves_out_robots_with_a_pose() -> None:
+    def wait(robot: str, age: float, owner: str) -> WaitingRobot:
+        return WaitingRobot(robot_id=robot, reason="not_initialized", age_s=age, owner=owner)
+
+    a = RobotsAnswer(
+        instance="a", stamp_ns=1, robots=[_state("r1", 0.1, "a")], waiting=[wait("r2", 3, "a")]
+    )
+    b = RobotsAnswer(instance="b", stamp_ns=1, waiting=[wait("r1", 1, "b"), wait("r2", 1, "b")])
+    assert [(w.robot_id, w.owner) for w in merge_waiting([a, b])] == [("r2", "b")]
+
+
+def test_a_robot_scanning_without_an_initial_pose_is_listed_as_waiting(bench: Bench) -> None:
+    bench.put_map()
+    robot = bench.robot("r9", 3)
+    robot.odom(0)
+    answer: dict = {}
+    for _ in range(50):  # until the service has turned a scan into a not_initialized Event
+        robot.advance()
+        (answer,) = ask(bench, "rlutf/service/*/robots")
+        if answer["waiting"]:
+            break
+        time.sleep(0.05)
+    assert answer["robots"] == []
+    (w,) = answer["waiting"]
+    assert (w["robot_id"], w["reason"]) == ("r9", "not_initialized")
+    assert 0 <= w["age_s"] < 5
+    assert w["owner"] == bench.service.settings.instance

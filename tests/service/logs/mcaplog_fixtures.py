@@ -2,25 +2,20 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rlutf.map import Map as World
-from rlutf.sim import (
-    LidarModel,
-    OdometryModel,
-    drift_odometry,
-    make_building,
-    make_trajectory,
-    simulate_scan,
-)
-from schemas import InitialPose, LaserScan, Map, Odometry, encode
+from rlutf.sim import LidarModel, make_building, simulate_scan
+from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcapread import LogFile
+from service.sim.plan import FleetSpec, plan_fleet
+from service.sim.wire import JsonWire, map_payload
 
 T0 = 1_732_300_000_000_000_000
 STEP_NS = 100_000_000
@@ -34,78 +29,51 @@ def simulated_inputs(
     beams: int = 120,
     prefix: str = "rlutf",
     world: World | None = None,
-    seen: Callable[[list[np.ndarray]], Any] | None = None,
+    seen: Callable[[list[np.ndarray]], World] | None = None,
 ) -> list[Record]:
-    """A map (``world``, default :data:`WORLD`), initial poses, then odometry and a scan per
-    robot per step, in log order; the scans are of the world ``seen`` makes of the robots'
-    paths (a :class:`rlutf.map.Map`; default: the map itself).
+    """A map (``world``, default :data:`WORLD`), initial poses (5 cm off), then odometry and a
+    scan per robot per step, in log order: :mod:`service.sim`'s fleet, as its robots put it;
+    with ``seen``, the scans are of the world it makes of the robots' paths (a changed world).
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
-    rng = np.random.default_rng(seed)
-    building = WORLD if world is None else world
-    out = [
-        Record(
-            f"{prefix}/maps/m1",
-            "rlutf.Map",
-            encode(Map(map_id="m1", version=1, geometry=building.to_geojson())),
-            T0 - 1_000_000,
-            T0 - 1_000_000,
+    spec = FleetSpec(
+        robots=len(robots),
+        poses=steps + 1,
+        beams=beams,
+        seed=seed,
+        map_id="m1",
+        robot_ids=tuple(robots),
+        initial_offset=(0.05, 0.0, 0.0),
+    )
+    plan = plan_fleet(spec, WORLD if world is None else world)
+    if seen is not None:
+        changed = seen([r.truth for r in plan.robots])
+        rng = np.random.default_rng([seed, 99])
+        lidar = LidarModel(beams=beams)
+        robots = tuple(
+            replace(r, scans=tuple(simulate_scan(changed, p, lidar, rng) for p in r.truth))
+            for r in plan.robots
         )
-    ]
-    runs = {}
-    for k, robot in enumerate(robots):
-        truth = make_trajectory(building, rng, steps + 1)
-        odom = drift_odometry(truth, OdometryModel(), rng)
-        runs[robot] = (truth, odom)
-        start = InitialPose(
-            stamp_ns=T0,
-            map_id="m1",
-            x=float(truth[0, 0]) + 0.05,
-            y=float(truth[0, 1]),
-            theta=float(truth[0, 2]),
-        )
+        plan = replace(plan, robots=robots)
+    keys = Keys(prefix)
+    wire = JsonWire(plan, keys)
+    before = T0 - 1_000_000
+    out = [Record(keys.map("m1"), "rlutf.Map", map_payload(plan), before, before)]
+    for k in range(len(robots)):
+        start = wire.initial_pose(k, T0) or b""
         out.append(
-            Record(
-                f"{prefix}/robots/{robot}/initialpose",
-                "rlutf.InitialPose",
-                encode(start),
-                T0 + 10_000 * k,
-                T0,
-            )
+            Record(wire.key(k, "initialpose"), "rlutf.InitialPose", start, T0 + 10_000 * k, T0)
         )
-    lidar = LidarModel(beams=beams)
-    scanned = building if seen is None else seen([truth for truth, _ in runs.values()])
     for i in range(steps + 1):
         stamp = T0 + i * STEP_NS
-        for k, (robot, (truth, odom)) in enumerate(runs.items()):
+        for k in range(len(robots)):
             at = stamp + 1_000_000 + 10_000 * k
-            o = Odometry(
-                stamp_ns=stamp, x=float(odom[i, 0]), y=float(odom[i, 1]), theta=float(odom[i, 2])
-            )
-            out.append(
-                Record(f"{prefix}/robots/{robot}/odom", "rlutf.Odometry", encode(o), at, stamp)
-            )
-            if i == 0:
-                continue
-            s = simulate_scan(scanned, truth[i], lidar, rng)
-            scan = LaserScan(
-                stamp_ns=stamp,
-                angle_min=s.angle_min,
-                angle_increment=s.angle_increment,
-                range_min=s.range_min,
-                range_max=s.range_max,
-                ranges=[float(r) if math.isfinite(r) else None for r in s.ranges],
-            )
-            out.append(
-                Record(
-                    f"{prefix}/robots/{robot}/scan",
-                    "rlutf.LaserScan",
-                    encode(scan),
-                    at + 1_000,
-                    stamp,
-                )
-            )
+            odom = wire.odometry(k, i, stamp)
+            out.append(Record(wire.key(k, "odom"), "rlutf.Odometry", odom, at, stamp))
+            if i > 0:
+                scan = wire.scan(k, i, stamp)
+                out.append(Record(wire.key(k, "scan"), "rlutf.LaserScan", scan, at + 1_000, stamp))
     return out
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 
 import pytest
@@ -132,8 +134,9 @@ def test_corrupt_chunk_is_reported_and_skipped_by_recover(
     code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
     assert code == 2 and "rlutf log recover" in err and "Traceback" not in err
     assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.part").exists()
-    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
-    assert code == 0 and "skipped 1 damaged chunks" in err
+    code, out, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "skipped 1 damaged chunk(s)" in err
+    assert "read to its end" in out and "nothing was missing" not in out
     original = read_all(log)
     got = read_all(tmp_path / "fixed.mcap")
     assert 0 < len(original) - len(got) < len(original) // 10
@@ -145,3 +148,47 @@ def test_recover_refuses_to_overwrite_its_input(
 ) -> None:
     code, _, err = _run(["log", "recover", str(log), str(log)], capsys)
     assert code == 2 and "must not be the input" in err
+
+
+def test_a_log_being_recorded_says_so_and_how_to_read_it_now(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = McapRecorder(tmp_path / "rec", chunk_size=2048, flush_interval_s=0.05)
+    rec.set_config(CONFIG)
+    inputs = simulated_inputs(steps=12)
+    try:
+        for r in inputs:
+            rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+        (part,) = _wait_for_part(tmp_path / "rec", rec)
+        code, _, err = _run(["log", "info", str(part)], capsys)
+        assert code == 2 and "Traceback" not in err
+        assert "is being recorded now" in err and "incomplete or damaged" not in err
+        assert f"rlutf log recover {part} COPY.mcap" in err
+        # what it says works while the recorder still writes: a copy of the complete chunks
+        copy = tmp_path / "copy.mcap"
+        code, _, _ = _run(["log", "recover", str(part), str(copy)], capsys)
+        assert code == 0 and part.exists()
+        code, out, _ = _run(["log", "info", str(copy)], capsys)
+        assert code == 0 and "rlutf.LaserScan" in out
+        copied = [r.payload for r in read_all(copy) if r.schema_name.startswith("rlutf.")]
+        assert copied and copied == [r.payload for r in inputs][: len(copied)]
+    finally:
+        rec.close()
+    # an unfinished file nobody writes any more (a crash) is told apart by its age
+    left = tmp_path / "left.mcap.part"
+    left.write_bytes(part.with_suffix("").read_bytes()[:-100])  # the finished file, cut short
+    old = left.stat().st_mtime - 3600
+    os.utime(left, (old, old))
+    code, _, err = _run(["log", "info", str(left)], capsys)
+    assert code == 2 and "was left unfinished" in err and "rlutf log recover" in err
+
+
+def _wait_for_part(folder: Path, rec: McapRecorder, timeout: float = 10.0) -> list[Path]:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        parts = list(folder.glob("*.mcap.part"))
+        if parts and rec.queued == 0 and parts[0].stat().st_size > 10_000:
+            time.sleep(0.2)  # a flush after the last message
+            return parts
+        time.sleep(0.05)
+    raise AssertionError(f"no .mcap.part in {folder}")

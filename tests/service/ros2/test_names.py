@@ -76,3 +76,11 @@ def test_attachment_round_trip_and_layout() -> None:
     assert attachment.unpack(b) == attachment.Attachment(2, 222, gid)
     assert attachment.unpack(b[:-1]) is None
     assert attachment.unpack(b[:16] + b"\x0f" + b[17:]) is None
+
+
+def test_service_hashes_are_zenoh_ros2_sdks() -> None:
+    from zenoh_ros2_sdk.utils import compute_service_type_hash
+
+    empty = "uint8 structure_needs_at_least_one_member"  # rosidl's member of an empty message
+    for srv, h in names.SRV_RIHS01.items():
+        assert compute_service_type_hash(srv, empty, empty) == h

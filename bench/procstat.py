@@ -1,0 +1,59 @@
+"""A process tree's resident memory and CPU time, and the machine's stolen CPU (from ``/proc``).
+
+What the fleet benchmarks (:mod:`bench.fleet`, :mod:`bench.soak`) read of the service they
+measure, without a library: Linux's counters as they are.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+
+def children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        found.append(int(entry))
+            except OSError:
+                continue
+    return found
+
+
+def rss_tree_mb(pid: int) -> float:
+    """Resident memory of a process and its children, MB."""
+    total = 0
+    for p in [pid, *children(pid)]:
+        try:
+            with open(f"/proc/{p}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        total += int(line.split()[1])
+        except OSError:
+            continue
+    return total / 1024.0
+
+
+def cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of one process so far, seconds (``nan`` once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def machine_steal() -> tuple[int, int]:
+    """CPU time stolen by the hypervisor and all CPU time of the machine so far, in ticks.
+
+    On a shared virtual machine, other guests take CPU time that never shows in this
+    machine's load; when they do, latency and CPU per scan rise without any change here.
+    """
+    with open("/proc/stat") as f:
+        ticks = [int(v) for v in f.readline().split()[1:]]
+    return ticks[7], sum(ticks[:8])

@@ -1,0 +1,95 @@
+"""What a command says when it cannot do its job: a few lines naming the file or flag, the
+problem and the fix, never a traceback (``--debug`` shows one).
+
+Commands raise :class:`CliError` for what they foresee; :func:`explain` turns the errors every
+command may meet (a path that is missing or not writable, a port in use, zenoh) into the same
+kind of message, so the entry point can answer any of them without a traceback.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import re
+
+EXIT_OK = 0
+#: The task failed: nothing answered, the service refused, the time ran out.
+EXIT_FAILURE = 1
+#: Bad input: a flag, a settings file, a path or a file's content.
+EXIT_USAGE = 2
+
+#: What to try when no zenoh router answers on the endpoints given.
+UNREACHABLE_HINT = (
+    "is `rlutf serve` running? use -e/--connect ENDPOINT to reach it (default tcp/127.0.0.1:7447)"
+)
+
+#: A Rust source location zenoh appends to its messages (`` at /root/.cargo/.../x.rs:12.``).
+_RUST_PLACE = re.compile(r"\s*\bat\s+\S+\.rs:\d+(:\d+)?\.?")
+
+
+class CliError(Exception):
+    """A command cannot go on.
+
+    Args:
+        message: the problem and the fix, naming the file or flag (one to a few lines).
+        code: the exit code (:data:`EXIT_FAILURE` by default; :data:`EXIT_USAGE` for bad input).
+    """
+
+    def __init__(self, message: str, code: int = EXIT_FAILURE) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def zenoh_text(err: BaseException) -> str:
+    """A zenoh error's message without the Rust source path it carries."""
+    text = _RUST_PLACE.sub("", str(err)).strip()
+    return text.rstrip(".!") or type(err).__name__
+
+
+def _os_message(err: OSError) -> tuple[str, int]:
+    name = err.filename
+    what = err.strerror or str(err)
+    if err.errno == errno.EADDRINUSE:
+        return (
+            f"address already in use ({what}): another program holds the port (a second "
+            "`rlutf serve`?); stop it or choose another port",
+            EXIT_FAILURE,
+        )
+    if name is None:
+        return f"{what}", EXIT_FAILURE
+    if isinstance(err, FileNotFoundError):
+        return f"{name}: no such file or directory; check the path (or create the folder)", (
+            EXIT_USAGE
+        )
+    if isinstance(err, PermissionError):
+        return f"{name}: permission denied; choose a path you may read or write", EXIT_USAGE
+    if isinstance(err, IsADirectoryError):
+        return f"{name}: is a folder; give a file name", EXIT_USAGE
+    if isinstance(err, NotADirectoryError):
+        return f"{name}: a part of the path is a file, not a folder; check the path", EXIT_USAGE
+    return f"{name}: {what}", EXIT_FAILURE
+
+
+def explain(err: BaseException) -> tuple[str, int] | None:
+    """``err`` as a message and an exit code, or ``None`` for an error no command foresees."""
+    if isinstance(err, CliError):
+        return str(err), err.code
+    if isinstance(err, OSError):
+        return _os_message(err)
+    if isinstance(err, json.JSONDecodeError):
+        return (
+            f"not valid JSON at line {err.lineno}, column {err.colno}: {err.msg}",
+            EXIT_USAGE,
+        )
+    if isinstance(err, UnicodeDecodeError):
+        return "the file is not UTF-8 text (a binary or foreign file?)", EXIT_USAGE
+    if type(err).__module__.startswith("zenoh"):
+        text = zenoh_text(err)
+        if "Address already in use" in text:
+            hint = "the port is taken (another `rlutf serve`, demo or zenohd?); choose another"
+        elif "Unable to connect" in text:
+            hint = UNREACHABLE_HINT
+        else:
+            hint = "check the zenoh flags (-m, -l, -e, -c)"
+        return f"zenoh: {text}; {hint}", EXIT_FAILURE
+    return None

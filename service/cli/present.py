@@ -1,0 +1,190 @@
+"""How the command line shows things to a person: aligned tables, angles in degrees, lengths in
+centimetres, ages as seconds or minutes, Events as one line each.
+
+``--json`` output is not made here: the commands print the wire messages as they are.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable, Sequence
+
+from schemas import Event, Health, PoseEstimate
+from service.live.robots import RobotState, WaitingRobot, one_sigma
+
+#: A robot with no pose published for longer than this is shown as silent, seconds.
+SILENT_AFTER_S = 5.0
+
+#: Shown under the table when robots wait for an initial pose.
+WAITING_HINT = (
+    "waiting: the robot sends scans but has no pose yet; give it one with "
+    "`rlutf initialpose ROBOT --map ID --pose X,Y,THETA`"
+)
+
+
+def table(header: Sequence[str], rows: Iterable[Sequence[str]], right: set[int]) -> str:
+    """A plain-text table: columns aligned, those in ``right`` (numbers) to the right."""
+    body = [list(header), *(list(r) for r in rows)]
+    widths = [max(len(r[i]) for r in body) for i in range(len(header))]
+    return "\n".join(
+        "  ".join(
+            cell.rjust(widths[i]) if i in right else cell.ljust(widths[i])
+            for i, cell in enumerate(row)
+        ).rstrip()
+        for row in body
+    )
+
+
+def num(value: float | None, digits: int) -> str:
+    """``value`` with ``digits`` decimals; ``-`` for none."""
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def degrees(radians: float | None, digits: int = 1) -> str:
+    """An angle in degrees."""
+    return "-" if radians is None else num(math.degrees(radians), digits)
+
+
+def centimetres(metres: float | None) -> str:
+    """A length in centimetres, one decimal under 10 cm."""
+    if metres is None or not math.isfinite(metres):
+        return "-"
+    cm = 100 * metres
+    return f"{cm:.1f}" if cm < 10 else f"{cm:.0f}"
+
+
+def age(seconds: float | None) -> str:
+    """An age: ``0.04 s``, ``12 s``, ``3 min 20 s``, ``2 h 05 min``."""
+    if seconds is None or not math.isfinite(seconds):
+        return "-"
+    if seconds < 10:
+        return f"{seconds:.2f} s"
+    if seconds < 100:
+        return f"{seconds:.0f} s"
+    whole = round(seconds)
+    if whole < 3600:
+        return f"{whole // 60} min {whole % 60:02d} s"
+    return f"{whole // 3600} h {whole % 3600 // 60:02d} min"
+
+
+def status_of(state: RobotState, silent_after: float = SILENT_AFTER_S) -> str:
+    """The robot's status, ``silent (...)`` once no pose has come for ``silent_after`` s."""
+    if state.age_s is not None and state.age_s > silent_after:
+        return f"silent ({state.status})"
+    return state.status
+
+
+ROBOT_COLUMNS = ("robot", "map", "status", "x m", "y m", "θ °", "±xy cm", "±θ °", "age")
+
+
+def robots_table(
+    states: Iterable[RobotState],
+    waiting: Iterable[WaitingRobot] = (),
+    silent_after: float = SILENT_AFTER_S,
+) -> str:
+    """``rlutf robots``: one line per robot, then the robots waiting for an initial pose."""
+    rows = [
+        [
+            s.robot_id,
+            s.map_id,
+            status_of(s, silent_after),
+            num(s.x, 3),
+            num(s.y, 3),
+            degrees(s.theta),
+            centimetres(s.sigma_xy_m),
+            degrees(s.sigma_theta_rad, 2),
+            age(s.age_s),
+            num(s.latency_ms, 1),
+            s.owner,
+        ]
+        for s in states
+    ]
+    waits = list(waiting)
+    rows += [
+        [w.robot_id, "-", "waiting", "-", "-", "-", "-", "-", age(w.age_s), "-", w.owner]
+        for w in waits
+    ]
+    text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
+    return f"{text}\n\n{WAITING_HINT}" if waits else text
+
+
+def poses_table(poses: Iterable[PoseEstimate], now_ns: int | None = None) -> str:
+    """``rlutf pose``: one line per robot; age is now minus the scan's stamp."""
+    now = time.time_ns() if now_ns is None else now_ns
+    rows = []
+    for p in poses:
+        sxy, sth = one_sigma(p.covariance)
+        rows.append(
+            [
+                p.robot_id,
+                p.map_id,
+                p.status,
+                num(p.x, 3),
+                num(p.y, 3),
+                degrees(p.theta),
+                centimetres(sxy),
+                degrees(sth, 2),
+                age(max(now - p.stamp_ns, 0) / 1e9),
+                num(p.discrepancy, 4),
+            ]
+        )
+    return table([*ROBOT_COLUMNS, "discrepancy"], rows, {3, 4, 5, 6, 7, 8, 9})
+
+
+def health_table(healths: Iterable[Health]) -> str:
+    """``rlutf health``: one line per instance."""
+    header = (
+        "instance",
+        "ready",
+        "up",
+        "robots",
+        "received",
+        "rejected",
+        "processed",
+        "dropped",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+    )
+    rows = []
+    for h in healths:
+        ready = getattr(h, "ready", None)
+        if ready is None:
+            ready = (h.model_extra or {}).get("ready")
+        rows.append(
+            [
+                h.instance,
+                "-" if ready is None else ("yes" if ready else "no"),
+                age(h.uptime_s),
+                str(h.robots),
+                str(h.received),
+                str(h.rejected),
+                str(h.processed),
+                str(h.dropped),
+                num(h.latency_ms.p50, 1),
+                num(h.latency_ms.p99, 1),
+                num(h.latency_ms.max, 1),
+            ]
+        )
+    return table(header, rows, set(range(2, len(header))))
+
+
+def event_line(robot: str | None, ev: Event) -> str:
+    """One Event as a line: local time, level, robot (``-``: service-wide, with the Event's key),
+    code and message."""
+    clock = time.strftime("%H:%M:%S", time.localtime(ev.stamp_ns / 1e9))
+    millis = ev.stamp_ns // 1_000_000 % 1000
+    code = ev.code if robot else f"{ev.code} ({ev.key})"  # service-wide: which map or key
+    text = ev.message if ev.message.startswith(f"{ev.code}:") else f"{code}: {ev.message}"
+    return f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {text}"
+
+
+def pose_line(p: PoseEstimate) -> str:
+    """One pose as a sentence."""
+    sxy, sth = one_sigma(p.covariance)
+    spread = "" if sxy is None else f" ± {centimetres(sxy)} cm, {degrees(sth, 2)}°"
+    return (
+        f"{p.robot_id} on {p.map_id}: {p.status} at x {p.x:.3f} m, y {p.y:.3f} m, "
+        f"θ {degrees(p.theta)}°{spread}"
+    )

@@ -1,0 +1,358 @@
+"""``rlutf simulate``: simulated robots that join a running ``rlutf serve`` over Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, zenoh_flags
+
+DESCRIPTION = """\
+Simulated robots join a running `rlutf serve`: each drives its own path through a building
+(there and back, over and over), puts drifting odometry and a noisy 2D scan at --rate, and
+reads its corrected pose back, scored against the simulated truth. Try a site, a dashboard or
+a deployment without robots.
+
+The map: by default a building drawn from --seed is put into the service's store as --map;
+with --stored-map the robots drive the map the store already holds under --map (a map
+imported with `rlutf map import`, say). Each robot announces its true start as an
+InitialPose, unless --no-initial-pose (the robots then wait, as a robot nobody placed does:
+`rlutf relocalize ROBOT --map ID` finds one). --relocalize-every asks for a global
+relocalization of the first robot now and then; --bad-input-every makes the first robot send
+malformed or invalid scans now and then, which the service must refuse and count.
+
+Prints what it does, then a line every --report-every seconds; stops after --duration seconds
+or at Ctrl-C with a summary per robot. Exit code 1 when robots with an initial pose got no
+pose back at all (is the service running, on this prefix?).
+"""
+
+
+def register(sub: Any) -> None:
+    """Add ``simulate`` to the ``rlutf`` subcommands."""
+    p = sub.add_parser(
+        "simulate",
+        help="simulated robots that join a running service",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robots", type=int, default=5, metavar="N", help="robots (default 5)")
+    p.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="scans per second (default 10)"
+    )
+    p.add_argument("--beams", type=int, default=360, metavar="N", help="beams (default 360)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the building and the paths")
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="SECONDS",
+        help="stop after this long (default: run until Ctrl-C)",
+    )
+    p.add_argument(
+        "--path-seconds",
+        type=float,
+        default=30.0,
+        metavar="SECONDS",
+        help="length of each robot's path before it turns back (default 30)",
+    )
+    p.add_argument("--map", default="sim", metavar="ID", help="map id (default: sim)")
+    p.add_argument(
+        "--stored-map",
+        action="store_true",
+        help="drive the map the store holds under --map instead of putting a new one",
+    )
+    p.add_argument("--no-initial-pose", action="store_true", help="robots announce no initial pose")
+    p.add_argument(
+        "--relocalize-every",
+        type=float,
+        metavar="SECONDS",
+        help="a Relocalize for the first robot this often (JSON robots)",
+    )
+    p.add_argument(
+        "--bad-input-every",
+        type=float,
+        metavar="SECONDS",
+        help="a malformed or invalid scan from the first robot this often",
+    )
+    p.add_argument(
+        "--report-every",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="seconds between progress lines (default 5)",
+    )
+    ros = p.add_argument_group("ROS 2 robots (the service runs with --ros2 --ros-map ID)")
+    ros.add_argument(
+        "--ros2", action="store_true", help="ROS 2 robots (CDR on rmw_zenoh's keys), not JSON"
+    )
+    ros.add_argument("--ros-domain-id", type=int, default=0, metavar="N", help="default 0")
+    ros.add_argument(
+        "--humble", action="store_true", help="Humble's keys (no type hash), not Jazzy's"
+    )
+    zenoh_flags(p, client=True)
+    p.set_defaults(func=cmd_simulate)
+
+
+def _check(args: argparse.Namespace) -> str | None:
+    """What is wrong with the flags, if anything."""
+    from schemas import MAX_BEAMS, valid_id
+
+    positive = {
+        "--rate": args.rate,
+        "--path-seconds": args.path_seconds,
+        "--report-every": args.report_every,
+        "--duration": args.duration,
+        "--relocalize-every": args.relocalize_every,
+        "--bad-input-every": args.bad_input_every,
+    }
+    for flag, value in positive.items():
+        if value is not None and not (math.isfinite(value) and value > 0):
+            return f"{flag} must be a number above 0, got {value}"
+    if args.robots < 1:
+        return f"--robots must be at least 1, got {args.robots}"
+    if not 1 <= args.beams <= MAX_BEAMS:
+        return f"--beams must be 1 to {MAX_BEAMS}, got {args.beams}"
+    if not valid_id(args.map):
+        return f"--map {args.map!r} is not a map id ([A-Za-z0-9_-], 1 to 64 characters)"
+    if args.ros2 and args.relocalize_every:
+        return "--relocalize-every: ROS 2 robots have no Relocalize topic; drop --ros2"
+    return None
+
+
+def _spec(args: argparse.Namespace) -> Any:
+    from service.sim.plan import FleetSpec, Schedule
+
+    rate = args.rate
+
+    def every(seconds: float | None) -> Schedule | None:
+        if seconds is None:
+            return None
+        steps = max(1, round(seconds * rate))
+        return Schedule(every=steps, first=steps)
+
+    return FleetSpec(
+        robots=args.robots,
+        poses=max(2, round(args.path_seconds * rate) + 1),
+        rate_hz=rate,
+        beams=args.beams,
+        seed=args.seed,
+        map_id=args.map,
+        initial_poses=not args.no_initial_pose,
+        relocalize=every(args.relocalize_every),
+        bad_input=every(args.bad_input_every),
+    )
+
+
+def _stored_world(session: Any, key: str, map_id: str) -> Any:
+    """The map the store holds under ``key``, or ``None``."""
+    from service.maps.book import MapRejected, load_map
+
+    for reply in session.get(key, timeout=5.0):
+        if reply.ok is not None:
+            try:
+                return load_map(reply.ok.payload.to_bytes(), expected_id=map_id, max_bytes=10**9)[1]
+            except MapRejected:
+                return None
+    return None
+
+
+def _progress(elapsed: float, board: Any, events: Counter[str], rejected: int) -> str:
+    import numpy as np
+
+    scores = board.snapshot()
+    sent = sum(s.sent for s in scores)
+    poses = sum(s.poses for s in scores)
+    placed = sum(1 for s in scores if s.poses)
+    recent = [s.errors[-1] for s in scores if s.errors]
+    line = f"[{elapsed:6.1f} s] sent {sent} scans, got {poses} poses; {placed} of {len(scores)} "
+    line += "robots localized"
+    if recent:
+        line += (
+            f"; last error median {100 * float(np.median(recent)):.1f} cm, "
+            f"max {100 * max(recent):.1f} cm"
+        )
+    latencies = [s.latency_ms(50) for s in scores if s.latencies_ms]
+    if latencies:
+        line += f"; latency p50 {float(np.median(latencies)):.1f} ms"
+    if events:
+        line += "; events " + ", ".join(f"{code} {n}" for code, n in sorted(events.items()))
+    if rejected:
+        line += f"; bad inputs sent {rejected}"
+    return line
+
+
+def _summary(board: Any) -> list[str]:
+    import numpy as np
+
+    rows = [f"{'robot':<10} {'poses/scans':>12} {'RMSE cm':>8} {'max cm':>7}  statuses"]
+    for s in board.snapshot():
+        if not s.errors:
+            rows.append(f"{s.robot_id:<10} {f'0/{s.sent}':>12} {'-':>8} {'-':>7}  -")
+            continue
+        e = np.asarray(s.errors)
+        statuses = ", ".join(f"{k} {n}" for k, n in sorted(s.statuses.items()))
+        rows.append(
+            f"{s.robot_id:<10} {f'{s.poses}/{s.sent}':>12} "
+            f"{100 * math.sqrt(float(np.mean(e**2))):>8.1f} {100 * float(e.max()):>7.1f}  "
+            f"{statuses}"
+        )
+    return rows
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """``rlutf simulate``."""
+    import json
+
+    import zenoh
+
+    from service.config import Settings
+    from service.keys import Keys
+    from service.live.sessions import zenoh_config
+    from service.sim.fleet import SimFleet, drive
+    from service.sim.plan import plan_fleet
+    from service.sim.score import Scoreboard
+    from service.sim.wire import CdrWire, JsonWire
+
+    problem = _check(args)
+    if problem:
+        print(f"rlutf simulate: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    settings = Settings(
+        mode=args.mode or "client",
+        connect=args.connect or ["tcp/127.0.0.1:7447"],
+        listen=[],
+        zenoh_config=args.config,
+        **({"prefix": args.prefix} if args.prefix else {}),
+    )
+    keys = Keys(settings.prefix)
+    where = ", ".join(settings.connect)
+    try:
+        operator = zenoh.open(zenoh_config(settings))
+    except zenoh.ZError as err:
+        print(
+            f"rlutf simulate: cannot reach zenoh at {where} ({str(err).split('  at ')[0]}); "
+            "is `rlutf serve` "
+            "running? name its endpoint with -e/--connect",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    with operator:
+        world = None
+        if args.stored_map:
+            world = _stored_world(operator, keys.map(args.map), args.map)
+            if world is None:
+                print(
+                    f"rlutf simulate: no valid map {args.map!r} in the store at {where}; put "
+                    "one (`rlutf map put` or `rlutf map import`) or drop --stored-map",
+                    file=sys.stderr,
+                )
+                return EXIT_FAILURE
+        spec = _spec(args)
+        door = "ROS 2" if args.ros2 else "JSON"
+        print(
+            f"rlutf simulate: drawing {spec.robots} {door} robots' paths "
+            f"({args.path_seconds:g} s each, {spec.beams}-beam scans, seed {spec.seed})",
+            flush=True,
+        )
+        drawing = time.monotonic()
+        plan = plan_fleet(spec, world)
+        if args.ros2:
+            wire: Any = CdrWire(plan, args.ros_domain_id, "humble" if args.humble else "jazzy")
+        else:
+            wire = JsonWire(plan, keys)
+        print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
+        fleet = SimFleet(plan, wire, lambda: zenoh.open(zenoh_config(settings)), keys=keys)
+        stop = threading.Event()
+        events: Counter[str] = Counter()
+        bad = [0]
+        try:
+            if not args.stored_map:
+                fleet.put_map()
+            walls = len(plan.world.segments)
+            print(
+                f"map {args.map}: {'the stored one' if args.stored_map else 'put'}, "
+                f"{walls} walls, {plan.world.geometry.area:.0f} m2; {spec.robots} robots at "
+                f"{spec.rate_hz:g} Hz joining {where}; initial poses: "
+                f"{'none (the robots wait for one)' if args.no_initial_pose else 'the true start'}"
+                + (
+                    f"; a Relocalize for {plan.robots[0].robot_id} every "
+                    f"{args.relocalize_every:g} s"
+                    if args.relocalize_every
+                    else ""
+                )
+                + (
+                    f"; bad input from {plan.robots[0].robot_id} every {args.bad_input_every:g} s"
+                    if args.bad_input_every
+                    else ""
+                )
+                + (f"; for {args.duration:g} s" if args.duration else "; Ctrl-C to stop"),
+                flush=True,
+            )
+            t0 = time.time_ns()
+            board = Scoreboard(plan, t0)
+
+            def on_event(sample: Any) -> None:
+                with contextlib.suppress(ValueError, AttributeError):
+                    events[str(json.loads(sample.payload.to_bytes()).get("code"))] += 1
+
+            subs = [
+                operator.declare_subscriber(
+                    keys.all_poses, lambda s: board.on_pose(s.payload.to_bytes(), time.time_ns())
+                ),
+                operator.declare_subscriber(keys.robot("*", "events"), on_event),
+            ]
+            fleet.start(t0)
+
+            def on_step(step: int) -> None:
+                bad[0] += sum(kind != "relocalize" for _, kind in plan.extras(step))
+                fleet.extras(step, board.stamp(step))
+
+            def send(robot: int, step: int) -> None:
+                fleet.odometry(robot, step, board.stamp(step))
+                board.sent(robot, step, time.time_ns())
+                fleet.scan(robot, step, board.stamp(step))
+
+            steps = None if args.duration is None else spec.steps_of(args.duration)
+            robots = threading.Thread(
+                target=drive,
+                args=(spec.robots, 1.0 / spec.rate_hz, send, steps, stop, on_step),
+                name="simulated-robots",
+                daemon=True,
+            )
+            started = time.monotonic()
+            robots.start()
+            due = started + args.report_every
+            try:
+                while robots.is_alive():
+                    robots.join(max(0.0, min(0.5, due - time.monotonic())))
+                    if time.monotonic() >= due:
+                        print(_progress(time.monotonic() - started, board, events, bad[0]))
+                        due += args.report_every
+            except KeyboardInterrupt:
+                print("interrupted: stopping the robots", flush=True)
+            stop.set()
+            robots.join(5.0)
+            time.sleep(0.5)  # the last poses
+            for sub in subs:
+                sub.undeclare()
+            print(_progress(time.monotonic() - started, board, events, bad[0]))
+        finally:
+            stop.set()
+            fleet.close()
+    print("\n".join(_summary(board)))
+    got = sum(s.poses for s in board.snapshot())
+    if got == 0 and not args.no_initial_pose:
+        print(
+            f"rlutf simulate: no pose came back; is `rlutf serve` running at {where} with "
+            f"prefix {settings.prefix!r}"
+            + (" and --ros2 --ros-map " + args.map if args.ros2 else "")
+            + "?",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    return EXIT_OK

@@ -1,0 +1,224 @@
+"""Every command, given input it cannot use, answers in a few lines that name the file or flag,
+exits non-zero and prints no traceback.
+
+The table runs the real command line in this process (``main``); a few rows run the installed
+console script in a subprocess, as an operator would.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import NamedTuple
+
+import pytest
+
+from service.cli.main import main
+
+#: Nothing listens here: every client command must say how to reach the service.
+NOWHERE = "tcp/127.0.0.1:1"
+
+
+class Bad(NamedTuple):
+    argv: list[str]
+    code: int
+    says: list[str]  # each must appear in stderr
+
+
+@pytest.fixture(autouse=True)
+def _no_settings_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    # load_settings hands --settings to its sources through RLUTF_SETTINGS; set first, so that
+    # monkeypatch restores the variable's absence after each test.
+    monkeypatch.setenv("RLUTF_SETTINGS", "")
+    monkeypatch.delenv("RLUTF_SETTINGS")
+
+
+@pytest.fixture
+def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.yaml").write_text("mode: router\n  listen: [a\n")
+    (tmp_path / "bad.json").write_text('{"mode": "router",\n "workers": }\n')
+    (tmp_path / "bad.toml").write_text('mode = "router"\nworkers = \n')
+    (tmp_path / "list.yaml").write_text("- a\n- b\n")
+    (tmp_path / "unknown.yaml").write_text("modee: router\n")
+    (tmp_path / "x.ini").write_text("[a]\n")
+    (tmp_path / "corrupt.json").write_text('{"map_id": \n')
+    (tmp_path / "corrupt.mcap").write_bytes(b"garbage\x00\x01")
+    (tmp_path / "foreign.txt").write_text("hello\n")
+    (tmp_path / "foreign.yaml").write_text("image: x.pgm\nresolution: 0.05\n")
+    return tmp_path
+
+
+def _cases() -> Iterator[Bad]:
+    # settings files, in each format, named with the line
+    for name, line in (("bad.yaml", 2), ("bad.json", 2), ("bad.toml", 2)):
+        yield Bad(["config", "--settings", name], 2, [name, f"line {line}", "not valid"])
+    yield Bad(["serve", "--settings", "bad.yaml"], 2, ["bad.yaml", "line 2"])
+    yield Bad(["config", "--settings", "list.yaml"], 2, ["list.yaml", "holds a list"])
+    yield Bad(["config", "--settings", "unknown.yaml"], 2, ["modee", "unknown setting"])
+    yield Bad(["config", "--settings", "missing.yaml"], 2, ["missing.yaml", "not found"])
+    yield Bad(["config", "--settings", "x.ini"], 2, ["x.ini", ".yaml"])
+    # zenoh's own config file
+    yield Bad(["pose", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2", "-c/--config"])
+    yield Bad(["serve", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2"])
+    # out-of-range numbers and malformed values, named by flag
+    yield Bad(["demo", "--rate", "0"], 2, ["--rate", "more than 0"])
+    yield Bad(["demo", "--robots", "0"], 2, ["--robots", "at least 1"])
+    yield Bad(["demo", "--port", "70000"], 2, ["--port", "at most 65535"])
+    yield Bad(["demo", "--duration", "nan"], 2, ["--duration", "finite"])
+    yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
+    yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
+    yield Bad(["pose", "--timeout", "0"], 2, ["--timeout", "more than 0"])
+    yield Bad(["robots", "--timeout", "soon"], 2, ["--timeout", "not a number"])
+    yield Bad(["events", "--seconds", "-1"], 2, ["--seconds"])
+    yield Bad(["relocalize", "r1", "--map", "m", "--wait", "-1"], 2, ["--wait"])
+    yield Bad(["initialpose", "r1", "--map", "m", "--pose", "1,2"], 2, ["--pose", "X,Y,THETA"])
+    yield Bad(["initialpose", "r1", "--map", "m", "--pose", "nan,1,2"], 2, ["--pose", "finite"])
+    yield Bad(["initialpose", "r 1", "--map", "m", "--pose", "1,2,3"], 2, ["robot id", "'r 1'"])
+    yield Bad(["events", "r/1", "-e", NOWHERE], 2, ["robot id"])
+    yield Bad(["map", "remove", "m/1", "-e", NOWHERE], 2, ["map id"])
+    # output paths that cannot be written, named before any work or connection
+    yield Bad(["map", "get", "m1", "--out", "/missing/dir/x.json", "-e", NOWHERE], 2, ["--out"])
+    yield Bad(["map", "show", "corrupt.json", "--out", "no/dir/x.png"], 2, ["--out", "no/dir"])
+    yield Bad(["map", "import", "foreign.yaml", "--out", "no/dir/m.json"], 2, ["--out"])
+    yield Bad(["map", "build", "foreign.txt", "--png", "no/dir/m.png"], 2, ["--png"])
+    yield Bad(["serve", "--store", "foreign.txt/maps"], 2, ["--store", "not a folder"])
+    yield Bad(["serve", "--record", "foreign.txt/logs"], 2, ["--record", "not a folder"])
+    yield Bad(["demo", "--record", "foreign.txt"], 2, ["--record", "not a folder"])
+    # missing, corrupt or foreign files
+    yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
+    yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])
+    yield Bad(["map", "import", "missing.yaml"], 1, ["missing.yaml"])
+    yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
+    yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
+    yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])
+    yield Bad(["log", "info", "missing.mcap"], 2, ["missing.mcap"])
+    yield Bad(["replay", "foreign.txt", "--out", "o.mcap"], 2, ["foreign.txt"])
+    # no service reachable: a hint, not a Rust source path
+    for argv in (
+        ["pose"],
+        ["health"],
+        ["robots"],
+        ["events"],
+        ["map", "list"],
+        ["map", "get", "m1"],
+        ["initialpose", "r1", "--map", "m1", "--pose", "-1.5,2.0,0.3"],
+        ["relocalize", "r1", "--map", "m1"],
+    ):
+        yield Bad([*argv, "-e", NOWHERE], 1, [NOWHERE, "is `rlutf serve` running?", "-e/--connect"])
+
+
+CASES = list(_cases())
+
+
+def _run(argv: list[str]) -> int:
+    try:
+        return main(argv)
+    except SystemExit as exit_:  # argparse refuses a flag this way
+        return int(exit_.code or 0)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[" ".join(c.argv) for c in CASES])
+def test_bad_input_is_named_with_no_traceback(
+    case: Bad, files: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = _run(case.argv)
+    out, err = capsys.readouterr()
+    assert code == case.code, err
+    for text in case.says:
+        assert text in err
+    assert "Traceback" not in err + out
+    assert ".rs:" not in err  # no Rust source path from zenoh
+    assert len(err.strip().splitlines()) <= 6
+
+
+def test_settings_errors_reach_client_commands_through_the_environment(
+    files: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("RLUTF_SETTINGS", "bad.yaml")
+    assert _run(["pose", "-e", NOWHERE]) == 2
+    assert "bad.yaml, line 2" in capsys.readouterr().err
+
+
+@pytest.fixture
+def taken_port() -> Iterator[int]:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield int(s.getsockname()[1])
+
+
+def test_serve_on_a_taken_port_says_so(
+    taken_port: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    common = ["--store", str(tmp_path / "s"), "--no-record", "--workers", "0", "--no-state"]
+    code = _run(["serve", "-l", f"tcp/127.0.0.1:{taken_port}", *common])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert f"tcp/127.0.0.1:{taken_port}" in err and "-l/--listen" in err
+    assert ".rs:" not in err
+
+    free = socket.socket()
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()
+    code = _run(["demo", "--port", str(taken_port), "--no-record", "--workers", "0"])
+    err = capsys.readouterr().err
+    assert code == 1 and str(taken_port) in err and "the port is taken" in err
+
+    code = _run(
+        [
+            "serve",
+            "-l",
+            f"tcp/127.0.0.1:{port}",
+            "--metrics-addr",
+            "127.0.0.1",
+            "--metrics-port",
+            str(taken_port),
+            *common,
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 1
+    assert f"127.0.0.1:{taken_port}" in err and "--metrics-port" in err
+
+
+def test_log_level_and_debug_after_the_subcommand(
+    files: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert _run(["config", "--log-level", "debug"]) == 0
+    assert _run(["--log-level", "INFO", "config", "--log-level", "ERROR"]) == 0
+    capsys.readouterr()
+    with pytest.raises(Exception, match="cannot reach zenoh"):
+        main(["pose", "-e", NOWHERE, "--debug"])  # --debug: the exception, traceback and all
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    assert _run(["--version"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("rlutf ") and "v1.2" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["config", "--settings", "bad.yaml"], "bad.yaml, line 2"),
+        (["demo", "--rate", "0"], "--rate"),
+        (["map", "get", "m1", "--out", "/missing/dir/x.json", "-e", NOWHERE], "--out"),
+        (["pose", "-e", NOWHERE], "is `rlutf serve` running?"),
+    ],
+)
+def test_the_console_script_says_the_same(files: Path, argv: list[str], says: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "service", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode != 0
+    assert says in done.stderr
+    assert "Traceback" not in done.stderr

@@ -1,0 +1,244 @@
+"""The operator's commands against a real service on loopback: initialpose, events, pose,
+health, relocalize, robots (silent and waiting robots), map list and map remove."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from service_harness import JSON, Bench, Collector, SimRobot, running_bench
+
+from schemas import encode
+from service.cli.main import main
+
+pytestmark = pytest.mark.integration
+
+
+def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _drive(robot: SimRobot, steps: int) -> None:
+    for _ in range(steps):
+        robot.advance()
+        time.sleep(0.03)
+
+
+def _stand(robot: SimRobot, done: threading.Event) -> None:
+    """Odometry and scans of a robot standing still, stamped now (as a real robot stamps them,
+    so that an operator's InitialPose, stamped now, falls among them) until ``done``."""
+    while not done.is_set():
+        robot.t0 = time.time_ns() - robot.step * 100_000_000
+        robot.odom(robot.step)
+        scan = encode(robot.scan_msg(robot.step))
+        robot.session.put(f"rlutf/robots/{robot.robot_id}/scan", scan, encoding=JSON)
+        time.sleep(0.05)
+
+
+def _tracked(bench: Bench) -> SimRobot:
+    """Robot r1 on map m1 (already put), with a few poses published."""
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/robots/r1/pose", col)
+    time.sleep(0.3)
+    robot = bench.robot("r1", 1)
+    robot.initial_pose("m1")
+    time.sleep(0.3)
+    _drive(robot, 3)
+    assert col.wait_for(lambda: len(col.on("rlutf/robots/r1/pose")) >= 2)
+    sub.undeclare()
+    return robot
+
+
+def test_initialpose_starts_a_waiting_robot_and_events_show_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_bench(tmp_path) as bench:
+        e = bench.endpoint
+        bench.put_map()
+        robot = bench.robot("r1", 1)
+        # scans with no initial pose: a waiting robot, and not_initialized Events
+        done = threading.Event()
+        standing = threading.Thread(target=_stand, args=(robot, done))
+        standing.start()
+        seen = [_cli(capsys, "events", "r1", "-e", e, "--seconds", "1.5")]
+        done.set()
+        standing.join()
+        code, out, _ = seen[0]
+        assert code == 0
+        assert "not_initialized" in out and "rlutf initialpose r1" in out
+
+        code, out, err = _cli(capsys, "robots", "-e", e)
+        assert code == 0
+        row = next(line for line in out.splitlines() if line.startswith("r1"))
+        assert row.split()[:3] == ["r1", "-", "waiting"]
+        assert "rlutf initialpose ROBOT" in out
+        code, out, err = _cli(capsys, "pose", "-e", e, "--timeout", "1")
+        assert code == 1
+        assert "no robot has a pose" in err and "'*'" not in err
+
+        # the pose as typed, negative numbers included; the robot's next scan starts it
+        x, y, theta = (float(v) for v in robot.truth[robot.step])
+        pose = f"{x:.4f},{y:.4f},{theta:.4f}"
+        done = threading.Event()
+        driver = threading.Thread(target=_stand, args=(robot, done))
+        driver.start()
+        code, out, err = _cli(capsys, "initialpose", "r1", "--map", "m1", "--pose", pose, "-e", e)
+        done.set()
+        driver.join()
+        assert code == 0, err
+        assert "initial pose set: r1 at x" in out
+        assert "r1 on m1: tracking at" in out or "r1 on m1: corrected at" in out
+
+        code, out, _ = _cli(capsys, "pose", "r1", "-e", e)
+        assert code == 0
+        header, line = out.splitlines()
+        assert header.split()[:4] == ["robot", "map", "status", "x"]
+        assert line.split()[:2] == ["r1", "m1"]
+        assert abs(float(line.split()[3]) - float(robot.truth[robot.step][0])) < 0.2
+        code, out, _ = _cli(capsys, "pose", "r1", "-e", e, "--json")
+        assert json.loads(out)["robot_id"] == "r1"
+
+        code, out, _ = _cli(capsys, "robots", "-e", e, "--json")
+        (r1,) = json.loads(out)
+        assert r1["status"] in ("tracking", "corrected") and r1["silent"] is False
+        assert 0 < r1["sigma_xy_m"] < 1
+        # no scan for a while: marked silent
+        code, out, _ = _cli(capsys, "robots", "-e", e, "--silent", "0.2")
+        time.sleep(0.3)
+        code, out, _ = _cli(capsys, "robots", "-e", e, "--silent", "0.2")
+        assert "silent (" in out.splitlines()[1]
+
+
+def test_initialpose_on_a_missing_map_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_bench(tmp_path) as bench:
+        code, out, err = _cli(
+            capsys,
+            "initialpose",
+            "r1",
+            "--map",
+            "nowhere",
+            "--pose",
+            "-1.5,2.0,0.3",
+            "-e",
+            bench.endpoint,
+            "--json",
+        )
+        assert code == 1
+        assert json.loads(out.splitlines()[0])["code"] == "map_not_found"
+        assert "rlutf map list" in err
+        # its scans wait for that map: listed as waiting for it, not for an initial pose
+        robot = bench.robot("r1", 1)
+        robot.odom(0)
+        waiting: list[dict] = []
+        for _ in range(50):
+            robot.advance()
+            code, out, _ = _cli(capsys, "robots", "-e", bench.endpoint, "--json")
+            waiting = [r for r in json.loads(out) if r["status"] == "waiting"]
+            if waiting:
+                break
+        assert [(r["robot_id"], r["reason"]) for r in waiting] == [("r1", "map_not_found")]
+
+
+def test_commands_that_need_a_service_say_when_none_is_live(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_bench(tmp_path) as bench:
+        for argv in (
+            ["initialpose", "r1", "--map", "m1", "--pose", "1,2,3"],
+            ["relocalize", "r1", "--map", "m1"],
+        ):
+            code, _, err = _cli(capsys, *argv, "-e", bench.endpoint, "--prefix", "elsewhere")
+            assert code == 1
+            assert "no rlutf service is live on prefix 'elsewhere'" in err
+            assert "-e/--connect" in err and "Traceback" not in err
+
+
+def test_health_and_relocalize_read_as_text(
+    bench: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
+    e = bench.endpoint
+    code, out, _ = _cli(capsys, "health", "-e", e)
+    assert code == 0
+    header, line = out.splitlines()
+    assert header.split()[:3] == ["instance", "ready", "up"]
+    assert line.split()[0] == bench.service.settings.instance
+    code, out, _ = _cli(capsys, "health", "-e", e, "--json")
+    assert json.loads(out)["instance"] == bench.service.settings.instance
+
+    bench.put_map()
+    robot = _tracked(bench)
+    driver = threading.Thread(target=_drive, args=(robot, 40))
+    driver.start()
+    code, out, err = _cli(capsys, "relocalize", "r1", "--map", "m1", "-e", e, "--wait", "8")
+    driver.join()
+    assert code == 0, err
+    lines = out.splitlines()
+    assert any("relocalizing:" in line for line in lines)
+    assert lines[-1].startswith("r1 on m1: ")  # the pose it was relocalized at, or a later one
+    assert not any(line.startswith("{") for line in lines)  # no raw JSON by default
+
+
+def test_map_list_and_remove(bench: Bench, capsys: pytest.CaptureFixture[str]) -> None:
+    e = bench.endpoint
+    bench.put_map("m1")
+    bench.put_map("m2", version=3)
+    _tracked(bench)
+
+    code, out, _ = _cli(capsys, "map", "list", "-e", e, "--json")
+    assert code == 0
+    rows = {m["map_id"]: m for m in json.loads(out)}
+    assert set(rows) == {"m1", "m2"}
+    assert (rows["m1"]["version"], rows["m2"]["version"]) == (1, 3)
+    assert rows["m1"]["robots"] == ["r1"] and rows["m2"]["robots"] == []
+    assert rows["m1"]["size_bytes"] == (bench.store / "m1.json").stat().st_size
+    assert all(0 < v < 1000 for v in rows["m1"]["extent_m"])
+    code, out, _ = _cli(capsys, "map", "list", "-e", e)
+    assert [line.split()[0] for line in out.splitlines()] == ["map", "m1", "m2"]
+    assert out.splitlines()[1].split()[-1] == "r1"
+
+    # a map robots are on needs --force; an unused one goes; an unknown one is named
+    code, _, err = _cli(capsys, "map", "remove", "m1", "-e", e)
+    assert code == 1 and "robots are on map 'm1': r1" in err and "--force" in err
+    code, out, err = _cli(capsys, "map", "remove", "m2", "-e", e)
+    assert code == 0, err
+    assert "removed map m2" in out
+    assert not (bench.store / "m2.json").exists()
+    code, _, err = _cli(capsys, "map", "remove", "m2", "-e", e)
+    assert code == 1 and "no storage holds map 'm2'" in err
+    code, out, _ = _cli(capsys, "map", "list", "-e", e, "--json")
+    assert [m["map_id"] for m in json.loads(out)] == ["m1"]
+    code, _, _ = _cli(capsys, "map", "remove", "m1", "-e", e, "--force")
+    assert code == 0
+    code, out, err = _cli(capsys, "map", "list", "-e", e)
+    assert code == 1 and "no storage answered with a map" in err
+
+
+def test_events_without_a_robot_include_the_service_wide_ones(
+    bench: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
+    seen: list[tuple[int, str, str]] = []
+    follow = threading.Thread(
+        target=lambda: seen.append(
+            _cli(capsys, "events", "--json", "-e", bench.endpoint, "--seconds", "2")
+        )
+    )
+    follow.start()
+    robot = bench.robot("r5", 2)
+    while follow.is_alive():  # until the command ends, whenever it subscribed
+        bench.client.put("rlutf/maps/broken", b'{"map_id": "broken", "version": 1}')
+        robot.advance()  # a scan with no initial pose: r5's not_initialized
+        time.sleep(0.1)
+    follow.join()
+    code, out, _ = seen[0]
+    assert code == 0
+    events = [json.loads(line) for line in out.splitlines()]
+    codes = {(e["code"], e["key"]) for e in events}
+    assert ("invalid_map", "rlutf/maps/broken") in codes
+    assert ("not_initialized", "rlutf/robots/r5/scan") in codes

@@ -1,0 +1,177 @@
+"""What the command line shows a person: tables, units, ages, Events, and the lost wording."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rlutf.localizer import LocalizeResult
+from schemas import Event, PoseEstimate
+from service.cli.present import age, event_line, pose_line, poses_table, robots_table
+from service.engine import _unfit
+from service.live.robots import RobotState, WaitingRobot
+
+
+def _state(robot: str, age_s: float | None, owner: str, x: float = 0.0) -> RobotState:
+    return RobotState(
+        robot_id=robot,
+        map_id="m",
+        status="tracking",
+        x=x,
+        y=-1.5,
+        theta=math.pi / 2,
+        age_s=age_s,
+        latency_ms=None if age_s is None else 2.25,
+        owner=owner,
+        sigma_xy_m=None if age_s is None else 0.0123,
+        sigma_theta_rad=None if age_s is None else math.radians(0.5),
+    )
+
+
+def test_robots_table_in_degrees_and_centimetres_with_silent_and_waiting_robots() -> None:
+    waiting = WaitingRobot(robot_id="r0", reason="not_initialized", age_s=0.5, owner="a")
+    text = robots_table(
+        [
+            _state("r1", 0.123, "a", x=12.3456),
+            _state("robot-22", None, "b"),
+            _state("r3", 107, "a"),
+        ],
+        [waiting],
+    )
+    header, first, second, third, fourth, blank, hint = text.splitlines()
+    assert header.split() == [
+        "robot",
+        "map",
+        "status",
+        "x",
+        "m",
+        "y",
+        "m",
+        "θ",
+        "°",
+        "±xy",
+        "cm",
+        "±θ",
+        "°",
+        "age",
+        "latency",
+        "ms",
+        "owner",
+    ]
+    assert first.split() == [
+        "r1",
+        "m",
+        "tracking",
+        "12.346",
+        "-1.500",
+        "90.0",
+        "1.2",
+        "0.50",
+        "0.12",
+        "s",
+        "2.2",
+        "a",
+    ]
+    assert second.split() == [
+        "robot-22",
+        "m",
+        "tracking",
+        "0.000",
+        "-1.500",
+        "90.0",
+        "-",
+        "-",
+        "-",
+        "-",
+        "b",
+    ]
+    assert third.split()[:4] == ["r3", "m", "silent", "(tracking)"]
+    assert "1 min 47 s" in third
+    assert fourth.split()[:3] == ["r0", "-", "waiting"]
+    assert len({line.index("-1.500") for line in (first, second, third)}) == 1  # aligned
+    assert blank == "" and "rlutf initialpose ROBOT --map ID --pose X,Y,THETA" in hint
+
+
+def test_a_table_without_waiting_robots_has_no_hint() -> None:
+    assert "initialpose" not in robots_table([_state("r1", 0.1, "a")])
+
+
+@pytest.mark.parametrize(
+    ("seconds", "text"),
+    [(None, "-"), (0.04, "0.04 s"), (12.4, "12 s"), (107, "1 min 47 s"), (7500, "2 h 05 min")],
+)
+def test_ages_read_as_seconds_minutes_hours(seconds: float | None, text: str) -> None:
+    assert age(seconds) == text
+
+
+def _pose() -> PoseEstimate:
+    return PoseEstimate(
+        stamp_ns=1_000_000_000,
+        robot_id="r1",
+        map_id="m1",
+        x=1.0,
+        y=-2.0,
+        theta=-math.pi / 2,
+        status="corrected",
+        discrepancy=0.0123,
+        iterations=2,
+        covariance=[0.0004, 0, 0, 0, 0.0001, 0, 0, 0, math.radians(1) ** 2],
+    )
+
+
+def test_poses_in_degrees_centimetres_and_their_age() -> None:
+    header, line = poses_table([_pose()], now_ns=3_500_000_000).splitlines()
+    assert header.split()[-1] == "discrepancy"
+    assert line.split() == [
+        "r1",
+        "m1",
+        "corrected",
+        "1.000",
+        "-2.000",
+        "-90.0",
+        "2.0",
+        "1.00",
+        "2.50",
+        "s",
+        "0.0123",
+    ]
+    assert pose_line(_pose()) == (
+        "r1 on m1: corrected at x 1.000 m, y -2.000 m, θ -90.0° ± 2.0 cm, 1.00°"
+    )
+
+
+def test_an_event_is_one_line_with_its_robot() -> None:
+    ev = Event(
+        stamp_ns=1_732_300_000_123_456_789,
+        level="warning",
+        code="not_initialized",
+        key="rlutf/robots/r1/scan",
+        message="scan before an initial pose",
+    )
+    line = event_line("r1", ev)
+    assert line.endswith("warning  r1  not_initialized: scan before an initial pose")
+    assert line[8:12] == ".123"
+    assert "  -  not_initialized (rlutf/robots/r1/scan): scan" in event_line(None, ev)
+
+
+def _lost(fit: float, needed: float) -> LocalizeResult:
+    return LocalizeResult(np.zeros(3), 0.5, 3, "lost", 10, fit=fit, fit_needed=needed)
+
+
+def test_the_lost_wording_never_reads_as_a_contradiction() -> None:
+    # the robot's usual share sets the bar: 92 % is under it, though over min_fit
+    text = _unfit(_lost(0.92, 0.95), 0.1, 0.5)
+    assert "only 92 % of its returns lie within 0.1 m" in text
+    assert "under the 95 % needed" in text and "usually" in text
+    assert "never under 50 %" in text
+    # the shares are given with as many digits as it takes to tell them apart
+    assert "only 92.1 %" in _unfit(_lost(0.921, 0.924), 0.1, 0.5)
+    assert "under the 92.4 % needed" in _unfit(_lost(0.921, 0.924), 0.1, 0.5)
+    # the plain floor
+    text = _unfit(_lost(0.3, 0.5), 0.1, 0.5)
+    assert text.startswith("the scan does not fit the map: only 30 %")
+    assert "under the 50 % needed" in text
+    # a result that does not say what was needed: min_fit
+    assert "under the 50 % needed" in _unfit(_lost(0.3, math.nan), 0.1, 0.5)

@@ -1,0 +1,45 @@
+"""``rlutf serve`` as an operator starts it: the metrics port it took is said."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from service.live.sessions import free_port
+
+pytestmark = pytest.mark.integration
+
+
+def test_serve_says_which_metrics_port_it_took(tmp_path: Path) -> None:
+    argv = [
+        *(sys.executable, "-m", "service", "serve"),
+        *("-l", f"tcp/127.0.0.1:{free_port()}", "--store", str(tmp_path / "store")),
+        *("--no-record", "--no-state", "--workers", "0"),
+        *("--metrics-addr", "127.0.0.1", "--metrics-port", "0"),
+    ]
+    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        said = ""
+        end = time.monotonic() + 120
+        while "metrics on" not in said and time.monotonic() < end:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            said += line
+        found = re.search(r"metrics on http://127\.0\.0\.1:(\d+)/metrics", said)
+        assert found, said
+        port = int(found[1])
+        assert port > 0
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as reply:
+            assert b"rlutf_messages_received_total" in reply.read()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0

@@ -1,0 +1,96 @@
+"""``rlutf simulate`` against a real service on loopback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from service_harness import Collector, running_bench
+
+from service.cli.main import main
+from service.live.sessions import free_port
+
+pytestmark = pytest.mark.integration
+
+
+def test_simulated_robots_are_localized_and_their_bad_input_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_bench(tmp_path) as bench:
+        poses = Collector()
+        sub = bench.client.declare_subscriber("rlutf/robots/*/pose", poses)
+        args = ["simulate", "-e", bench.endpoint, "--robots", "2", "--duration", "3"]
+        args += ["--beams", "180", "--bad-input-every", "1", "--report-every", "1"]
+        assert main(args) == 0
+        sub.undeclare()
+        health = bench.service.health()
+        out = capsys.readouterr().out
+    for robot in ("r000", "r001"):
+        got = poses.on(f"rlutf/robots/{robot}/pose")
+        assert len(got) >= 20, robot
+        assert got[-1]["map_id"] == "sim"
+    assert "2 of 2 robots localized" in out
+    assert "bad input from r000 every 1 s" in out
+    # one bad scan a second for 3 s, each refused by the service and counted
+    assert b'"rejected":3' in health or b'"rejected": 3' in health
+
+
+def test_robots_without_an_initial_pose_wait(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_bench(tmp_path) as bench:
+        args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "2"]
+        assert main([*args, "--beams", "90", "--no-initial-pose"]) == 0
+    out = capsys.readouterr().out
+    assert "initial poses: none" in out
+    assert "0 of 1 robots localized" in out
+    assert "not_initialized" in out  # the service's Events, as the robots see them
+
+
+def test_robots_drive_a_stored_map(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with running_bench(tmp_path) as bench:
+        bench.put_map("m1")
+        stored = Collector()
+        assert stored.wait_for(lambda: any(r.ok for r in bench.client.get("rlutf/maps/m1")))
+        args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "2"]
+        assert main([*args, "--beams", "90", "--map", "m1", "--stored-map"]) == 0
+        out = capsys.readouterr().out
+        assert "map m1: the stored one" in out and "1 of 1 robots localized" in out
+        assert main([*args, "--map", "nothere", "--stored-map"]) == 1
+        assert "no valid map 'nothere' in the store" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--rate", "0"], "--rate must be a number above 0, got 0.0"),
+        (["--robots", "0"], "--robots must be at least 1"),
+        (["--map", "a/b"], "--map 'a/b' is not a map id"),
+        (["--ros2", "--relocalize-every", "2"], "ROS 2 robots have no Relocalize topic"),
+    ],
+)
+def test_bad_flags_are_named(
+    flags: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["simulate", *flags]) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_no_service_says_what_to_do(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["simulate", "-e", f"tcp/127.0.0.1:{free_port()}", "--duration", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "is `rlutf serve` running? name its endpoint with -e/--connect" in err
+    assert ".rs:" not in err  # no Rust source path
+
+
+def test_help_explains_the_command() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "service", "simulate", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    for flag in ("--duration", "--no-initial-pose", "--stored-map", "--bad-input-every", "--ros2"):
+        assert flag in out
