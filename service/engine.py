@@ -42,44 +42,16 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.keys import Keys
-from service.maphealth import Handed, NullEvidence, ScanEvidence
+from service.maphealth import NullEvidence, ScanEvidence
+from service.outputs import Outbound
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
+__all__ = ["FleetEngine", "Outbound"]  # Outbound: the engine's output type, re-exported
+
 FloatArray = np.ndarray
-OutKind = Literal["pose", "event", "need_map", "skipped", "evidence"]
 
 #: Versions of one map kept for inputs that were received before a newer version.
 _MAP_VERSIONS_KEPT = 3
-
-
-@dataclass(frozen=True)
-class Outbound:
-    """Something the engine wants published.
-
-    Attributes:
-        kind: ``pose`` (a PoseEstimate for ``key``), ``event`` (an Event for ``key``),
-            ``need_map`` (``map_id`` is wanted from the store; nothing is published),
-            ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
-            ``evidence`` (map health evidence handed on, :meth:`FleetEngine.hand_over`).
-        key: the Zenoh key to put on.
-        payload: encoded JSON.
-        stamp_ns: the message's own stamp (MCAP ``publish_time``).
-        robot: the robot concerned, if any.
-        map_id: for ``need_map``.
-        status: for ``pose``: the pose status.
-        received_ns: for ``pose``: when the scan it answers was received.
-        evidence: for ``evidence``: the grids counted since the last hand-over.
-    """
-
-    kind: OutKind
-    key: str
-    payload: bytes
-    stamp_ns: int
-    robot: str | None = None
-    map_id: str | None = None
-    status: str | None = None
-    received_ns: int | None = None
-    evidence: tuple[Handed, ...] = ()
 
 
 @dataclass
