@@ -53,6 +53,12 @@ def one_start(cache: Path, workers: int, work: Path) -> dict[str, float]:
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     cmd = [sys.executable, "-m", "service", "serve", "--listen", endpoint, "--no-record"]
     cmd += ["--store", str(work / "store"), "--no-state", "--workers", str(workers)]
+    # The robot's run, drawn before the clock starts.
+    rng = np.random.default_rng(1)
+    world = make_building(np.random.default_rng(11))
+    truth = make_trajectory(world, rng, SCANS + 1)
+    lidar = LidarModel(beams=360)
+    scans = [simulate_scan(world, truth[i], lidar, rng) for i in range(SCANS + 1)]
     started = time.monotonic()
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stderr=out, env=env)
@@ -62,11 +68,6 @@ def one_start(cache: Path, workers: int, work: Path) -> dict[str, float]:
                 raise RuntimeError(f"rlutf serve exited: {log.read_text()[-2000:]}")
             time.sleep(0.05)
         ready = time.monotonic()
-        rng = np.random.default_rng(1)
-        world = make_building(np.random.default_rng(11))
-        truth = make_trajectory(world, rng, SCANS + 1)
-        lidar = LidarModel(beams=360)
-        scans = [simulate_scan(world, truth[i], lidar, rng) for i in range(SCANS + 1)]
         poses: list[float] = []
         with zenoh.open(client_config(endpoint)) as client:
             sub = client.declare_subscriber(

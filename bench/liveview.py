@@ -1,7 +1,7 @@
 """What the live view costs localization: the service's CPU per scan with and without a client.
 
-Run: ``python -m bench.liveview [--robots 100] [--duration 15] [--write]`` (under
-``flock /work/timing.lock`` on a shared machine).
+Run: ``python -m bench.liveview [--robots 100] [--duration 15] [--write]`` (alone on the
+machine: a timing).
 
 The fleet benchmark's setup (:func:`bench.fleetrun.run_size`: a ``rlutf serve`` subprocess, a
 load-generator process publishing odometry and a 360-beam scan per robot at 10 Hz) three times:
@@ -128,7 +128,7 @@ def render(robots: int, duration: float, record: bool, workers: int) -> str:
         [
             "## Live view: what a Foxglove client costs localization (issue 22)",
             "",
-            f"Command: `flock /work/timing.lock python -m bench.liveview --robots {robots} "
+            f"Command: `python -m bench.liveview --robots {robots} "
             f"--duration {duration:g}{flags} --write`",
             "",
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "

@@ -9,11 +9,14 @@ Identities (TLS certificate common names, or usernames with ``--auth usrpwd``):
 
     rlutf-service   service instances: everything under {prefix}/**
     zenoh-router    other routers of the fleet (router-to-router links): same as the service
-    rlutf-operator  writes maps and initial poses, reads everything under {prefix}/**
-    robot-ID        writes its own scan and odom; reads maps, its own pose (subscribe and get)
-                    and its own events
+    rlutf-operator  writes (puts and deletes) maps, initial poses and relocalize requests;
+                    reads everything under {prefix}/**
+    robot-ID        puts its own scan and odom (no DELETE); reads maps, its own pose
+                    (subscribe and get) and its own events
 
-Anything else is denied (``default_permission: deny``), including the admin space. The
+Anything else is denied (``default_permission: deny``), including the admin space. What this
+does not enforce: what a permitted put holds (a robot may still send any stamp or number on its
+own keys; the service checks those), nor how often (no rate limit: zenoh's ACL has none). The
 storage section matches deploy/zenoh/router.json5 (without the REST plugin, which would
 bypass access control). Uses only the standard library; the output is JSON, which is JSON5.
 """
@@ -102,7 +105,11 @@ def access_control(prefix: str, robots: list[str], auth: str) -> dict[str, Any]:
             "operator_write",
             "ingress",
             ["put", "delete"],
-            [f"{prefix}/maps/**", f"{prefix}/robots/*/initialpose"],
+            [
+                f"{prefix}/maps/**",
+                f"{prefix}/robots/*/initialpose",
+                f"{prefix}/robots/*/relocalize",
+            ],
         ),
         rule(
             "operator_ask",
@@ -205,8 +212,9 @@ def render(config: dict[str, Any], options: list[str]) -> str:
             else "user/password (transport/auth/usrpwd)."
         ),
         "// Subjects: rlutf-service and zenoh-router (all of the prefix), rlutf-operator (writes",
-        "// maps and initial poses, reads all), robot-ID (writes its own scan and odom, reads maps",
-        "// and its own pose and events). Everything else is denied.",
+        "// maps, initial poses and relocalize requests, reads all), robot-ID (puts its own scan",
+        "// and odom, no DELETE; reads maps and its own pose and events). Everything else is",
+        "// denied.",
     ]
     return "\n".join(header) + "\n" + json.dumps(config, indent=2) + "\n"
 

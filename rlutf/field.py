@@ -92,6 +92,9 @@ class WideSearch:
             not on the map), metres.
         keep: distinct best poses returned.
         max_points: the scan is thinned to at most this many points.
+        max_turns: at most this many heading steps on each side of the pose's heading (the
+            step grows past the one above for scans with far returns: a scan whose ranges are
+            1e5 m would otherwise be searched over hundreds of thousands of headings).
     """
 
     step: float = 0.1
@@ -99,6 +102,7 @@ class WideSearch:
     cap: float = 0.3
     keep: int = 6
     max_points: int = 180
+    max_turns: int = 1024
 
 
 def wide_search(
@@ -139,6 +143,9 @@ def wide_search(
     offsets = np.column_stack([gx.ravel(), gy.ravel()])
     offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= radius + 0.5 * step]
     turns = math.ceil(heading_radius / heading_step)
+    if turns > settings.max_turns:
+        turns = settings.max_turns
+        heading_step = heading_radius / turns
     headings = np.arange(-turns, turns + 1) * heading_step
     scores = _grid.score_field_grid(
         float(centre[0]),

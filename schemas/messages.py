@@ -201,7 +201,8 @@ class EventCode:
     INVALID_MESSAGE: Final = "invalid_message"
     """A payload was rejected: malformed, wrong types, missing fields or too large."""
     INVALID_KEY: Final = "invalid_key"
-    """A key with a robot id or map id that does not match the id pattern."""
+    """A key with a robot id or map id that does not match the id pattern, a key with extra
+    levels or an unknown leaf, a DELETE on a robot key, a put on a key nothing reads."""
     MAP_NOT_FOUND: Final = "map_not_found"
     """An InitialPose or Relocalize names a map no storage answers for."""
     INVALID_MAP: Final = "invalid_map"
@@ -232,6 +233,11 @@ class EventCode:
     """An input for a new robot id was refused: the instance holds ``max_robots`` already."""
     STAMP_REJECTED: Final = "stamp_rejected"
     """A message's stamp is too far ahead of the service's clock to be trusted."""
+    MAP_DELETED: Final = "map_deleted"
+    """A DELETE on a map key: the store drops the map; robots on it keep their copy."""
+    INTERNAL_ERROR: Final = "internal_error"
+    """An input's update failed inside the service (a bug); it was not applied, and the robot's
+    state is as before it."""
 
 
 KNOWN_EVENT_CODES: Final = frozenset(

@@ -31,6 +31,7 @@ from pydantic_settings import (
 
 from rlutf.localizer import LocalizerConfig
 from schemas import ID_PATTERN
+from service.guard import Limits
 
 ZenohMode = Literal["router", "peer", "client"]
 
@@ -262,6 +263,10 @@ class Settings(BaseSettings):
     )
     localizer: LocalizerConfig = Field(
         default_factory=LocalizerConfig, description="RLuTF parameters (see rlutf.LocalizerConfig)."
+    )
+    limits: Limits = Field(
+        default_factory=Limits,
+        description="What inputs may hold beyond the schema (see service.guard.Limits).",
     )
 
     @field_validator("listen", "connect", mode="before")

@@ -6,9 +6,8 @@ encoded. It does no I/O and reads no clock, so replaying a log's inputs through 
 ``log_time`` order gives the same outputs, byte for byte.
 
 Maps are registered with the time they were received; a robot uses, for each of its inputs, the
-newest version of its map received no later than that input. This makes the live service (maps
-reach worker processes a moment after they are received) and replay (maps are read from the log
-in order) see the same map at the same point of every robot's input.
+newest version of its map received no later than that input, so the live service (maps reach
+workers a moment after they are received) and replay see the same map at the same point.
 
 An InitialPose or Relocalize waits for its map without taking the robot off the map it is
 localized on (:mod:`service.relocalization`). Different robots may be handled on different
@@ -30,7 +29,6 @@ import numpy as np
 from rlutf.localizer import Localizer, LocalizerConfig, LocalizeResult
 from rlutf.map import Map as World
 from rlutf.motion import interpolate, relative
-from rlutf.scan import Scan
 from schemas import (
     Event,
     EventCode,
@@ -41,12 +39,12 @@ from schemas import (
     encode,
 )
 from schemas.fastpose import encode_pose
+from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
 from service.maphealth import NullEvidence, ScanEvidence
-from service.outputs import Outbound
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
-__all__ = ["FleetEngine", "Outbound"]  # Outbound: the engine's output type, re-exported
+__all__ = ["FleetEngine", "Outbound"]
 
 FloatArray = np.ndarray
 
@@ -93,9 +91,8 @@ class FleetEngine:
         keys: the key layout.
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
-        evidence: where each scan's map health evidence is counted (:mod:`service.maphealth`;
-            default: nowhere). Different robots' scans may be counted from different threads:
-            it is called under a lock.
+        limits: what is accepted beyond the schema (:mod:`service.guard`).
+        evidence: where scans' map health evidence is counted (default: nowhere).
     """
 
     def __init__(
@@ -103,13 +100,14 @@ class FleetEngine:
         keys: Keys,
         config: LocalizerConfig,
         event_interval_ns: int = 1_000_000_000,
+        limits: Limits | None = None,
         evidence: ScanEvidence | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
+        self.limits = limits or Limits()
         self.evidence = evidence if evidence is not None else NullEvidence()
-        self.evidence_lock = threading.Lock()
         self._maps: dict[str, _MapVersions] = {}
         self._maps_lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
@@ -133,10 +131,8 @@ class FleetEngine:
             return book.at(received_ns) if book else None
 
     def hand_over(self) -> Outbound | None:
-        """The map health evidence counted since the last call, as an ``evidence`` output
-        (``None`` when there is none); the engine starts counting afresh."""
-        with self.evidence_lock:
-            handed = self.evidence.take()
+        """Map health evidence counted since the last call (``None``: none); counted afresh."""
+        handed = self.evidence.take()
         return Outbound("evidence", "", b"", 0, evidence=tuple(handed)) if handed else None
 
     # ----------------------------------------------------------------------------- state
@@ -187,8 +183,20 @@ class FleetEngine:
         message: LaserScan | Odometry | InitialPose | Relocalize,
         received_ns: int,
     ) -> list[Outbound]:
-        """Apply one input of one robot and return what to publish."""
-        robot = self._robot(robot_id)
+        """Apply one input of one robot and return what to publish.
+
+        An input over a limit (:func:`service.guard.check_input`) changes nothing and gives an
+        Event ``invalid_message``; an update that raises is undone (the robot's state is as
+        before the input) and gives an Event ``internal_error``.
+        """
+        return guarded(self, self._robot(robot_id), message, received_ns)
+
+    def _handle(
+        self,
+        robot: _Robot,
+        message: LaserScan | Odometry | InitialPose | Relocalize,
+        received_ns: int,
+    ) -> list[Outbound]:
         if isinstance(message, Odometry):
             self._add_odometry(robot, message)
             return []
@@ -292,7 +300,7 @@ class FleetEngine:
         if req.kind == "initialpose":
             robot.episode = None
             return []
-        robot.localizer.relocalize(req.region)
+        robot.localizer.relocalize(region_on(req.region, world))
         robot.episode = Episode(f"requested on {req.describe()}")
         return self._events(robot, received_ns, key, robot.episode.start())
 
@@ -356,20 +364,12 @@ class FleetEngine:
             motion = relative(robot.anchor, odom)
         if odom is not None:
             robot.anchor = odom
-        scan = Scan.create(
-            np.array(msg.ranges, dtype=np.float64),  # None (no return) becomes NaN
-            msg.angle_min,
-            msg.angle_increment,
-            msg.range_min,
-            msg.range_max,
-            (msg.sensor_offset.x, msg.sensor_offset.y, msg.sensor_offset.theta),
-        )
+        # Ranges no wall of the map can be at are no return: bounded work before any search.
+        scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
         robot.fresh = False
-        with self.evidence_lock:
-            self.evidence.observe(
-                robot.map_id, robot.map_version, world, robot.robot_id, msg.stamp_ns, result
-            )
+        self.evidence.observe(robot.map_id, robot.map_version, world, robot.robot_id,
+                              msg.stamp_ns, result)  # fmt: skip
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from schemas import InitialPose, LaserScan, Odometry, Relocalize, valid_id
 
@@ -18,8 +18,45 @@ MODELS: dict[str, type[Message]] = {
 }
 
 
+#: Leaves of a robot key the service itself puts (instances follow each other's poses).
+OUTPUT_LEAVES = ("pose", "events")
+
+
 class KeyError_(ValueError):
     """A key that names an invalid robot or map id."""
+
+
+class OddKey(NamedTuple):
+    """A put or delete on a key no part of the service takes as input (:meth:`Keys.odd`).
+
+    Attributes:
+        kind: its class, for rate limiting: ``extra_levels``, ``unknown_leaf``, ``delete``,
+            ``map_deleted`` or ``unknown_key``.
+        level: of its Event.
+        code: of its Event.
+        message: of its Event (the key escaped).
+    """
+
+    kind: str
+    level: Literal["info", "warning", "error"]
+    code: str
+    message: str
+
+
+def printable(text: str, limit: int = 200) -> str:
+    """``text`` with control and other unprintable characters escaped, at most ``limit`` long.
+
+    For log lines and messages that quote a key a client chose: a newline in a key must not
+    forge a line in the service's log.
+    """
+    if len(text) > limit:
+        text = text[:limit] + "..."
+    if text.isprintable():
+        return text
+    return "".join(
+        c if c.isprintable() else (f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}")
+        for c in text
+    )
 
 
 @dataclass(frozen=True)
@@ -49,10 +86,6 @@ class Keys:
     def robots_inputs(self) -> str:
         """Key expression of every robot key (inputs and outputs)."""
         return f"{self.prefix}/robots/*/*"
-
-    def robot_leaf(self, leaf: str) -> str:
-        """Key expression of one leaf (``scan``, ``pose``, ...) of every robot."""
-        return f"{self.prefix}/robots/*/{leaf}"
 
     @property
     def all_poses(self) -> str:
@@ -119,6 +152,72 @@ class Keys:
         if not valid_id(robot):
             raise KeyError_(f"robot id {robot[:80]!r} does not match [A-Za-z0-9_-]{{1,64}}")
         return robot, leaf
+
+    def odd(self, key: str, delete: bool) -> OddKey | None:
+        """What is wrong with a put (or, with ``delete``, a DELETE) on ``key``, if anything.
+
+        ``None`` for what the service takes or publishes itself: the inputs and outputs of
+        robots, maps and Events, and keys outside the prefix. A robot input with an invalid id
+        is also ``None`` here: the input subscriber reports it.
+        """
+        head = f"{self.prefix}/"
+        if not key.startswith(head):
+            return None
+        shown = printable(key)
+        parts = key[len(head) :].split("/")
+        top, rest = parts[0], parts[1:]
+        if top == "robots":
+            if delete:
+                return OddKey(
+                    "delete",
+                    "error",
+                    "invalid_key",
+                    f"DELETE on {shown}: the service takes only puts of inputs; ignored",
+                )
+            if len(rest) > 2 or len(rest) < 2:
+                return OddKey(
+                    "extra_levels",
+                    "error",
+                    "invalid_key",
+                    f"key {shown} has {len(rest)} level(s) under {self.prefix}/robots/; inputs "
+                    f"are {self.prefix}/robots/{{robot}}/{{{'|'.join(INPUT_KINDS)}}}; ignored",
+                )
+            leaf = rest[1]
+            if leaf in INPUT_KINDS or leaf in OUTPUT_LEAVES:
+                return None
+            return OddKey(
+                "unknown_leaf",
+                "error",
+                "invalid_key",
+                f"key {shown}: {printable(leaf, 64)!r} is not an input "
+                f"({', '.join(INPUT_KINDS)}); ignored",
+            )
+        if top == "maps" and len(rest) == 1:
+            if not delete:
+                return None  # the map subscriber takes it
+            return OddKey(
+                "map_deleted",
+                "warning",
+                "map_deleted",
+                f"DELETE on {shown}: the map is removed from the store (if this instance "
+                "hosts it); robots localized on it keep the copy they hold",
+            )
+        if top == "maps":
+            return OddKey(
+                "extra_levels",
+                "error",
+                "invalid_key",
+                f"key {shown} is not a map key ({self.prefix}/maps/{{map_id}}); ignored",
+            )
+        if top == "events" and not rest and not delete:
+            return None  # the instances' own Events
+        return OddKey(
+            "unknown_key",
+            "error",
+            "invalid_key",
+            f"{'DELETE on' if delete else 'put on'} {shown}: no part of the service reads "
+            "this key; ignored",
+        )
 
     def parse_map_key(self, key: str) -> str | None:
         """The map id of ``{prefix}/maps/{map_id}``; ``None`` for other keys.

@@ -20,6 +20,7 @@ give the same MapHealth for it.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 from rlutf.localizer import LocalizeResult
@@ -64,6 +65,8 @@ class ScanEvidence:
         self.min_score = min_score
         self.max_range = max_range
         self._grids: dict[tuple[str, int], ChangeGrid] = {}
+        # Different robots' scans may be counted from different threads (a worker's pool).
+        self._lock = threading.Lock()
 
     def observe(
         self,
@@ -83,25 +86,27 @@ class ScanEvidence:
         ):
             return False
         key = (map_id, version)
-        grid = self._grids.get(key)
-        if grid is None or grid.world is not world:
-            # an older version's grid has been handed on: nothing more comes for it
-            for old in [k for k in self._grids if k[0] == map_id and k[1] < version]:
-                if not self._grids[old].scans:
-                    del self._grids[old]
-            grid = self._grids[key] = ChangeGrid(world, self.settings)
-        grid.add(result.returns, stamp_ns, robot)
+        with self._lock:
+            grid = self._grids.get(key)
+            if grid is None or grid.world is not world:
+                # an older version's grid has been handed on: nothing more comes for it
+                for old in [k for k in self._grids if k[0] == map_id and k[1] < version]:
+                    if not self._grids[old].scans:
+                        del self._grids[old]
+                grid = self._grids[key] = ChangeGrid(world, self.settings)
+            grid.add(result.returns, stamp_ns, robot)
         return True
 
     def take(self) -> list[Handed]:
         """The grids with scans counted since the last call, in map order; counting starts
         afresh (the cells handed on are zeroed, the grids kept)."""
         out = []
-        for (map_id, version), grid in sorted(self._grids.items()):
-            if grid.scans:
-                snapshot = grid.snapshot()
-                grid.clear(snapshot.cells)
-                out.append(Handed(map_id, version, snapshot))
+        with self._lock:
+            for (map_id, version), grid in sorted(self._grids.items()):
+                if grid.scans:
+                    snapshot = grid.snapshot()
+                    grid.clear(snapshot.cells)
+                    out.append(Handed(map_id, version, snapshot))
         return out
 
 

@@ -361,7 +361,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
             return _fail("log recover", err)
         except OSError as err:
             return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
-        damaged = report.bad_chunks or report.lost_messages
+        damaged = report.bad_chunks or report.lost_messages or report.resyncs
         if not report.complete:
             state = f"the input is cut at byte {report.stopped_at} ({report.stopped})"
         elif damaged:
@@ -372,12 +372,23 @@ def cmd_recover(args: argparse.Namespace) -> int:
             f"recovered {report.messages} messages in {report.chunks} chunks, "
             f"{report.metadata} metadata records -> {out}; {state}"
         )
-        if damaged:
+        if report.bad_chunks or report.lost_messages:
             print(
                 f"{broken}: skipped {report.bad_chunks} damaged chunk(s) and "
                 f"{report.lost_messages} message(s) whose channel was lost: those messages "
                 "are not in the output",
                 file=sys.stderr,
+            )
+        if report.resyncs:
+            print(
+                f"{broken}: skipped {report.resyncs} unreadable stretch(es), the first at byte "
+                f"{report.first_unreadable} ({report.first_problem}); reading resumed at the "
+                "next chunk that checks out",
+                file=sys.stderr,
+            )
+        if report.duplicate_chunks:
+            print(
+                f"{broken}: dropped {report.duplicate_chunks} duplicated chunk(s)", file=sys.stderr
             )
     if len(outs) > 1:
         try:

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
+from service.guard import Limits
 from service.keys import InputKind, Keys, Message
 from service.live.shards import (
     IN_FLIGHT,
@@ -67,6 +68,7 @@ class Dispatcher:
         clock: the receive clock (re-seeds get fresh receive times).
         on_seed: records an input made to re-seed a robot whose worker died (lock held).
         on_lost: reports a dead worker (called without the lock).
+        limits: what inputs may hold beyond the schema (:mod:`service.guard`).
         map_health: count the scans' map health evidence (:mod:`service.maphealth`).
     """
 
@@ -82,9 +84,11 @@ class Dispatcher:
         clock: Callable[[], int] = time.time_ns,
         on_seed: OnSeed | None = None,
         on_lost: OnLost | None = None,
+        limits: Limits | None = None,
         map_health: bool = True,
     ) -> None:
         self.keys = keys
+        self.limits = limits or Limits()
         self.map_health = map_health
         self.clock = clock
         self.on_seed: OnSeed = on_seed or (lambda robot, entry: None)

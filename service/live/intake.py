@@ -18,6 +18,7 @@ from service.cluster.ownership import Ownership
 from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
 from service.live.admission import Gate
+from service.live.keywatch import KeyWatch
 from service.live.stats import Stats
 
 
@@ -30,6 +31,7 @@ class Service(Protocol):
     ownership: Ownership
     membership: Membership
     gate: Gate
+    keywatch: KeyWatch
 
     def clock(self) -> int: ...
 
@@ -54,6 +56,8 @@ class Intake:
 
     def on_robot_sample(self, sample: zenoh.Sample) -> None:
         """Subscriber callback on `{prefix}/robots/*/{leaf}`: check, then hand to the owner."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return  # DELETEs are not inputs: the KeyWatch reports them
         svc = self.svc
         key = str(sample.key_expr)
         received = svc.clock()
@@ -63,7 +67,8 @@ class Intake:
             if svc.ownership.ready and svc.membership.owns_key(key):  # one instance reports
                 svc.stats.add("received")
                 svc.stats.add("rejected")
-                svc._global_event("error", EventCode.INVALID_KEY, key, str(err), received)
+                code = EventCode.INVALID_KEY  # one Event a second: ids are a client's to invent
+                svc.keywatch.limited("invalid_id", "error", code, key, str(err), received)
             return
         if parsed is None:
             return

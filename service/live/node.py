@@ -43,12 +43,13 @@ from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
-from service.keys import INPUT_KINDS, InputKind, Keys, Message
+from service.keys import InputKind, Keys, Message
 from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher
 from service.live.healthfeed import HealthFeed
 from service.live.intake import Intake
+from service.live.keywatch import KeyWatch
 from service.live.liveview import LiveView, make_live_view
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
@@ -139,6 +140,7 @@ class LocalizationService:
             clock=self.clock,
             on_seed=self._record_seed,
             on_lost=self._on_worker_lost,
+            limits=settings.limits,
             map_health=settings.map_health,
         )
         self.mapfeed = MapFeed(
@@ -171,6 +173,8 @@ class LocalizationService:
                 settings.max_payload_bytes,
             )
         )
+        owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
+        self.keywatch = KeyWatch(self.keys, self._global_event, self.clock, settings, owns_key)
         self.ros2: Ros2FrontDoor | None = None
         if settings.ros2.enabled:
             self.ros2 = Ros2FrontDoor(
@@ -233,8 +237,8 @@ class LocalizationService:
                 self.keys,
                 FileMapStore(s.store_dir),
                 s.max_payload_bytes,
-                on_error=lambda key, msg: self._global_event(
-                    "error", EventCode.INVALID_MAP, key, msg
+                on_error=lambda key, msg: self.keywatch.limited(
+                    "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
                 ),
             )
         self.mapfeed.start(session)
@@ -253,13 +257,16 @@ class LocalizationService:
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
-        # One subscriber per input leaf and one for poses: none of them receives what this
-        # service itself puts (Events go to other sessions only), so no callback can wait on
-        # a queue that only its own thread drains.
+        # One subscriber for every robot key: its callbacks run on one thread, in arrival order
+        # (a subscriber per leaf would each have a thread of its own, and a robot's scan could
+        # overtake the odometry put before it). It never receives what this service puts
+        # (Events and poses go to other sessions only), so no callback can wait on a queue
+        # that only its own thread drains; leaves that are no input or pose (other instances'
+        # Events) are dropped on the key, before any decode.
         self._input_subs = [
-            session.declare_subscriber(self.keys.robot_leaf(leaf), self._on_robot_sample)
-            for leaf in (*INPUT_KINDS, "pose")
+            session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
         ]
+        self.keywatch.start(session, self.stats)  # Events for keys nothing else takes
         if self.ros2 is not None:
             self.ros2.start(session)
         timeout, limit = s.handover_timeout_s, s.max_payload_bytes
@@ -302,6 +309,7 @@ class LocalizationService:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
+        self.keywatch.close()
         self.out.close()
         if self._storage is not None:
             self._storage.close()
@@ -388,8 +396,8 @@ class LocalizationService:
                 assert out.map_id is not None
                 self.mapfeed.need(out.map_id, done.robot)
                 continue
-            if out.kind == "skipped":
-                self.stats.add("skipped")
+            if out.kind in ("skipped", "rejected"):  # rejected: over a limit (service.guard)
+                self.stats.add(out.kind)
                 continue
             if out.kind == "evidence":
                 self.healthfeed.on_evidence(out.evidence)

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import zenoh
 
 from schemas import SCHEMA_NAMES, Event, EventCode, encode
-from service.keys import Keys
+from service.keys import Keys, printable
 from service.live.outbox import Outbox
 from service.logs.recording import Recorder
 
@@ -113,8 +113,8 @@ class Announcer:
             logging.WARNING if level in ("warning", "error") else logging.INFO,
             "%s %s: %s",
             code,
-            about,
-            message,
+            printable(about),  # a client's key: a newline in it must not forge a log line
+            printable(message, 2000),
         )
         self.publish(key, payload)
         self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)

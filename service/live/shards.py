@@ -22,6 +22,7 @@ from typing import Any, Protocol
 
 from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import Keys
 from service.live.supervise import History
 from service.live.worker import (
@@ -95,6 +96,7 @@ class Dispatcher(Protocol):
     config: LocalizerConfig
     event_interval_ns: int
     threads: int
+    limits: Limits
     map_health: bool
     lock: threading.Lock
     boxes: dict[str, Mailbox]
@@ -188,7 +190,9 @@ class ThreadShard(Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, evidence(d.map_health))
+        self.engine = FleetEngine(
+            d.keys, d.config, d.event_interval_ns, d.limits, evidence(d.map_health)
+        )
         self.hand_over = HandOver(self.engine)
 
     def start(self) -> None:
@@ -258,7 +262,15 @@ class ProcessShard(Shard):
         d = self.dispatcher
         process = ctx.Process(
             target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads, d.map_health),
+            args=(
+                child,
+                d.keys.prefix,
+                d.config,
+                d.event_interval_ns,
+                d.threads,
+                d.limits,
+                d.map_health,
+            ),
             name=f"rlutf-worker-{self.index}",
             daemon=True,
         )

@@ -25,6 +25,7 @@ from rlutf.map import Map as World
 from rlutf.warmup import warm_up
 from schemas import SchemaError, decode
 from service.engine import FleetEngine, Outbound
+from service.guard import Limits
 from service.keys import MODELS, InputKind, Keys, Message
 from service.live.memory import HeapTrimmer
 from service.maphealth import NullEvidence, ScanEvidence
@@ -134,6 +135,7 @@ def worker_main(
     config: LocalizerConfig,
     interval: int,
     threads: int,
+    limits: Limits | None = None,
     map_health: bool = True,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
@@ -149,7 +151,7 @@ def worker_main(
     thread hand-off per scan.
     """
     warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval, evidence(map_health))
+    engine = FleetEngine(Keys(prefix), config, interval, limits, evidence(map_health))
     hand_over = HandOver(engine)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)

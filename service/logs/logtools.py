@@ -4,11 +4,15 @@
 Recovery reads the damaged file front to back with :class:`mcap.stream_reader.StreamReader` and
 copies every record of every complete chunk (schemas, channels, messages) and every metadata and
 attachment record into a new, complete file. A chunk that fails its CRC or does not decompress
-is skipped and counted; reading stops at the first record that is cut short or unreadable.
+is skipped and counted. Where a record is unreadable (a corrupted length, garbage), reading
+resumes at the next chunk that checks out (its CRC over its decompressed records) or metadata
+record, so one damaged record costs only itself; it stops where the file is cut short. A chunk
+that repeats an earlier one byte for byte (a copy written twice) is copied once.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections import defaultdict
@@ -30,10 +34,12 @@ from service.logs.mcapread import (
     LogError,
     LogFile,
     NotALog,
+    UnreadableConfig,
     map_topic,
     robot_topic,
 )
 from service.logs.runs import LogRun, RunTag, group_runs, run_tag
+from service.logs.salvage import next_readable
 
 
 @dataclass
@@ -115,11 +121,18 @@ def log_info(path: Path) -> LogInfo:
             None if first is None or last is None else (first, last),
             dict(sorted(robots.items())),
             {k: sorted(set(v)) for k, v in maps.items()},
-            lf.config(),
+            _config_or_none(lf),
             [name for name, _ in lf.metadata()],
             tag.to_metadata() if tag is not None else None,
             carried,
         )
+
+
+def _config_or_none(lf: LogFile) -> dict[str, Any] | None:
+    try:
+        return lf.config()
+    except UnreadableConfig:
+        return None
 
 
 def _is_map(topic: str, schema_name: str) -> bool:
@@ -312,6 +325,10 @@ class RecoverReport:
         messages: messages copied.
         chunks: complete chunks copied.
         bad_chunks: chunks skipped (CRC mismatch or not decompressible).
+        duplicate_chunks: chunks skipped as byte-for-byte repeats of an earlier chunk.
+        resyncs: unreadable stretches skipped to the next readable chunk or metadata record.
+        first_unreadable: byte offset of the first unreadable stretch, if any.
+        first_problem: what was wrong there.
         lost_messages: messages skipped because their channel record was lost.
         metadata: metadata records copied.
         complete: the input's footer was reached (nothing was missing).
@@ -322,6 +339,10 @@ class RecoverReport:
     messages: int = 0
     chunks: int = 0
     bad_chunks: int = 0
+    duplicate_chunks: int = 0
+    resyncs: int = 0
+    first_unreadable: int | None = None
+    first_problem: str | None = None
     lost_messages: int = 0
     metadata: int = 0
     complete: bool = False
@@ -370,28 +391,54 @@ class _Copier:
 
 def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
     copier = _Copier(writer, report)
-    try:
-        for rec in StreamReader(src, emit_chunks=True).records:
-            if isinstance(rec, Header):
-                copier.start(rec)
-                continue
-            copier.start(None)
-            if isinstance(rec, Chunk):
-                try:
-                    inner = breakup_chunk(rec, validate_crc=True)
-                except Exception:  # bad CRC or compression: skip this chunk only
-                    report.bad_chunks += 1
+    size = os.fstat(src.fileno()).st_size
+    seen: set[bytes] = set()
+    at, first = 0, True
+    while True:
+        src.seek(at)
+        reader = StreamReader(src, skip_magic=not first, emit_chunks=True)
+        end = at if not first else len(MAGIC)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Header):
+                    copier.start(rec)
+                    end = src.tell()
                     continue
-                for item in inner:
-                    copier.take(item)
-                report.chunks += 1
-            elif isinstance(rec, Footer):
-                report.complete = True
-            else:
-                copier.take(rec)
-    except Exception as err:  # the cut: a short read, or garbage where a record should start
-        report.stopped = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-        report.stopped_at = src.tell()
+                copier.start(None)
+                if isinstance(rec, Chunk):
+                    digest = hashlib.sha256(rec.data).digest() + rec.message_start_time.to_bytes(
+                        8, "little"
+                    )
+                    if digest in seen:
+                        report.duplicate_chunks += 1
+                        end = src.tell()
+                        continue
+                    try:
+                        inner = breakup_chunk(rec, validate_crc=True)
+                    except Exception:  # bad CRC or compression: skip this chunk only
+                        report.bad_chunks += 1
+                        end = src.tell()
+                        continue
+                    seen.add(digest)
+                    for item in inner:
+                        copier.take(item)
+                    report.chunks += 1
+                elif isinstance(rec, Footer):
+                    report.complete = True
+                else:
+                    copier.take(rec)
+                end = src.tell()
+            break
+        except Exception as err:  # the cut, or garbage where a record should start
+            problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+            resume = next_readable(src, end + 1, size)
+            if resume is None:
+                report.stopped, report.stopped_at = problem, end
+                break
+            if report.first_unreadable is None:
+                report.first_unreadable, report.first_problem = end, problem
+            report.resyncs += 1
+            at, first = resume, False
     copier.start(None)
 
 

@@ -18,7 +18,7 @@ from typing import IO, Any, NamedTuple
 
 from mcap.reader import SeekingReader
 
-from service.logs.mcapfile import CONFIG_METADATA, Record, config_from_metadata
+from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -29,6 +29,18 @@ class LogError(Exception):
 
 class NotALog(LogError):
     """The file is missing or is not an MCAP file at all."""
+
+
+class UnreadableConfig(LogError):
+    """The log's ``rlutf.config`` record is not a JSON object: a replay cannot trust it."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(
+            f"{path}: its rlutf.config record (the configuration it was recorded with) is "
+            f"unreadable: {detail}. A replay on other settings would not be an audit; give the "
+            "configuration with --settings FILE (or --set KEY=VALUE) to replay it anyway"
+        )
+        self.path = path
 
 
 class DamagedLog(LogError):
@@ -227,11 +239,23 @@ class LogFile:
             raise DamagedLog(self.path, f"unreadable metadata ({type(err).__name__})") from err
 
     def config(self) -> dict[str, Any] | None:
-        """The last ``rlutf.config`` stored, if any."""
+        """The last ``rlutf.config`` stored, if any.
+
+        Raises:
+            UnreadableConfig: a ``rlutf.config`` record is there but is not a JSON object.
+        """
         found = None
         for name, data in self.metadata():
             if name == CONFIG_METADATA:
-                found = config_from_metadata(data) or found
+                config = config_from_metadata(data)
+                if config is None:
+                    text = str(data.get(CONFIG_KEY, ""))
+                    raise UnreadableConfig(
+                        self.path,
+                        f"{CONFIG_KEY!r} is not a JSON object"
+                        + (f" (it begins {text[:40]!r})" if text else " (it is missing)"),
+                    )
+                found = config
         return found
 
     def messages(self, schema_names: Collection[str] | None = None) -> Iterator[Record]:

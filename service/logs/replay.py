@@ -51,7 +51,14 @@ from service.engine import FleetEngine
 from service.keys import Keys
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
-from service.logs.mcapread import LogError, LogFile, map_topic, merged_messages, robot_topic
+from service.logs.mcapread import (
+    LogError,
+    LogFile,
+    UnreadableConfig,
+    map_topic,
+    merged_messages,
+    robot_topic,
+)
 from service.logs.replayconfig import ReplayConfig, resolve
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id, run_tag
 from service.maphealth import MapHealthEngine, ScanEvidence
@@ -221,7 +228,7 @@ class _Run:
         self.writer = writer
         self.evidence = ScanEvidence()
         self.engine = FleetEngine(
-            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, self.evidence
+            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits, self.evidence
         )
         self.health = MapHealthEngine(Keys(cfg.prefix))
         self.handed_ns: int | None = None
@@ -306,7 +313,9 @@ class _Run:
             log.exception("update of %s failed", robot)
             return
         for out in outputs:
-            if out.kind == "need_map":
+            if out.kind == "rejected":  # over a limit (service.guard): its Event follows
+                self.result.rejected += 1
+            if out.kind not in ("pose", "event"):
                 continue
             schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
@@ -365,7 +374,13 @@ def replay(
         logs = [stack.enter_context(LogFile(p)) for p in inputs]
         source_run = _source_run(logs)
         if config is None:
-            recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            try:
+                recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+            except UnreadableConfig as err:
+                if settings_file is None and not assignments:
+                    raise
+                log.warning("%s; replaying on the defaults, --settings and --set", err)
+                recorded = None
             config = resolve(
                 recorded,
                 prefix_hint=_prefix_hint(logs),

@@ -14,7 +14,7 @@ import copy
 import json
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from rlutf.localizer import LocalizerConfig
 from service.config import Settings
+from service.guard import Limits
 
 
 class ReplayConfigError(ValueError):
@@ -38,6 +39,7 @@ class ReplayConfig:
         event_interval_ns: least time between two events of one code for one robot.
         max_payload_bytes: largest accepted payload.
         settings: the merged configuration, stored as ``rlutf.config`` in the output.
+        limits: what inputs may hold beyond the schema.
     """
 
     prefix: str
@@ -45,6 +47,7 @@ class ReplayConfig:
     event_interval_ns: int
     max_payload_bytes: int
     settings: dict[str, Any]
+    limits: Limits = field(default_factory=Limits)
 
 
 def _default(name: str) -> Any:
@@ -58,6 +61,7 @@ def default_settings(prefix: str | None) -> dict[str, Any]:
         "event_interval_s": _default("event_interval_s"),
         "max_payload_bytes": _default("max_payload_bytes"),
         "localizer": asdict(LocalizerConfig()),
+        "limits": Limits().model_dump(mode="json"),
     }
 
 
@@ -151,9 +155,10 @@ def resolve(
         localizer = TypeAdapter(LocalizerConfig).validate_python(loc)
         interval = float(merged["event_interval_s"])
         max_bytes = int(merged["max_payload_bytes"])
+        limits = Limits.model_validate(merged.get("limits") or {})
     except (ValidationError, TypeError, ValueError) as err:
         raise ReplayConfigError(f"invalid configuration: {err}") from err
     prefix = merged.get("prefix")
     if not isinstance(prefix, str) or not prefix:
         raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")
-    return ReplayConfig(prefix, localizer, int(interval * 1e9), max_bytes, merged)
+    return ReplayConfig(prefix, localizer, int(interval * 1e9), max_bytes, merged, limits)

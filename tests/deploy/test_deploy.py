@@ -894,12 +894,20 @@ def _check_acl(open_as: Callable[[str], Any]) -> None:
         ):
             assert not seen.saw(denied), f"robot r1 must not write {denied}"
 
-        # The operator writes maps and initial poses, not robot inputs.
+        # Robot r1 may not DELETE its own scan key (issue 19): only puts are allowed.
+        robot1.delete("rlutf/robots/r1/scan")
+        robot1.put("rlutf/robots/r1/odom", b"{}")
+        assert wait_until(lambda: seen.keys.count("rlutf/robots/r1/odom") == 2)
+        assert seen.keys.count("rlutf/robots/r1/scan") == 1, "r1 must not DELETE its scan key"
+
+        # The operator writes maps, initial poses and relocalize requests, not robot inputs.
         operator.put("rlutf/robots/r1/scan-not-allowed", b"{}")
         operator.put("rlutf/robots/r1/initialpose", b"{}")
+        operator.put("rlutf/robots/r1/relocalize", b"{}")
         operator.put("rlutf/maps/m2", b"{}")
         assert wait_until(lambda: seen.saw("rlutf/maps/m2")), "operator map put must pass"
         assert seen.keys.count("rlutf/robots/r1/initialpose") == 1
+        assert seen.keys.count("rlutf/robots/r1/relocalize") == 1, "operator relocalizes"
         assert not seen.saw("rlutf/robots/r1/scan-not-allowed")
 
         # Robot r1 reads its own pose and maps, not another robot's pose.

@@ -48,3 +48,18 @@ def test_wide_search_finds_the_pose_among_distinct_candidates() -> None:
         for q, _ in found[:i]:
             apart = math.hypot(*(p[:2] - q[:2])) > 2 * settings.step + 1e-9
             assert apart or abs(p[2] - q[2]) > 1e-9
+
+
+def test_wide_search_headings_are_bounded_for_far_points() -> None:
+    # Issue 19: points 1e5 m away made the heading step a millionth of a radian.
+    world = make_building(np.random.default_rng(3))
+    centre = np.array([5.0, 5.0, 0.0])
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    far = 1e5 * np.column_stack([np.cos(angles), np.sin(angles)])
+    settings = WideSearch(max_turns=64)
+    _, scored = wide_search(world, centre, far, 0.2, math.radians(15.0), settings)
+    offsets = scored // (2 * 64 + 1)
+    assert scored == offsets * (2 * 64 + 1)
+    near = 5.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    _, near_scored = wide_search(world, centre, near, 0.2, math.radians(15.0), settings)
+    assert near_scored < scored  # near points: the usual step, fewer headings than the cap

@@ -18,15 +18,15 @@ BENCH = ROOT / "bench"
 #: sub-packages' docstrings say the same.
 ALLOWED: dict[str, set[str]] = {
     "keys": set(),
-    "config": set(),
+    "guard": {"keys", "maphealth"},
+    "config": {"guard"},
     "relocalization": set(),
     "maphealth": {"keys"},
-    "outputs": {"maphealth"},
-    "engine": {"keys", "relocalization", "maphealth", "outputs"},
+    "engine": {"keys", "relocalization", "guard", "maphealth"},
     "maps": {"keys"},
     "cluster": {"keys"},
-    "logs": {"keys", "config", "engine", "relocalization", "maphealth", "maps"},
-    "ros2": {"keys", "config", "engine", "relocalization", "maphealth", "maps", "logs"},
+    "logs": {"keys", "config", "engine", "relocalization", "maps", "guard", "maphealth"},
+    "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs", "guard", "maphealth"},
     "live": {
         "keys",
         "config",
@@ -37,10 +37,12 @@ ALLOWED: dict[str, set[str]] = {
         "logs",
         "cluster",
         "ros2",
+        "guard",
     },
     # the simulated fleet is a client of the service, as the command line is
-    "sim": {"keys", "config", "maps", "logs", "live", "ros2"},
+    "sim": {"keys", "config", "maps", "logs", "live", "ros2", "guard"},
     "cli": {
+        "guard",
         "keys",
         "config",
         "engine",

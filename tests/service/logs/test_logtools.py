@@ -150,6 +150,71 @@ def test_recover_refuses_to_overwrite_its_input(
     assert code == 2 and "must not be the input" in err
 
 
+def _middle_chunk(log: Path) -> tuple[int, int]:
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 4
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    return chunk.chunk_start_offset, chunk.chunk_length
+
+
+@pytest.mark.parametrize("wrong", [1, 1000, 2**40])
+def test_recover_salvages_every_intact_chunk_past_a_corrupted_chunk_length(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], wrong: int
+) -> None:
+    # Issue 19: one corrupted chunk length made recover keep only the first half of the file.
+    start, _ = _middle_chunk(log)
+    data = bytearray(log.read_bytes())
+    field = slice(start + 1, start + 9)
+    data[field] = (int.from_bytes(data[field], "little") + wrong).to_bytes(8, "little")
+    bad = tmp_path / "badlength.mcap"
+    bad.write_bytes(bytes(data))
+    code, _, err = _run(["log", "recover", str(bad), str(tmp_path / "fixed.mcap")], capsys)
+    assert code == 0 and "unreadable stretch" in err, err
+    original = read_all(log)
+    got = read_all(tmp_path / "fixed.mcap")
+    assert set(got) <= set(original)
+    lost = len(original) - len(got)
+    assert 0 <= lost < len(original) // 10, "at most the damaged chunk is lost"
+    assert got[-1] == original[-1], "the chunks after the damage are salvaged"
+    with LogFile(tmp_path / "fixed.mcap") as lf:
+        assert lf.config() == replay([log]).config.settings
+
+
+def test_recover_drops_a_duplicated_chunk(log: Path, tmp_path: Path) -> None:
+    start, length = _middle_chunk(log)
+    data = log.read_bytes()
+    doubled = tmp_path / "doubled.mcap"
+    doubled.write_bytes(
+        data[: start + length] + data[start : start + length] + data[start + length :]
+    )
+    report = recover(doubled, tmp_path / "fixed.mcap")
+    assert report.duplicate_chunks == 1 and report.bad_chunks == 0
+    assert read_all(tmp_path / "fixed.mcap") == read_all(log)
+
+
+def test_a_config_record_that_is_not_json_stops_replay_unless_settings_are_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    from mcap.writer import Writer
+
+    from service.logs.mcapread import UnreadableConfig
+
+    bad = tmp_path / "badconfig.mcap"
+    with open(bad, "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("rlutf.config", {"json": "{prefix: rlutf"})
+        w.finish()
+    with pytest.raises(UnreadableConfig, match="not a JSON object"):
+        replay([bad])
+    code, _, err = _run(["replay", str(bad), "--out", str(tmp_path / "o.mcap"), "--quiet"], capsys)
+    assert code == 2 and "rlutf.config" in err and "--settings" in err and "Traceback" not in err
+    result = replay([bad], assignments=["prefix=rlutf"])
+    assert result.config.prefix == "rlutf"
+    assert any("rlutf.config" in r.getMessage() for r in caplog.records)
+
+
 def test_a_log_being_recorded_says_so_and_how_to_read_it_now(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 from mcaplog_fixtures import read_all, simulated_inputs, write_log
 from numpy.random import default_rng as rng
 
@@ -285,9 +286,14 @@ def test_an_unreadable_file_or_run_is_named_and_the_others_audited(
     garbage = tmp_path / "notes.mcap"
     garbage.write_text("not a log")
     damaged = tmp_path / "damaged.mcap"
-    data = bytearray(recorders[1].files[0].read_bytes())
-    middle = len(data) // 3
-    data[middle : middle + 64] = bytes(64)  # inside a chunk: its CRC no longer matches
+    source = recorders[1].files[0]
+    data = bytearray(source.read_bytes())
+    with source.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    for index in summary.chunk_indexes:  # inside every chunk: their CRCs no longer match
+        middle = index.chunk_start_offset + index.chunk_length // 2
+        data[middle : middle + 64] = bytes(64)
     damaged.write_bytes(bytes(data))
     files = [str(recorders[0].files[0]), str(garbage), str(damaged)]
     assert main(["replay", *files, "--out", f"{tmp_path}/out/", "--quiet"]) == 2

@@ -85,13 +85,13 @@ def test_serve_ros2_without_a_map_warns_at_start(tmp_path: Path) -> None:
             if not line:
                 break
             lines.append(line)
-            if "rlutf serve: instance" in line:  # started: no ROS message came in
+            if "rlutf serve: ready" in line:  # started: no ROS message came in
                 break
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(30)
     text = "".join(lines)
-    assert "rlutf serve: instance" in text, text
+    assert "rlutf serve: ready" in text, text
     warning = next((line for line in lines if "no map given" in line), text)
     assert "WARNING" in warning and "--ros-map MAP_ID" in warning
     assert "initialpose" in warning and "reinitialize_global_localization" in warning
