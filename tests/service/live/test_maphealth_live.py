@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from service_harness import Bench, Collector, running_bench
+from service_harness import Bench, Collector, SimRobot, running_bench
 from shapely.geometry import shape
 from sim_inputs import rack_beside
 
 from rlutf.map import Map as World
-from rlutf.sim import make_trajectory
+from rlutf.sim import LidarModel, make_trajectory, simulate_scan
 from service.cli.main import main
+from service.sim.plan import RobotPlan
 
 pytestmark = pytest.mark.integration
 
@@ -42,13 +43,22 @@ def test_a_rack_the_map_lacks_is_put_answered_and_shown(served: Bench, capsys) -
     sub = bench.client.declare_subscriber("rlutf/maphealth/*", puts)
     bench.put_map()
     time.sleep(0.3)
-    robots = [bench.robot(r, seed, steps=STEPS + MORE + 1) for seed, r in ((1, "r1"), (2, "r2"))]
-    for seed, r in enumerate(robots, 1):  # slowly: the rack stays in view most of the run
-        r.truth = make_trajectory(bench.world, np.random.default_rng(seed), len(r.truth), speed=0.3)
-    rack = rack_beside(bench.world, [r.truth[: STEPS + 1] for r in robots], 0.7)
+    # slowly: the rack stays in view most of the run
+    n = STEPS + MORE + 1
+    paths = [make_trajectory(bench.world, np.random.default_rng(s), n, speed=0.3) for s in (1, 2)]
+    rack = rack_beside(bench.world, [p[: STEPS + 1] for p in paths], 0.7)
     seen = World.from_shapely(bench.world.geometry.difference(rack))
+    rng = np.random.default_rng(3)
+    lidar = LidarModel(beams=180)
+    robots = [
+        SimRobot(
+            RobotPlan(rid, p, p.copy(), tuple(simulate_scan(seen, q, lidar, rng) for q in p), p[0]),
+            bench.client,
+            time.time_ns(),
+        )
+        for rid, p in (("r1", paths[0]), ("r2", paths[1]))
+    ]
     for r in robots:
-        r.world = seen
         r.initial_pose("m1")
     time.sleep(0.3)
     for _ in range(STEPS):
