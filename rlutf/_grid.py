@@ -31,8 +31,14 @@ def distance_field(
                 px = fx0 + (c + 0.5) * resolution - ax
                 s = (px * ex + py * ey) / ee if ee > 0.0 else 0.0
                 s = min(max(s, 0.0), 1.0)
-                d = math.hypot(px - s * ex, py - s * ey)
-                field[r, c] = min(field[r, c], d)
+                qx = px - s * ex
+                qy = py - s * ey
+                # Most cells of a short wall's box are nearer another wall already: skip the
+                # square root there (the margin keeps the result bit for bit what it was).
+                cur = float(field[r, c])
+                if qx * qx + qy * qy >= cur * cur * 1.0000001 + 1e-12:
+                    continue
+                field[r, c] = min(field[r, c], math.hypot(qx, qy))
     return field
 
 
@@ -83,3 +89,55 @@ def score_field_grid(
                     total += cap2
             out[h, j] = total / n
     return out
+
+
+@njit(cache=True, nogil=True)
+def _visit_wall_cells(
+    segments: np.ndarray, x0: float, y0: float, cell: float, nx: int,
+    ny: int, counts: np.ndarray, walls: np.ndarray, fill: bool,
+) -> None:  # fmt: skip
+    half_diag = cell * math.sqrt(0.5)
+    for i in range(segments.shape[0]):
+        ax = segments[i, 0]
+        ay = segments[i, 1]
+        bx = segments[i, 2]
+        by = segments[i, 3]
+        ca = min(max(int((min(ax, bx) - x0) // cell), 0), nx - 1)
+        cb = min(max(int((max(ax, bx) - x0) // cell), 0), nx - 1)
+        ra = min(max(int((min(ay, by) - y0) // cell), 0), ny - 1)
+        rb = min(max(int((max(ay, by) - y0) // cell), 0), ny - 1)
+        dx = bx - ax
+        dy = by - ay
+        length = math.hypot(dx, dy)
+        for r in range(ra, rb + 1):
+            cy = y0 + (r + 0.5) * cell
+            for c in range(ca, cb + 1):
+                cx = x0 + (c + 0.5) * cell
+                if length > 0 and abs(dx * (cy - ay) - dy * (cx - ax)) / length > half_diag:
+                    continue
+                k = r * nx + c
+                if fill:
+                    walls[counts[k]] = i
+                counts[k] += 1
+
+
+@njit(cache=True, nogil=True)
+def wall_cells(
+    segments: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The wall index of :class:`rlutf.map.WallIndex`: ``(cell_start, cell_walls)``.
+
+    A wall is listed in every cell of its bounding box whose centre lies within half a cell
+    diagonal of the wall's supporting line (conservative: walls are short compared to a map, so
+    the box is tight); each cell lists its walls in increasing order. Two passes: count, fill.
+    """
+    counts = np.zeros(nx * ny, dtype=np.int64)
+    none = np.empty(0, dtype=np.int64)
+    _visit_wall_cells(segments, x0, y0, cell, nx, ny, counts, none, False)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for k in range(nx * ny):
+        start[k + 1] = start[k] + counts[k]
+    walls = np.empty(start[nx * ny], dtype=np.int64)
+    at = start[:-1].copy()
+    _visit_wall_cells(segments, x0, y0, cell, nx, ny, at, walls, True)
+    return start, walls

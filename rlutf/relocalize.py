@@ -126,6 +126,10 @@ class Relocalization:
         return self.hypotheses[0] if self.hypotheses else None
 
 
+#: Rows of the search grid made at once (see :func:`_make_grid`).
+_BAND_ROWS = 256
+
+
 @dataclass(frozen=True, eq=False)
 class SearchGrid:
     """A map rasterised for the search, made once per map version (:func:`search_grid`).
@@ -165,13 +169,22 @@ def _make_grid(world: Map, settings: RelocalizeSettings) -> SearchGrid:
     height = math.ceil((maxy - miny + 2 * margin) / res)
     truncation = max(3.0 * settings.sigma, settings.clearance + res)
     dist = _grid.distance_field(world.segments, x0, y0, res, width, height, truncation)
-    score = np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * settings.sigma**2))
-    base = np.round(255.0 * score).astype(np.uint8)
     cx = x0 + (np.arange(width) + 0.5) * res
     cy = y0 + (np.arange(height) + 0.5) * res
-    gx, gy = np.meshgrid(cx, cy)
-    inside = world.contains(np.column_stack([gx.ravel(), gy.ravel()])).reshape(height, width)
-    free = (inside & (dist >= settings.clearance)).astype(np.uint8)
+    base = np.empty((height, width), dtype=np.uint8)
+    free = np.empty((height, width), dtype=np.uint8)
+    # In bands of rows: the float64 temporaries of the whole grid (about 50 bytes a cell)
+    # dominated the memory of a large map's search grid.
+    for r0 in range(0, height, _BAND_ROWS):
+        r1 = min(r0 + _BAND_ROWS, height)
+        d = dist[r0:r1]
+        base[r0:r1] = np.round(
+            255.0 * np.exp(-(d.astype(np.float64) ** 2) / (2.0 * settings.sigma**2))
+        ).astype(np.uint8)
+        gx, gy = np.meshgrid(cx, cy[r0:r1])
+        inside = world.contains(np.column_stack([gx.ravel(), gy.ravel()])).reshape(r1 - r0, width)
+        free[r0:r1] = (inside & (d >= settings.clearance)).astype(np.uint8)
+    del dist
     levels = _bnb.pyramid(base, settings.depth)
     valid = _bnb.pyramid(free, settings.depth)
     levels.flags.writeable = False

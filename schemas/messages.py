@@ -225,6 +225,9 @@ class EventCode:
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
     STATE_UNREADABLE: Final = "state_unreadable"
     """The durable pose state could not be read or its folder made; started without it."""
+    MAP_VERSION_CONFLICT: Final = "map_version_conflict"
+    """A map put of a version lower than the one held, or of the same version with other
+    content (WIRE.md v1.2): it changed nothing; the message names both versions."""
     WORKER_LOST: Final = "worker_lost"
     """A worker process died; a new one starts and its robots are re-seeded from their poses."""
     ROBOT_EVICTED: Final = "robot_evicted"
@@ -254,7 +257,8 @@ class Event(WireModel):
     code: NonEmptyStr = Field(
         description="What happened, machine-readable: invalid_message, invalid_key, "
         "map_not_found, invalid_map, not_initialized, lost, scan_dropped, recorder_overflow, "
-        "map_updated, relocalizing, relocalized, ambiguous; more may be added."
+        "map_updated, relocalizing, relocalized, ambiguous, map_version_conflict; more may be "
+        "added."
     )
     key: Text = Field(
         default="", description="The key involved, e.g. where a bad message came from."

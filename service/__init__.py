@@ -3,6 +3,8 @@
 ======================= ===================================================================
 ``service.keys``,       the WIRE.md key layout and input models; the effective configuration
 ``service.config``
+``service.prepared``    :class:`~service.prepared.PreparedMap`, a map version built and
+                        indexed by the first update that needs it
 ``service.engine``      :class:`~service.engine.FleetEngine`, the per-fleet state machine that
                         the live service and replay both run
 ``service.maps``        map validation and versions, the file-backed store, map put and get,

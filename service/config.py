@@ -30,6 +30,7 @@ from pydantic_settings import (
 )
 
 from rlutf.localizer import LocalizerConfig
+from rlutf.map import MapLimits
 from schemas import ID_PATTERN
 from service.guard import Limits
 
@@ -217,7 +218,27 @@ class Settings(BaseSettings):
     foxglove_rate_hz: float = Field(
         10.0, gt=0, le=100, description="Most refreshes a second of each robot's live view."
     )
-    max_payload_bytes: int = Field(1_000_000, gt=0, description="Largest accepted payload.")
+    max_payload_bytes: int = Field(
+        1_000_000, gt=0, description="Largest accepted payload of a robot's message, bytes."
+    )
+    max_map_bytes: int = Field(
+        64 * 1024 * 1024,
+        gt=0,
+        description="Largest accepted Map payload, bytes (maps have their own limit: a site's "
+        "map is megabytes of JSON).",
+    )
+    max_map_area: float = Field(
+        100_000.0,
+        gt=0,
+        description="Largest area of a map's bounding box, square metres: the wall index, the "
+        "distance field and the relocalization grid cost memory in proportion to it (about "
+        "3 kB per square metre in each worker process whose robots use the map).",
+    )
+    max_map_vertices: int = Field(
+        4_000_000,
+        gt=0,
+        description="Most vertices of a map (validation and walls cost time in proportion).",
+    )
     map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
     max_stamp_ahead_s: float = Field(
         60.0,
@@ -301,6 +322,10 @@ class Settings(BaseSettings):
         if path:
             sources.append(_file_source(settings_cls, Path(path)))
         return tuple(sources)
+
+    def map_limits(self) -> MapLimits:
+        """What a map may cost (``max_map_area``, ``max_map_vertices``)."""
+        return MapLimits(self.max_map_area, self.max_map_vertices)
 
     def effective(self) -> dict[str, Any]:
         """The configuration as JSON-ready data (what ``rlutf config`` prints)."""

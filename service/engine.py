@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import bisect
 import math
-import threading
 import zlib
 from dataclasses import dataclass, field
 from typing import Literal
@@ -42,27 +41,12 @@ from schemas.fastpose import encode_pose
 from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
 from service.maphealth import NullEvidence, ScanEvidence
+from service.prepared import MapShelf, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
 __all__ = ["FleetEngine", "Outbound"]
 
 FloatArray = np.ndarray
-
-#: Versions of one map kept for inputs that were received before a newer version.
-_MAP_VERSIONS_KEPT = 3
-
-
-@dataclass
-class _MapVersions:
-    received: list[int] = field(default_factory=list)
-    versions: list[int] = field(default_factory=list)
-    worlds: list[World] = field(default_factory=list)
-
-    def at(self, received_ns: int) -> tuple[int, World] | None:
-        i = bisect.bisect_right(self.received, received_ns) - 1
-        if i < 0:
-            return None
-        return self.versions[i], self.worlds[i]
 
 
 @dataclass
@@ -108,27 +92,23 @@ class FleetEngine:
         self.event_interval_ns = event_interval_ns
         self.limits = limits or Limits()
         self.evidence = evidence if evidence is not None else NullEvidence()
-        self._maps: dict[str, _MapVersions] = {}
-        self._maps_lock = threading.Lock()
+        self._maps = MapShelf(config)
         self._robots: dict[str, _Robot] = {}
 
     # ----------------------------------------------------------------------------- maps
-    def register_map(self, map_id: str, version: int, world: World, received_ns: int) -> None:
-        """Make a map version available to inputs received at or after ``received_ns``."""
-        with self._maps_lock:
-            book = self._maps.setdefault(map_id, _MapVersions())
-            if book.versions and version <= book.versions[-1]:
-                return
-            book.received.append(received_ns)
-            book.versions.append(version)
-            book.worlds.append(world)
-            if len(book.worlds) > _MAP_VERSIONS_KEPT:
-                del book.received[0], book.versions[0], book.worlds[0]
+    def register_map(self, map_id: str, version: int, world: WorldSource, received_ns: int) -> None:
+        """Make a map version available to inputs received at or after ``received_ns``.
+
+        ``world`` may be a function that builds the map: it is built (and indexed) by the first
+        input that needs it, not here, so that registering a map costs nothing.
+        """
+        self._maps.register(map_id, version, world, received_ns)
 
     def _map_at(self, map_id: str, received_ns: int) -> tuple[int, World] | None:
-        with self._maps_lock:
-            book = self._maps.get(map_id)
-            return book.at(received_ns) if book else None
+        return self._maps.at(map_id, received_ns)
+
+    def _map_unready(self, map_id: str | None) -> bool:
+        return map_id is not None and self._maps.unready(map_id)
 
     def hand_over(self) -> Outbound | None:
         """Map health evidence counted since the last call (``None``: none); counted afresh."""
@@ -149,9 +129,12 @@ class FleetEngine:
     def expects_long_update(self, robot_id: str, kinds: list[str]) -> bool:
         """Whether the robot's next inputs (of these kinds) may take long to handle.
 
-        True while it relocalizes or is lost (its updates search the map or widely), and for a
-        Relocalize. Only a hint for scheduling: it changes when outputs come, never what they
-        are. Call it while none of the robot's inputs is being handled.
+        True while it relocalizes or is lost (its updates search the map or widely), for a
+        Relocalize, for an InitialPose (its map may be new to this process), and while the
+        newest version of its map (or of the map its request waits for) is not built yet: the
+        first update on a map builds its index. Only a hint for scheduling: it changes when
+        outputs come, never what they are. Call it while none of the robot's inputs is being
+        handled.
         """
         if "relocalize" in kinds or "initialpose" in kinds:
             return True
@@ -160,6 +143,8 @@ class FleetEngine:
             return False
         if r.pending is not None:
             return True  # applied at the next input: its first update searches wide
+        if self._map_unready(r.map_id):
+            return True  # the first update on a new map version builds it
         return (
             r.fresh
             or r.last_status == "lost"

@@ -30,7 +30,17 @@ def register(sub: Any) -> None:
     put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
     put.add_argument("file", type=Path)
     put.add_argument("--id", dest="map_id", help="map id (default: the file's map_id or stem)")
-    put.add_argument("--version", type=int, help="version (default: the file's, else 1)")
+    put.add_argument(
+        "--version",
+        type=_version,
+        default="next",
+        metavar="N|next",
+        help="version to put: N, or next (the default): the version the store holds plus one, "
+        "1 when it holds none; a map equal to the one held is not put again",
+    )
+    put.add_argument(
+        "--timeout", type=float, default=5.0, help="wait this long for the store's answer, s"
+    )
     zenoh_flags(put, client=True)
     get = msub.add_parser("get", help="print a stored map")
     get.add_argument("map_id")
@@ -128,7 +138,14 @@ def register(sub: Any) -> None:
 
 def _map_output_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--id", dest="map_id", help="map id (default: from the file name)")
-    p.add_argument("--version", type=int, default=1, help="map version (default 1)")
+    p.add_argument(
+        "--version",
+        type=_version,
+        default=None,
+        metavar="N|next",
+        help="map version: in the file, 1 unless given; with --put, the version put, by "
+        "default next (the store's version plus one)",
+    )
     p.add_argument("--out", type=Path, help="write the Map JSON here (default: <id>.json)")
     p.add_argument("--put", action="store_true", help="also put it into the map store")
     p.add_argument(
@@ -144,6 +161,12 @@ def _map_output_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--png", type=Path, help="also render the result to this PNG")
     zenoh_flags(p, client=True)
+
+
+def _version(text: str) -> int | str:
+    from service.maps.client import parse_version
+
+    return parse_version(text)
 
 
 def cmd_map(args: argparse.Namespace) -> int:
@@ -163,7 +186,9 @@ def cmd_map(args: argparse.Namespace) -> int:
             )
         settings, session = client(args)
         with session:
-            return put_map(session, settings.prefix, args.file, args.map_id, args.version)
+            return put_map(
+                session, settings.prefix, args.file, args.map_id, args.version, args.timeout
+            )
     if args.map_command == "get":
         if args.out is not None:
             writable(args.out, "--out")
@@ -181,7 +206,7 @@ def cmd_map(args: argparse.Namespace) -> int:
 def _options(args: argparse.Namespace) -> dict[str, Any]:
     from service.maps.mapimport import parse_component
 
-    opts: dict[str, Any] = {"version": args.version}
+    opts: dict[str, Any] = {"version": args.version if isinstance(args.version, int) else 1}
     if args.component:
         opts["component"] = parse_component(args.component)
     if args.min_area is not None:
@@ -207,7 +232,8 @@ def _finish(args: argparse.Namespace, result: Any) -> int:
 
         settings, session = client(args)
         with session:
-            return put_map(session, settings.prefix, out, mid, result.map["version"])
+            version = args.version if args.version is not None else "next"
+            return put_map(session, settings.prefix, out, mid, version)
     return EXIT_OK
 
 

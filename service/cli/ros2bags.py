@@ -45,6 +45,7 @@ def load_map(spec: str, store: Path) -> bytes:
         ValueError: no such file or stored map, or an invalid one.
     """
     from schemas import Map, SchemaError, decode, encode, valid_id
+    from service.maps.book import FILE_MAX_BYTES
     from service.maps.client import map_message_from_file
 
     path = Path(spec)
@@ -54,7 +55,7 @@ def load_map(spec: str, store: Path) -> bytes:
 
             try:
                 data = import_grid(path).map
-                return encode(decode(Map, json.dumps(data)))
+                return encode(decode(Map, json.dumps(data), max_bytes=FILE_MAX_BYTES))
             except (MapImportError, SchemaError) as err:
                 raise ValueError(f"{path}: {err}") from err
         return map_message_from_file(path, None, None)

@@ -284,8 +284,10 @@ class Dispatcher:
         The caller holds :attr:`lock`, and took the map's receive time under it: then no input
         received later can reach a worker before the map.
         """
-        geometry: Any = loaded.world if not self.processes else loaded.world.to_geojson()
-        msg = ("map", loaded.map_id, loaded.version, geometry, loaded.received_ns)
+        # Worker processes get the payload (a copy of bytes, not a GeoJSON walk under this
+        # lock) and build the map when a robot first needs it (service.prepared).
+        source: Any = loaded.world if not self.processes else loaded.payload
+        msg = ("map", loaded.map_id, loaded.version, source, loaded.received_ns)
         if self.processes:
             self._maps.setdefault(loaded.map_id, deque(maxlen=_MAP_VERSIONS_SENT)).append(msg)
         for s in self.shards:

@@ -11,11 +11,13 @@ first evidence of it arrives (the map book holds the version the robots are on).
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Callable, Iterable
 
 import zenoh
 
+from rlutf.map import Map as World
 from schemas import SCHEMA_NAMES, MapHealth
 from service.keys import Keys
 from service.maphealth import Handed, MapHealthEngine
@@ -62,7 +64,12 @@ class HealthFeed:
                 loaded = self.maps.get(h.map_id)
                 known = self.engine.version(h.map_id)
                 if loaded is not None and loaded.version == h.version and known != h.version:
-                    self.engine.register_map(h.map_id, h.version, loaded.world)
+                    # With worker processes the map was checked there: built here once a
+                    # version, at its first evidence (its walls place the changes).
+                    world = loaded.world or World.from_geojson(
+                        json.loads(loaded.payload)["geometry"]
+                    )
+                    self.engine.register_map(h.map_id, h.version, world)
             self.engine.merge(list(handed))
             now = self.clock()
             due = self.engine.due(now)

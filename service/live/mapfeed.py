@@ -19,7 +19,7 @@ from schemas import SCHEMA_NAMES, EventCode, Map
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
-from service.maps.book import LoadedMap, MapBook, MapRejected
+from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,7 @@ class MapFeed:
     def start(self, session: zenoh.Session) -> None:
         """Start the map thread; maps are fetched on ``session``."""
         self._session = session
+        self.book.checker.start()
         self._thread = threading.Thread(target=self._run, name="rlutf-maps", daemon=True)
         self._thread.start()
 
@@ -80,6 +81,7 @@ class MapFeed:
         self._tasks.put(None)
         if self._thread is not None:
             self._thread.join(timeout)
+        self.book.checker.close()
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """Subscriber callback on ``{prefix}/maps/*``: queue the map for parsing."""
@@ -114,24 +116,31 @@ class MapFeed:
 
     def _offer(self, map_id: str, payload: bytes) -> bool:
         key = self.keys.map(map_id)
+        # Validated first, with no lock held: a big map takes a while, and the robots' inputs
+        # go through the dispatcher's lock.
+        try:
+            checked = self.book.check(map_id, payload)
+        except MapRejected as err:
+            self._global_event("error", EventCode.INVALID_MAP, key, str(err), self.clock())
+            return False
         # Order matters for replay: the map is recorded and reaches the shards at one instant
         # of the receive clock, before any input received after it.
+        conflict: VersionConflict | None = None
         with self.dispatcher.lock:
             received = self.clock()
             try:
-                loaded = self.book.offer(map_id, payload, received)
-            except MapRejected as err:
-                loaded = None
-                error: str | None = str(err)
-            else:
-                error = None
+                loaded = self.book.commit(map_id, payload, checked, received)
+            except VersionConflict as err:
+                loaded, conflict = None, err
             if loaded is not None:
                 self._record(loaded)
                 self.dispatcher.broadcast_map(loaded)
         self.dispatcher.flush()
-        if error is not None:
-            self._global_event("error", EventCode.INVALID_MAP, key, error, received)
-            return False
+        if conflict is not None:
+            self._global_event(
+                "error", EventCode.MAP_VERSION_CONFLICT, key, str(conflict), received
+            )
+            return True  # a version is held
         if loaded is None:
             return True
         self._global_event(

@@ -62,7 +62,7 @@ from service.live.shards import Done
 from service.live.stats import Stats
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
-from service.maps.book import MapBook
+from service.maps.book import Held, MapBook
 from service.maps.store import FileMapStore, MapStorage
 from service.ros2.frontdoor import Ros2FrontDoor
 
@@ -107,7 +107,9 @@ class LocalizationService:
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
-        self.maps = MapBook(settings.max_payload_bytes)
+        self.maps = MapBook(  # with worker processes, this process only checks maps
+            settings.max_map_bytes, settings.map_limits(), self._store_holds, settings.workers != 0
+        )
         self.live: LiveView = make_live_view(settings, self.maps)  # Foxglove, or nothing
         self._own_session = session is None
         self._session = session
@@ -236,10 +238,11 @@ class LocalizationService:
                 session,
                 self.keys,
                 FileMapStore(s.store_dir),
-                s.max_payload_bytes,
+                s.max_map_bytes,
                 on_error=lambda key, msg: self.keywatch.limited(
                     "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
                 ),
+                checker=self.maps.checker,
             )
         self.mapfeed.start(session)
         self._declared += [
@@ -468,6 +471,10 @@ class LocalizationService:
         return encode(
             self.stats.health(len(self._poses), self.dispatcher.dropped, extra, ready=self.ready)
         )
+
+    def _store_holds(self, map_id: str) -> Held | None:
+        """What the embedded store holds for a map (MapBook's version rule consults it)."""
+        return self._storage.held(map_id) if self._storage is not None else None
 
     def maps_held(self) -> list[str]:
         """Ids of the maps loaded."""

@@ -17,13 +17,14 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from multiprocessing.connection import Connection
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map as World
 from rlutf.warmup import warm_up
-from schemas import SchemaError, decode
+from schemas import Map, SchemaError, decode
 from service.engine import FleetEngine, Outbound
 from service.guard import Limits
 from service.keys import MODELS, InputKind, Keys, Message
@@ -107,13 +108,21 @@ def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
     if msg[0] == "forget":
         engine.forget(msg[1])
     elif msg[0] == "map":
-        _, map_id, version, geometry_or_world, received_ns = msg
+        _, map_id, version, payload_or_world, received_ns = msg
+        # A payload is built by the first update that needs it (service.prepared), not here on
+        # the pipe thread, where it would hold up every robot of this worker.
         w = (
-            geometry_or_world
-            if isinstance(geometry_or_world, World)
-            else World.from_geojson(geometry_or_world)
+            payload_or_world
+            if isinstance(payload_or_world, World)
+            else partial(world_of_payload, payload_or_world)
         )
         engine.register_map(map_id, version, w, received_ns)
+
+
+def world_of_payload(payload: bytes) -> World:
+    """The map of a Map payload the main process has already validated."""
+    msg = decode(Map, payload, max_bytes=len(payload))
+    return World.from_geojson(msg.geometry.model_dump(mode="python"))
 
 
 def tune_gc() -> None:

@@ -33,6 +33,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from service.logs.mcapfile import Record
 
 log = logging.getLogger(__name__)
@@ -132,6 +134,102 @@ def _pose_text(x: float, y: float, theta: float) -> str:
     return f'{{"position":{_position_text(x, y)},"orientation":{_orientation_text(theta)}}}'
 
 
+_WALL_COLOR_TEXT = _dumps(_WALL_COLOR).decode()
+_OBSTACLE_COLOR_TEXT = _dumps(_OBSTACLE_COLOR).decode()
+_LINE_HEAD = (
+    f'{{"type":0,"pose":{_pose_text(0.0, 0.0, 0.0)},"thickness":{_number(_WALL_THICKNESS)},'
+    '"scale_invariant":false,"points":['
+)
+
+
+_COORDINATES = re.compile(r'"coordinates"\s*:\s*\[')
+_DECODER = json.JSONDecoder()
+
+
+def _map_parts(payload: bytes) -> tuple[dict[str, Any], list[list[Any]]]:
+    """A Map's fields (its coordinates left out) and its polygons' rings.
+
+    The rings are parsed one at a time: ``json.loads`` of a map of real size holds the
+    interpreter's lock for seconds (C code lets no other thread run), and the recorder shares
+    the service's main process with the Zenoh callbacks. Falls back to ``json.loads`` for any
+    layout this does not follow.
+    """
+    text = payload.decode("utf-8")
+    found = _COORDINATES.search(text)
+    if found is None:
+        return _whole_map(text)
+    start = found.end() - 1  # the coordinates' "["
+    try:
+        polygons, end = _rings_at(text, start)
+        data = json.loads(text[:start] + "null" + text[end:])
+    except (ValueError, IndexError):
+        return _whole_map(text)
+    if data.get("geometry", {}).get("type") == "Polygon" and len(polygons) == 1:
+        return data, polygons
+    if data.get("geometry", {}).get("type") == "MultiPolygon":
+        return data, polygons
+    return _whole_map(text)
+
+
+def _whole_map(text: str) -> tuple[dict[str, Any], list[list[Any]]]:
+    data = json.loads(text)
+    geometry = data["geometry"]
+    coords = geometry["coordinates"]
+    return data, [coords] if geometry["type"] == "Polygon" else list(coords)
+
+
+def _skip(text: str, i: int) -> int:
+    while text[i] in " \t\r\n":
+        i += 1
+    return i
+
+
+def _rings_at(text: str, i: int) -> tuple[list[list[Any]], int]:
+    """The polygons of the coordinates array at ``i`` (a Polygon's is one polygon) and the
+    index after it. A Polygon's array holds rings (arrays of positions), a MultiPolygon's
+    arrays of rings: told apart by the depth of the first number."""
+    j = _skip(text, i + 1)
+    depth = 0
+    k = j
+    while text[k] == "[":
+        depth += 1
+        k = _skip(text, k + 1)
+    multi = depth >= 3  # [[[x  (MultiPolygon: polygon, ring, position)
+    polygons: list[list[Any]] = []
+    current: list[Any] = []
+    i = j
+    while text[i] != "]":
+        if multi:
+            i = _skip(text, i + 1)  # into a polygon's "["
+            current = []
+            while text[i] != "]":
+                ring, i = _DECODER.raw_decode(text, i)
+                current.append(ring)
+                i = _skip(text, i)
+                if text[i] == ",":
+                    i = _skip(text, i + 1)
+            polygons.append(current)
+            i = _skip(text, i + 1)
+        else:
+            ring, i = _DECODER.raw_decode(text, i)
+            current.append(ring)
+            i = _skip(text, i)
+        if text[i] == ",":
+            i = _skip(text, i + 1)
+    if not multi:
+        polygons.append(current)
+    return polygons, i + 1
+
+
+def _ring_text(ring: Any, color: str) -> str:
+    """A ring as a LINE_STRIP (GeoJSON rings repeat their first point)."""
+    xy = np.asarray(ring, dtype=np.float64)[:, :2]
+    if not np.isfinite(xy).all():
+        raise ValueError("non-finite coordinate in a map ring")
+    points = ",".join(f'{{"x":{x!r},"y":{y!r},"z":0.0}}' for x, y in xy.tolist())
+    return f'{_LINE_HEAD}{points}],"color":{color},"colors":[],"indices":[]}}'
+
+
 def _split(topic: str, marker: str, depth: int) -> list[str] | None:
     """The last ``depth`` parts of ``.../{marker}/a[/b]``, or ``None``."""
     parts = topic.split("/")
@@ -164,48 +262,33 @@ class FoxgloveConverter:
         return self._frames.get(map_id, DEFAULT_FRAME)
 
     def _map(self, record: Record) -> list[Record]:
-        data = json.loads(record.payload)
         parts = _split(record.topic, "maps", 1)
         if parts is None:
             return []
         map_id = parts[0]
+        data, polygons = _map_parts(record.payload)
         frame = str(data.get("frame_id") or DEFAULT_FRAME)
         self._frames[map_id] = frame
-        geometry = data["geometry"]
-        polygons = (
-            [geometry["coordinates"]]
-            if geometry["type"] == "Polygon"
-            else list(geometry["coordinates"])
+        # Written from a template, splicing each ring's points: a map of real size has
+        # hundreds of thousands of points, and a dict per point for json.dumps took seconds.
+        lines = ",".join(
+            _ring_text(ring, _WALL_COLOR_TEXT if i == 0 else _OBSTACLE_COLOR_TEXT)
+            for rings in polygons
+            for i, ring in enumerate(rings)
         )
-        lines = []
-        for rings in polygons:
-            for i, ring in enumerate(rings):
-                lines.append(
-                    {
-                        "type": 0,  # LINE_STRIP: GeoJSON rings repeat their first point
-                        "pose": _pose(0.0, 0.0, 0.0),
-                        "thickness": _WALL_THICKNESS,
-                        "scale_invariant": False,
-                        "points": [{"x": float(p[0]), "y": float(p[1]), "z": 0.0} for p in ring],
-                        "color": _WALL_COLOR if i == 0 else _OBSTACLE_COLOR,
-                        "colors": [],
-                        "indices": [],
-                    }
-                )
         entity = scene_entity(
             record.log_time_ns,
             frame,
             f"map/{map_id}",
             {"map_id": map_id, "version": str(data.get("version", ""))},
             True,
-            lines=lines,
         )
         update = {"deletions": [], "entities": [entity]}
         return [
             Record(
                 f"/foxglove/maps/{map_id}",
                 SCENE_UPDATE,
-                _dumps(update),
+                _dumps(update).replace(b'"lines":[]', b'"lines":[' + lines.encode() + b"]", 1),
                 record.log_time_ns,
                 record.log_time_ns,
             )

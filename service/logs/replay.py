@@ -232,7 +232,7 @@ class _Run:
         )
         self.health = MapHealthEngine(Keys(cfg.prefix))
         self.handed_ns: int | None = None
-        self.book = MapBook(cfg.max_payload_bytes)
+        self.book = MapBook(cfg.max_map_bytes, cfg.map_limits)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
         self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
         self._next_eviction = 0
@@ -276,6 +276,7 @@ class _Run:
             return
         self._write(rec)
         if loaded is not None:
+            assert loaded.world is not None  # checked in this process
             self.engine.register_map(
                 loaded.map_id, loaded.version, loaded.world, loaded.received_ns
             )

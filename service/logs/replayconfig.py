@@ -21,8 +21,14 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from rlutf.localizer import LocalizerConfig
+from rlutf.map import MapLimits
 from service.config import Settings
 from service.guard import Limits
+
+_DEFAULT_LIMITS = MapLimits(
+    Settings.model_fields["max_map_area"].default,
+    Settings.model_fields["max_map_vertices"].default,
+)
 
 
 class ReplayConfigError(ValueError):
@@ -37,9 +43,12 @@ class ReplayConfig:
         prefix: key prefix of the outputs.
         localizer: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
-        max_payload_bytes: largest accepted payload.
+        max_payload_bytes: largest accepted payload of a robot's message.
         settings: the merged configuration, stored as ``rlutf.config`` in the output.
         limits: what inputs may hold beyond the schema.
+        max_map_bytes: largest accepted Map payload (the live service's ``max_map_bytes``).
+        map_limits: extent and vertex limits of a map, as live, so that an audit reproduces
+            which maps were refused.
     """
 
     prefix: str
@@ -48,6 +57,8 @@ class ReplayConfig:
     max_payload_bytes: int
     settings: dict[str, Any]
     limits: Limits = field(default_factory=Limits)
+    max_map_bytes: int = Settings.model_fields["max_map_bytes"].default
+    map_limits: MapLimits = _DEFAULT_LIMITS
 
 
 def _default(name: str) -> Any:
@@ -60,6 +71,9 @@ def default_settings(prefix: str | None) -> dict[str, Any]:
         "prefix": prefix or _default("prefix"),
         "event_interval_s": _default("event_interval_s"),
         "max_payload_bytes": _default("max_payload_bytes"),
+        "max_map_bytes": _default("max_map_bytes"),
+        "max_map_area": _default("max_map_area"),
+        "max_map_vertices": _default("max_map_vertices"),
         "localizer": asdict(LocalizerConfig()),
         "limits": Limits().model_dump(mode="json"),
     }
@@ -156,9 +170,20 @@ def resolve(
         interval = float(merged["event_interval_s"])
         max_bytes = int(merged["max_payload_bytes"])
         limits = Limits.model_validate(merged.get("limits") or {})
+        max_map_bytes = int(merged["max_map_bytes"])
+        map_limits = MapLimits(float(merged["max_map_area"]), int(merged["max_map_vertices"]))
     except (ValidationError, TypeError, ValueError) as err:
         raise ReplayConfigError(f"invalid configuration: {err}") from err
     prefix = merged.get("prefix")
     if not isinstance(prefix, str) or not prefix:
         raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")
-    return ReplayConfig(prefix, localizer, int(interval * 1e9), max_bytes, merged, limits)
+    return ReplayConfig(
+        prefix,
+        localizer,
+        int(interval * 1e9),
+        max_bytes,
+        merged,
+        limits,
+        max_map_bytes,
+        map_limits,
+    )

@@ -1,16 +1,77 @@
-"""Validation and versioning of maps as the service receives them."""
+"""Validation and versioning of maps as the service receives them.
+
+One rule decides what a put of a map means, in the store and in every service (WIRE.md v1.2,
+:func:`put_verdict`): a newer version replaces the map; the same version with the same content
+is an echo and changes nothing; an older version, or the same version with other content, is a
+conflict: it changes nothing anywhere and is reported (``map_version_conflict``). Content is
+compared on the canonical encoding of the message, so whitespace and key order do not count.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import multiprocessing as mp
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from typing import Literal, NamedTuple
 
 from rlutf.errors import MapError
 from rlutf.map import Map as World
-from schemas import Map, SchemaError, decode
+from rlutf.map import MapLimits
+from schemas import Map, SchemaError, decode, encode
+
+#: Size limit of a map a tool reads from a local file (the service's ``max_map_bytes`` applies
+#: when it is put).
+FILE_MAX_BYTES = 1 << 31
+
+#: Validations a :class:`MapChecker` remembers.
+_CHECKS_KEPT = 4
+
+Verdict = Literal["new", "echo", "conflict"]
+Held = tuple[int, str]
+"""A map version held and the digest of its content (:func:`content_digest`)."""
 
 
 class MapRejected(ValueError):
     """A map payload that cannot be used; the message says why."""
+
+
+class VersionConflict(MapRejected):
+    """A put of an older version, or of the held version with other content.
+
+    Attributes:
+        map_id: the map.
+        version: the version put.
+        held: the version held.
+    """
+
+    def __init__(self, map_id: str, version: int, held: int) -> None:
+        self.map_id = map_id
+        self.version = version
+        self.held = held
+        what = "an older version than" if version < held else "other content than"
+        super().__init__(
+            f"map {map_id!r}: version {version} put, {what} the held version {held}; "
+            f"nothing changed (put version {held + 1} or later: rlutf map put --version next)"
+        )
+
+
+def content_digest(msg: Map) -> str:
+    """SHA-256 of the message's canonical encoding: equal maps, equal digests."""
+    return hashlib.sha256(encode(msg)).hexdigest()
+
+
+def put_verdict(held: Held | None, version: int, digest: str) -> Verdict:
+    """What a put of ``version`` with content ``digest`` means when ``held`` is held."""
+    if held is None or version > held[0]:
+        return "new"
+    if version == held[0] and digest == held[1]:
+        return "echo"
+    return "conflict"
 
 
 @dataclass(frozen=True)
@@ -21,19 +82,35 @@ class LoadedMap:
         map_id: its id.
         version: its version.
         payload: the wire payload as received.
-        world: the algorithm's map.
+        world: the algorithm's map (validated; its index is made where it is first used;
+            ``None`` when it was checked in another process, for worker processes that build
+            it from the payload).
         received_ns: when the service accepted it.
+        digest: :func:`content_digest` of the message.
     """
 
     map_id: str
     version: int
     payload: bytes
-    world: World
+    world: World | None
     received_ns: int
+    digest: str = ""
 
 
-def load_map(payload: bytes, *, expected_id: str | None, max_bytes: int) -> tuple[Map, World]:
-    """Decode and validate a map payload (schema, then geometry).
+def load_map(
+    payload: bytes,
+    *,
+    expected_id: str | None,
+    max_bytes: int,
+    limits: MapLimits | None = None,
+) -> tuple[Map, World]:
+    """Decode and validate a map payload (size, schema, extent and vertex count, geometry).
+
+    Args:
+        payload: the Map message.
+        expected_id: the id of the key it came on.
+        max_bytes: the maps' size limit (``max_map_bytes``), bytes.
+        limits: checked on the positions before the geometry is built.
 
     Raises:
         MapRejected: with a message naming the field and the problem.
@@ -45,17 +122,156 @@ def load_map(payload: bytes, *, expected_id: str | None, max_bytes: int) -> tupl
     if expected_id is not None and msg.map_id != expected_id:
         raise MapRejected(f"map_id: {msg.map_id!r} does not match the key's id {expected_id!r}")
     try:
-        world = World.from_geojson(msg.geometry.model_dump(mode="python"))
+        world = World.from_geojson(msg.geometry.model_dump(mode="python"), limits=limits)
     except MapError as err:
         raise MapRejected(f"geometry.{err}") from err
     return msg, world
 
 
-class MapBook:
-    """The newest valid version of every map the service has seen."""
+class CheckedMap(NamedTuple):
+    """A valid map payload, without its decoded message (a map of real size is millions of
+    Python objects once decoded: kept, they slowed every garbage collection of the process).
 
-    def __init__(self, max_bytes: int) -> None:
-        self._max_bytes = max_bytes
+    Attributes:
+        version: its version.
+        digest: :func:`content_digest` of the message.
+        world: the algorithm's map (``None`` when it was checked in another process).
+    """
+
+    version: int
+    digest: str
+    world: World | None
+
+
+def check_map(
+    payload: bytes, *, expected_id: str | None, max_bytes: int, limits: MapLimits | None = None
+) -> CheckedMap:
+    """:func:`load_map`, keeping the version and digest of the message only.
+
+    Raises:
+        MapRejected: with a message naming the field and the problem.
+    """
+    msg, world = load_map(payload, expected_id=expected_id, max_bytes=max_bytes, limits=limits)
+    return CheckedMap(msg.version, content_digest(msg), world)
+
+
+def _imported() -> bool:
+    """Run in the validating process at start: unpickling it imports this module there."""
+    return True
+
+
+def _check_elsewhere(
+    map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None
+) -> tuple[int, str]:
+    checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+    return checked.version, checked.digest
+
+
+class MapChecker:
+    """Validates map payloads (:func:`load_map`) once each: the embedded store and the service's
+    map feed see the same put at once, and a map of real size takes seconds to validate.
+
+    Args:
+        max_bytes: the maps' size limit, bytes.
+        limits: extent and vertex limits of a map.
+        isolated: validate in a process of its own, which keeps no map: decoding a map holds
+            the interpreter's lock for seconds (pydantic and the JSON parser are C code that
+            does not let other threads run), which stalled every robot of a service whose
+            Zenoh callbacks share the process. For a service whose worker processes build the
+            maps, the main process never needs the map itself.
+    """
+
+    def __init__(
+        self, max_bytes: int, limits: MapLimits | None = None, isolated: bool = False
+    ) -> None:
+        self.max_bytes = max_bytes
+        self.limits = limits
+        self.isolated = isolated
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+        self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
+
+    def start(self) -> None:
+        """Start the validating process, if isolated, and wait until it runs (its imports take
+        a second or more: at start, not when the first map comes)."""
+        if self.isolated:
+            self._executor().submit(_imported).result()
+
+    def close(self) -> None:
+        """Stop the validating process, if any."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+            return self._pool
+
+    def _check(self, map_id: str, payload: bytes) -> CheckedMap:
+        if not self.isolated:
+            return check_map(
+                payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
+            )
+        pool = self._executor()
+        try:
+            version, digest = pool.submit(
+                _check_elsewhere, map_id, payload, self.max_bytes, self.limits
+            ).result()
+        except BrokenProcessPool as err:  # killed (out of memory?): the next map gets a new one
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            raise MapRejected(f"the process validating map {map_id!r} died: {err}") from err
+        return CheckedMap(version, digest, None)
+
+    def check(self, map_id: str, payload: bytes) -> CheckedMap:
+        """The map's version, digest and map; a second caller with the same payload waits for
+        the first one's answer.
+
+        Raises:
+            MapRejected: the payload is invalid.
+        """
+        key = (map_id, hashlib.sha256(payload).digest())
+        with self._lock:
+            found = self._recent.get(key)
+            mine = found is None
+            if found is None:
+                found = self._recent[key] = Future()
+                while len(self._recent) > _CHECKS_KEPT:
+                    self._recent.popitem(last=False)
+        if mine:
+            try:
+                found.set_result(self._check(map_id, payload))
+            except Exception as err:  # MapRejected, or a bug: the waiters get it too
+                found.set_exception(err)
+        return found.result()
+
+
+class MapBook:
+    """The newest valid version of every map the service has seen.
+
+    Args:
+        max_bytes: the maps' size limit, bytes.
+        limits: extent and vertex limits of a map.
+        held: what the map store holds for a map this book does not hold yet (the embedded
+            store's :meth:`~service.maps.store.MapStorage.held`), so that the service never
+            loads a version the store refused.
+        isolated: validate maps in a process of their own (:class:`MapChecker`); the maps
+            loaded then carry no :class:`~rlutf.map.Map`.
+    """
+
+    def __init__(
+        self,
+        max_bytes: int,
+        limits: MapLimits | None = None,
+        held: Callable[[str], Held | None] | None = None,
+        isolated: bool = False,
+    ) -> None:
+        self.checker = MapChecker(max_bytes, limits, isolated)
+        self._held = held or (lambda map_id: None)
         self._maps: dict[str, LoadedMap] = {}
 
     def get(self, map_id: str) -> LoadedMap | None:
@@ -70,16 +286,41 @@ class MapBook:
         """Take a map payload received on ``{prefix}/maps/{map_id}``.
 
         Returns:
-            The loaded map when it is new or newer than the one held; ``None`` when it is not
-            newer (an echo or an old version).
+            The loaded map when it is new or newer than the one held; ``None`` for an echo of
+            the version held.
+
+        Raises:
+            VersionConflict: an older version, or the held version with other content.
+            MapRejected: the payload is invalid.
+        """
+        return self.commit(map_id, payload, self.check(map_id, payload), received_ns)
+
+    def commit(
+        self, map_id: str, payload: bytes, checked: CheckedMap, received_ns: int
+    ) -> LoadedMap | None:
+        """:meth:`offer` of a payload already :meth:`check`-ed (the costly part, which the
+        service runs before it takes the dispatcher's lock).
+
+        Raises:
+            VersionConflict: an older version, or the held version with other content.
+        """
+        version, digest, world = checked
+        mine = self._maps.get(map_id)
+        held = (mine.version, mine.digest) if mine is not None else self._held(map_id)
+        verdict = put_verdict(held, version, digest)
+        if verdict == "conflict":
+            assert held is not None
+            raise VersionConflict(map_id, version, held[0])
+        if verdict == "echo" and mine is not None:
+            return None
+        loaded = LoadedMap(map_id, version, bytes(payload), world, received_ns, digest)
+        self._maps[map_id] = loaded
+        return loaded
+
+    def check(self, map_id: str, payload: bytes) -> CheckedMap:
+        """Validate a payload for ``map_id`` with this book's limits (no state changes).
 
         Raises:
             MapRejected: the payload is invalid.
         """
-        msg, world = load_map(payload, expected_id=map_id, max_bytes=self._max_bytes)
-        held = self._maps.get(map_id)
-        if held is not None and msg.version <= held.version:
-            return None
-        loaded = LoadedMap(map_id, msg.version, bytes(payload), world, received_ns)
-        self._maps[map_id] = loaded
-        return loaded
+        return self.checker.check(map_id, payload)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +13,13 @@ import zenoh
 
 from schemas import Map, SchemaError, decode, encode, valid_id
 from service.keys import Keys
-from service.maps.book import MapRejected, load_map
+from service.maps.book import (
+    FILE_MAX_BYTES,
+    MapRejected,
+    content_digest,
+    load_map,
+    put_verdict,
+)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -41,28 +49,145 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
     data["version"] = version if version is not None else data.get("version", 1)
     data.setdefault("frame_id", "map")
     try:
-        msg = decode(Map, json.dumps(data))
+        msg = decode(Map, json.dumps(data), max_bytes=FILE_MAX_BYTES)
         payload = encode(msg)
-        load_map(payload, expected_id=str(mid), max_bytes=10**9)
+        load_map(payload, expected_id=str(mid), max_bytes=len(payload))
     except (SchemaError, MapRejected) as err:
         raise ValueError(f"{path}: invalid map: {err}") from err
     return payload
 
 
-def put_map(
-    session: zenoh.Session, prefix: str, path: Path, map_id: str | None, version: int | None
-) -> int:
-    """Put a map file into whatever storage holds ``{prefix}/maps/**``."""
+NEXT = "next"
+"""``--version next``: the version the store holds plus one (1 when it holds none)."""
+
+
+def parse_version(text: str) -> int | str:
+    """``--version``: a positive integer or ``next``."""
+    if text == NEXT:
+        return NEXT
     try:
-        payload = map_message_from_file(path, map_id, version)
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a version >= 1 or 'next', got {text!r}")
+    return value
+
+
+def held_map(
+    session: zenoh.Session, key: str, timeout: float, unless: bytes | None = None
+) -> Map | bytes | None:
+    """The map a storage answers for ``key``, or ``None`` when none answers; ``unless`` itself
+    (not decoded: a map of real size takes seconds) when the storage answers with those bytes.
+    """
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is None:
+            continue
+        payload = reply.ok.payload.to_bytes()
+        if unless is not None and payload == unless:
+            return unless
+        try:
+            return decode(Map, payload, max_bytes=FILE_MAX_BYTES)
+        except SchemaError:
+            continue
+    return None
+
+
+def put_map(
+    session: zenoh.Session,
+    prefix: str,
+    path: Path,
+    map_id: str | None,
+    version: int | str | None = NEXT,
+    timeout: float = 5.0,
+) -> int:
+    """Put a map file into whatever storage holds ``{prefix}/maps/**`` and wait for its answer.
+
+    Args:
+        session: a session on the bus.
+        prefix: key prefix.
+        path: a Map message or GeoJSON geometry.
+        map_id: the id (default: the file's, else its stem).
+        version: a version, :data:`NEXT` (the held version plus one) or ``None`` (the file's).
+        timeout: how long to wait for the store, seconds.
+
+    Returns:
+        0 when the store holds the map put (or already held it), 1 otherwise: unreadable or
+        invalid file, a version the store refuses (the message names the version it holds and
+        what to do), or no storage answering.
+    """
+    explicit = version if isinstance(version, int) else None
+    try:
+        payload = map_message_from_file(path, map_id, explicit)
     except ValueError as err:
         print(f"rlutf map put: {err}", file=sys.stderr)
         return 1
-    msg = decode(Map, payload)
+    msg = decode(Map, payload, max_bytes=len(payload))
     key = Keys(prefix).map(msg.map_id)
+    found = held_map(session, key, timeout)
+    held = found if isinstance(found, Map) else None
+    if version == NEXT:
+        if held is not None and _same_content(held, msg):
+            print(f"unchanged: {key} already holds this map as version {held.version}")
+            return 0
+        msg = msg.model_copy(update={"version": held.version + 1 if held is not None else 1})
+        payload = encode(msg)
+    if held is not None:
+        verdict = put_verdict(
+            (held.version, content_digest(held)), msg.version, content_digest(msg)
+        )
+        if verdict == "echo":
+            print(f"unchanged: {key} already holds version {msg.version} with this content")
+            return 0
+        if verdict == "conflict":
+            print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
+            return 1
     session.put(key, payload, encoding=JSON)
-    print(f"put {key} (version {msg.version}, {len(payload)} bytes)")
-    return 0
+    return _confirm(session, key, msg, payload, timeout)
+
+
+def _same_content(held: Map, msg: Map) -> bool:
+    return content_digest(held) == content_digest(msg.model_copy(update={"version": held.version}))
+
+
+def _refused(key: str, version: int, held: int) -> str:
+    return (
+        f"{key} holds version {held}; version {version} was not stored (a lower version, or "
+        f"the same version with other content, changes nothing). Put it as version "
+        f"{held + 1} with --version {held + 1}, or --version next."
+    )
+
+
+def _confirm(session: zenoh.Session, key: str, msg: Map, payload: bytes, timeout: float) -> int:
+    """Wait until the storage answers with the map put; report what it holds otherwise."""
+    digest = content_digest(msg)
+    deadline = time.monotonic() + timeout
+    while True:
+        held = held_map(session, key, min(timeout, 2.0), unless=payload)
+        if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
+            print(f"put {key} (version {msg.version}, {len(payload)} bytes): stored")
+            return 0
+        assert not isinstance(held, bytes)
+        if held is not None and held.version >= msg.version:
+            print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
+            return 1
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
+    if held is None:
+        print(
+            f"rlutf map put: no storage answered for {key} within {timeout:g} s: the map was "
+            "put but nothing holds it (start `rlutf serve`, which hosts the store, or "
+            "zenohd with a storage on the maps' keys)",
+            file=sys.stderr,
+        )
+    else:
+        print(
+            f"rlutf map put: the storage still holds version {held.version} of {key} after "
+            f"{timeout:g} s; version {msg.version} was not confirmed",
+            file=sys.stderr,
+        )
+    return 1
 
 
 def get_map(

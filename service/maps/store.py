@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -19,11 +20,22 @@ from typing import Protocol
 
 import zenoh
 
+from rlutf.map import MapLimits
 from schemas import valid_id
 from service.keys import KeyError_, Keys
-from service.maps.book import MapRejected, load_map
+from service.maps.book import (
+    Held,
+    MapChecker,
+    MapRejected,
+    VersionConflict,
+    check_map,
+    put_verdict,
+)
 
 log = logging.getLogger(__name__)
+
+#: Map puts that may wait to be stored; a flood of puts beyond it is refused, with an Event.
+_QUEUED = 16
 
 
 class MapStore(Protocol):
@@ -116,9 +128,21 @@ class FileMapStore:
 class MapStorage:
     """Serves a :class:`FileMapStore` on ``{prefix}/maps/**`` as a Zenoh storage.
 
-    Puts of valid maps are persisted (an older version than the stored one is ignored);
-    invalid ones are not stored and reported through ``on_error``. Gets are answered from the
-    files, so maps survive restarts.
+    Puts are validated and stored on a thread of their own (a big map takes a while to
+    validate; the Zenoh callback thread also carries the robots' inputs), in arrival order, by
+    the rule every service follows (:func:`~service.maps.book.put_verdict`): a newer version is
+    stored; an echo of the held version changes nothing; an older version, or the held version
+    with other content, is not stored (the service that sees the same put reports the conflict).
+    Invalid maps are not stored. Gets are answered from the files, so maps survive restarts.
+
+    Args:
+        session: the Zenoh session.
+        keys: key layout.
+        store: the files.
+        max_bytes: the maps' size limit, bytes.
+        on_error: reports a bad key or a map that could not be written: ``(key, message)``.
+        limits: extent and vertex limits of a map.
+        checker: validates puts (the service's, so that a put is validated once).
     """
 
     def __init__(
@@ -128,22 +152,35 @@ class MapStorage:
         store: FileMapStore,
         max_bytes: int,
         on_error: Callable[[str, str], None] | None = None,
+        limits: MapLimits | None = None,
+        checker: MapChecker | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
         self.max_bytes = max_bytes
+        self.limits = limits
+        self.checker = checker or MapChecker(max_bytes, limits)
         self.on_error = on_error or (lambda key, msg: None)
-        self._versions: dict[str, int] = {}
+        self._versions: dict[str, Held] = {}
+        self._lock = threading.Lock()
         for map_id, payload in store.items():
             try:
-                msg, _ = load_map(payload, expected_id=map_id, max_bytes=max_bytes)
-                self._versions[map_id] = msg.version
+                checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+                self._versions[map_id] = (checked.version, checked.digest)
             except MapRejected as err:
                 log.warning("stored map %s is invalid and is not served: %s", map_id, err)
+        self._tasks: queue.Queue[tuple[str, str, bytes | None] | None] = queue.Queue(_QUEUED)
+        self._thread = threading.Thread(target=self._run, name="rlutf-store", daemon=True)
+        self._thread.start()
         self._sub = session.declare_subscriber(keys.maps_storage, self._on_sample)
         self._queryable = session.declare_queryable(
             keys.maps_storage, self._on_query, complete=True
         )
+
+    def held(self, map_id: str) -> Held | None:
+        """The version stored for ``map_id`` and its content digest, if any."""
+        with self._lock:
+            return self._versions.get(map_id)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -154,37 +191,54 @@ class MapStorage:
             return
         if map_id is None:
             return
-        if sample.kind == zenoh.SampleKind.DELETE:  # `rlutf map remove`: an operator's choice
+        payload = None if sample.kind == zenoh.SampleKind.DELETE else sample.payload.to_bytes()
+        try:
+            self._tasks.put_nowait((key, map_id, payload))
+        except queue.Full:
+            self.on_error(key, f"map {map_id} not stored: {_QUEUED} puts already wait")
+
+    def _run(self) -> None:
+        while (task := self._tasks.get()) is not None:
             try:
-                self.store.delete(map_id)
-            except OSError as err:
-                self.on_error(key, f"could not remove map {map_id}: {err}")
-                return
-            self._versions.pop(map_id, None)
+                self._apply(*task)
+            except Exception:
+                log.exception("storing %s failed", task[0])
+
+    def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:
+        if payload is None:  # `rlutf map remove`: an operator's choice
+            with self._lock:
+                try:
+                    self.store.delete(map_id)
+                except OSError as err:
+                    self.on_error(key, f"could not remove map {map_id}: {err}")
+                    return
+                self._versions.pop(map_id, None)
             log.info("map %s removed", map_id)
             return
-        payload = sample.payload.to_bytes()
         try:
-            msg, _ = load_map(payload, expected_id=map_id, max_bytes=self.max_bytes)
+            version, digest, _ = self.checker.check(map_id, payload)
         except MapRejected:
             return  # the service's map subscriber reports it
-        held = self._versions.get(map_id)
-        if held is not None and msg.version < held:
-            log.info(
-                "map %s version %d is older than stored %d; not stored", map_id, msg.version, held
-            )
-            return
-        try:
-            self.store.put(map_id, payload)
-        except OSError as err:
-            self.on_error(key, f"could not store map {map_id}: {err}")
-            return
-        self._versions[map_id] = msg.version
+        with self._lock:
+            held = self._versions.get(map_id)
+            verdict = put_verdict(held, version, digest)
+            if verdict != "new":
+                if held is not None and verdict == "conflict":
+                    log.info("%s", VersionConflict(map_id, version, held[0]))
+                return
+            try:
+                self.store.put(map_id, payload)
+            except OSError as err:
+                self.on_error(key, f"could not store map {map_id}: {err}")
+                return
+            self._versions[map_id] = (version, digest)
 
     def _on_query(self, query: zenoh.Query) -> None:
         with query:
             ke = query.key_expr
-            for map_id in list(self._versions):
+            with self._lock:
+                held = list(self._versions)
+            for map_id in held:
                 key = self.keys.map(map_id)
                 if ke.intersects(zenoh.KeyExpr(key)):
                     payload = self.store.get(map_id)
@@ -192,6 +246,8 @@ class MapStorage:
                         query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def close(self) -> None:
-        """Stop serving."""
+        """Stop serving (after the puts already received are stored)."""
         self._sub.undeclare()
         self._queryable.undeclare()
+        self._tasks.put(None)
+        self._thread.join(10.0)

@@ -111,3 +111,30 @@ def test_contains_point_agrees_with_contains() -> None:
     points = np.array([[1.0, 1.0], [5.5, 5.5], [25.0, 1.0], [0.0, 3.0], [5.0, 5.5]])
     expected = m.contains(points).tolist()
     assert [m.contains_point(float(x), float(y)) for x, y in points] == expected
+
+
+def test_limits_refuse_a_map_before_anything_is_built() -> None:
+    from rlutf.map import MapLimits
+
+    square = {
+        "type": "Polygon",
+        "coordinates": [[[0, 0], [2000, 0], [2000, 2000], [0, 2000], [0, 0]]],
+    }
+    with pytest.raises(MapError, match=r"2000 m x 2000 m = 4e\+06 m2.*max_map_area"):
+        Map.from_geojson(square, limits=MapLimits(max_area=100_000.0))
+    with pytest.raises(MapError, match="5 vertices, more than the limit of 4"):
+        Map.from_geojson(square, limits=MapLimits(max_vertices=4))
+    assert Map.from_geojson(square, limits=MapLimits(5e6, 5)).bounds == (0.0, 0.0, 2000.0, 2000.0)
+    bad = {"type": "Polygon", "coordinates": [[[0, 0], [float("inf"), 0], [1, 1], [0, 0]]]}
+    with pytest.raises(MapError, match="non-finite"):
+        Map.from_geojson(bad, limits=MapLimits(max_area=1.0))
+
+
+def test_the_wall_index_is_made_on_first_use() -> None:
+    world = Map.from_geojson(
+        {"type": "Polygon", "coordinates": [[[0, 0], [30, 0], [30, 20], [0, 20], [0, 0]]]}
+    )
+    assert "wall_index" not in world._derived  # a process that only validates pays nothing
+    index = world.index
+    assert (index.nx, index.ny) == (30, 20)
+    assert world.index is index

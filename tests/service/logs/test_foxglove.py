@@ -274,3 +274,43 @@ def test_views_of_non_finite_numbers_are_skipped() -> None:
     """A log from elsewhere may hold numbers JSON cannot carry: no view, no failure."""
     bad = b'{"stamp_ns": 1, "map_id": "m", "x": 1e999, "y": 0, "theta": 0}'
     assert FoxgloveConverter()(Record("p/robots/r/pose", "rlutf.PoseEstimate", bad, 1, 1)) == []
+
+
+@pytest.mark.parametrize(
+    "geometry",
+    [
+        {"type": "Polygon", "coordinates": [[[0, 0], [4, 0], [4, 3], [0, 0]]]},
+        {
+            "coordinates": [
+                [[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 0.0]],
+                [[1.0, 1.0], [1.5, 1.0], [1.5, 1.5], [1.0, 1.0]],
+            ],
+            "type": "Polygon",
+        },
+        {
+            "type": "MultiPolygon",
+            "coordinates": [
+                [[[0, 0], [1, 0], [1, 1], [0, 0]]],
+                [
+                    [[2, 2], [3, 2], [3, 3], [2, 2]],
+                    [[2.2, 2.1], [2.3, 2.1], [2.3, 2.2], [2.2, 2.1]],
+                ],
+            ],
+        },
+    ],
+)
+@pytest.mark.parametrize("indent", [None, 2])
+def test_a_maps_rings_parsed_one_by_one_equal_the_whole_parse(
+    geometry: dict[str, Any], indent: int | None
+) -> None:
+    """The recorder parses a map's rings one at a time (a whole parse of a big map holds the
+    interpreter's lock for seconds); the result is the same whatever the layout."""
+    from service.logs.foxglove import _map_parts, _whole_map
+
+    doc = {"frame_id": "coordinates", "map_id": "m", "version": 1, "geometry": geometry}
+    text = json.dumps(doc, indent=indent)
+    fields, polygons = _map_parts(text.encode())
+    whole_fields, whole_polygons = _whole_map(text)
+    assert polygons == whole_polygons
+    assert fields["frame_id"] == whole_fields["frame_id"] == "coordinates"
+    assert fields["geometry"]["type"] == geometry["type"]

@@ -1,0 +1,192 @@
+"""Map versions that cannot disagree (WIRE.md v1.2): one rule in the store, the service and the
+tools that put maps, against a real service and its file-backed store on loopback."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+from service_harness import WORLD, Bench, Collector, running_bench
+from shapely import affinity
+
+from rlutf.map import Map as World
+from schemas import Map, decode, encode
+from service.cli.main import main
+from service.live.sessions import free_port
+from service.maps.book import MapBook, VersionConflict, content_digest, put_verdict
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+MOVED = World.from_shapely(affinity.translate(WORLD.geometry, 0.01, 0.0))
+
+
+def _payload(version: int, world: World = WORLD, map_id: str = "m1") -> bytes:
+    return encode(Map(map_id=map_id, version=version, geometry=world.to_geojson()))
+
+
+def _stored(bench: Bench, map_id: str = "m1") -> Map | None:
+    path = bench.store / f"{map_id}.json"
+    return decode(Map, path.read_bytes(), max_bytes=10**8) if path.exists() else None
+
+
+def _put_cli(bench: Bench, path: Path, *flags: str) -> int:
+    return main(["map", "put", str(path), "--connect", bench.endpoint, "--timeout", "3", *flags])
+
+
+def test_the_rule() -> None:
+    held = (2, "abc")
+    assert put_verdict(None, 1, "x") == "new"
+    assert put_verdict(held, 3, "x") == "new"
+    assert put_verdict(held, 2, "abc") == "echo"
+    assert put_verdict(held, 2, "x") == "conflict"
+    assert put_verdict(held, 1, "abc") == "conflict"
+
+
+def test_book_refuses_older_and_same_version_with_other_content() -> None:
+    book = MapBook(10**8)
+    assert book.offer("m1", _payload(2), 1) is not None
+    assert book.offer("m1", _payload(2), 2) is None  # an echo
+    # Whitespace and key order do not make other content.
+    assert book.offer("m1", json.dumps(json.loads(_payload(2)), indent=1).encode(), 3) is None
+    with pytest.raises(VersionConflict, match="version 2 put, other content than the held"):
+        book.offer("m1", _payload(2, MOVED), 4)
+    with pytest.raises(VersionConflict, match=r"version 1 put, an older version than the held"):
+        book.offer("m1", _payload(1, MOVED), 5)
+    held = book.get("m1")
+    assert held is not None and held.version == 2 and held.received_ns == 1
+
+
+def test_book_consults_the_store_for_a_map_it_does_not_hold() -> None:
+    """A service that never loaded a map still refuses a version its store refused."""
+    store_holds = (3, content_digest(decode(Map, _payload(3))))
+    book = MapBook(10**8, held=lambda map_id: store_holds)
+    with pytest.raises(VersionConflict, match="held version 3"):
+        book.offer("m1", _payload(1), 1)
+    assert book.get("m1") is None
+    assert book.offer("m1", _payload(3), 2) is not None  # what the store holds: loaded
+
+
+def _conflicts(col: Collector) -> list[dict[str, Any]]:
+    return [e for e in col.on("rlutf/events") if e["code"] == "map_version_conflict"]
+
+
+def test_a_conflicting_put_changes_nothing_anywhere_and_is_an_event(bench: Bench) -> None:
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/events", col)
+    bench.put_map(version=2)
+    assert col.wait_for(lambda: (s := _stored(bench)) is not None and s.version == 2)
+    assert col.wait_for(lambda: bench.service.maps.get("m1") is not None)
+    before_file = (bench.store / "m1.json").read_bytes()
+    bench.put_map(version=2, world=MOVED)  # same version, other content
+    assert col.wait_for(lambda: len(_conflicts(col)) == 1)
+    bench.put_map(version=1, world=MOVED)  # older version
+    assert col.wait_for(lambda: len(_conflicts(col)) == 2)
+    first, second = _conflicts(col)
+    assert "version 2 put" in first["message"] and "held version 2" in first["message"]
+    assert "version 1 put" in second["message"] and "held version 2" in second["message"]
+    assert first["key"] == "rlutf/maps/m1"
+    time.sleep(0.3)
+    assert (bench.store / "m1.json").read_bytes() == before_file
+    held = bench.service.maps.get("m1")
+    assert held is not None and held.version == 2
+    assert held.digest == content_digest(decode(Map, _payload(2)))
+    bench.put_map(version=2)  # an echo: no event
+    time.sleep(0.5)
+    assert len(_conflicts(col)) == 2
+    sub.undeclare()
+
+
+def test_map_put_refuses_an_older_version_and_names_the_held_one(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bench.put_map(version=2)
+    assert Collector().wait_for(lambda: (s := _stored(bench)) is not None and s.version == 2)
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1, MOVED))
+    assert _put_cli(bench, path, "--version", "1") == 1
+    err = capsys.readouterr().err
+    assert "holds version 2" in err and "--version 3" in err and "--version next" in err
+    assert _put_cli(bench, path, "--version", "2") == 1  # same version, other content
+    stored = _stored(bench)
+    assert stored is not None and stored.version == 2
+    assert content_digest(stored) == content_digest(decode(Map, _payload(2)))
+
+
+def test_map_put_takes_the_next_version_by_default(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1))
+    assert _put_cli(bench, path) == 0  # nothing held: version 1
+    assert "version 1" in capsys.readouterr().out
+    path.write_bytes(_payload(1, MOVED))  # edited, version left at 1 in the file
+    assert _put_cli(bench, path) == 0
+    assert "version 2" in capsys.readouterr().out
+    stored = _stored(bench)
+    assert stored is not None and stored.version == 2
+    assert Collector().wait_for(
+        lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 2
+    )
+    assert _put_cli(bench, path) == 0  # the same map again: nothing new
+    assert "unchanged" in capsys.readouterr().out
+    stored = _stored(bench)
+    assert stored is not None and stored.version == 2
+
+
+def test_map_import_put_without_version_puts_the_next(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The issue's case: `map import --put` printed version 1 while the store kept 2."""
+    grid = np.full((60, 80), 254, dtype=np.uint8)  # a room of 4 m x 3 m at 5 cm, one pillar
+    grid[:2, :] = grid[-2:, :] = grid[:, :2] = grid[:, -2:] = 0
+    grid[25:35, 30:40] = 0
+    (tmp_path / "room.pgm").write_bytes(b"P5\n80 60\n255\n" + grid.tobytes())
+    (tmp_path / "room.yaml").write_text(
+        "image: room.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    bench.put_map(version=2, map_id="sandbox")
+    assert Collector().wait_for(lambda: _stored(bench, "sandbox") is not None)
+    out = tmp_path / "sandbox.json"
+    argv = ["map", "import", str(tmp_path / "room.yaml"), "--id", "sandbox", "--out", str(out)]
+    assert main([*argv, "--put", "--connect", bench.endpoint]) == 0
+    assert "version 3" in capsys.readouterr().out
+    stored = _stored(bench, "sandbox")
+    assert stored is not None and stored.version == 3
+    assert main([*argv, "--put", "--version", "1", "--connect", bench.endpoint]) == 1
+    assert "holds version 3" in capsys.readouterr().err
+
+
+def test_map_put_with_no_storage_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    port = free_port()
+    conf = zenoh.Config.from_json5(
+        json.dumps({"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]}})
+    )
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1))
+    with zenoh.open(conf):
+        argv = ["map", "put", str(path), "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "1"]
+        assert main(argv) == 1
+    assert "no storage answered" in capsys.readouterr().err
+
+
+def test_store_and_service_agree_after_a_restart(tmp_path: Path) -> None:
+    """The store's rule holds for maps it read from its files at start."""
+    with running_bench(tmp_path) as b:
+        b.put_map(version=2)
+        assert Collector().wait_for(lambda: (s := _stored(b)) is not None and s.version == 2)
+    with running_bench(tmp_path) as b:
+        col = Collector()
+        sub = b.client.declare_subscriber("rlutf/events", col)
+        b.put_map(version=2, world=MOVED)
+        assert col.wait_for(lambda: len(_conflicts(col)) == 1)
+        assert b.service.maps.get("m1") is None
+        stored = _stored(b)
+        assert stored is not None
+        assert content_digest(stored) == content_digest(decode(Map, _payload(2)))
+        sub.undeclare()
