@@ -107,7 +107,9 @@ def slam_odometry(
     return drift_odometry(truth, model, np.random.default_rng([seed, 2]))
 
 
-def carmen_run(name: str, limit: int | None = None, odometry: str = "log") -> Run:
+def carmen_run(
+    name: str, limit: int | None = None, odometry: str = "log", world: Map | None = None
+) -> Run:
     """A real run from ``bench/data/carmen/{name}-corrected.log.gz``.
 
     Args:
@@ -115,6 +117,7 @@ def carmen_run(name: str, limit: int | None = None, odometry: str = "log") -> Ru
         limit: keep only the first ``limit`` scans (quick runs).
         odometry: ``"log"`` (the log's wheel odometry) or ``"odom5"`` (:func:`slam_odometry`);
             the run's scenario is ``name`` or ``f"{name}-odom5"``.
+        world: the map (default: :func:`carmen_world`, built from all the log's scans).
 
     Returns:
         The run. ``odometry`` holds the raw odometry at each scan: the reading logged just
@@ -153,7 +156,7 @@ def carmen_run(name: str, limit: int | None = None, odometry: str = "log") -> Ru
         name if odometry == "log" else f"{name}-{odometry}",
         0,
         name,
-        carmen_world(name),
+        carmen_world(name) if world is None else world,
         stamps_ns,
         truth,
         odom,

@@ -64,7 +64,37 @@ def start_service(
     cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
     cmd += serve_flags
     full_env = None if env is None else {**os.environ, **env}
-    return subprocess.Popen(cmd, stderr=stderr, env=full_env)
+    proc = subprocess.Popen(cmd, stderr=stderr, env=full_env)
+    wait_ready(endpoint, proc)
+    return proc
+
+
+def wait_ready(endpoint: str, proc: subprocess.Popen[bytes], timeout: float = 600.0) -> None:
+    """Block until the service on ``endpoint`` is ready: its liveliness token is declared only
+    once every worker can localize (the first start after an install compiles the kernels).
+
+    Raises:
+        RuntimeError: the service exited first, or was not ready within ``timeout`` seconds.
+    """
+    import zenoh
+
+    from service.live.sessions import client_config
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise RuntimeError(
+                f"rlutf serve exited with code {proc.returncode} before it was ready"
+            )
+        try:
+            with zenoh.open(client_config(endpoint)) as session:
+                tokens = session.liveliness().get("rlutf/service/*", timeout=1.0)
+                if any(reply.ok is not None for reply in tokens):
+                    return
+        except zenoh.ZError:
+            pass  # the router is not listening yet
+        time.sleep(0.2)
+    raise RuntimeError(f"rlutf serve on {endpoint} was not ready within {timeout:g} s")
 
 
 def stop_service(proc: subprocess.Popen[bytes], timeout: float = 20.0) -> int | None:

@@ -1,4 +1,5 @@
-"""Point-to-line ICP against a polygon map, initialised at the odometry prediction.
+"""Point-to-line ICP against a polygon map or a cloud of points, initialised at the odometry
+prediction.
 
 The walls are sampled every ``spacing`` metres into points that carry their wall's unit normal
 (pointing into the free space); a :class:`scipy.spatial.cKDTree` finds each scan point's
@@ -7,6 +8,10 @@ the scan points to those walls' lines, ``n . (R p + t - q)``, over ``(x, y, thet
 further apart than a gate are dropped (the gate shrinks from ``max_distance`` to
 ``min_distance`` over the iterations), and so are pairs whose wall faces away from the sensor
 (the back side of a thin wall). Everything is vectorised over the scan's points.
+
+Instead of a polygon map, ICP can run on the raw points of other scans (:func:`point_samples`:
+the points thinned to one per ``spacing`` cell, each with the normal of a line fitted to its
+neighbours, turned towards the sensor that saw it), as a scan matcher on a point map does.
 """
 
 from __future__ import annotations
@@ -55,7 +60,8 @@ class WallSamples:
     Attributes:
         points: ``(K, 2)`` samples, metres.
         normals: ``(K, 2)`` unit normals of their walls, into the free space.
-        walls: ``(K,)`` index of each sample's wall in the map's segments (non-decreasing).
+        walls: ``(K,)`` index of each sample's wall in the map's segments (non-decreasing), or
+            of each point in the cloud it was thinned from (:func:`point_samples`).
         tree: the k-d tree over ``points``.
     """
 
@@ -81,6 +87,45 @@ def wall_samples(world: Map, spacing: float) -> WallSamples:
     return WallSamples(points, normals[wall], wall, cKDTree(points))
 
 
+def point_samples(
+    points: FloatArray, sensors: FloatArray, spacing: float = 0.02, radius: float = 0.1
+) -> WallSamples:
+    """Raw scan points as ICP's map: one point per ``spacing`` cell, with normals.
+
+    Args:
+        points: ``(n, 2)`` scan end points in the map frame, metres.
+        sensors: ``(n, 2)`` where the sensor was that saw each point.
+        spacing: cell side of the thinning, metres (the first point of each cell is kept).
+        radius: neighbours within this fit each point's line, metres; a point with fewer than
+            three gets the direction to its sensor as its normal.
+
+    Returns:
+        The kept points, their unit normals (turned towards their sensors) and a k-d tree;
+        ``walls`` holds each kept point's index in ``points``.
+    """
+    key = np.floor(np.asarray(points) / spacing).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    first.sort()
+    pts, seen = points[first], sensors[first]
+    tree = cKDTree(pts)
+    dist, idx = tree.query(pts, k=16, distance_upper_bound=radius)
+    near = np.isfinite(dist)
+    nb = pts[np.where(near, idx, 0)]
+    count = near.sum(axis=1)
+    mean = (nb * near[..., None]).sum(axis=1) / count[:, None]
+    c = (nb - mean[:, None, :]) * near[..., None]
+    cxx, cyy = (c[..., 0] ** 2).sum(axis=1), (c[..., 1] ** 2).sum(axis=1)
+    cxy = (c[..., 0] * c[..., 1]).sum(axis=1)
+    axis = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # the line's direction
+    normals = np.column_stack([-np.sin(axis), np.cos(axis)])
+    to_sensor = seen - pts
+    lonely = count < 3
+    normals[lonely] = to_sensor[lonely] / np.hypot(*to_sensor[lonely].T)[:, None]
+    flip = np.einsum("ij,ij->i", normals, to_sensor) < 0.0
+    normals[flip] *= -1.0
+    return WallSamples(pts, normals, first.astype(np.int64), tree)
+
+
 class PointToLineIcp:
     """Tracks a robot by point-to-line ICP of each scan against the map.
 
@@ -88,11 +133,23 @@ class PointToLineIcp:
         world: the map.
         pose: ``(3,)`` initial pose.
         config: parameters.
+        samples: the points to match against instead of ``world``'s walls (e.g.
+            :func:`point_samples` of other scans); ``world`` is then not used.
     """
 
-    def __init__(self, world: Map, pose: FloatArray, config: IcpConfig | None = None) -> None:
+    def __init__(
+        self,
+        world: Map | None,
+        pose: FloatArray,
+        config: IcpConfig | None = None,
+        samples: WallSamples | None = None,
+    ) -> None:
         self.config = config or IcpConfig()
-        self._walls = wall_samples(world, self.config.spacing)
+        if samples is None:
+            if world is None:
+                raise ValueError("PointToLineIcp: needs a map (world) or samples, got neither")
+            samples = wall_samples(world, self.config.spacing)
+        self._walls = samples
         self._pose = np.asarray(pose, dtype=np.float64).copy()
 
     def update(self, motion: FloatArray, scan: Scan) -> Estimate:

@@ -9,8 +9,11 @@ import pytest
 
 from bench.baselines import AmclConfig, IcpConfig, ParticleFilter, PointToLineIcp
 from bench.baselines.amcl import kld_limit, likelihood_field
+from bench.baselines.common import scan_points
+from bench.baselines.icp import point_samples
 from bench.methods import Method, track
 from bench.scenarios import Scenario, simulate
+from rlutf.map import Map
 from rlutf.sim import LidarModel, OdometryModel, make_building, make_trajectory, simulate_scan
 
 
@@ -79,3 +82,48 @@ def test_particle_filter_corrects_a_wrong_start() -> None:
         est = pf.update(turn, simulate_scan(world, truth, LidarModel(), rng))
     assert est.pose is not None
     assert math.hypot(*(est.pose[:2] - truth[:2])) < 0.15
+
+
+def _cloud(
+    world: Map, poses: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """End points of noise-free scans at ``poses`` in the map frame, and their sensors."""
+    points, sensors = [], []
+    for pose in poses:
+        scan = simulate_scan(world, pose, LidarModel(noise=0.0), rng)
+        ok = scan.valid()
+        local = scan_points(scan.ranges[ok], scan.angles[ok], scan.sensor_offset)
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        points.append(local @ np.array([[c, s], [-s, c]]) + pose[:2])
+        sensors.append(np.broadcast_to(pose[:2], points[-1].shape))
+    return np.vstack(points), np.vstack(sensors)
+
+
+def test_point_samples_thin_and_face_their_sensors() -> None:
+    world = make_building(np.random.default_rng(12))
+    rng = np.random.default_rng(13)
+    poses = make_trajectory(world, rng, 5)
+    points, sensors = _cloud(world, poses, rng)
+    samples = point_samples(points, sensors, spacing=0.02)
+    cells = np.floor(samples.points / 0.02).astype(np.int64)
+    assert len(np.unique(cells, axis=0)) == len(samples.points) < len(points)
+    assert np.allclose(samples.points, points[samples.walls])
+    assert np.allclose(np.hypot(*samples.normals.T), 1.0)
+    towards = np.einsum("ij,ij->i", samples.normals, sensors[samples.walls] - samples.points)
+    assert np.all(towards > 0.0)
+
+
+def test_icp_on_raw_points_converges_like_on_the_map() -> None:
+    world = make_building(np.random.default_rng(14))
+    rng = np.random.default_rng(15)
+    poses = make_trajectory(world, rng, 6)
+    points, sensors = _cloud(world, poses[:-1], rng)
+    samples = point_samples(points, sensors)
+    truth = poses[-1]
+    scan = simulate_scan(world, truth, LidarModel(noise=0.0), rng)
+    icp = PointToLineIcp(None, truth + np.array([0.1, -0.08, 0.03]), IcpConfig(), samples)
+    est = icp.update(np.zeros(3), scan)
+    assert est.pose is not None and est.status == "corrected"
+    assert math.hypot(*(est.pose[:2] - truth[:2])) < 0.01
+    with pytest.raises(ValueError, match="world"):
+        PointToLineIcp(None, truth)
