@@ -138,6 +138,8 @@ class LocalizerConfig:
             searches the map again.
         win_margin: a followed hypothesis wins when its summed unfit share over the scans
             followed is at least this much under every other's.
+        quality_range: the localization score of a pose halves when its deviation range (the
+            95 % radius of its position) reaches this, metres (:mod:`rlutf.quality`).
         seed: base seed of the random generator.
     """
 
@@ -192,6 +194,7 @@ class LocalizerConfig:
     seed_fit: float = 0.8
     follow_scans: int = 10
     win_margin: float = 0.3
+    quality_range: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -220,6 +223,7 @@ class LocalizerConfig:
             "select_scale",
             "relocalize_resolution",
             "win_margin",
+            "quality_range",
         )
         for name in positive:
             if not getattr(self, name) > 0:

@@ -42,8 +42,10 @@ from numpy.typing import ArrayLike, NDArray
 from rlutf.config import LocalizerConfig, Status
 from rlutf.field import WideSearch, wide_search
 from rlutf.map import Map
+from rlutf.mapchange import Returns
 from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
+from rlutf.quality import farthest_on_map, pose_quality
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, refine_pose
 from rlutf.relocalize import (
@@ -79,6 +81,13 @@ class LocalizeResult:
             first (``pose`` is the first); empty otherwise.
         relocalizing: this update belongs to a relocalization (the map was searched or its
             hypotheses followed); the one where a hypothesis wins has status ``corrected``.
+        score: the localization score in [0, 1] (:func:`rlutf.quality.localization_score`):
+            under 0.5 when ``lost``.
+        deviation_range: the radius around the position that holds the true one with 95 %
+            probability, metres (:func:`rlutf.quality.deviation_range`); for a lost pose, the
+            distance to the farthest corner of the map.
+        returns: the scan's returns beside the ranges cast at ``pose`` (for map health,
+            :mod:`rlutf.mapchange`); ``None`` when the update compared none.
         fit_needed: the share of the returns that had to fit for the pose to be trusted:
             ``min_fit``, or more for a robot whose scans usually fit better (its typical share
             less a margin); NaN where the update did not apply it (relocalizations).
@@ -95,6 +104,9 @@ class LocalizeResult:
     refine_casts: int = 0
     hypotheses: tuple[Hypothesis, ...] = ()
     relocalizing: bool = False
+    score: float = 0.0
+    deviation_range: float = math.inf
+    returns: Returns | None = None
     fit_needed: float = math.nan
 
 
@@ -241,6 +253,7 @@ class Localizer:
                 "lost",
                 0,
                 relocalizing=self._follower is not None,
+                deviation_range=self._unknown_range(self._pose),
             )
         if self._follower is not None:
             return self._relocalizing(problem, predicted, mot, scan)
@@ -301,6 +314,7 @@ class Localizer:
         verifying = self._unverified and cfg.mode != "paper"
         if verifying:
             floor = max(floor, cfg.seed_fit)
+        typical_fit = self._typical_fit
         if share < floor:
             status: Status = "lost"
             # Look wider at the next scan (default mode): a lost robot comes back by itself,
@@ -325,6 +339,7 @@ class Localizer:
             else:
                 self._typical_fit = share
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
+        score, deviation = self._quality(fit, status == "lost", floor, typical_fit)
         # Free the previous update's arrays only now that this one has made its own: freed
         # first, they would leave free memory at the top of the heap, which malloc gives back to
         # the system, and every update would pay page faults to map it again.
@@ -339,6 +354,16 @@ class Localizer:
             share,
             fit.sigma,
             fit.casts if cfg.refine else 0,
+            score=score,
+            deviation_range=deviation,
+            returns=Returns(
+                self._pose,
+                problem.offset,
+                problem.beams.cos,
+                problem.beams.sin,
+                problem.real_ranges,
+                fit.ranges,
+            ),
             fit_needed=floor,
         )
 
@@ -369,6 +394,7 @@ class Localizer:
                 step.nodes,
                 fit=0.0,
                 relocalizing=True,
+                deviation_range=self._unknown_range(predicted),
             )
         pose = fit.pose
         self._pose = np.array([pose[0], pose[1], wrap_scalar(float(pose[2]))])
@@ -376,6 +402,11 @@ class Localizer:
         self._typical = math.inf
         self._lost_run = 0
         discrepancy = float(problem.of_ranges(fit.ranges[None])[0])
+        # A hypothesis that wins must fit relocalize_fit of the returns; until one wins, the
+        # place is not known.
+        score, deviation = self._quality(
+            fit, status == "lost", self.config.min_fit, self.config.relocalize_fit
+        )
         return LocalizeResult(
             self._pose.copy(),
             discrepancy if math.isfinite(discrepancy) else math.inf,
@@ -388,7 +419,25 @@ class Localizer:
             fit.casts,
             hypotheses,
             True,
+            score,
+            deviation,
         )
+
+    def _quality(
+        self, fit: Refinement, lost: bool, floor: float, typical: float
+    ) -> tuple[float, float]:
+        """``(score, deviation range)`` at the pose just set; ``typical``: NaN if not known."""
+        cfg = self.config
+        typical = typical if math.isfinite(typical) else cfg.relocalize_fit
+        x, y = float(self._pose[0]), float(self._pose[1])
+        return pose_quality(
+            fit.fit, fit.covariance, (x, y), self._map.bounds, lost, floor, typical,
+            cfg.quality_range,
+        )  # fmt: skip
+
+    def _unknown_range(self, pose: FloatArray) -> float:
+        """The deviation range of a pose that is not known: anywhere on the map."""
+        return farthest_on_map(float(pose[0]), float(pose[1]), self._map.bounds)
 
     def _fit(self, problem: Problem, pose: FloatArray, gate: bool = False) -> Refinement:
         """The refinement from ``pose`` (or, without ``refine``, ``pose`` evaluated); with

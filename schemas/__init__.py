@@ -29,6 +29,7 @@ from schemas.errors import (
     SchemaError,
 )
 from schemas.geometry import Geometry, MultiPolygon, Polygon, Position
+from schemas.maphealth import LineString, MapChange, MapHealth, MultiLineString
 from schemas.messages import (
     KNOWN_EVENT_CODES,
     MAX_BEAMS,
@@ -71,8 +72,12 @@ __all__ = [
     "InvalidUtf8",
     "LaserScan",
     "LatencyPercentiles",
+    "LineString",
     "MalformedJson",
     "Map",
+    "MapChange",
+    "MapHealth",
+    "MultiLineString",
     "MultiPolygon",
     "Odometry",
     "Payload",

@@ -170,6 +170,17 @@ class PoseEstimate(WireModel):
         description="While a robot is being relocalized (v1.1): the distinct candidate poses, "
         "best first; absent otherwise.",
     )
+    localization_score: UnitFloat | None = Field(
+        default=None,
+        description="v1.2, VDA 5050's agvPosition.localizationScore: 1 when the scan fits the map "
+        "as well as this robot's scans usually do at a well-determined pose, 0 when the pose is "
+        "unknown; under 0.5 when status is lost.",
+    )
+    deviation_range: NonNegativeFloat | None = Field(
+        default=None,
+        description="v1.2, VDA 5050's agvPosition.deviationRange: the radius around x, y that "
+        "holds the true position with 95 % probability, metres.",
+    )
 
 
 class Map(WireModel):

@@ -11,6 +11,7 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from schemas._types import WireModel
+from schemas.maphealth import MapHealth
 from schemas.messages import (
     Event,
     Health,
@@ -33,6 +34,7 @@ SCHEMA_NAMES: Final[MappingProxyType[type[WireModel], str]] = MappingProxyType(
         PoseEstimate: "rlutf.PoseEstimate",
         Map: "rlutf.Map",
         Event: "rlutf.Event",
+        MapHealth: "rlutf.MapHealth",
         Health: "rlutf.Health",
     }
 )

@@ -105,6 +105,11 @@ class Ros2Settings(BaseModel):
         description="Longest a scan waits for the odometry at its stamp (as AMCL's tf filter), s.",
     )
     publish_tf: bool = Field(True, description="Publish map -> odom on the robot's tf.")
+    diagnostics_topic: str | None = Field(
+        "diagnostics",
+        description="DiagnosticArray topic each pose's localization_score and deviation_range "
+        "go out on, relative to the namespace (null: off).",
+    )
     transform_tolerance_s: float = Field(
         1.0, ge=0, description="map -> odom is stamped this far ahead (AMCL's default), s."
     )
@@ -162,6 +167,11 @@ class Settings(BaseSettings):
         description="Folder of the durable pose state (default: 'state' in the store folder).",
     )
     no_state: bool = Field(False, description="Keep no durable pose state across restarts.")
+    map_health: bool = Field(
+        True,
+        description="Count the scans' disagreement with the maps and publish MapHealth on "
+        "{prefix}/maphealth/{map_id} (off: nothing counted, nothing published).",
+    )
     state_interval_s: float = Field(
         1.0, gt=0, description="Seconds between two writes of the pose state (when changed)."
     )

@@ -40,6 +40,7 @@ from schemas import (
 from schemas.fastpose import encode_pose
 from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import Keys
+from service.maphealth import NullEvidence, ScanEvidence
 from service.prepared import MapShelf, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
 
@@ -75,6 +76,7 @@ class FleetEngine:
         config: localizer parameters.
         event_interval_ns: least time between two events of one code for one robot.
         limits: what is accepted beyond the schema (:mod:`service.guard`).
+        evidence: where scans' map health evidence is counted (default: nowhere).
     """
 
     def __init__(
@@ -83,11 +85,13 @@ class FleetEngine:
         config: LocalizerConfig,
         event_interval_ns: int = 1_000_000_000,
         limits: Limits | None = None,
+        evidence: ScanEvidence | None = None,
     ) -> None:
         self.keys = keys
         self.config = config
         self.event_interval_ns = event_interval_ns
         self.limits = limits or Limits()
+        self.evidence = evidence if evidence is not None else NullEvidence()
         self._maps = MapShelf(config)
         self._robots: dict[str, _Robot] = {}
 
@@ -105,6 +109,11 @@ class FleetEngine:
 
     def _map_unready(self, map_id: str | None) -> bool:
         return map_id is not None and self._maps.unready(map_id)
+
+    def hand_over(self) -> Outbound | None:
+        """Map health evidence counted since the last call (``None``: none); counted afresh."""
+        handed = self.evidence.take()
+        return Outbound("evidence", "", b"", 0, evidence=tuple(handed)) if handed else None
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -317,7 +326,8 @@ class FleetEngine:
                 "scan before an initial pose; publish an InitialPose first (`rlutf "
                 f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
             )
-        if self._world_for(robot, received_ns) is None or robot.localizer is None:
+        world = self._world_for(robot, received_ns)
+        if world is None or robot.localizer is None:
             return skipped + self._event(
                 robot,
                 received_ns,
@@ -343,6 +353,8 @@ class FleetEngine:
         scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)
         robot.fresh = False
+        self.evidence.observe(robot.map_id, robot.map_version, world, robot.robot_id,
+                              msg.stamp_ns, result)  # fmt: skip
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
             return (
@@ -407,6 +419,8 @@ class FleetEngine:
             int(result.iterations),
             None if result.covariance is None else result.covariance.ravel().tolist(),
             wire_hypotheses(result),
+            float(result.score),
+            float(result.deviation_range),
         )
         robot.last_pose = payload
         robot.last_status = result.status

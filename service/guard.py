@@ -24,7 +24,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import Any, Final, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Final, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -34,8 +34,11 @@ from rlutf.scan import Scan
 from schemas import MAX_BEAMS, EventCode, InitialPose, LaserScan, Odometry, Relocalize
 from service.keys import Keys
 
+if TYPE_CHECKING:
+    from service.maphealth import Handed
+
 Message = LaserScan | Odometry | InitialPose | Relocalize
-OutKind = Literal["pose", "event", "need_map", "skipped", "rejected"]
+OutKind = Literal["pose", "event", "need_map", "skipped", "rejected", "evidence"]
 
 _TWO_PI: Final = 2.0 * math.pi
 #: Metres added to the map's diagonal (and the sensor's offset) beyond which a range is no return.
@@ -54,7 +57,8 @@ class Outbound:
             ``need_map`` (``map_id`` is wanted from the store; nothing is published),
             ``skipped`` (a scan was not turned into a pose; counted, nothing is published) or
             ``rejected`` (an input over a limit of :mod:`service.guard`; counted, nothing is
-            published: its Event, rate-limited, is a separate ``event``).
+            published: its Event, rate-limited, is a separate ``event``) or ``evidence`` (map
+            health evidence handed on, ``FleetEngine.hand_over``).
         key: the Zenoh key to put on.
         payload: encoded JSON.
         stamp_ns: the message's own stamp (MCAP ``publish_time``).
@@ -62,6 +66,7 @@ class Outbound:
         map_id: for ``need_map``.
         status: for ``pose``: the pose status.
         received_ns: for ``pose``: when the scan it answers was received.
+        evidence: for ``evidence``: the grids counted since the last hand-over.
     """
 
     kind: OutKind
@@ -72,6 +77,7 @@ class Outbound:
     map_id: str | None = None
     status: str | None = None
     received_ns: int | None = None
+    evidence: tuple[Handed, ...] = ()
 
 
 class Engine(Protocol):

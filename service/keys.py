@@ -101,6 +101,15 @@ class Keys:
         """Key expression of every map."""
         return f"{self.prefix}/maps/*"
 
+    def maphealth(self, map_id: str) -> str:
+        """Where the MapHealth of map ``map_id`` is put and answered (WIRE.md v1.2)."""
+        return f"{self.prefix}/maphealth/{map_id}"
+
+    @property
+    def all_maphealth(self) -> str:
+        """Key expression of every map's MapHealth."""
+        return f"{self.prefix}/maphealth/*"
+
     @property
     def maps_storage(self) -> str:
         """Key expression a map storage declares."""

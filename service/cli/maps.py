@@ -1,5 +1,5 @@
-"""``rlutf map put|get|list|remove|import|build|show``: maps into and out of the store, from grids
-and logs."""
+"""``rlutf map put|get|list|remove|import|build|show|health``: maps into and out of the store,
+from grids and logs, and where the fleet's scans disagree with them."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from service.cli import maphealth
 from service.cli.errors import CliError
 from service.cli.flags import (
     EXIT_FAILURE,
@@ -132,6 +133,7 @@ def register(sub: Any) -> None:
     timeout_flag(show, what="the storage's answer")
     zenoh_flags(show, client=True)
     show.set_defaults(func=cmd_show)
+    maphealth.register(msub)
 
 
 def _map_output_flags(p: argparse.ArgumentParser) -> None:
@@ -194,8 +196,8 @@ def cmd_map(args: argparse.Namespace) -> int:
         with session:
             return get_map(session, settings.prefix, args.map_id, args.out, args.timeout)
     print(
-        "rlutf map: choose an action: put, get, list, remove, import, build, show (see rlutf "
-        "map --help)",
+        "rlutf map: choose an action: put, get, list, remove, import, build, show, health "
+        "(see rlutf map --help)",
         file=sys.stderr,
     )
     return EXIT_USAGE

@@ -69,6 +69,7 @@ class Dispatcher:
         on_seed: records an input made to re-seed a robot whose worker died (lock held).
         on_lost: reports a dead worker (called without the lock).
         limits: what inputs may hold beyond the schema (:mod:`service.guard`).
+        map_health: count the scans' map health evidence (:mod:`service.maphealth`).
     """
 
     def __init__(
@@ -84,9 +85,11 @@ class Dispatcher:
         on_seed: OnSeed | None = None,
         on_lost: OnLost | None = None,
         limits: Limits | None = None,
+        map_health: bool = True,
     ) -> None:
         self.keys = keys
         self.limits = limits or Limits()
+        self.map_health = map_health
         self.clock = clock
         self.on_seed: OnSeed = on_seed or (lambda robot, entry: None)
         self.on_lost: OnLost = on_lost or (lambda index, code, robots: None)

@@ -47,6 +47,7 @@ from service.keys import InputKind, Keys, Message
 from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
 from service.live.dispatch import Dispatcher
+from service.live.healthfeed import HealthFeed
 from service.live.intake import Intake
 from service.live.keywatch import KeyWatch
 from service.live.liveview import LiveView, make_live_view
@@ -142,6 +143,7 @@ class LocalizationService:
             on_seed=self._record_seed,
             on_lost=self._on_worker_lost,
             limits=settings.limits,
+            map_health=settings.map_health,
         )
         self.mapfeed = MapFeed(
             self.keys,
@@ -191,6 +193,8 @@ class LocalizationService:
         self.sweeper = Sweeper(
             self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
         )
+        rec = self.recorder.record
+        self.healthfeed = HealthFeed(self.keys, self.maps, self._publish, rec, self.clock)
         self.closed = threading.Event()
 
     # ------------------------------------------------------------------------ lifecycle
@@ -246,6 +250,7 @@ class LocalizationService:
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
             session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
+            session.declare_queryable(self.keys.all_maphealth, self.healthfeed.on_query),
         ]
         restored, problems = self.posestate.open()  # the poses kept across a restart
         for problem in problems:
@@ -396,6 +401,9 @@ class LocalizationService:
                 continue
             if out.kind in ("skipped", "rejected"):  # rejected: over a limit (service.guard)
                 self.stats.add(out.kind)
+                continue
+            if out.kind == "evidence":
+                self.healthfeed.on_evidence(out.evidence)
                 continue
             if out.kind == "pose":
                 with self.ownership.lock:  # a robot released meanwhile is not answered for

@@ -9,7 +9,8 @@ Answer (JSON, :class:`RobotsAnswer`)::
     {"instance": "rlutf-a", "stamp_ns": 1732300000123456789,
      "robots": [{"robot_id": "r1", "map_id": "warehouse-1", "status": "tracking",
                  "x": 1.02, "y": 2.01, "theta": 0.003, "age_s": 0.04,
-                 "latency_ms": 3.1, "owner": "rlutf-a"}]}
+                 "latency_ms": 3.1, "owner": "rlutf-a",
+                 "localization_score": 0.98, "deviation_range": 0.004}]}
 
 ``age_s`` is the instance's clock now minus when the latest pose was published; ``age_s`` and
 ``latency_ms`` are ``null`` for a pose this instance holds but did not publish (a seed).
@@ -60,6 +61,12 @@ class RobotState(BaseModel):
         None, description="Latest pose's scan receipt to publication, milliseconds."
     )
     owner: str = Field(description="The instance holding the robot.")
+    localization_score: float | None = Field(
+        None, description="Latest pose's localization score, 0 to 1 (null: the pose has none)."
+    )
+    deviation_range: float | None = Field(
+        None, description="Latest pose's 95 % deviation range, metres (null: the pose has none)."
+    )
     sigma_xy_m: float | None = Field(
         None, description="1-sigma position uncertainty (the covariance's larger axis), metres."
     )
@@ -198,6 +205,8 @@ class RobotView:
                     age_s=age,
                     latency_ms=latency,
                     owner=self.instance,
+                    localization_score=pose.localization_score,
+                    deviation_range=pose.deviation_range,
                     sigma_xy_m=sigma_xy,
                     sigma_theta_rad=sigma_theta,
                 )

@@ -25,7 +25,16 @@ from service.engine import FleetEngine, Outbound
 from service.guard import Limits
 from service.keys import Keys
 from service.live.supervise import History
-from service.live.worker import Entry, apply_control, recv, run_batch, send, worker_main
+from service.live.worker import (
+    Entry,
+    HandOver,
+    apply_control,
+    evidence,
+    recv,
+    run_batch,
+    send,
+    worker_main,
+)
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +97,7 @@ class Dispatcher(Protocol):
     event_interval_ns: int
     threads: int
     limits: Limits
+    map_health: bool
     lock: threading.Lock
     boxes: dict[str, Mailbox]
     stopping: bool
@@ -180,7 +190,10 @@ class ThreadShard(Shard):
     def __init__(self, index: int, dispatcher: Dispatcher) -> None:
         super().__init__(index, dispatcher)
         d = dispatcher
-        self.engine = FleetEngine(d.keys, d.config, d.event_interval_ns, d.limits)
+        self.engine = FleetEngine(
+            d.keys, d.config, d.event_interval_ns, d.limits, evidence(d.map_health)
+        )
+        self.hand_over = HandOver(self.engine)
 
     def start(self) -> None:
         for i in range(self.dispatcher.threads):
@@ -205,6 +218,7 @@ class ThreadShard(Shard):
             assert robot is not None
             t0 = time.perf_counter()
             outputs = run_batch(self.engine, robot, item)  # type: ignore[arg-type]
+            self.hand_over(outputs)
             # Published before the robot's next batch may start on another thread: its poses
             # go out (and into the log) in order.
             d.deliver(Done(robot, outputs, time.perf_counter() - t0))
@@ -248,7 +262,15 @@ class ProcessShard(Shard):
         d = self.dispatcher
         process = ctx.Process(
             target=worker_main,
-            args=(child, d.keys.prefix, d.config, d.event_interval_ns, d.threads, d.limits),
+            args=(
+                child,
+                d.keys.prefix,
+                d.config,
+                d.event_interval_ns,
+                d.threads,
+                d.limits,
+                d.map_health,
+            ),
             name=f"rlutf-worker-{self.index}",
             daemon=True,
         )

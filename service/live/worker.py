@@ -29,6 +29,7 @@ from service.engine import FleetEngine, Outbound
 from service.guard import Limits
 from service.keys import MODELS, InputKind, Keys, Message
 from service.live.memory import HeapTrimmer
+from service.maphealth import NullEvidence, ScanEvidence
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,32 @@ def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Out
     return outputs
 
 
+def evidence(map_health: bool) -> ScanEvidence:
+    """Where an engine counts map health evidence: a grid per map, or nowhere."""
+    return ScanEvidence() if map_health else NullEvidence()
+
+
+class HandOver:
+    """Appends the engine's map health evidence to a batch's outputs, at most once a second
+    (:mod:`service.maphealth`): the main process merges it and publishes the MapHealth."""
+
+    def __init__(self, engine: FleetEngine, interval_s: float = 1.0) -> None:
+        self.engine = engine
+        self.interval_s = interval_s
+        self._next = time.monotonic() + interval_s
+        self._lock = threading.Lock()
+
+    def __call__(self, outputs: list[Outbound]) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now < self._next:
+                return
+            self._next = now + self.interval_s
+        handed = self.engine.hand_over()
+        if handed is not None:
+            outputs.append(handed)
+
+
 def apply_control(engine: FleetEngine, msg: tuple[Any, ...]) -> None:
     if msg[0] == "forget":
         engine.forget(msg[1])
@@ -118,6 +145,7 @@ def worker_main(
     interval: int,
     threads: int,
     limits: Limits | None = None,
+    map_health: bool = True,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
@@ -132,7 +160,8 @@ def worker_main(
     thread hand-off per scan.
     """
     warm_up()
-    engine = FleetEngine(Keys(prefix), config, interval, limits)
+    engine = FleetEngine(Keys(prefix), config, interval, limits, evidence(map_health))
+    hand_over = HandOver(engine)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
@@ -149,6 +178,7 @@ def worker_main(
         entries = [Entry(k, p, None, r) for k, p, r in batch]
         t0 = time.perf_counter()
         outputs = run_batch(engine, robot, entries)
+        hand_over(outputs)
         return ("done", robot, outputs, time.perf_counter() - t0)
 
     def run_and_answer(robot: str, batch: list[tuple[InputKind, bytes, int]]) -> None:

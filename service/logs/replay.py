@@ -61,6 +61,7 @@ from service.logs.mcapread import (
 )
 from service.logs.replayconfig import ReplayConfig, resolve
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id, run_tag
+from service.maphealth import MapHealthEngine, ScanEvidence
 from service.maps.book import MapBook, MapRejected
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,10 @@ INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose | Relocalize]] =
 MAP_SCHEMA = "rlutf.Map"
 POSE_SCHEMA = "rlutf.PoseEstimate"
 EVENT_SCHEMA = "rlutf.Event"
+MAPHEALTH_SCHEMA = "rlutf.MapHealth"
+#: Replay hands the scans' map health evidence on once per this much log time, as the live
+#: workers do.
+HEALTH_HANDOVER_NS = 1_000_000_000
 REPLAYED = frozenset({*INPUT_MODELS, MAP_SCHEMA, POSE_SCHEMA})
 REPLAY_METADATA = "rlutf.replay"
 
@@ -108,6 +113,7 @@ class ReplayResult:
         odometry: ``(stamp_ns, x, y, theta)`` per robot.
         initial_poses: ``(stamp_ns, map_id, x, y, theta)`` per robot.
         maps: newest accepted Map payload per map id.
+        maphealth: the recomputed MapHealth payloads per map id, in order.
         inputs: input messages handled (maps included).
         dropped: scans skipped because they were dropped live.
         rejected: inputs rejected as invalid (the live service would not have recorded them).
@@ -125,6 +131,7 @@ class ReplayResult:
         default_factory=lambda: defaultdict(list)
     )
     maps: dict[str, bytes] = field(default_factory=dict)
+    maphealth: dict[str, list[bytes]] = field(default_factory=lambda: defaultdict(list))
     inputs: int = 0
     dropped: int = 0
     rejected: int = 0
@@ -219,9 +226,12 @@ class _Run:
         self.result = result
         self.drops = drops
         self.writer = writer
+        self.evidence = ScanEvidence()
         self.engine = FleetEngine(
-            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits
+            Keys(cfg.prefix), cfg.localizer, cfg.event_interval_ns, cfg.limits, self.evidence
         )
+        self.health = MapHealthEngine(Keys(cfg.prefix))
+        self.handed_ns: int | None = None
         self.book = MapBook(cfg.max_map_bytes, cfg.map_limits)
         self.maps_seen: set[tuple[str, int, bytes]] = set()
         self.evictions: list[tuple[int, str]] = []  # (log_time_ns, robot), oldest first
@@ -270,6 +280,8 @@ class _Run:
             self.engine.register_map(
                 loaded.map_id, loaded.version, loaded.world, loaded.received_ns
             )
+            self.finish_health(rec.log_time_ns)  # the old version's last evidence first
+            self.health.register_map(loaded.map_id, loaded.version, loaded.world)
             self.result.maps[loaded.map_id] = loaded.payload
 
     def _input(self, rec: Record) -> None:
@@ -310,6 +322,22 @@ class _Run:
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
             if out.kind == "pose":
                 self.result.recomputed[robot].append(pose_record(out.payload))
+        self._health(rec.log_time_ns)
+
+    def _health(self, now_ns: int, force: bool = False) -> None:
+        """Hand the evidence on once a second of log time; write the MapHealth that is due."""
+        if self.handed_ns is None:
+            self.handed_ns = now_ns
+        if force or now_ns - self.handed_ns >= HEALTH_HANDOVER_NS:
+            self.handed_ns = now_ns
+            self.health.merge(self.evidence.take())
+        for out in self.health.due(now_ns):
+            self._write(Record(out.key, MAPHEALTH_SCHEMA, out.payload, now_ns, out.stamp_ns))
+            self.result.maphealth[out.map_id].append(out.payload)
+
+    def finish_health(self, now_ns: int) -> None:
+        """The evidence not handed on yet, and a MapHealth of it (the end of the inputs)."""
+        self._health(now_ns + self.health.interval_ns, force=True)
 
 
 def replay(
@@ -391,10 +419,13 @@ def replay(
                 writer.write_all(drop_records)
             run = _Run(result, drops, writer)
             run.evictions = sorted(evictions)
+            last_ns = 0
             for rec in merged_messages(logs, REPLAYED):
                 run.handle(rec)
+                last_ns = rec.log_time_ns
                 if progress is not None:
                     progress(1)
+            run.finish_health(last_ns)
             if writer is not None and stream is not None:
                 writer.finish()
                 stream.flush()

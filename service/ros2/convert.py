@@ -5,7 +5,7 @@ of a ``tf2_msgs/msg/TFMessage``, ``geometry_msgs/msg/PoseWithCovarianceStamped``
 ``initialpose``) become the same validated :mod:`schemas` messages the JSON front door makes, so
 the engine, the log and replay cannot tell them apart. Outputs are ``amcl_pose``
 (``PoseWithCovarianceStamped``) and the ``map`` -> ``odom`` transform, as Nav2 AMCL publishes
-them.
+them, and the pose's quality fields as a ``diagnostic_msgs/msg/DiagnosticArray``.
 
 A range that is NaN or infinite is no return (REP 117), like ``null`` in JSON.
 """
@@ -33,6 +33,9 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+#: Name of the DiagnosticStatus of a robot's localization.
+DIAGNOSTIC_NAME = "rlutf: localization"
 
 
 class CdrError(SchemaError):
@@ -292,6 +295,47 @@ def amcl_pose(pose: PoseEstimate, frame_id: str = "map") -> bytes:
         ),
     )
     return serialize(msg, POSE_COV)
+
+
+def quality_diagnostics(pose: PoseEstimate) -> bytes:
+    """A PoseEstimate's quality as a DiagnosticArray of one status, CDR.
+
+    Level OK while the pose is not ``lost`` and scores at least 0.5, WARN under 0.5, ERROR when
+    ``lost``; the values are VDA 5050's ``agvPosition`` fields under their WIRE.md names
+    (``localization_score``, ``deviation_range``, ``position_initialized``) and the pose's
+    ``status`` and ``map_id``, as strings (DiagnosticStatus carries strings).
+    """
+    t = typestore().types
+    status = t["diagnostic_msgs/msg/DiagnosticStatus"]
+    score = pose.localization_score
+    # DiagnosticStatus's constants OK, WARN and ERROR
+    if pose.status == "lost":
+        level = 2
+    elif score is not None and score < 0.5:
+        level = 1
+    else:
+        level = 0
+    pairs = {
+        "localization_score": "" if score is None else repr(score),
+        "deviation_range": "" if pose.deviation_range is None else repr(pose.deviation_range),
+        "position_initialized": "false" if pose.status == "lost" else "true",
+        "status": pose.status,
+        "map_id": pose.map_id,
+    }
+    kv = t["diagnostic_msgs/msg/KeyValue"]
+    msg = t[DIAGNOSTIC_ARRAY](
+        header=_header(pose.stamp_ns, ""),
+        status=[
+            status(
+                level=level,
+                name=DIAGNOSTIC_NAME,
+                message=pose.status,
+                hardware_id=pose.robot_id,
+                values=[kv(key=k, value=v) for k, v in pairs.items()],
+            )
+        ],
+    )
+    return serialize(msg, DIAGNOSTIC_ARRAY)
 
 
 def transform(

@@ -10,9 +10,10 @@ Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliabl
 transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
 heartbeat, as rmw_zenoh declares it) and as the ``map`` -> ``odom`` transform on the robot's
 ``tf`` (map -> base composed with the inverse of the robot's odometry at the scan's stamp,
-stamped ahead by the transform tolerance), each sample with rmw_zenoh's attachment, on the key
-the robot's own distribution listens on. Liveliness tokens announce the node and its topics, so
-``ros2 node list`` and ``ros2 topic list`` show them. AMCL's
+stamped ahead by the transform tolerance), and its quality (``localization_score``,
+``deviation_range``) as a DiagnosticArray on the robot's ``diagnostics``, each sample with
+rmw_zenoh's attachment, on the key the robot's own distribution listens on. Liveliness tokens
+announce the node and its topics, so ``ros2 node list`` and ``ros2 topic list`` show them. AMCL's
 ``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`;
 started without a map, the front door says at once what will be refused
 (:func:`no_map_warning`).
@@ -75,7 +76,7 @@ class _Robot:
 
 
 class Ros2FrontDoor:
-    """ROS 2 robots in, ``amcl_pose`` and ``map`` -> ``odom`` out.
+    """ROS 2 robots in, ``amcl_pose``, ``map`` -> ``odom`` and ``diagnostics`` out.
 
     Args:
         settings: the ``ros2`` settings.
@@ -360,6 +361,10 @@ class Ros2FrontDoor:
             for name, leaf in self._topics.items()
         ]
         entities.append(("MP", s.pose_topic, convert.POSE_COV, names.AMCL_POSE_QOS))
+        if s.diagnostics_topic:
+            entities.append(
+                ("MP", s.diagnostics_topic, convert.DIAGNOSTIC_ARRAY, names.DIAGNOSTICS_QOS)
+            )
         if s.publish_tf:
             entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
         if s.global_localization_service:
@@ -430,6 +435,8 @@ class Ros2FrontDoor:
         s = self.settings
         now = self.clock()
         self._put(pubs.get(convert.POSE_COV), convert.amcl_pose(pose, s.global_frame), now)
+        if s.diagnostics_topic:
+            self._put(pubs.get(convert.DIAGNOSTIC_ARRAY), convert.quality_diagnostics(pose), now)
         if not s.publish_tf:
             return
         with self._lock:

@@ -39,6 +39,9 @@ RIHS01: dict[str, str] = {
     "tf2_msgs/msg/TFMessage": (
         "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
     ),
+    "diagnostic_msgs/msg/DiagnosticArray": (
+        "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
+    ),
 }
 #: Services: a service's hash covers its request, response and event types (rosbags has no
 #: services; zenoh-ros2-sdk's ``compute_service_type_hash`` gives it, and ROS 2's docs show the
@@ -183,6 +186,7 @@ TF_QOS = Qos(depth=100)
 INITIALPOSE_QOS = Qos(depth=5)
 ODOM_QOS = Qos(depth=10)
 MAP_QOS = Qos(transient_local=True, depth=1)
+DIAGNOSTICS_QOS = Qos(depth=10)
 
 NODE_NAME = "rlutf_localization"
 

@@ -27,6 +27,8 @@ ids = st.from_regex(r"\A[A-Za-z0-9_-]{1,64}\Z")
     st.floats(0, 1e9, allow_nan=False),
     st.integers(0, 10**6),
     st.none() | st.lists(floats, min_size=9, max_size=9),
+    st.none() | st.floats(0, 1, allow_nan=False),
+    st.none() | st.floats(0, 1e12, allow_nan=False),
 )
 @settings(max_examples=300, deadline=None)
 def test_same_bytes_as_the_model(
@@ -40,6 +42,8 @@ def test_same_bytes_as_the_model(
     discrepancy: float,
     iterations: int,
     covariance: list[float] | None,
+    score: float | None,
+    deviation: float | None,
 ) -> None:
     fields = {
         "stamp_ns": stamp,
@@ -52,6 +56,9 @@ def test_same_bytes_as_the_model(
         "discrepancy": discrepancy,
         "iterations": iterations,
         "covariance": covariance,
+        "hypotheses": None,
+        "localization_score": score,
+        "deviation_range": deviation,
     }
     fast = encode_pose(*fields.values())  # type: ignore[arg-type]
     assert fast == encode(PoseEstimate.model_validate(fields))
@@ -89,6 +96,11 @@ def test_hypotheses_take_the_model_path() -> None:
         {"iterations": -2},
         {"covariance": [0.0] * 8},
         {"covariance": [math.nan] * 9},
+        {"localization_score": 1.5},
+        {"localization_score": -0.1},
+        {"localization_score": math.nan},
+        {"deviation_range": -1.0},
+        {"deviation_range": math.inf},
     ],
 )
 def test_out_of_range_raises_as_the_model_does(change: dict[str, object]) -> None:
@@ -103,6 +115,9 @@ def test_out_of_range_raises_as_the_model_does(change: dict[str, object]) -> Non
         "discrepancy": 0.0,
         "iterations": 0,
         "covariance": None,
+        "hypotheses": None,
+        "localization_score": 0.9,
+        "deviation_range": 0.01,
     } | change
     with pytest.raises(ValidationError):
         encode_pose(*fields.values())  # type: ignore[arg-type]

@@ -35,6 +35,7 @@ MCAP_SCHEMA_NAMES = {
     "rlutf.PoseEstimate",
     "rlutf.Map",
     "rlutf.Event",
+    "rlutf.MapHealth",  # v1.2
 }
 
 
@@ -52,7 +53,8 @@ def _walk(node: Any) -> list[Any]:
 def test_schema_names_are_the_wire_md_ones() -> None:
     assert set(SCHEMA_NAMES.values()) == MCAP_SCHEMA_NAMES | {"rlutf.Health"}
     assert schema_name(LaserScan) == "rlutf.LaserScan"
-    for model in (LaserScan, Odometry, InitialPose, Relocalize, PoseEstimate, Map, Event, Health):
+    models = (LaserScan, Odometry, InitialPose, Relocalize, PoseEstimate, Map, Event, Health)
+    for model in (*models, schemas.MapHealth):
         assert SCHEMA_NAMES[model] == f"rlutf.{model.__name__}"
         assert MODELS_BY_SCHEMA_NAME[SCHEMA_NAMES[model]] is model
     with pytest.raises(KeyError):

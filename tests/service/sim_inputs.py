@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -50,3 +51,26 @@ class Run:
         pose = self.truth[i] if at is None else at
         s = simulate_scan(self.world, pose, LidarModel(beams=self.beams), self.rng)
         return laser_scan(s, self.stamp(i))
+
+
+def rack_beside(world: World, paths: list[np.ndarray], share: float = 0.5) -> Any:
+    """A 1.2 m x 0.5 m rack (shapely box) the map lacks: clear of the walls and of every path
+    by 0.7 m, within 3 m of the first path for ``share`` of its poses (seen over several
+    windows)."""
+    import shapely
+    from shapely.geometry import box
+
+    rng = np.random.default_rng(0)
+    points = shapely.points(np.vstack([p[:, :2] for p in paths]))
+    first = shapely.points(paths[0][:, :2])
+    inner = world.geometry.buffer(-0.5)
+    for _ in range(20000):
+        p = paths[0][rng.integers(len(paths[0]))][:2] + rng.uniform(-2.5, 2.5, 2)
+        rack = box(p[0] - 0.6, p[1] - 0.25, p[0] + 0.6, p[1] + 0.25)
+        if (
+            inner.contains(rack)
+            and shapely.distance(rack, points).min() > 0.7
+            and np.mean(shapely.distance(rack, first) < 3.0) > share
+        ):
+            return rack
+    raise AssertionError("no place for a rack")

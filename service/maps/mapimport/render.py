@@ -7,12 +7,13 @@ and on machines without a display.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 import shapely
+import shapely.geometry
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
@@ -28,6 +29,8 @@ from service.maps.mapimport.errors import MapFileError, MapImportError
 FREE_COLOUR = "#dcebf7"
 WALL_COLOUR = "#1f2a36"
 POSE_COLOUR = "#d1495b"
+ADDED_COLOUR = "#e4572e"
+REMOVED_COLOUR = "#2e86ab"
 
 
 def _as_geometry(source: Polygon | MultiPolygon | Mapping[str, Any]) -> Polygon | MultiPolygon:
@@ -70,6 +73,7 @@ def render_map(
     *,
     title: str | None = None,
     poses: ArrayLike | None = None,
+    changes: Sequence[Mapping[str, Any]] = (),
     width_inches: float = 10.0,
     dpi: int = 150,
 ) -> None:
@@ -81,6 +85,8 @@ def render_map(
         out: the PNG's path or a binary stream.
         title: the title; by default the map id and version (when known), area and walls.
         poses: optional ``(K, 2)`` or ``(K, 3)`` map-frame positions drawn as a trajectory.
+        changes: MapHealth changes drawn over the map: ``added`` areas filled red,
+            ``removed`` walls as thick blue lines.
         width_inches: figure width; the height follows the map's aspect ratio.
         dpi: resolution.
 
@@ -116,6 +122,7 @@ def render_map(
         if p.ndim != 2 or p.shape[1] not in (2, 3):
             raise MapImportError(f"render: poses must be (K, 2) or (K, 3), got {p.shape}")
         ax.plot(p[:, 0], p[:, 1], color=POSE_COLOUR, linewidth=0.8, marker=".", markersize=2)
+    _draw_changes(ax, changes)
     margin = 0.03 * max(span_x, span_y)
     ax.set_xlim(x0 - margin, x1 + margin)
     ax.set_ylim(y0 - margin, y1 + margin)
@@ -136,3 +143,25 @@ def render_map(
         fig.savefig(out, format="png")
     except OSError as err:
         raise MapFileError(f"cannot write '{out}': {err.strerror or err}") from err
+
+
+def _draw_changes(ax: Any, changes: Sequence[Mapping[str, Any]]) -> None:
+    """MapHealth changes over the map, with a legend when there are any."""
+    labels: set[str] = set()
+    for change in changes:
+        geom = shapely.geometry.shape(change["geometry"])
+        kind = change["kind"]
+        label = None if kind in labels else kind
+        labels.add(kind)
+        for part in shapely.get_parts(geom):
+            if kind == "added":
+                ax.add_patch(
+                    PathPatch(_path_of(part), facecolor=ADDED_COLOUR, edgecolor=ADDED_COLOUR,
+                              alpha=0.6, label=label)
+                )  # fmt: skip
+            else:
+                xy = np.asarray(part.coords)
+                ax.plot(xy[:, 0], xy[:, 1], color=REMOVED_COLOUR, linewidth=3.5, label=label)
+            label = None
+    if labels:
+        ax.legend(loc="upper right", fontsize=8)

@@ -25,7 +25,7 @@ COMMANDS = [
     "log",
 ]
 ACTIONS = {
-    "map": ["put", "get", "list", "remove", "import", "build", "show"],
+    "map": ["put", "get", "list", "remove", "import", "build", "show", "health"],
     "log": ["info", "recover"],
 }
 

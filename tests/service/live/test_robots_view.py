@@ -72,6 +72,8 @@ def test_answers_every_robot_held_with_its_latest_pose(bench: Bench) -> None:
         assert r["status"] == pose["status"] in ("tracking", "corrected", "lost")
         assert (r["x"], r["y"], r["theta"]) == (pose["x"], pose["y"], pose["theta"])
         assert r["owner"] == me
+        assert r["localization_score"] == pose["localization_score"]
+        assert r["deviation_range"] == pose["deviation_range"] > 0.0
         assert 0 <= r["age_s"] < 5.0
         assert 0 < r["latency_ms"] < 1000.0
         assert (r["sigma_xy_m"], r["sigma_theta_rad"]) == one_sigma(pose.get("covariance"))
@@ -102,6 +104,8 @@ def _state(robot: str, age: float | None, owner: str, x: float = 0.0) -> RobotSt
         age_s=age,
         latency_ms=None if age is None else 2.25,
         owner=owner,
+        localization_score=None if age is None else 0.97,
+        deviation_range=None if age is None else 0.0042,
     )
 
 

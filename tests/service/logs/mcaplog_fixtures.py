@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rlutf.map import Map as World
-from rlutf.sim import make_building
+from rlutf.sim import LidarModel, make_building, simulate_scan
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcapread import LogFile
@@ -28,9 +29,11 @@ def simulated_inputs(
     beams: int = 120,
     prefix: str = "rlutf",
     world: World | None = None,
+    seen: Callable[[list[np.ndarray]], World] | None = None,
 ) -> list[Record]:
     """A map (``world``, default :data:`WORLD`), initial poses (5 cm off), then odometry and a
-    scan per robot per step, in log order: :mod:`service.sim`'s fleet, as its robots put it.
+    scan per robot per step, in log order: :mod:`service.sim`'s fleet, as its robots put it;
+    with ``seen``, the scans are of the world it makes of the robots' paths (a changed world).
 
     ``log_time`` is strictly increasing: 1 ms after the stamp, plus 10 us per robot.
     """
@@ -44,6 +47,15 @@ def simulated_inputs(
         initial_offset=(0.05, 0.0, 0.0),
     )
     plan = plan_fleet(spec, WORLD if world is None else world)
+    if seen is not None:
+        changed = seen([r.truth for r in plan.robots])
+        rng = np.random.default_rng([seed, 99])
+        lidar = LidarModel(beams=beams)
+        robots = tuple(
+            replace(r, scans=tuple(simulate_scan(changed, p, lidar, rng) for p in r.truth))
+            for r in plan.robots
+        )
+        plan = replace(plan, robots=robots)
     keys = Keys(prefix)
     wire = JsonWire(plan, keys)
     before = T0 - 1_000_000

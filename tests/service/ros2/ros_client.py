@@ -31,6 +31,7 @@ DDS = {
     ),
     "tf2_msgs/msg/TFMessage": "tf2_msgs::msg::dds_::TFMessage_",
     "std_msgs/msg/String": "std_msgs::msg::dds_::String_",
+    "diagnostic_msgs/msg/DiagnosticArray": "diagnostic_msgs::msg::dds_::DiagnosticArray_",
 }
 
 

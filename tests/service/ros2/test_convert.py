@@ -105,6 +105,41 @@ def test_amcl_pose_and_transform_decode_with_rosbags() -> None:
     assert yaw(t.transform.rotation) == pytest.approx(0.5)
 
 
+@pytest.mark.parametrize(
+    ("status", "score", "level", "initialized"),
+    [("tracking", 0.97, 0, "true"), ("corrected", 0.3, 1, "true"), ("lost", 0.2, 2, "false")],
+)
+def test_quality_as_diagnostics_decodes_with_rosbags(
+    status: str, score: float, level: int, initialized: str
+) -> None:
+    pose = PoseEstimate(
+        stamp_ns=1_700_000_000_000_000_007,
+        robot_id="r1",
+        map_id="m1",
+        x=1.0,
+        y=2.0,
+        theta=0.0,
+        status=status,  # type: ignore[arg-type]
+        discrepancy=0.01,
+        iterations=0,
+        localization_score=score,
+        deviation_range=0.0123,
+    )
+    m = TS.deserialize_cdr(convert.quality_diagnostics(pose), "diagnostic_msgs/msg/DiagnosticArray")
+    assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1_700_000_000, 7)
+    (s,) = m.status
+    assert (s.level, s.name, s.hardware_id, s.message) == (
+        level,
+        "rlutf: localization",
+        "r1",
+        status,
+    )
+    values = {kv.key: kv.value for kv in s.values}
+    assert float(values["localization_score"]) == score
+    assert float(values["deviation_range"]) == 0.0123
+    assert (values["position_initialized"], values["map_id"]) == (initialized, "m1")
+
+
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
 

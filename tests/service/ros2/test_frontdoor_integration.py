@@ -39,6 +39,7 @@ pytestmark = pytest.mark.integration
 
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF = "tf2_msgs/msg/TFMessage"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 
 
 def _bench(tmp_path: Path, **ros2: object) -> Iterator[Bench]:
@@ -130,6 +131,8 @@ def test_two_namespaced_robots_humble_and_jazzy_keys(ros_bench: Bench) -> None:
     }
     # Exact keys: a Humble robot listens on TypeHashNotSupported, a Jazzy one on RIHS01.
     subs = [bench.client.declare_subscriber(k, listener) for pair in outs.values() for k in pair]
+    diagnostics = key(0, "/robot1/diagnostics", DIAGNOSTICS, False)
+    subs.append(bench.client.declare_subscriber(diagnostics, listener))
     events = Collector()
     subs.append(bench.client.declare_subscriber("rlutf/robots/*/events", events))
     json_poses = Collector()
@@ -149,8 +152,21 @@ def test_two_namespaced_robots_humble_and_jazzy_keys(ros_bench: Bench) -> None:
         assert np.hypot(*(map_odom[:2] - r.odom_origin[:2])) < 0.05
         base = compose(map_odom, r.odom_pose(j))
         assert np.hypot(*(base[:2] - r.truth[j, :2])) < 0.05
+    # The pose's quality, as a DiagnosticArray on the robot's diagnostics.
+    _check_attachments(listener.on(diagnostics))
+    quality = TS.deserialize_cdr(listener.on(diagnostics)[-1][0], DIAGNOSTICS).status[0]
+    values = {kv.key: kv.value for kv in quality.values}
+    assert (quality.level, quality.hardware_id, values["position_initialized"]) == (
+        0,
+        "robot1",
+        "true",
+    )
+    assert float(values["localization_score"]) > 0.8
+    assert 0.0 < float(values["deviation_range"]) < 0.05
     # The JSON front door's outputs are there for ROS robots too.
-    assert json_poses.on("rlutf/robots/robot1/pose")[-1]["robot_id"] == "robot1"
+    last = json_poses.on("rlutf/robots/robot1/pose")[-1]
+    assert last["robot_id"] == "robot1"
+    assert 0.0 <= last["localization_score"] <= 1.0 and last["deviation_range"] > 0.0
     assert json_poses.on("rlutf/robots/robot2/pose")
     # Graph: ros2 node list / topic list would show the service and its topics.
     tokens = [str(r.ok.key_expr) for r in bench.client.liveliness().get("@ros2_lv/0/**") if r.ok]

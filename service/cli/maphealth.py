@@ -1,0 +1,126 @@
+"""``rlutf map health ID``: where the fleet's scans disagree with a map (WIRE.md MapHealth).
+
+The current MapHealth of a map from the service (a get on ``{prefix}/maphealth/{map_id}``) or,
+with ``--log``, the last one recorded in logs (a live run's, or the output of ``rlutf
+replay``). Prints one line per change; ``--json`` prints the message; ``--png`` draws the map
+(from the store, or from the logs) with the changes over it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, client, zenoh_flags
+
+
+def register(msub: Any) -> None:
+    """Add ``health`` to the ``rlutf map`` actions."""
+    p = msub.add_parser(
+        "health",
+        help="where the fleet's scans disagree with a map",
+        description="Print the map's MapHealth: the places where robots consistently see "
+        "something the map lacks (added) or see through its walls (removed).",
+    )
+    p.add_argument("map_id")
+    p.add_argument("--json", action="store_true", help="print the MapHealth message as JSON")
+    p.add_argument("--png", type=Path, help="draw the map with the changes over it")
+    p.add_argument(
+        "--log", type=Path, nargs="+", help="read the last MapHealth recorded in these logs"
+    )
+    p.add_argument("--timeout", type=float, default=3.0)
+    zenoh_flags(p, client=True)
+    p.set_defaults(func=cmd_health)
+
+
+def cmd_health(args: argparse.Namespace) -> int:
+    """``rlutf map health``."""
+    found = _from_logs(args.log, args.map_id) if args.log else _from_service(args)
+    if found is None:
+        where = "no MapHealth recorded in the logs" if args.log else "no service answered"
+        print(f"rlutf map health: {where} for map {args.map_id!r}", file=sys.stderr)
+        return EXIT_FAILURE
+    health, world = found
+    if args.json:
+        print(json.dumps(health))
+    else:
+        print(summary(health))
+    if args.png is not None:
+        if world is None:
+            print(f"rlutf map health: map {args.map_id!r} not found to draw", file=sys.stderr)
+            return EXIT_FAILURE
+        from service.maps.mapimport import render_map
+
+        title = f"{args.map_id} v{health['version']}: {len(health['changes'])} changes"
+        render_map(world, args.png, title=title, changes=health["changes"])
+        print(f"wrote {args.png}", file=sys.stderr if args.json else sys.stdout)
+    return EXIT_OK
+
+
+def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | None:
+    from service.keys import Keys
+
+    settings, session = client(args)
+    keys = Keys(settings.prefix)
+    with session:
+        health = _first(session.get(keys.maphealth(args.map_id), timeout=args.timeout))
+        world = None
+        if health is not None and args.png is not None:
+            world = _first(session.get(keys.map(args.map_id), timeout=args.timeout))
+    return None if health is None else (health, world)
+
+
+def _first(replies: Any) -> dict[str, Any] | None:
+    for reply in replies:
+        if reply.ok is not None:
+            data = json.loads(reply.ok.payload.to_bytes())
+            return data if isinstance(data, dict) else None
+    return None
+
+
+def _from_logs(paths: list[Path], map_id: str) -> tuple[dict[str, Any], Any] | None:
+    from contextlib import ExitStack
+
+    from service.logs.mcapread import LogFile, merged_messages
+
+    health = world = None
+    with ExitStack() as stack:
+        logs = [stack.enter_context(LogFile(p)) for p in paths]
+        for rec in merged_messages(logs, {"rlutf.MapHealth", "rlutf.Map"}):
+            data = json.loads(rec.payload)
+            if not isinstance(data, dict) or data.get("map_id") != map_id:
+                continue
+            if rec.schema_name == "rlutf.MapHealth":
+                health = data
+            elif world is None or data.get("version", 0) >= world.get("version", 0):
+                world = data
+    return None if health is None else (health, world)
+
+
+def _time(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def summary(health: dict[str, Any]) -> str:
+    """A MapHealth as text: a head line, then one line per change."""
+    lines = [
+        f"map {health['map_id']} v{health['version']}: {health['scans']} scans from "
+        f"{health['robots']} robots, {_time(health['since_ns'])} to "
+        f"{_time(health['stamp_ns'])} UTC; {len(health['changes'])} changes"
+    ]
+    import shapely.geometry
+
+    for c in health["changes"]:
+        g = shapely.geometry.shape(c["geometry"])
+        x, y = g.centroid.x, g.centroid.y
+        size = f"{g.area:.2f} m2" if c["kind"] == "added" else f"{g.length:.2f} m of wall"
+        lines.append(
+            f"  {c['kind']:<7} at ({x:.2f}, {y:.2f}): {size}, confidence {c['confidence']:.2f}, "
+            f"{c['evidence']} returns from {c['robots']} robots, {_time(c['first_ns'])} to "
+            f"{_time(c['last_ns'])}"
+        )
+    return "\n".join(lines)

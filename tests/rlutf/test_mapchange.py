@@ -1,0 +1,94 @@
+"""Map-change evidence: what one scan marks, grids merged in any order, persistent places."""
+
+import math
+
+import numpy as np
+import pytest
+from shapely.geometry import Point, box
+
+from rlutf.map import Map
+from rlutf.mapchange import ChangeGrid, ChangeSettings, Returns, _components, find_changes
+
+ROOM = Map.from_shapely(box(0.0, 0.0, 10.0, 6.0))
+T0 = 1_700_000_000_000_000_000
+
+
+def _returns(x: float, y: float, measured: np.ndarray, cast: np.ndarray) -> Returns:
+    angles = np.linspace(-math.pi, math.pi, len(measured), endpoint=False)
+    return Returns(
+        np.array([x, y, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles), measured, cast
+    )
+
+
+def test_one_scan_marks_short_and_through_returns_where_they_disagree() -> None:
+    grid = ChangeGrid(ROOM)
+    # from (5, 3) beams point along -x, -y, +x and +y: the walls 5, 3, 5 and 3 m away
+    cast = np.array([5.0, 3.0, 5.0, 3.0])
+    measured = np.array([2.0, 3.01, 6.5, math.nan])  # short, fits, through, no return
+    assert grid.add(_returns(5.0, 3.0, measured, cast), T0, "r1") == (1, 1)
+    short, through = np.flatnonzero(grid.marks[0]), np.flatnonzero(grid.marks[1])
+    assert len(short) == len(through) == 1
+    assert Point(grid.centre(short)[0]).distance(Point(3.0, 3.0)) < 0.15
+    assert Point(grid.centre(through)[0]).distance(Point(10.0, 3.0)) < 0.15  # at the wall
+    assert grid.free.sum() > 0 and grid.scans == 1 and grid.robot_ids == {"r1"}
+    assert (grid.first[0, short[0]], grid.last[0, short[0]]) == (T0, T0)
+
+
+def _scans(count: int) -> list[tuple[Returns, int, str]]:
+    rng = np.random.default_rng(3)
+    out = []
+    for k in range(count):
+        cast = rng.uniform(1.0, 5.0, 90)
+        measured = cast + rng.choice([0.0, -0.8, 0.6], 90, p=[0.8, 0.1, 0.1])
+        pose = rng.uniform([2.0, 2.0], [8.0, 4.0])
+        out.append((_returns(*pose, measured, cast), T0 + k * 700_000_000, f"r{k % 3}"))
+    return out
+
+
+def test_merged_grids_equal_one_grid_of_all_scans_in_any_order() -> None:
+    scans = _scans(60)
+    whole = ChangeGrid(ROOM)
+    for r, stamp, robot in scans:
+        whole.add(r, stamp, robot)
+    parts = [ChangeGrid(ROOM) for _ in range(3)]
+    for k, (r, stamp, robot) in enumerate(reversed(scans)):
+        parts[k % 3].add(r, stamp, robot)
+    for order in ([0, 1, 2], [2, 0, 1]):
+        merged = ChangeGrid(ROOM)
+        for i in order:
+            merged.merge(parts[i])
+        np.testing.assert_array_equal(merged.counts, whole.counts)
+        np.testing.assert_array_equal(merged.times, whole.times)
+        assert (merged.scans, merged.oldest_ns, merged.newest_ns, merged.robot_ids) == (
+            whole.scans, whole.oldest_ns, whole.newest_ns, whole.robot_ids,
+        )  # fmt: skip
+    parts[0].clear()
+    assert parts[0].counts.sum() == 0 and parts[0].scans == 0
+    with pytest.raises(ValueError, match="merge"):
+        whole.merge(ChangeGrid(Map.from_shapely(box(0.0, 0.0, 3.0, 3.0))))
+
+
+def test_an_object_seen_over_time_is_reported_a_moment_is_not() -> None:
+    settings = ChangeSettings()
+    # a robot at (2, 3) looks along +x at a wall 8 m away; an object stands at x = 5
+    cast = np.full(36, 8.0)
+    angles = np.linspace(-0.2, 0.2, 36)
+    ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                  3.0 / np.cos(angles), cast / np.cos(angles))  # fmt: skip
+    brief, lasting = ChangeGrid(ROOM, settings), ChangeGrid(ROOM, settings)
+    for k in range(30):  # 3 s: one moment
+        brief.add(ret, T0 + k * 100_000_000, "r1")
+    for k in range(30):  # the same scans spread over 30 s
+        lasting.add(ret, T0 + k * 1_000_000_000, "r1")
+    assert find_changes(brief) == []
+    (change,) = find_changes(lasting)
+    assert change.kind == "added" and change.geometry.distance(Point(5.0, 3.0)) < 0.3
+    assert change.robots == 1 and 0.0 < change.confidence <= 1.0
+    assert change.last_ns - change.first_ns == 29_000_000_000
+
+
+def test_components_are_8_connected() -> None:
+    nx = 10
+    cells = np.array([0, 11, 22, 40, 41, 99])
+    groups = _components(cells, nx)
+    assert [g.tolist() for g in groups] == [[0, 11, 22], [40, 41], [99]]
