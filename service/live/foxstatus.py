@@ -105,3 +105,72 @@ def status_update(entities: list[dict[str, Any]]) -> bytes:
     """One ``foxglove.SceneUpdate`` of several robots' entities (each replaces its robot's)."""
     update = {"deletions": [], "entities": entities}
     return json.dumps(update, separators=(",", ":"), allow_nan=False).encode()
+
+
+#: Map health in the live view: something the map lacks, and map walls beams pass through.
+CHANGE_COLORS = {
+    "added": {"r": 1.0, "g": 0.55, "b": 0.0, "a": 1.0},
+    "removed": {"r": 0.9, "g": 0.1, "b": 0.9, "a": 1.0},
+}
+_CHANGE_THICKNESS = 0.08
+
+
+def _rings(kind: str, geometry: dict[str, Any]) -> list[list[list[float]]]:
+    """The point lists to draw of a change's geometry (polygon outlines, or lines)."""
+    coords = geometry.get("coordinates", [])
+    gtype = geometry.get("type")
+    if gtype == "Polygon":
+        return [list(coords[0])] if coords else []
+    if gtype == "MultiPolygon":
+        return [list(p[0]) for p in coords if p]
+    if gtype == "LineString":
+        return [list(coords)]
+    if gtype == "MultiLineString":
+        return [list(line) for line in coords]
+    return []
+
+
+def maphealth_update(health: dict[str, Any], frame: str) -> bytes:
+    """A ``foxglove.SceneUpdate`` of a decoded MapHealth: each change outlined in its kind's
+    colour (``added`` orange, ``removed`` magenta) with a label (kind, confidence, robots)."""
+    map_id = str(health["map_id"])
+    stamp = int(health["stamp_ns"])
+    lines, texts = [], []
+    for change in health.get("changes", []):
+        kind = str(change.get("kind"))
+        color = CHANGE_COLORS.get(kind, _TEXT_COLOR)
+        for ring in _rings(kind, change.get("geometry", {})):
+            points = [{"x": float(p[0]), "y": float(p[1]), "z": 0.0} for p in ring]
+            if len(points) < 2:
+                continue
+            lines.append(
+                {
+                    "type": 0,
+                    "pose": _primitive_pose(0.0, 0.0, 0.0),
+                    "thickness": _CHANGE_THICKNESS,
+                    "scale_invariant": False,
+                    "points": points,
+                    "color": color,
+                    "colors": [],
+                    "indices": [],
+                }
+            )
+            x, y = points[0]["x"], points[0]["y"]
+            texts.append(
+                {
+                    "pose": _primitive_pose(x, y + 0.3, 0.0),
+                    "billboard": True,
+                    "font_size": 12.0,
+                    "scale_invariant": True,
+                    "color": color,
+                    "text": f"{kind} {100 * float(change.get('confidence', 0.0)):.0f} % "
+                    f"({change.get('robots', 0)} robots)",
+                }
+            )
+    metadata = {"map_id": map_id, "version": str(health.get("version", ""))}
+    entity = scene_entity(
+        stamp, frame, f"maphealth/{map_id}", metadata, True, lines=lines, texts=texts
+    )
+    return json.dumps(
+        {"deletions": [], "entities": [entity]}, separators=(",", ":"), allow_nan=False
+    ).encode()

@@ -6,8 +6,9 @@ converter and schemas): every map (``/foxglove/maps/{map_id}``), each robot's po
 (``/foxglove/robots/{robot}/pose``), initial pose and latest scan, the transforms map ->
 ``{robot}/base_link`` (``/foxglove/tf``, which puts each scan in the map frame), and one more:
 ``/foxglove/fleet`` (``foxglove.SceneUpdate``), each robot's 1-sigma ellipse and status label
-(:mod:`service.live.foxstatus`). The server is the maintained Foxglove SDK's
-(``foxglove-sdk``, protocol ``foxglove.sdk.v1``).
+(:mod:`service.live.foxstatus`), and ``/foxglove/maphealth/{map_id}``, each map's MapHealth drawn
+over it (``added`` outlined in orange, ``removed`` walls in magenta). The server is the
+maintained Foxglove SDK's (``foxglove-sdk``, protocol ``foxglove.sdk.v1``).
 
 Cost to localization: :meth:`FoxgloveView.record`, called where the service records, keeps the
 newest message per topic under a lock and returns. A thread of its own wakes ``rate_hz`` times
@@ -30,7 +31,7 @@ from foxglove import Channel, Context, Schema
 from foxglove.websocket import ChannelView, Client, ServerListener
 
 from service.keys import Keys
-from service.live.foxstatus import status_entity, status_update
+from service.live.foxstatus import maphealth_update, status_entity, status_update
 from service.logs.foxglove import (
     FRAME_TRANSFORM,
     LASER_SCAN,
@@ -47,6 +48,8 @@ from service.maps.book import MapBook
 log = logging.getLogger(__name__)
 
 FLEET_TOPIC = "/foxglove/fleet"
+MAPHEALTH_SCHEMA = "rlutf.MapHealth"
+MAPHEALTH_TOPIC = "/foxglove/maphealth"
 #: The wire messages shown, by schema, and the Foxglove schema of each robot's own channel.
 SOURCES = {
     "rlutf.LaserScan": ("scan", LASER_SCAN),
@@ -94,6 +97,7 @@ class FoxgloveView:
         self._latest: dict[str, Record] = {}  # Zenoh key -> newest message
         self._dirty: set[str] = set()  # Zenoh keys to show at the next tick
         self._maps_shown: dict[str, int] = {}  # map id -> version shown
+        self._health: dict[str, bytes] = {}  # {prefix}/maphealth/{map_id} -> newest, unshown
         self._resend_maps = False
         self._channels: dict[str, Channel] = {}
         self._converter = FoxgloveConverter()
@@ -150,6 +154,10 @@ class FoxgloveView:
         self, topic: str, schema_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int
     ) -> None:
         """Keep the newest message of ``topic`` if it is one the view shows."""
+        if schema_name == MAPHEALTH_SCHEMA:  # a map's MapHealth: drawn over the map
+            with self._lock:
+                self._health[topic] = payload
+            return
         if schema_name not in SOURCES:
             return
         with self._lock:
@@ -179,6 +187,7 @@ class FoxgloveView:
     def tick(self) -> None:
         """Show what changed since the last tick (the refresh thread calls it)."""
         self._show_maps()
+        self._show_health()
         with self._lock:
             dirty, self._dirty = self._dirty, set()
             records = [self._latest[t] for t in dirty if t in self._latest]
@@ -218,6 +227,19 @@ class FoxgloveView:
             for out in self._converter(rec):
                 self._channel(out.topic, out.schema_name).log(out.payload, log_time=t)
                 self.shown += 1
+
+    def _show_health(self) -> None:
+        """Each map's newest MapHealth on ``/foxglove/maphealth/{map_id}`` (a SceneUpdate)."""
+        with self._lock:
+            health, self._health = self._health, {}
+        for payload in health.values():
+            data = json.loads(payload)
+            map_id = str(data["map_id"])
+            frame = self._converter.frame_of(map_id)
+            update = maphealth_update(data, frame)
+            channel = self._channel(f"{MAPHEALTH_TOPIC}/{map_id}", SCENE_UPDATE)
+            channel.log(update, log_time=int(data["stamp_ns"]))
+            self.shown += 1
 
     def _channel(self, topic: str, schema_name: str) -> Channel:
         """The channel of ``topic``, advertised to clients the first time it is asked for."""

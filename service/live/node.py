@@ -193,7 +193,11 @@ class LocalizationService:
         self.sweeper = Sweeper(
             self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
         )
-        rec = self.recorder.record
+
+        def rec(key: str, schema: str, payload: bytes, at: int, stamp: int) -> None:
+            self.recorder.record(key, schema, payload, at, stamp)
+            self.live.record(key, schema, payload, at, stamp)  # drawn in the live view
+
         self.healthfeed = HealthFeed(self.keys, self.maps, self._publish, rec, self.clock)
         self.closed = threading.Event()
 

@@ -227,3 +227,66 @@ def test_rlutf_serve_foxglove_port_prints_where_to_connect(tmp_path: Path) -> No
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
+
+
+def test_map_health_is_drawn_over_the_map_live(tmp_path: Path) -> None:
+    """A MapHealth the service puts (and records) is drawn on /foxglove/maphealth/{map_id}:
+    an added rack outlined, a removed wall as a line, each labelled."""
+    from schemas import MapHealth, encode
+
+    health = MapHealth.model_validate(
+        {
+            "map_id": "m1",
+            "version": 1,
+            "stamp_ns": 1_732_300_000_000_000_000,
+            "since_ns": 1_732_290_000_000_000_000,
+            "scans": 1000,
+            "robots": 3,
+            "changes": [
+                {
+                    "kind": "added",
+                    "geometry": {
+                        "type": "Polygon",
+                        "coordinates": [
+                            [[4.1, 2.0], [5.3, 2.0], [5.3, 2.8], [4.1, 2.8], [4.1, 2.0]]
+                        ],
+                    },
+                    "evidence": 512,
+                    "robots": 3,
+                    "first_ns": 1_732_291_000_000_000_000,
+                    "last_ns": 1_732_299_900_000_000_000,
+                    "confidence": 0.97,
+                },
+                {
+                    "kind": "removed",
+                    "geometry": {"type": "LineString", "coordinates": [[10.0, 0.0], [12.0, 0.0]]},
+                    "evidence": 81,
+                    "robots": 2,
+                    "first_ns": 1_732_292_000_000_000_000,
+                    "last_ns": 1_732_299_000_000_000_000,
+                    "confidence": 0.88,
+                },
+            ],
+        }
+    )
+    with running_bench(tmp_path, foxglove_port=0) as bench:
+        view = bench.service.live
+        assert view.url is not None
+        with foxglove_client(view.url) as client:
+            feed = bench.service.healthfeed
+            t = time.time_ns()
+            feed.record("rlutf/maphealth/m1", "rlutf.MapHealth", encode(health), t, t)
+            client.subscribe("/foxglove/maphealth/m1")
+            feed.record("rlutf/maphealth/m1", "rlutf.MapHealth", encode(health), t, t)
+            (update, *_) = client.wait_messages("/foxglove/maphealth/m1")
+    jsonschema.validate(update, _schema("foxglove.SceneUpdate"))
+    (entity,) = update["entities"]
+    assert entity["id"] == "maphealth/m1"
+    outlines = [[(p["x"], p["y"]) for p in line["points"]] for line in entity["lines"]]
+    assert outlines[0][:2] == [(4.1, 2.0), (5.3, 2.0)] and len(outlines[0]) == 5
+    assert outlines[1] == [(10.0, 0.0), (12.0, 0.0)]
+    assert entity["lines"][0]["color"] != entity["lines"][1]["color"]
+    assert [t["text"] for t in entity["texts"]] == [
+        "added 97 % (3 robots)",
+        "removed 88 % (2 robots)",
+    ]
