@@ -131,6 +131,8 @@ class Dispatcher:
             # contending with them cost more than they save on the small products of an update.
             os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         started = time.monotonic()
+        progress = _once(progress)  # said once, whichever worker is waited for
+
         first, *rest = self.shards
         first.start()
         if isinstance(first, ProcessShard):
@@ -326,3 +328,18 @@ class Dispatcher:
                 s.stop(deadline)
         for s in self.shards:
             s.join(max(deadline - time.monotonic(), 0.1))
+
+
+def _once(progress: Callable[[str], None] | None) -> Callable[[str], None] | None:
+    """``progress``, but each message passed on once only."""
+    if progress is None:
+        return None
+    said: set[str] = set()
+    told = progress
+
+    def once(message: str) -> None:
+        if message not in said:
+            said.add(message)
+            told(message)
+
+    return once
