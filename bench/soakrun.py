@@ -325,8 +325,12 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
 
         time.sleep(2.0)
         gen.start()
-        if not ready.wait(3600):
-            raise RuntimeError("the load generator did not get ready")
+        deadline = time.monotonic() + 3600
+        while not ready.wait(1.0):  # the generator draws its plans first
+            if not gen.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"the load generator did not get ready (exit code {gen.exitcode})"
+                )
         session = zenoh.open(client_config(endpoint))
         go.set()
         began.wait(60)
