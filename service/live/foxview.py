@@ -98,6 +98,7 @@ class FoxgloveView:
         self._dirty: set[str] = set()  # Zenoh keys to show at the next tick
         self._maps_shown: dict[str, int] = {}  # map id -> version shown
         self._health: dict[str, bytes] = {}  # {prefix}/maphealth/{map_id} -> newest, unshown
+        self._health_latest: dict[str, bytes] = {}  # the same, shown or not
         self._resend_maps = False
         self._channels: dict[str, Channel] = {}
         self._converter = FoxgloveConverter()
@@ -156,7 +157,7 @@ class FoxgloveView:
         """Keep the newest message of ``topic`` if it is one the view shows."""
         if schema_name == MAPHEALTH_SCHEMA:  # a map's MapHealth: drawn over the map
             with self._lock:
-                self._health[topic] = payload
+                self._health[topic] = self._health_latest[topic] = payload
             return
         if schema_name not in SOURCES:
             return
@@ -169,6 +170,8 @@ class FoxgloveView:
         with self._lock:
             if topic.startswith("/foxglove/maps/"):
                 self._resend_maps = True
+            elif topic.startswith(MAPHEALTH_TOPIC + "/"):
+                self._health.update(self._health_latest)
             elif topic in (TF_TOPIC, FLEET_TOPIC):
                 self._dirty.update(t for t, r in self._latest.items() if r.schema_name != _SCAN)
             else:
@@ -235,9 +238,10 @@ class FoxgloveView:
         for payload in health.values():
             data = json.loads(payload)
             map_id = str(data["map_id"])
-            frame = self._converter.frame_of(map_id)
-            update = maphealth_update(data, frame)
             channel = self._channel(f"{MAPHEALTH_TOPIC}/{map_id}", SCENE_UPDATE)
+            if not channel.has_sinks():  # advertised; drawn when a client subscribes
+                continue
+            update = maphealth_update(data, self._converter.frame_of(map_id))
             channel.log(update, log_time=int(data["stamp_ns"]))
             self.shown += 1
 
