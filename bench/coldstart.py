@@ -25,24 +25,13 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from rlutf.scan import Scan
 from rlutf.sim import LidarModel, make_building, make_trajectory, simulate_scan
-from schemas import InitialPose, LaserScan, Map, Odometry, encode
+from schemas import InitialPose, Map, Odometry, encode
 from service.live.sessions import client_config, free_port
+from service.sim.wire import laser_scan
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 SCANS = 50  # 5 s at 10 Hz
-
-
-def _scan(s: Scan, stamp: int) -> LaserScan:
-    return LaserScan(
-        stamp_ns=stamp,
-        angle_min=s.angle_min,
-        angle_increment=s.angle_increment,
-        range_min=s.range_min,
-        range_max=s.range_max,
-        ranges=[float(r) if np.isfinite(r) else None for r in s.ranges],
-    )
 
 
 def one_start(cache: Path, workers: int, work: Path) -> dict[str, float]:
@@ -88,7 +77,9 @@ def one_start(cache: Path, workers: int, work: Path) -> dict[str, float]:
                 p = truth[i]
                 odom = Odometry(stamp_ns=stamp, x=float(p[0]), y=float(p[1]), theta=float(p[2]))
                 client.put("rlutf/robots/bench/odom", encode(odom), encoding=JSON)
-                client.put("rlutf/robots/bench/scan", encode(_scan(scans[i], stamp)), encoding=JSON)
+                client.put(
+                    "rlutf/robots/bench/scan", encode(laser_scan(scans[i], stamp)), encoding=JSON
+                )
                 time.sleep(0.1)
             time.sleep(1.0)
             sub.undeclare()
