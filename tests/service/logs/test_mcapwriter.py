@@ -1,0 +1,133 @@
+"""McapWriter writes the bytes mcap's own Writer writes, given the same calls."""
+
+from __future__ import annotations
+
+import io
+import random
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from service.logs.mcapwriter import MCAP_ZSTD_LEVEL, McapWriter
+
+
+def _calls(seed: int) -> list[tuple[str, tuple[object, ...]]]:
+    """A random session: schemas, channels, messages (times out of order too), metadata,
+    flushes, in the order a recorder makes them."""
+    rng = random.Random(seed)
+    calls: list[tuple[str, tuple[object, ...]]] = [("start", ("", "rlutf test"))]
+    schemas = channels = 0
+    t = 1_700_000_000_000_000_000
+    for _ in range(rng.randint(50, 400)):
+        roll = rng.random()
+        if schemas == 0 or roll < 0.02:
+            schemas += 1
+            calls.append(("schema", (f"rlutf.S{schemas}", "jsonschema", rng.randbytes(40))))
+        elif channels == 0 or roll < 0.06:
+            channels += 1
+            calls.append(
+                ("channel", (f"rlutf/robots/r{channels}/scan", "json", rng.randint(0, schemas)))
+            )
+        elif roll < 0.08:
+            calls.append(
+                ("metadata", (f"m{rng.randint(0, 3)}", {"json": "{}" * rng.randint(0, 9)}))
+            )
+        elif roll < 0.1:
+            calls.append(("flush", ()))
+        else:
+            t += rng.randint(-2_000_000, 5_000_000)  # now and then earlier than the last
+            size = rng.choice((20, 300, 3000, 9000))
+            data = bytes(rng.choice(b"0123456789., ") for _ in range(size))
+            calls.append(("message", (rng.randint(1, channels), t, data, t - 1000)))
+    return calls
+
+
+def _theirs(calls: list[tuple[str, tuple[object, ...]]], chunk_size: int) -> bytes:
+    out = io.BytesIO()
+    w = Writer(out, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+    sequence: dict[int, int] = {}
+    for name, args in calls:
+        if name == "start":
+            w.start(*args)  # type: ignore[arg-type]
+        elif name == "schema":
+            w.register_schema(*args)  # type: ignore[arg-type]
+        elif name == "channel":
+            w.register_channel(*args)  # type: ignore[arg-type]
+        elif name == "metadata":
+            w.add_metadata(*args)  # type: ignore[arg-type]
+        elif name == "flush":
+            w.flush()
+        else:
+            channel, t, data, p = args
+            n = sequence.get(channel, 0)  # type: ignore[call-overload]
+            sequence[channel] = n + 1  # type: ignore[index]
+            w.add_message(channel, t, data, p, n)  # type: ignore[arg-type]
+    w.finish()
+    return out.getvalue()
+
+
+def _ours(calls: list[tuple[str, tuple[object, ...]]], chunk_size: int) -> bytes:
+    out = io.BytesIO()
+    w = McapWriter(out, chunk_size, MCAP_ZSTD_LEVEL)
+    for name, args in calls:
+        if name == "start":
+            w.start(*args)  # type: ignore[arg-type]
+        elif name == "schema":
+            w.register_schema(*args)  # type: ignore[arg-type]
+        elif name == "channel":
+            w.register_channel(*args)  # type: ignore[arg-type]
+        elif name == "metadata":
+            w.add_metadata(*args)  # type: ignore[arg-type]
+        elif name == "flush":
+            w.flush()
+        else:
+            w.add_message(*args)  # type: ignore[arg-type]
+    w.finish()
+    return out.getvalue()
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("chunk_size", [1, 4096, 64 * 1024, 1024 * 1024])
+def test_same_bytes_as_mcap_writer(seed: int, chunk_size: int) -> None:
+    calls = _calls(seed)
+    ours = _ours(calls, chunk_size)
+    assert ours == _theirs(calls, chunk_size)
+    # and mcap's reader reads it back, messages in order, summary and all
+    reader = make_reader(io.BytesIO(ours))
+    summary = reader.get_summary()
+    assert summary is not None and summary.statistics is not None
+    sent = [a for n, a in calls if n == "message"]
+    assert summary.statistics.message_count == len(sent)
+    got = [
+        (m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)
+    ]
+    assert got == [(c, t, d) for c, t, d, _ in sent]
+
+
+def test_empty_file_same_bytes() -> None:
+    calls: list[tuple[str, tuple[object, ...]]] = [("start", ("", "x"))]
+    assert _ours(calls, 1024) == _theirs(calls, 1024)
+
+
+def test_zstd_level_changes_only_the_chunks() -> None:
+    calls = _calls(3)
+    out = io.BytesIO()
+    w = McapWriter(out, 64 * 1024, 1)
+    for name, args in calls:
+        getattr(
+            w,
+            {
+                "schema": "register_schema",
+                "channel": "register_channel",
+                "metadata": "add_metadata",
+                "message": "add_message",
+            }.get(name, name),
+        )(*args)
+    w.finish()
+    reader = make_reader(io.BytesIO(out.getvalue()))
+    sent = [a for n, a in calls if n == "message"]
+    got = [
+        (m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)
+    ]
+    assert got == [(c, t, d) for c, t, d, _ in sent]
