@@ -1,6 +1,6 @@
 """What the MCAP recorder costs per scan: CPU of the service's main process, and bytes on disk.
 
-Run: ``python -m bench.recorder [--robots 50] [--seconds 10] [--rate 2000]``.
+Run: ``python -m bench.recorder [--robots 50] [--seconds 10] [--rate 2000] [--levels=1,3]``.
 
 The live service records, per scan of a robot, its odometry (bench.fleet's robots send one
 reading before each scan), the 360-beam LaserScan and the PoseEstimate it answered with; the
@@ -120,9 +120,12 @@ def _thread_cpu(thread: threading.Thread) -> float:
     return time.clock_gettime(time.pthread_getcpuclockid(ident))
 
 
-def run(variant: Variant, robots: int, scans: int, rate: float, folder: Path) -> Outcome:
-    """Feed ``scans`` scans' records at ``rate`` scans a second; measure the recorder."""
-    feed = list(records(robots, scans))  # made before the clock starts
+Feed = list[tuple[str, str, bytes, int, int]]
+
+
+def run(variant: Variant, feed: Feed, rate: float, folder: Path) -> Outcome:
+    """Feed the records at ``rate`` scans a second; measure the recorder."""
+    scans = len(feed) // 3
     rec = McapRecorder(
         folder,
         queue_size=len(feed) + 10,
@@ -160,7 +163,7 @@ def run(variant: Variant, robots: int, scans: int, rate: float, folder: Path) ->
     )
 
 
-def render(outcomes: list[Outcome], command: str, robots: int, rate: float) -> str:
+def render(outcomes: list[Outcome], command: str, robots: int, rate: float, repeat: int) -> str:
     """The results as Markdown."""
     lines = [
         f"Command: `{command}`",
@@ -169,17 +172,18 @@ def render(outcomes: list[Outcome], command: str, robots: int, rate: float) -> s
         f"{robots} robots' records (odometry, 360-beam scan, pose per scan) fed to one "
         f"McapRecorder at {rate:g} scans a second; CPU of the whole process per scan (the "
         "callers' `record` and the writer thread), of the writer thread alone, and the finished "
-        "file's bytes per scan.",
+        "file's bytes per scan; the median of "
+        f"{repeat} runs per row.",
         "",
         "| recorder | scans | CPU us per scan: process / writer thread | bytes per scan | "
         "not recorded |",
         "| --- | ---: | --- | ---: | ---: |",
     ]
-    for o in outcomes:
-        lines.append(
-            f"| {o.variant.label} | {o.scans} | {o.cpu_us:.1f} / {o.writer_us:.1f} | "
-            f"{o.bytes_per_scan:,.0f} | {o.overflowed} |"
-        )
+    lines += [
+        f"| {o.variant.label} | {o.scans} | {o.cpu_us:.1f} / {o.writer_us:.1f} | "
+        f"{o.bytes_per_scan:,.0f} | {o.overflowed} |"
+        for o in outcomes
+    ]
     return "\n".join(lines)
 
 
@@ -191,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--levels", default="", help="zstd levels to compare, e.g. 1,3")
     p.add_argument("--chunks", default="", help="chunk sizes to compare, KiB, e.g. 256,1024")
     p.add_argument("--no-views", action="store_true", help="leave out the views variant")
+    p.add_argument("--repeat", type=int, default=3, help="runs per variant (the median is shown)")
     args = p.parse_args(argv)
     scans = round(args.robots * 10 * args.seconds)
     variants = [Variant(False)]
@@ -200,12 +205,18 @@ def main(argv: list[str] | None = None) -> int:
     variants += [
         Variant(False, chunk_size=int(x) * 1024) for x in filter(None, args.chunks.split(","))
     ]
+    feed = list(records(args.robots, scans))  # made before any clock starts
+    with tempfile.TemporaryDirectory() as tmp:  # warm up: imports, caches, the first file
+        run(Variant(False), feed[: len(feed) // 10], args.rate, Path(tmp))
     outcomes = []
     for v in variants:
-        with tempfile.TemporaryDirectory() as tmp:
-            outcomes.append(run(v, args.robots, scans, args.rate, Path(tmp)))
+        runs = []
+        for _ in range(args.repeat):
+            with tempfile.TemporaryDirectory() as tmp:
+                runs.append(run(v, feed, args.rate, Path(tmp)))
+        outcomes.append(sorted(runs, key=lambda o: o.cpu_us)[len(runs) // 2])
     command = "python -m bench.recorder " + " ".join(sys.argv[1:] if argv is None else argv)
-    print(render(outcomes, command.strip(), args.robots, args.rate))
+    print(render(outcomes, command.strip(), args.robots, args.rate, args.repeat))
     return 0
 
 

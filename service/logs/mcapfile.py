@@ -44,7 +44,7 @@ def _library() -> str:
 LIBRARY = _library()
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 #: zstd level of the chunks: see BENCHMARKS.md ("The recorder's cost per scan").
-DEFAULT_ZSTD_LEVEL = 3
+DEFAULT_ZSTD_LEVEL = 1
 
 
 class Record(NamedTuple):
