@@ -5,8 +5,9 @@ A log is an MCAP file, chunked and zstd-compressed, whose channels are
 * the Zenoh keys of WIRE.md (``rlutf/robots/r1/scan`` ...), message encoding ``json``, schema
   encoding ``jsonschema``, schema names ``rlutf.LaserScan`` etc. with the checked-in JSON Schema
   documents of ``schemas/jsonschema/`` as schema data;
-* Foxglove views of the same messages (:mod:`service.logs.foxglove`), schema names ``foxglove.*``
-  with Foxglove's published JSON Schemas as schema data, on topics starting ``/foxglove/``.
+* optionally, Foxglove views of the same messages (:mod:`service.logs.foxglove`), schema names
+  ``foxglove.*`` with Foxglove's published JSON Schemas as schema data, on topics starting
+  ``/foxglove/`` (written by replay and ``rlutf log views``; live only with ``record_views``).
 
 ``log_time`` is when the service received or sent a message, ``publish_time`` its
 ``stamp_ns``. The effective configuration is MCAP metadata named ``rlutf.config`` whose one key
