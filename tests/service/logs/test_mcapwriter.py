@@ -1,4 +1,5 @@
-"""McapWriter writes the bytes mcap's own Writer writes, given the same calls."""
+"""McapWriter writes the bytes mcap's own Writer writes, given the same calls, and LogWriter the
+bytes it wrote when it was built on mcap's Writer (at mcap's zstd level)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,18 @@ import random
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+from mcaplog_fixtures import simulated_inputs
 
+from service.logs.mcapfile import (
+    CONFIG_METADATA,
+    LIBRARY,
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    LogWriter,
+    Record,
+    config_metadata,
+    schema_data,
+)
 from service.logs.mcapwriter import MCAP_ZSTD_LEVEL, McapWriter
 
 
@@ -131,3 +143,60 @@ def test_zstd_level_changes_only_the_chunks() -> None:
         (m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)
     ]
     assert got == [(c, t, d) for c, t, d, _ in sent]
+
+
+class _OldLogWriter:
+    """``service.logs.mcapfile.LogWriter`` as it was on ``mcap.writer.Writer`` (``c85df9d``)."""
+
+    def __init__(self, output: io.BytesIO, chunk_size: int) -> None:
+        self._writer = Writer(output, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=LIBRARY)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._sequence: dict[int, int] = {}
+
+    def write(self, record: Record) -> None:
+        key = (record.topic, record.schema_name)
+        channel = self._channels.get(key)
+        if channel is None:
+            schema_id = self._schemas.get(record.schema_name)
+            if schema_id is None:
+                data = schema_data(record.schema_name)
+                schema_id = 0
+                if data is not None:
+                    schema_id = self._writer.register_schema(
+                        record.schema_name, SCHEMA_ENCODING, data
+                    )
+                self._schemas[record.schema_name] = schema_id
+            channel = self._writer.register_channel(record.topic, MESSAGE_ENCODING, schema_id)
+            self._channels[key] = channel
+        sequence = self._sequence.get(channel, 0)
+        self._sequence[channel] = sequence + 1
+        self._writer.add_message(
+            channel_id=channel,
+            log_time=record.log_time_ns,
+            data=record.payload,
+            publish_time=record.publish_time_ns,
+            sequence=sequence % 2**32,
+        )
+
+
+@pytest.mark.parametrize("chunk_size", [2048, 1024 * 1024])
+def test_log_writer_writes_the_bytes_it_wrote_on_mcaps_writer(chunk_size: int) -> None:
+    records = simulated_inputs(steps=6)
+    old_out, new_out = io.BytesIO(), io.BytesIO()
+    old = _OldLogWriter(old_out, chunk_size)
+    new = LogWriter(new_out, None, chunk_size, zstd_level=MCAP_ZSTD_LEVEL)
+    config = {"prefix": "rlutf", "workers": 0}
+    old._writer.add_metadata(CONFIG_METADATA, config_metadata(config))
+    new.write_config(config)
+    for i, r in enumerate(records):
+        old.write(r)
+        new.write(r)
+        if i % 50 == 49:
+            old._writer.flush()
+            new.flush()
+    old._writer.finish()
+    new.finish()
+    assert new_out.getvalue() == old_out.getvalue()
+    assert new.messages == len(records)
