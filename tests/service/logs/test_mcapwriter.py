@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import random
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -23,12 +24,14 @@ from service.logs.mcapfile import (
 )
 from service.logs.mcapwriter import MCAP_ZSTD_LEVEL, McapWriter
 
+Calls = list[tuple[str, tuple[Any, ...]]]
 
-def _calls(seed: int) -> list[tuple[str, tuple[object, ...]]]:
+
+def _calls(seed: int) -> Calls:
     """A random session: schemas, channels, messages (times out of order too), metadata,
     flushes, in the order a recorder makes them."""
     rng = random.Random(seed)
-    calls: list[tuple[str, tuple[object, ...]]] = [("start", ("", "rlutf test"))]
+    calls: Calls = [("start", ("", "rlutf test"))]
     schemas = channels = 0
     t = 1_700_000_000_000_000_000
     for _ in range(rng.randint(50, 400)):
@@ -55,47 +58,33 @@ def _calls(seed: int) -> list[tuple[str, tuple[object, ...]]]:
     return calls
 
 
-def _theirs(calls: list[tuple[str, tuple[object, ...]]], chunk_size: int) -> bytes:
-    out = io.BytesIO()
-    w = Writer(out, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+_METHODS = {"schema": "register_schema", "channel": "register_channel", "metadata": "add_metadata"}
+
+
+def _play(writer: Writer | McapWriter, calls: Calls) -> None:
+    """Make the calls on ``writer``; a message to mcap's Writer gets the sequence number
+    McapWriter gives it (the channel's messages so far)."""
     sequence: dict[int, int] = {}
     for name, args in calls:
-        if name == "start":
-            w.start(*args)  # type: ignore[arg-type]
-        elif name == "schema":
-            w.register_schema(*args)  # type: ignore[arg-type]
-        elif name == "channel":
-            w.register_channel(*args)  # type: ignore[arg-type]
-        elif name == "metadata":
-            w.add_metadata(*args)  # type: ignore[arg-type]
-        elif name == "flush":
-            w.flush()
+        if name != "message":
+            getattr(writer, _METHODS.get(name, name))(*args)
+        elif isinstance(writer, McapWriter):
+            writer.add_message(*args)
         else:
-            channel, t, data, p = args
-            n = sequence.get(channel, 0)  # type: ignore[call-overload]
-            sequence[channel] = n + 1  # type: ignore[index]
-            w.add_message(channel, t, data, p, n)  # type: ignore[arg-type]
-    w.finish()
+            n = sequence[args[0]] = sequence.get(args[0], -1) + 1
+            writer.add_message(*args, n)
+    writer.finish()
+
+
+def _theirs(calls: Calls, chunk_size: int) -> bytes:
+    out = io.BytesIO()
+    _play(Writer(out, chunk_size=chunk_size, compression=CompressionType.ZSTD), calls)
     return out.getvalue()
 
 
-def _ours(calls: list[tuple[str, tuple[object, ...]]], chunk_size: int) -> bytes:
+def _ours(calls: Calls, chunk_size: int, level: int = MCAP_ZSTD_LEVEL) -> bytes:
     out = io.BytesIO()
-    w = McapWriter(out, chunk_size, MCAP_ZSTD_LEVEL)
-    for name, args in calls:
-        if name == "start":
-            w.start(*args)  # type: ignore[arg-type]
-        elif name == "schema":
-            w.register_schema(*args)  # type: ignore[arg-type]
-        elif name == "channel":
-            w.register_channel(*args)  # type: ignore[arg-type]
-        elif name == "metadata":
-            w.add_metadata(*args)  # type: ignore[arg-type]
-        elif name == "flush":
-            w.flush()
-        else:
-            w.add_message(*args)  # type: ignore[arg-type]
-    w.finish()
+    _play(McapWriter(out, chunk_size, level), calls)
     return out.getvalue()
 
 
@@ -105,44 +94,30 @@ def test_same_bytes_as_mcap_writer(seed: int, chunk_size: int) -> None:
     calls = _calls(seed)
     ours = _ours(calls, chunk_size)
     assert ours == _theirs(calls, chunk_size)
-    # and mcap's reader reads it back, messages in order, summary and all
-    reader = make_reader(io.BytesIO(ours))
+    _reads_back(ours, calls)  # and mcap's reader reads it, messages in order, summary and all
+
+
+def _reads_back(data: bytes, calls: Calls) -> None:
+    reader = make_reader(io.BytesIO(data))
     summary = reader.get_summary()
     assert summary is not None and summary.statistics is not None
     sent = [a for n, a in calls if n == "message"]
     assert summary.statistics.message_count == len(sent)
-    got = [
-        (m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)
-    ]
+    in_file_order = reader.iter_messages(log_time_order=False)
+    got = [(m.channel_id, m.log_time, m.data) for _, _, m in in_file_order]
     assert got == [(c, t, d) for c, t, d, _ in sent]
 
 
 def test_empty_file_same_bytes() -> None:
-    calls: list[tuple[str, tuple[object, ...]]] = [("start", ("", "x"))]
+    calls: Calls = [("start", ("", "x"))]
     assert _ours(calls, 1024) == _theirs(calls, 1024)
 
 
 def test_zstd_level_changes_only_the_chunks() -> None:
     calls = _calls(3)
-    out = io.BytesIO()
-    w = McapWriter(out, 64 * 1024, 1)
-    for name, args in calls:
-        getattr(
-            w,
-            {
-                "schema": "register_schema",
-                "channel": "register_channel",
-                "metadata": "add_metadata",
-                "message": "add_message",
-            }.get(name, name),
-        )(*args)
-    w.finish()
-    reader = make_reader(io.BytesIO(out.getvalue()))
-    sent = [a for n, a in calls if n == "message"]
-    got = [
-        (m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)
-    ]
-    assert got == [(c, t, d) for c, t, d, _ in sent]
+    ours, theirs = _ours(calls, 64 * 1024, level=1), _theirs(calls, 64 * 1024)
+    assert ours != theirs and len(ours) < len(theirs) * 1.2
+    _reads_back(ours, calls)
 
 
 class _OldLogWriter:
