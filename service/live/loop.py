@@ -8,9 +8,10 @@ on Zenoh's side, without Python, and one thread of ours takes them in: everythin
 (:meth:`service.live.intake.Intake.on_robot_sample`), in arrival order, then, when the robots
 run in this process (:class:`~service.live.shards.LoopShard`), the loop runs the ready batches
 itself before it takes in more. A scan that a newer one of its robot replaced meanwhile is
-dropped in its mailbox and counted, as always. The channel holds :data:`CAPACITY` samples:
-about two seconds of a few hundred robots, so that it is the mailboxes, which count what they
-drop, that absorb a burst.
+dropped in its mailbox and counted, as always. The loop drains the channel whole, then runs at
+most :data:`RUNS` batches before it drains it again, so that under overload it is the
+mailboxes, which count what they drop, that absorb the excess, not the channel. The channel
+holds :data:`CAPACITY` samples, about two seconds of a few hundred robots.
 
 When nothing arrived and nothing was ready, the thread sleeps a little, a little longer each
 time up to :data:`IDLE_WAITS`'s last (5 ms): a control message (a new map) from another thread
@@ -32,8 +33,13 @@ log = logging.getLogger(__name__)
 
 #: Samples the Zenoh channel holds before it holds up the link.
 CAPACITY = 20_000
-#: Samples taken in before the ready batches run.
-BATCH = 512
+#: Samples taken in at most before some ready batches run (the channel is drained whole
+#: first, unless it holds more than this).
+BATCH = CAPACITY
+#: Batches run at most before the channel is drained again: under overload the inputs keep
+#: coming in (and a robot's older scan is dropped in its mailbox, counted) instead of piling
+#: up in the channel until it holds up the link (where a drop would not be counted).
+RUNS = 8
 #: Sleeps of an idle loop, seconds, one after another (the last repeats).
 IDLE_WAITS = (0.0002, 0.0005, 0.001, 0.002, 0.005)
 
@@ -79,7 +85,7 @@ class InputLoop:
         shard = self._shard
         while not self._stop.is_set():
             taken = self._take()
-            ran = shard.run_ready() if shard is not None else 0
+            ran = shard.run_ready(RUNS) if shard is not None else 0
             if taken or ran:
                 idle = 0
             else:

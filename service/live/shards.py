@@ -260,15 +260,16 @@ class LoopShard(ThreadShard):
         self.run_ready()  # what was queued before the stop
         self.pool.shutdown(wait=True)
 
-    def run_ready(self) -> int:
-        """Run every ready batch (long ones on the pool) and apply control messages.
+    def run_ready(self, limit: int | None = None) -> int:
+        """Run the ready batches (long ones on the pool), ``limit`` at most, and apply control
+        messages.
 
         Returns:
             The batches started.
         """
         d = self.dispatcher
         started = 0
-        while True:
+        while limit is None or started < limit:
             with d.lock:
                 work = self.take()
                 if work is not None and work[0] is None:
