@@ -74,6 +74,16 @@ def variants() -> list[Variant]:
     base = MapRecipe()
     return [
         Variant("default (as `rlutf map build` writes it, `LocalizerConfig()`)"),
+        Variant(
+            "tracked on the map as built (`coarse_tolerance=0`, the localizer before 0.4)",
+            config=LocalizerConfig(coarse_tolerance=0.0),
+        ),
+        Variant(
+            "tracked on walls simplified at 5 cm", config=LocalizerConfig(coarse_tolerance=0.05)
+        ),
+        Variant(
+            "tracked on walls simplified at 10 cm", config=LocalizerConfig(coarse_tolerance=0.1)
+        ),
         Variant("walls at the cell edges (surface offset 0)", replace(base, surface_cells=0.0)),
         Variant("surface offset 0.2 cell", replace(base, surface_cells=0.2)),
         Variant("surface offset 0.45 cell", replace(base, surface_cells=0.45)),
