@@ -287,9 +287,8 @@ def render_cost(args: argparse.Namespace, progress: Callable[[str], None] = lamb
     lines = [
         "### Cost per update on the built maps",
         "",
-        f"Command: `flock /work/timing.lock {_command(args)}` (run alone, under the shared "
-        f"timing lock; machine: {platform.machine()}, CPython {platform.python_version()}, one "
-        "process).",
+        f"Command: `{_command(args)}` (no other timing run at the same time; machine: "
+        f"{platform.machine()}, CPython {platform.python_version()}, one process).",
         "",
         f"Each odd scan of odometry seed {ODOM5_SEED} tracked once per setting, the settings "
         "taking turns over three passes; wall-clock time of `Localizer.update` "
@@ -360,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
         "--cost",
         action="store_true",
         help="only the time per update, with and without the coarse map (its own section; run "
-        "it under flock /work/timing.lock)",
+        "it when no other timing runs)",
     )
     p.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
     args = p.parse_args(argv)
