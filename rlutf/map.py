@@ -338,9 +338,12 @@ class Map:
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
-        """``(minx, miny, maxx, maxy)`` of the free space."""
-        b = self.geometry.bounds
-        return (float(b[0]), float(b[1]), float(b[2]), float(b[3]))
+        """``(minx, miny, maxx, maxy)`` of the free space (computed once: every scan asks)."""
+        found = self._derived.get("bounds")
+        if found is None:
+            b = self.geometry.bounds
+            found = self._derived["bounds"] = (float(b[0]), float(b[1]), float(b[2]), float(b[3]))
+        return cast(tuple[float, float, float, float], found)
 
     def contains_point(self, x: float, y: float) -> bool:
         """Whether the point ``(x, y)`` lies in the free space (walls excluded); for one point,
