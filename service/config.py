@@ -186,6 +186,11 @@ class Settings(BaseSettings):
     record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
     record_max_seconds: float = Field(3600.0, gt=0, description="Rotate logs after seconds.")
     record_queue: int = Field(20000, gt=0, description="Recorder queue length, messages.")
+    record_views: bool = Field(
+        False,
+        description="Also record the Foxglove views (map, scans, poses, tf) in the live logs; "
+        "off, `rlutf log views` or `rlutf replay` writes them from a log.",
+    )
 
     workers: int = Field(-1, ge=-1, description="Worker processes; -1: one per core; 0: threads.")
     intake: Literal["callback", "loop"] = Field(

@@ -409,7 +409,7 @@ class LocalizationService:
                         self._poses[done.robot] = out.payload
                 # Poses are not delivered back to this session's own subscriber (see _publish):
                 # follow our own here, for a robot that comes back after a handover.
-                self.ownership.follow_pose(done.robot, out.payload, self.settings.max_payload_bytes)
+                self.ownership.follow_own_pose(done.robot, out.payload, out.stamp_ns)
                 self._publish(out.key, out.payload, pose=True)
                 if self.ros2 is not None:
                     self.ros2.on_pose(done.robot, out.payload)
