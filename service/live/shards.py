@@ -286,6 +286,7 @@ class LoopShard(ThreadShard):
                 self.pool.submit(self._execute, robot, entries)
             else:
                 self._execute(robot, entries)
+        return started
 
 
 class ProcessShard(Shard):
