@@ -52,10 +52,14 @@ def render(
     held = 0
     load = os.getloadavg()[0]
     need: list[tuple[float, int, float, float]] = []
+    overhead: list[str] = []
     for n in sizes:
         serve = ("--processes", str(processes)) if processes else ()
         r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads)
         by_thread = r["threads"] or by_thread
+        service_ms = (r["cpu_main"] + r["cpu_workers"]) * r["sent"]  # the service's CPU, ms
+        share = 1.0 - r["compute_p50"] * r["processed"] / service_ms if service_ms > 0 else 1.0
+        overhead.append(f"{n} robots {100.0 * share:.0f} %")
         need.append(
             (
                 r["cpu_service_per_pose"] + r["cpu_generator"],
@@ -121,6 +125,11 @@ def render(
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",
             "",
             # CPU ms per scan at 10 Hz per robot is cores per 100 robots: 1000 scans/s x ms.
+            "Share of the service's CPU that is not the localizer's update (1 - worker "
+            "compute p50 x poses / service CPU; the goal is under a third): "
+            + "; ".join(overhead)
+            + ".",
+            "",
             f"CPU budget: the cheapest measured cost per scan ({best[1]} robots) was "
             f"{best[2]:.2f} ms of service CPU per pose published plus {best[3]:.2f} ms of the "
             f"generator per scan sent; at that cost 100 robots at 10 Hz need {best[0]:.1f} "
