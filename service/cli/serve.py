@@ -106,7 +106,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
-    from service.live.foxview import LiveViewError
+    from service.live.liveview import LiveViewError
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder

@@ -15,6 +15,14 @@ from service.keys import Keys
 from service.maps.book import MapBook
 
 
+class LiveViewError(OSError):
+    """The live view cannot listen: its port is in use or its address is not local.
+
+    Defined here, not beside the Foxglove server, so that a service without a live view
+    catches it without importing Foxglove's SDK (a few MB of resident memory a process).
+    """
+
+
 class LiveView(Protocol):
     """A live view of the service's inputs, poses and maps."""
 
@@ -22,8 +30,7 @@ class LiveView(Protocol):
         """Start serving.
 
         Raises:
-            service.live.foxview.LiveViewError: the port is in use or the address is not
-                local.
+            LiveViewError: the port is in use or the address is not local.
         """
 
     def record(
