@@ -32,7 +32,6 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 
 from service.keys import Keys
 from service.live.foxstatus import maphealth_update, status_entity, status_update
-from service.live.liveview import LiveViewError
 from service.logs.foxglove import (
     FRAME_TRANSFORM,
     LASER_SCAN,
@@ -59,6 +58,10 @@ SOURCES = {
 }
 #: The shared channels each kind of message also feeds.
 SHARED = {"scan": (), "pose": (TF_TOPIC, FLEET_TOPIC), "initialpose": (TF_TOPIC,)}
+
+
+class LiveViewError(OSError):
+    """The live view cannot listen: its port is in use or its address is not local."""
 
 
 def robot_channel(robot: str, leaf: str) -> str:

@@ -15,14 +15,6 @@ from service.keys import Keys
 from service.maps.book import MapBook
 
 
-class LiveViewError(OSError):
-    """The live view cannot listen: its port is in use or its address is not local.
-
-    Defined here, not beside the Foxglove server, so that a service without a live view
-    catches it without importing Foxglove's SDK (a few MB of resident memory a process).
-    """
-
-
 class LiveView(Protocol):
     """A live view of the service's inputs, poses and maps."""
 
@@ -30,7 +22,8 @@ class LiveView(Protocol):
         """Start serving.
 
         Raises:
-            LiveViewError: the port is in use or the address is not local.
+            service.live.foxview.LiveViewError: the port is in use or the address is not
+                local.
         """
 
     def record(
