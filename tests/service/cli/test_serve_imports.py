@@ -21,8 +21,8 @@ pytestmark = pytest.mark.integration
 
 #: Modules a serve without ``--foxglove-port``, ``--ros2`` or map import does not need: the
 #: live view's SDK, plotting, image processing, scipy's linear algebra (numba loads it unless
-#: told not to: ``rlutf.warmup``), a WebSocket client.
-NOT_LOADED = ("foxglove", "matplotlib", "skimage", "PIL", "scipy.linalg", "websockets")
+#: told not to: ``rlutf.warmup``), a WebSocket client, and with no terminal, rich.
+NOT_LOADED = ("foxglove", "matplotlib", "skimage", "PIL", "scipy.linalg", "websockets", "rich")
 
 #: Runs ``rlutf serve`` as the console script does, and writes the modules it loaded, at exit.
 SCRIPT = """
