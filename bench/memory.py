@@ -130,7 +130,7 @@ def render_rows(r: dict[str, Any]) -> list[str]:
     """Markdown rows of one size: a row per phase."""
     rows = []
     for phase, label in (("idle", "idle"), ("peak", "peak"), ("last", "end of load")):
-        if phase != "idle" or r["robots"]:
+        if phase == "idle" or r["robots"]:
             t = r[phase]
             rows.append(
                 f"| {r['robots']} | {label} | {_cell(t['main'])} "
