@@ -26,10 +26,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import platform
 import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+import numpy as np
 
 from bench.baselines.icp import PointToLineIcp
 from bench.carmen import ODOM5_SEED
@@ -45,19 +48,24 @@ from bench.evenodd_runs import (
     icp_method,
     leave_out_method,
     odd_base,
+    odd_run,
     rlutf_method,
     tracked,
+    update_seconds,
     variants,
 )
 from bench.methods import Method
 from bench.report import replace_section
 from rlutf.localizer import LocalizerConfig
+from rlutf.map import coarse_map
 
 SECTION = "evenodd"
 #: The section of ``--neighbours``.
 NEIGHBOURS_SECTION = "evenodd-neighbours"
 #: The section of ``--coarse-to-fine``.
 COARSE_SECTION = "evenodd-coarse"
+#: The section of ``--cost``.
+COST_SECTION = "evenodd-cost"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
 
@@ -237,9 +245,12 @@ def render_coarse(
         "",
         f"Command: `{_command(args)}`.",
         "",
-        "The same runs as above. *Coarse to fine*: `LocalizerConfig()` tracks on the map "
-        "simplified at 1 cell (5 cm) and each of its poses is refined on the map as built "
-        "(`bench.evenodd_runs.CoarseToFine`; not the localizer's behaviour, a trial of it). "
+        "The same runs as above. *Coarse to fine*, the trial that led to the localizer's "
+        "`coarse_tolerance`: `LocalizerConfig(coarse_tolerance=0)` tracks on the map "
+        "simplified at 1 cell (5 cm) when it is built and each of its poses is refined on the "
+        "map as built (`bench.evenodd_runs.CoarseToFine`). *RLuTF default* is the localizer "
+        "of 0.4, which tracks on the map's walls simplified at 7 cm by itself; *RLuTF before "
+        "0.4* is `coarse_tolerance=0`. "
         f"Odometry seeds {', '.join(map(str, seeds))}.",
         "",
         "| log | method | RMSE cm | median cm | p95 cm | max cm | over 0.5 m |",
@@ -249,15 +260,58 @@ def render_coarse(
         world = even_map(name)
         progress(f"{name}: RLuTF default")
         ours = tracked(rlutf_method(LocalizerConfig()), name, world, seeds)
+        progress(f"{name}: RLuTF before 0.4")
+        before = tracked(rlutf_method(LocalizerConfig(coarse_tolerance=0.0)), name, world, seeds)
         progress(f"{name}: coarse to fine")
         c2f = tracked(coarse_to_fine_method(name, MapRecipe(simplify=0.05)), name, world, seeds)
         progress(f"{name}: ICP")
         icp = tracked(icp_method(name, ICP_SETTINGS[NEIGHBOURS_ICP]), name, world, seeds)
         lines += [
             f"| {name} | {_row('RLuTF default', ours)[2:]}",
-            f"| {name} | {_row('RLuTF coarse to fine', c2f)[2:]}",
+            f"| {name} | {_row('RLuTF before 0.4 (`coarse_tolerance=0`)', before)[2:]}",
+            f"| {name} | {_row('RLuTF coarse to fine (trial)', c2f)[2:]}",
             f"| {name} | {_row(f'ICP on the raw points, {NEIGHBOURS_ICP}', icp)[2:]}",
         ]
+    return "\n".join([*lines, ""])
+
+
+def render_cost(args: argparse.Namespace, progress: Callable[[str], None] = lambda s: None) -> str:
+    """Time per update of the localizer on the built maps, with and without the coarse map."""
+    logs = [s for s in args.logs.split(",") if s]
+    configs = {
+        "`LocalizerConfig()` (0.4: simplified walls, answer on the map)": LocalizerConfig(),
+        "`coarse_tolerance=0` (tracked on the map, as before 0.4)": LocalizerConfig(
+            coarse_tolerance=0.0
+        ),
+    }
+    lines = [
+        "### Cost per update on the built maps",
+        "",
+        f"Command: `{_command(args)}` (no other timing run at the same time; machine: "
+        f"{platform.machine()}, CPython {platform.python_version()}, one process).",
+        "",
+        f"Each odd scan of odometry seed {ODOM5_SEED} tracked once per setting, the settings "
+        "taking turns over three passes; wall-clock time of `Localizer.update` "
+        "(`time.perf_counter`), pooled over the passes.",
+        "",
+        "| log | localizer | updates | median ms | p90 ms | mean ms |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for name in logs:
+        world = even_map(name)
+        run = odd_run(name, world)
+        coarse_map(world, LocalizerConfig().coarse_tolerance)
+        times: dict[str, list[float]] = {label: [] for label in configs}
+        for turn in range(3):
+            for label, config in configs.items():
+                progress(f"{name}: {label}, pass {turn + 1}")
+                times[label] += update_seconds(config, run)
+        for label, t in times.items():
+            ms = 1e3 * np.asarray(t)
+            lines.append(
+                f"| {name} | {label} | {len(ms)} | {np.median(ms):.2f} | "
+                f"{np.percentile(ms, 90):.2f} | {ms.mean():.2f} |"
+            )
     return "\n".join([*lines, ""])
 
 
@@ -269,6 +323,8 @@ def _command(args: argparse.Namespace) -> str:
         parts.append(f"--seeds {args.seeds}")
     if args.neighbours:
         parts.append("--neighbours")
+    elif args.cost:
+        parts.append("--cost")
     elif args.coarse:
         parts.append("--coarse-to-fine")
     elif not args.variants:
@@ -299,10 +355,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the coarse-to-fine trial (its own section)",
     )
+    p.add_argument(
+        "--cost",
+        action="store_true",
+        help="only the time per update, with and without the coarse map (its own section; run "
+        "it when no other timing runs)",
+    )
     p.add_argument("--write", action="store_true", help="update BENCHMARKS.md")
     args = p.parse_args(argv)
     if args.neighbours:
         text, section = render_neighbours(args, _stderr), NEIGHBOURS_SECTION
+    elif args.cost:
+        text, section = render_cost(args, _stderr), COST_SECTION
     elif args.coarse:
         text, section = render_coarse(args, _stderr), COARSE_SECTION
     else:

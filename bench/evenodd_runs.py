@@ -7,6 +7,7 @@ maps per recipe, the raw points.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cache
@@ -74,6 +75,16 @@ def variants() -> list[Variant]:
     base = MapRecipe()
     return [
         Variant("default (as `rlutf map build` writes it, `LocalizerConfig()`)"),
+        Variant(
+            "tracked on the map as built (`coarse_tolerance=0`, the localizer before 0.4)",
+            config=LocalizerConfig(coarse_tolerance=0.0),
+        ),
+        Variant(
+            "tracked on walls simplified at 5 cm", config=LocalizerConfig(coarse_tolerance=0.05)
+        ),
+        Variant(
+            "tracked on walls simplified at 10 cm", config=LocalizerConfig(coarse_tolerance=0.1)
+        ),
         Variant("walls at the cell edges (surface offset 0)", replace(base, surface_cells=0.0)),
         Variant("surface offset 0.2 cell", replace(base, surface_cells=0.2)),
         Variant("surface offset 0.45 cell", replace(base, surface_cells=0.45)),
@@ -242,7 +253,9 @@ class CoarseToFine:
 
     A trial of a localizer that converges on walls simplified at ``coarse`` (fewer small
     steps and bumps, fewer local minima) and takes its answer from the refinement on the map
-    as built; the refined pose is where the next update predicts from.
+    as built; the refined pose is where the next update predicts from. Since 0.4 the
+    localizer does this by itself (``LocalizerConfig.coarse_tolerance``); the trial runs with
+    it off.
     """
 
     def __init__(
@@ -272,7 +285,8 @@ def coarse_to_fine_method(name: str, coarse: MapRecipe) -> Method:
     coarse_map = even_map(name, coarse)
 
     def make(world: Map, pose: FloatArray, seed: int) -> CoarseToFine:
-        return CoarseToFine(world, pose, LocalizerConfig(), seed, coarse_map)
+        config = LocalizerConfig(coarse_tolerance=0.0)
+        return CoarseToFine(world, pose, config, seed, coarse_map)
 
     return Method("coarse-to-fine", "RLuTF coarse to fine", make)
 
@@ -284,6 +298,21 @@ def leave_out_method(name: str, config: IcpConfig, window: int) -> Method:
         return LeaveOutIcp(name, pose, config, window)
 
     return Method("icp-leave-out", "ICP", make)
+
+
+def update_seconds(config: LocalizerConfig, run: Run) -> list[float]:
+    """Wall-clock seconds of each ``Localizer.update`` tracking ``run`` with ``config``."""
+    from rlutf.localizer import Localizer
+    from rlutf.motion import relative
+
+    loc = Localizer(run.world, run.truth[0], config, seed=run.seed)
+    out = []
+    for k in range(1, len(run.scans)):
+        motion = relative(run.odometry[k - 1], run.odometry[k])
+        t0 = time.perf_counter()
+        loc.update(motion, run.scans[k])
+        out.append(time.perf_counter() - t0)
+    return out
 
 
 def tracked(method: Method, name: str, world: Map, seeds: Sequence[int]) -> Errors:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.procstat import children, cpu_seconds, machine_steal, rss_tree_mb
+from bench.procstat import cpu_seconds, descendants, machine_steal, rss_tree_mb
 from bench.threads import python_thread_names, task_cpu, thread_table
 
 RATE_HZ = 10.0
@@ -65,13 +65,20 @@ def start_service(
     cmd += serve_flags
     full_env = None if env is None else {**os.environ, **env}
     proc = subprocess.Popen(cmd, stderr=stderr, env=full_env)
-    wait_ready(endpoint, proc)
+    wait_ready(endpoint, proc, instance=instance)
     return proc
 
 
-def wait_ready(endpoint: str, proc: subprocess.Popen[bytes], timeout: float = 600.0) -> None:
+def wait_ready(
+    endpoint: str,
+    proc: subprocess.Popen[bytes],
+    timeout: float = 600.0,
+    instance: str | None = None,
+) -> None:
     """Block until the service on ``endpoint`` is ready: its liveliness token is declared only
     once every worker can localize (the first start after an install compiles the kernels).
+    With ``instance``, until that instance's Health says ``ready`` (a host of processes is
+    ready once all of them are).
 
     Raises:
         RuntimeError: the service exited first, or was not ready within ``timeout`` seconds.
@@ -88,9 +95,13 @@ def wait_ready(endpoint: str, proc: subprocess.Popen[bytes], timeout: float = 60
             )
         try:
             with zenoh.open(client_config(endpoint)) as session:
-                tokens = session.liveliness().get("rlutf/service/*", timeout=1.0)
-                if any(reply.ok is not None for reply in tokens):
-                    return
+                if instance is not None:
+                    if query_health(session, 1.0, instance).get("ready"):
+                        return
+                else:
+                    tokens = session.liveliness().get("rlutf/service/*", timeout=1.0)
+                    if any(reply.ok is not None for reply in tokens):
+                        return
         except zenoh.ZError:
             pass  # the router is not listening yet
         time.sleep(0.2)
@@ -112,22 +123,23 @@ def stop_service(proc: subprocess.Popen[bytes], timeout: float = 20.0) -> int | 
         return None
 
 
-def query_health(session: Any, timeout: float = 3.0) -> dict[str, Any]:
-    """The first Health reply of ``rlutf/service/*/health`` on an open session (empty if none)."""
-    for r in session.get("rlutf/service/*/health", timeout=timeout):
+def query_health(session: Any, timeout: float = 3.0, instance: str = "*") -> dict[str, Any]:
+    """The first Health reply of ``rlutf/service/{instance}/health`` on an open session (empty
+    if none)."""
+    for r in session.get(f"rlutf/service/{instance}/health", timeout=timeout):
         if r.ok is not None:
             return dict(json.loads(r.ok.payload.to_bytes()))
     return {}
 
 
-def health(endpoint: str) -> dict[str, Any]:
+def health(endpoint: str, instance: str = "*") -> dict[str, Any]:
     """The first Health reply of the service at ``endpoint`` (empty if none)."""
     import zenoh
 
     from service.live.sessions import client_config
 
     with zenoh.open(client_config(endpoint)) as s:
-        return query_health(s)
+        return query_health(s, instance=instance)
 
 
 def timed_publishing(
@@ -295,7 +307,7 @@ def run_size(
         threading.Thread(target=sample, daemon=True).start()
         go.set()
         began.wait(60)
-        workers_pids = children(proc.pid)
+        workers_pids = descendants(proc.pid)
         steal0 = machine_steal()
         main0 = cpu_seconds(proc.pid)
         workers0 = sum(cpu_seconds(p) for p in workers_pids)
@@ -306,7 +318,7 @@ def run_size(
         workers_cpu = sum(cpu_seconds(p) for p in workers_pids) - workers0
         tasks1 = {p: task_cpu(p) for p in tasks0}
         result = out.get(timeout=60)
-        h = health(endpoint)
+        h = health(endpoint, "fleetbench")
         by_thread: dict[str, dict[str, float]] = {}
         if threads:
             for p, start in tasks0.items():

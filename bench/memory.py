@@ -8,7 +8,8 @@ seconds after it is ready, no robot yet), under the load generator of :mod:`benc
 (every robot odometry and a 360-beam scan at 10 Hz for ``--duration`` seconds; sampled every
 second, the peak and the last sample kept) and after it (``--settle`` seconds after the
 generator stopped). For every process of the service (the ``rlutf serve`` process and its
-children: worker processes, the map validator while it runs) Linux's own counters
+descendants: worker processes, the processes of ``--processes N`` and theirs, the map validator
+while it runs) Linux's own counters
 (:mod:`bench.procstat`): ``VmRSS`` (resident: what ``top`` shows), of it ``RssAnon`` (the
 process's own heap) and ``RssFile`` (pages of mapped files, mostly shared libraries: the same
 library file mapped by several processes is in memory once), and ``Pss`` from
@@ -30,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.fleetrun import fleet_generator, health, start_service, stop_service
-from bench.procstat import children, process_memory_mb
+from bench.procstat import descendants, process_memory_mb
 from bench.report import section_main
 
 SECTION = "memory"
@@ -41,9 +42,9 @@ Sample = dict[int, dict[str, float]]
 
 
 def sample_tree(pid: int) -> Sample:
-    """The memory of ``pid`` and each of its children (processes gone meanwhile left out)."""
+    """The memory of ``pid`` and each of its descendants (processes gone meanwhile left out)."""
     found = {}
-    for p in [pid, *children(pid)]:
+    for p in [pid, *descendants(pid)]:
         m = process_memory_mb(p)
         if m is not None:
             found[p] = m
@@ -63,14 +64,15 @@ def totals(sample: Sample, main: int) -> dict[str, dict[str, float]]:
 
 
 def run_size(
-    robots: int, duration: float, record: bool, workers: int, settle: float
+    robots: int, duration: float, record: bool, workers: int, settle: float, processes: int = 0
 ) -> dict[str, Any]:
     """One fresh service: idle, under ``robots`` robots for ``duration`` s, and after."""
     from service.live.sessions import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-memory-"))
-    proc = start_service(endpoint, tmp, record, workers, instance="memorybench")
+    flags = ("--processes", str(processes)) if processes else ()
+    proc = start_service(endpoint, tmp, record, workers, flags, instance="memorybench")
     ctx = mp.get_context("spawn")
     out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     gen = ctx.Process(
@@ -156,11 +158,14 @@ def render(args: argparse.Namespace) -> str:
     rows: list[str] = []
     runs = []
     for n in sizes:
-        r = run_size(n, args.duration, not args.no_record, args.workers, args.settle)
+        r = run_size(
+            n, args.duration, not args.no_record, args.workers, args.settle, args.processes
+        )
         runs.append(r)
         rows += render_rows(r)
         print("\n".join(render_rows(r)), flush=True)
     flags = " --no-record" if args.no_record else ""
+    flags += f" --processes {args.processes}" if args.processes else ""
     return "\n".join(
         [
             f"Command: `python -m bench.memory --robots {args.robots} --duration "
@@ -169,7 +174,7 @@ def render(args: argparse.Namespace) -> str:
             "",
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
             f"{platform.python_version()}; load average when the run started: {load:.1f}. "
-            f"A fresh `rlutf serve --workers {args.workers}` per fleet size (recording "
+            f"A fresh `rlutf serve --workers {args.workers}{flags}` per fleet size (recording "
             f"{'off' if args.no_record else 'on'}), measured {args.settle:g} s after it is "
             f"ready (idle), every second of {args.duration:g} s of 10 Hz scans and odometry "
             f"(peak: the sample of most resident memory in total; end of load: the last "
@@ -178,7 +183,7 @@ def render(args: argparse.Namespace) -> str:
             "`RssFile`), then `Pss` (shared pages divided among the processes that map them; "
             "the sum of `Pss` is what the processes take from the machine together).",
             "",
-            "| robots | phase | `rlutf serve` process MB | children: count: MB | all MB |",
+            "| robots | phase | `rlutf serve` process MB | descendants: count: MB | all MB |",
             "| ---: | --- | --- | --- | --- |",
             *rows,
         ]
@@ -197,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0, help="service worker processes (default 0)")
     p.add_argument(
         "--settle", type=float, default=10.0, help="seconds before the idle and after samples"
+    )
+    p.add_argument(
+        "--processes", type=int, default=0, help="rlutf serve --processes N (default 0: none)"
     )
     p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
     return section_main(p, render, SECTION, argv)

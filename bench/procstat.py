@@ -24,6 +24,17 @@ def children(pid: int) -> list[int]:
     return found
 
 
+def descendants(pid: int) -> list[int]:
+    """Process ids of ``pid``'s children, their children, and so on."""
+    found = []
+    todo = children(pid)
+    while todo:
+        p = todo.pop()
+        found.append(p)
+        todo += children(p)
+    return found
+
+
 def rss_tree_mb(pid: int) -> float:
     """Resident memory of a process and its children, MB."""
     total = 0

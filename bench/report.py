@@ -37,14 +37,15 @@ def replace_section(path: Path, name: str, body: str) -> None:
 def section_main(
     parser: argparse.ArgumentParser,
     render: Callable[[argparse.Namespace], str],
-    section: str,
+    section: str | Callable[[argparse.Namespace], str],
     argv: list[str] | None = None,
 ) -> int:
     """The command-line tail of a benchmark that writes one section of ``BENCHMARKS.md``.
 
     Adds ``--write`` to ``parser``, parses ``argv``, prints the section ``render`` returns for
     the parsed arguments and, with ``--write``, replaces the section ``section`` of
-    ``BENCHMARKS.md`` in the working directory with it.
+    ``BENCHMARKS.md`` in the working directory with it (``section`` may depend on the
+    arguments: a callable of them).
 
     Returns:
         The exit code, 0.
@@ -54,5 +55,6 @@ def section_main(
     text = render(args)
     print(text)
     if args.write:
-        replace_section(Path("BENCHMARKS.md"), section, text)
+        name = section if isinstance(section, str) else section(args)
+        replace_section(Path("BENCHMARKS.md"), name, text)
     return 0

@@ -92,6 +92,14 @@ class LocalizerConfig:
         min_returns: fewer returns than this give status ``lost`` without a comparison.
         refine: refine the search's result by robust least squares on the ranges
             (:mod:`rlutf.refine`).
+        coarse_tolerance: (with ``refine``, default mode) on a map traced from a grid, the
+            acceptance test, the search and a first refinement run on the map's walls
+            simplified at this tolerance, metres (:func:`rlutf.map.coarse_map`), and the answer
+            is the refinement on the map itself from that pose or from the prediction, whichever
+            explains the scan better. Traced walls run in steps and bumps of about a cell, where
+            a refinement started a few centimetres off stops in small local minima; the
+            simplified walls have fewer. A drawn map (one that barely simplifies) is tracked on
+            directly. 0: always on the map.
         refine_iterations: most casts of the scan per refinement.
         refine_tolerance: the refinement stops on a step under this, metres and radians.
         noise_min: smallest range noise the refinement assumes, metres.
@@ -171,6 +179,7 @@ class LocalizerConfig:
     max_gap: float = 0.35
     min_returns: int = 8
     refine: bool = True
+    coarse_tolerance: float = 0.07
     refine_iterations: int = 12
     refine_tolerance: float = 1e-4
     noise_min: float = 0.002
@@ -244,6 +253,7 @@ class LocalizerConfig:
             "delta_theta_per_radian",
             "delta_per_correction",
             "simplify_tolerance",
+            "coarse_tolerance",
             "cap_per_radius",
             "fit_margin",
             "probation_margin",

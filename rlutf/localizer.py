@@ -12,7 +12,9 @@ odometry motion since the previous scan and the new scan, and
    radii and repeats until ``epsilon`` is met, the radii fall under ``delta_min`` (and, in the
    default mode, ``delta_theta_min``), or ``max_rounds`` rounds were used;
 4. (``refine``) refines the result by robust least squares on the ranges, which also gives the
-   pose's covariance (:mod:`rlutf.refine`);
+   pose's covariance (:mod:`rlutf.refine`); on a map traced from a grid, steps 2 to 4 run on
+   its walls simplified at ``coarse_tolerance`` (fewer small local minima), and the answer is
+   the refinement on the map itself from that pose or from the prediction, the better one;
 5. reports ``lost`` when too few beams fit the map at the pose returned (``min_fit`` of them
    within ``fit_distance``), whatever the discrepancy's unit.
 
@@ -41,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from rlutf.config import LocalizerConfig, Status
 from rlutf.field import WideSearch, wide_search
-from rlutf.map import Map
+from rlutf.map import Map, coarse_map
 from rlutf.mapchange import Returns
 from rlutf.motion import wrap_scalar
 from rlutf.problem import Problem, Scorer
@@ -166,6 +168,17 @@ class Localizer:
         """The map the robot is on."""
         return self._map
 
+    @property
+    def tracking_map(self) -> Map:
+        """The map the tracking's search and first refinement run on: the map's walls
+        simplified at ``coarse_tolerance`` (:func:`rlutf.map.coarse_map`), or the map itself
+        (no ``refine``, the paper's mode, a tolerance of 0, or a map whose walls barely
+        simplify: a drawn one)."""
+        cfg = self.config
+        if not cfg.refine or cfg.mode == "paper":
+            return self._map
+        return coarse_map(self._map, cfg.coarse_tolerance)
+
     def reset(self, pose: ArrayLike, spread: tuple[float, float] | None = None) -> None:
         """Re-seed the pose (an operator's initial pose); the next update searches ``spread``
         around it (``None``: the config's ``spread`` and ``spread_heading``)."""
@@ -263,16 +276,20 @@ class Localizer:
         if wide and spread is not None and spread[0] + spread[1] > 0:
             best, rounds, evaluations, fit = self._wide(problem, predicted, spread)
         else:
+            track = self.tracking_map
+            first = problem if track is self._map else problem.on(track)
             gate = cfg.refine and problem.cap is not None and cfg.mode != "paper"
-            fit = self._fit(problem, predicted, gate=gate)
+            fit = self._fit(first, predicted, gate=gate)
             if gate and not fit.gated:
                 # Algorithm 1's step 4: the prediction fits; the refinement started from it.
                 best, rounds, evaluations = predicted, 0, 1
             else:
                 best, rounds, evaluations = self._rlutf(
-                    problem, predicted, mot, fit.area_start if gate else None
+                    first, predicted, mot, fit.area_start if gate else None
                 )
-                fit = self._fit(problem, best)
+                fit = self._fit(first, best)
+            if first is not problem:
+                fit = self._finish(problem, fit, predicted)
             if wide and fit.fit < cfg.min_fit:
                 # The prediction's basin does not fit the scan: odometry slipped or jumped.
                 # Look wider before calling the robot lost; a pose found so is on probation
@@ -444,7 +461,7 @@ class Localizer:
         ``gate``, only if the polar area at ``pose`` is under ``epsilon``."""
         cfg = self.config
         return refine_pose(
-            self._map,
+            problem.world,
             pose,
             problem.beams,
             problem.real_ranges,
@@ -456,6 +473,15 @@ class Localizer:
             area=problem.area_terms(),
             accept_below=cfg.accept_below if gate else 0.0,
         )
+
+    def _finish(self, problem: Problem, coarse: Refinement, predicted: FloatArray) -> Refinement:
+        """The answer on the map after a pose found on the simplified walls: the refinement on
+        the map from that pose, or the one from the prediction if it explains the scan better
+        (a prediction already at the bottom of the map's own basin, where the simplified walls
+        would only move it away: a good odometry step on a clean map)."""
+        fit = self._fit(problem, coarse.pose)
+        other = self._fit(problem, predicted)
+        return other if _better(other, fit, self.config.select_scale) else fit
 
     def _rlutf(
         self,

@@ -3,6 +3,8 @@ scorer (see :mod:`rlutf.localizer`)."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -59,6 +61,12 @@ class Problem:
             points = beam_points(self.real_ranges, self.beams.cos, self.beams.sin, self.offset)
             real = np.vstack([points, self.offset[None, :2]]) if self.closing else points
             self.real_steps = turning_steps(simplify_ring(real, config.simplify_tolerance))
+
+    def on(self, world: Map) -> Problem:
+        """The same comparison against another version of the walls (a shallow copy)."""
+        other = copy.copy(self)
+        other.world = world
+        return other
 
     def area_terms(self) -> tuple[FloatArray, FloatArray, FloatArray, float] | None:
         """The capped polar area's terms for :func:`rlutf.refine.refine_pose`, if the

@@ -186,8 +186,27 @@ class Settings(BaseSettings):
     record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
     record_max_seconds: float = Field(3600.0, gt=0, description="Rotate logs after seconds.")
     record_queue: int = Field(20000, gt=0, description="Recorder queue length, messages.")
+    record_views: bool = Field(
+        False,
+        description="Also record the Foxglove views (map, scans, poses, tf) in the live logs; "
+        "off, `rlutf log views` or `rlutf replay` writes them from a log.",
+    )
 
     workers: int = Field(-1, ge=-1, description="Worker processes; -1: one per core; 0: threads.")
+    intake: Literal["callback", "loop"] = Field(
+        "callback",
+        description="How robot inputs come in: 'callback', a Zenoh callback per sample; "
+        "'loop', a Zenoh FIFO channel that one thread drains (with --workers 0 that thread "
+        "also runs the robots' updates: no thread hand-off per input).",
+    )
+    processes: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description="Service processes behind this one (each a full instance owning a share "
+        "of the robots, named INSTANCE-pK; this one routes and holds the map store); 0: this "
+        "process localizes, with its workers.",
+    )
     worker_threads: int = Field(
         4,
         ge=1,

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from rlutf.field import distance_field
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map as World
+from rlutf.map import coarse_map
 
 WorldSource = World | Callable[[], World]
 """A built map, or how to build it (from its GeoJSON, say)."""
@@ -47,7 +48,8 @@ class PreparedMap:
         return self._world is not None
 
     def world(self) -> World:
-        """The map with its wall index (and distance field, when updates search it) made.
+        """The map with its wall index (and distance field, when updates search it, and the
+        simplified walls a traced map is tracked on) made.
 
         Threads that ask while another builds it wait for that one (each structure is made
         once); the first caller pays.
@@ -60,8 +62,12 @@ class PreparedMap:
                 source = self._source
                 world = source if isinstance(source, World) else source()
                 world.index  # noqa: B018 (made now, not in the middle of a ray cast)
-                if self._config.wide_search and self._config.mode == "default":
+                cfg = self._config
+                if cfg.wide_search and cfg.mode == "default":
                     distance_field(world)
+                if cfg.refine and cfg.mode == "default":
+                    # The simplified walls a traced map is tracked on (the map itself if drawn).
+                    coarse_map(world, cfg.coarse_tolerance).index  # noqa: B018
                 self._world = world
                 self._source = world  # the GeoJSON it was built from can go
             return self._world

@@ -184,6 +184,13 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
         help="worker processes (-1: one per core, the default; 0: in-process thread)",
     )
     p.add_argument(
+        "--processes",
+        type=number(int, minimum=0, maximum=64),
+        metavar="N",
+        help="N full service processes, each owning a share of the robots, behind this one "
+        "(router and map store); 0 (default): this process localizes, with --workers",
+    )
+    p.add_argument(
         "--metrics-port",
         type=PORT,
         metavar="PORT",
@@ -270,6 +277,7 @@ def load(args: argparse.Namespace) -> Any:
             record_dir=args.record,
             no_record=args.no_record,
             workers=args.workers,
+            processes=getattr(args, "processes", None),
             metrics_port=args.metrics_port,
             metrics_addr=args.metrics_addr,
             foxglove_port=getattr(args, "foxglove_port", None),

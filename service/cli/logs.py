@@ -132,6 +132,21 @@ def register(sub: Any) -> None:
     rec.add_argument("broken", type=Path, nargs="+", metavar="BROKEN.mcap")
     rec.add_argument("out", type=Path, metavar="OUT")
     rec.set_defaults(func=cmd_recover)
+    views = lsub.add_parser(
+        "views",
+        help="a copy of logs with their Foxglove views",
+        description="Copy each log (every message, metadata record and schema) with the "
+        "Foxglove views beside its messages: the map as a foxglove.SceneUpdate, each robot's "
+        "foxglove.LaserScan and foxglove.PoseInFrame, and foxglove.FrameTransform on "
+        "/foxglove/tf, so it opens in Foxglove with the map, the scans and the poses. The live "
+        "service records them only with the setting record_views. The copy is of the same run "
+        "(rlutf replay audits it as the original). One input: OUT is the file (or an existing "
+        "folder, or a path ending in /); several: OUT is a folder that gets each under its "
+        "name. Exit 2 if an input cannot be read.",
+    )
+    views.add_argument("logs", type=Path, nargs="+", metavar="IN")
+    views.add_argument("--out", required=True, metavar="OUT", help="file or folder")
+    views.set_defaults(func=cmd_views)
 
 
 def _usage(parser: argparse.ArgumentParser) -> int:
@@ -398,4 +413,36 @@ def cmd_recover(args: argparse.Namespace) -> int:
         for k, run in enumerate(runs, 1):
             tags = ", ".join("-" if t is None else str(t.sequence) for t in run.tags)
             print(f"run {k}: {run.label}: file(s) {tags}: {' '.join(map(str, run.files))}")
+    return EXIT_OK
+
+
+def cmd_views(args: argparse.Namespace) -> int:
+    """``rlutf log views``."""
+    from service.logs.mcapread import LogError
+    from service.logs.views import write_views
+
+    out = Path(args.out)
+    if len(args.logs) > 1 or out.is_dir() or str(args.out).endswith(("/", "\\")):
+        outs = [out / p.name for p in args.logs]
+    else:
+        outs = [out]
+    clash = next((o for o in outs for p in args.logs if o.resolve() == p.resolve()), None)
+    if clash is not None:
+        return _fail("log views", ValueError(f"{clash}: the output must not be an input"))
+    try:
+        outs[0].parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return _fail("log views", ValueError(f"{err.filename}: {err.strerror or err}"))
+    for src, dst in zip(args.logs, outs, strict=True):
+        try:
+            report = write_views(src, dst)
+        except LogError as err:
+            return _fail("log views", err)
+        except OSError as err:
+            return _fail("log views", ValueError(f"{err.filename}: {err.strerror or err}"))
+        again = f" ({report.replaced} views of the input written anew)" if report.replaced else ""
+        print(
+            f"{src}: {report.messages} messages, {report.views} Foxglove views, "
+            f"{report.metadata} metadata records -> {dst}{again}"
+        )
     return EXIT_OK

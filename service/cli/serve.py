@@ -15,6 +15,7 @@ from service.cli.errors import zenoh_text
 from service.cli.flags import (
     EXIT_FAILURE,
     EXIT_OK,
+    EXIT_USAGE,
     PORT,
     load,
     number,
@@ -39,6 +40,8 @@ def register(sub: Any) -> None:
     zenoh_flags(serve, client=False)
     settings_flags(serve)
     ros2_flags(serve)
+    # A process of `rlutf serve --processes N` stops when its host is gone, even by SIGKILL.
+    serve.add_argument("--host-pid", type=int, help=argparse.SUPPRESS)
     serve.set_defaults(func=cmd_serve)
 
     config = sub.add_parser(
@@ -130,6 +133,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if settings.processes > 0:
+        if settings.foxglove_port is not None:
+            print(
+                "rlutf serve: --foxglove-port needs --processes 0 (each of the processes sees "
+                "only its own robots, and a live view must show them all)",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
+        return serve_host(settings, stop)
+    if args.host_pid is not None:
+        follow_host(args.host_pid, stop)
     try:
         service = LocalizationService(settings, recorder=make_recorder(settings))
         with starting_status("rlutf serve") as progress:
@@ -184,6 +198,54 @@ def cmd_serve(args: argparse.Namespace) -> int:
         service.wait(stop)
     finally:
         service.close()
+    return EXIT_OK
+
+
+def follow_host(host_pid: int, stop: threading.Event) -> None:
+    """Set ``stop`` once ``host_pid`` is no longer this process's parent (the host died)."""
+
+    def watch() -> None:
+        import os
+
+        while not stop.wait(0.5):
+            if os.getppid() != host_pid:
+                logging.getLogger("rlutf").warning("host process %d is gone: stopping", host_pid)
+                stop.set()
+
+    threading.Thread(target=watch, name="rlutf-host-watch", daemon=True).start()
+
+
+def serve_host(settings: Any, stop: threading.Event) -> int:
+    """``rlutf serve --processes N``: the host of N service processes, until ``stop``."""
+    import zenoh
+
+    from service.live.host import Host
+
+    def say(text: str) -> None:
+        print(f"rlutf serve: {text}", file=sys.stderr, flush=True)
+
+    host = Host(settings)
+    try:
+        with starting_status("rlutf serve") as progress:
+            host.start(progress)
+    except zenoh.ZError as err:
+        host.close()
+        say(f"cannot open the zenoh session ({zenoh_text(err)}); is the port taken? choose "
+            "another with -l/--listen")  # fmt: skip
+        return EXIT_FAILURE
+    except (RuntimeError, OSError) as err:
+        host.close()
+        say(str(err))
+        return EXIT_FAILURE
+    names = ", ".join(p.name for p in host.processes)
+    say(f"ready: instance {settings.instance} with {len(host.processes)} processes ({names}), "
+        f"listening on {', '.join(settings.listen)}")  # fmt: skip
+    if host.metrics is not None:
+        say(f"metrics on http://{settings.metrics_addr}:{host.metrics.port}/metrics")
+    try:
+        host.wait(stop)
+    finally:
+        host.close()
     return EXIT_OK
 
 

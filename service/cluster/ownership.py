@@ -107,6 +107,9 @@ class Ownership:
         self._held: dict[str, list[tuple[InputKind, bytes, Message]]] = {}
         self._last_in: dict[str, int] = {}
         self._poses: dict[str, PoseEstimate] = {}
+        # This instance's own poses as its engine encoded them, stamp first, decoded only when
+        # a seed needs one (:meth:`_pose`). A robot is in _poses or _own, never in both.
+        self._own: dict[str, tuple[int, bytes]] = {}
         self._tails: dict[str, deque[_Odom]] = {}
         self._placed: dict[str, tuple[bytes, InitialPose]] = {}
         self._max_age_ns = resume_max_age_ns
@@ -163,6 +166,42 @@ class Ownership:
         self.remember(pose)
         return None
 
+    def follow_own_pose(self, robot: str, payload: bytes, stamp_ns: int) -> None:
+        """Keep a pose this instance published for ``robot`` if it is the robot's newest.
+
+        As :meth:`follow_pose`, without decoding it: ``payload`` is the PoseEstimate the
+        engine encoded, stamped ``stamp_ns``, and is decoded only if a seed needs it (the robot
+        comes back after a handover), not once per scan.
+        """
+        with self.lock:
+            if self.max_ahead_ns is not None and stamp_ns - self._clock() > self.max_ahead_ns:
+                self.poses_rejected += 1
+                return
+            own = self._own.get(robot)
+            held = self._poses.get(robot) if own is None else None
+            if own is None and held is None and self._full(self._poses, len(self._own)):
+                return
+            if (own is not None and stamp_ns < own[0]) or (
+                held is not None and stamp_ns < held.stamp_ns
+            ):
+                return
+            if held is not None:
+                del self._poses[robot]
+            self._own[robot] = (stamp_ns, payload)
+
+    def _pose(self, robot: str) -> PoseEstimate | None:
+        """The newest pose followed for ``robot`` (lock held); decodes an own one."""
+        own = self._own.pop(robot, None)
+        if own is None:
+            return self._poses.get(robot)
+        try:
+            pose = decode(PoseEstimate, own[1], max_bytes=len(own[1]))
+        except SchemaError:  # the engine's own encoding: only a bug gets here
+            log.exception("%s: its last pose is unreadable", robot)
+            return None
+        self._poses[robot] = pose
+        return pose
+
     def _trusted(self, pose: PoseEstimate) -> bool:
         if self.max_ahead_ns is None or pose.stamp_ns - self._clock() <= self.max_ahead_ns:
             return True
@@ -173,16 +212,20 @@ class Ownership:
         """Keep each robot's pose if it is the newest known (and not stamped in the future)."""
         with self.lock:
             for pose in poses:
-                held = self._poses.get(pose.robot_id)
-                if held is None and self._full(self._poses):
+                robot = pose.robot_id
+                own = self._own.get(robot)
+                held = self._poses.get(robot)
+                if held is None and own is None and self._full(self._poses, len(self._own)):
                     continue
                 if not self._trusted(pose):
                     continue
-                if held is None or pose.stamp_ns >= held.stamp_ns:
-                    self._poses[pose.robot_id] = pose
+                newest = own[0] if own is not None else held.stamp_ns if held is not None else None
+                if newest is None or pose.stamp_ns >= newest:
+                    self._own.pop(robot, None)
+                    self._poses[robot] = pose
 
-    def _full(self, held: Mapping[str, object]) -> bool:
-        return self.max_robots is not None and len(held) >= self.max_robots
+    def _full(self, held: Mapping[str, object], more: int = 0) -> bool:
+        return self.max_robots is not None and len(held) + more >= self.max_robots
 
     def forget(self, robot: str) -> None:
         """Drop everything held for ``robot`` (evicted: it sent nothing for long)."""
@@ -192,6 +235,7 @@ class Ownership:
                 self._held,
                 self._last_in,
                 self._poses,
+                self._own,
                 self._tails,
                 self._placed,
                 self._restored,
@@ -209,7 +253,7 @@ class Ownership:
         robot = pose.robot_id
         with self.lock:
             self.remember(pose)
-            if self._poses[robot] is not pose:
+            if self._poses.get(robot) is not pose:
                 return  # a newer pose is known already (followed on the bus)
             self._restored[robot] = (pose.stamp_ns, published_ns)
             tail = self._tails.setdefault(robot, deque(maxlen=TAIL_MAX))
@@ -219,7 +263,7 @@ class Ownership:
     def last_pose(self, robot: str) -> PoseEstimate | None:
         """The newest pose followed for ``robot``."""
         with self.lock:
-            return self._poses.get(robot)
+            return self._pose(robot)
 
     def owns(self, robot: str) -> bool:
         """Whether this instance owns ``robot`` now (never before :attr:`ready`)."""
@@ -299,8 +343,8 @@ class Ownership:
         if kind == "initialpose":  # the operator places it: nothing to seed
             self._placed.pop(robot, None)
             self._seed(robot, message.stamp_ns, None)
-        elif robot in self._poses or robot in self._placed:
-            self._start_from(robot, self._poses.get(robot))
+        elif robot in self._poses or robot in self._own or robot in self._placed:
+            self._start_from(robot, self._pose(robot))
         else:
             self._held[robot] = [(kind, payload, message)]
             self._fetches.put(robot)
@@ -370,7 +414,7 @@ class Ownership:
             if held is None:
                 return  # released meanwhile
             self.fetched += found is not None
-            pose = self._poses.get(robot)
+            pose = self._pose(robot)
             if found is not None and (pose is None or found.stamp_ns > pose.stamp_ns):
                 pose = self._poses[robot] = found
             first_kind, _, first = held[0]

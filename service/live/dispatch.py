@@ -34,6 +34,7 @@ from service.keys import InputKind, Keys, Message
 from service.live.shards import (
     IN_FLIGHT,
     Done,
+    LoopShard,
     Mailbox,
     OnDone,
     OnDrop,
@@ -70,6 +71,9 @@ class Dispatcher:
         on_lost: reports a dead worker (called without the lock).
         limits: what inputs may hold beyond the schema (:mod:`service.guard`).
         map_health: count the scans' map health evidence (:mod:`service.maphealth`).
+        loop: with ``workers=0``, the batches run on the thread that takes the inputs in
+            (:class:`~service.live.shards.LoopShard`, :mod:`service.live.loop`), not on
+            threads of their own.
     """
 
     def __init__(
@@ -86,6 +90,7 @@ class Dispatcher:
         on_lost: OnLost | None = None,
         limits: Limits | None = None,
         map_health: bool = True,
+        loop: bool = False,
     ) -> None:
         self.keys = keys
         self.limits = limits or Limits()
@@ -108,8 +113,12 @@ class Dispatcher:
         self.dropped = 0
         count = (os.cpu_count() or 1) if workers < 0 else workers
         self.processes = count > 0
-        if count == 0:
-            self.shards: list[Shard] = [ThreadShard(0, self)]
+        self.loop: LoopShard | None = None
+        if count == 0 and loop:
+            self.loop = LoopShard(0, self)
+            self.shards: list[Shard] = [self.loop]
+        elif count == 0:
+            self.shards = [ThreadShard(0, self)]
         else:
             self.shards = [ProcessShard(i, self) for i in range(count)]
 

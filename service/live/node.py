@@ -51,6 +51,7 @@ from service.live.healthfeed import HealthFeed
 from service.live.intake import Intake
 from service.live.keywatch import KeyWatch
 from service.live.liveview import LiveView, make_live_view
+from service.live.loop import Inputs
 from service.live.mapfeed import MapFeed
 from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
@@ -116,7 +117,6 @@ class LocalizationService:
         self._poses: dict[str, bytes] = {}
         self.robot_view = RobotView(settings.instance, self._poses, self.clock)
         self._declared: list[Any] = []
-        self._input_subs: list[Any] = []
         self.outbox = Outbox()  # Events go out from its thread, never from a callback's
         self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox)
         self._publish = self.out.publish
@@ -144,7 +144,9 @@ class LocalizationService:
             on_lost=self._on_worker_lost,
             limits=settings.limits,
             map_health=settings.map_health,
+            loop=settings.intake == "loop",
         )
+        self.inputs = Inputs(self._on_robot_sample, self.dispatcher.loop, settings.intake)
         self.mapfeed = MapFeed(
             self.keys,
             self.maps,
@@ -264,15 +266,8 @@ class LocalizationService:
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
-        # One subscriber for every robot key: its callbacks run on one thread, in arrival order
-        # (a subscriber per leaf would each have a thread of its own, and a robot's scan could
-        # overtake the odometry put before it). It never receives what this service puts
-        # (Events and poses go to other sessions only), so no callback can wait on a queue
-        # that only its own thread drains; leaves that are no input or pose (other instances'
-        # Events) are dropped on the key, before any decode.
-        self._input_subs = [
-            session.declare_subscriber(self.keys.robots_inputs, self._on_robot_sample)
-        ]
+        # One subscription for every robot key, in arrival order (service.live.loop.Inputs).
+        self.inputs.start(session, self.keys.robots_inputs)
         self.keywatch.start(session, self.stats)  # Events for keys nothing else takes
         if self.ros2 is not None:
             self.ros2.start(session)
@@ -301,8 +296,7 @@ class LocalizationService:
         self.closed.set()
         if self._token is not None:
             self._token.undeclare()  # the other instances take the robots over at once
-        for sub in self._input_subs:
-            sub.undeclare()
+        self.inputs.close()
         self.sweeper.close()
         self.dispatcher.stop()
         self.posestate.close()  # after the last pose is out
@@ -415,7 +409,7 @@ class LocalizationService:
                         self._poses[done.robot] = out.payload
                 # Poses are not delivered back to this session's own subscriber (see _publish):
                 # follow our own here, for a robot that comes back after a handover.
-                self.ownership.follow_pose(done.robot, out.payload, self.settings.max_payload_bytes)
+                self.ownership.follow_own_pose(done.robot, out.payload, out.stamp_ns)
                 self._publish(out.key, out.payload, pose=True)
                 if self.ros2 is not None:
                     self.ros2.on_pose(done.robot, out.payload)

@@ -15,6 +15,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -216,15 +217,76 @@ class ThreadShard(Shard):
                 return
             robot, item = work
             assert robot is not None
-            t0 = time.perf_counter()
-            outputs = run_batch(self.engine, robot, item)  # type: ignore[arg-type]
+            self._execute(robot, item)  # type: ignore[arg-type]
+
+    def _execute(self, robot: str, entries: list[Entry]) -> None:
+        """Run one batch, publish it, and mark the robot done."""
+        d = self.dispatcher
+        t0 = time.perf_counter()
+        try:
+            outputs = run_batch(self.engine, robot, entries)
             self.hand_over(outputs)
             # Published before the robot's next batch may start on another thread: its poses
             # go out (and into the log) in order.
             d.deliver(Done(robot, outputs, time.perf_counter() - t0))
+        finally:
             with d.lock:
                 self.finish(robot)
                 self.cond.notify_all()
+
+
+class LoopShard(ThreadShard):
+    """The robots of a process whose inputs come in on one loop thread (:mod:`service.live.loop`).
+
+    No thread of its own: the loop thread takes in what arrived, then calls :meth:`run_ready`,
+    which runs every ready batch on that same thread, so an input costs no thread hand-off and
+    no GIL hand-over between a callback thread and an update thread. Batches that may take long
+    (relocalizing or lost robots: :meth:`FleetEngine.expects_long_update`) run on a pool of
+    ``threads - 1`` threads instead, so that a relocalization holds up only its own robot, as
+    in a worker process (:func:`service.live.worker.worker_main`).
+    """
+
+    def __init__(self, index: int, dispatcher: Dispatcher) -> None:
+        super().__init__(index, dispatcher)
+        d = dispatcher
+        self.slow_lane = max(d.threads - 1, 0)
+        self.pool = ThreadPoolExecutor(max(self.slow_lane, 1), thread_name_prefix="rlutf-long")
+        self.max_in_flight = 1 << 30  # the loop runs what is ready; the pool queues its own
+
+    def start(self) -> None:
+        """Nothing to start: the loop thread runs the batches."""
+
+    def join(self, timeout: float) -> None:
+        self.run_ready()  # what was queued before the stop
+        self.pool.shutdown(wait=True)
+
+    def run_ready(self, limit: int | None = None) -> int:
+        """Run the ready batches (long ones on the pool), ``limit`` at most, and apply control
+        messages.
+
+        Returns:
+            The batches started.
+        """
+        d = self.dispatcher
+        started = 0
+        while limit is None or started < limit:
+            with d.lock:
+                work = self.take()
+                if work is not None and work[0] is None:
+                    apply_control(self.engine, work[1])  # type: ignore[arg-type]
+                    continue
+            if work is None:
+                return started
+            robot, item = work
+            assert robot is not None and isinstance(item, list)
+            entries = item
+            started += 1
+            kinds: list[str] = [e.kind for e in entries]
+            if self.slow_lane and self.engine.expects_long_update(robot, kinds):
+                self.pool.submit(self._execute, robot, entries)
+            else:
+                self._execute(robot, entries)
+        return started
 
 
 class ProcessShard(Shard):

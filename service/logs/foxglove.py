@@ -1,6 +1,7 @@
 """Foxglove views of logged messages, so a log opens in Foxglove showing map, scans and poses.
 
-Beside every ``rlutf.*`` message the log carries, the writer logs (same ``log_time``):
+Beside every ``rlutf.*`` message the log carries, a writer with a converter (replay, ``rlutf log
+views``, the live recorder with ``record_views``) logs (same ``log_time``):
 
 =================================== =========================== ==============================
 topic                               schema                      from

@@ -5,8 +5,9 @@ A log is an MCAP file, chunked and zstd-compressed, whose channels are
 * the Zenoh keys of WIRE.md (``rlutf/robots/r1/scan`` ...), message encoding ``json``, schema
   encoding ``jsonschema``, schema names ``rlutf.LaserScan`` etc. with the checked-in JSON Schema
   documents of ``schemas/jsonschema/`` as schema data;
-* Foxglove views of the same messages (:mod:`service.logs.foxglove`), schema names ``foxglove.*``
-  with Foxglove's published JSON Schemas as schema data, on topics starting ``/foxglove/``.
+* optionally, Foxglove views of the same messages (:mod:`service.logs.foxglove`), schema names
+  ``foxglove.*`` with Foxglove's published JSON Schemas as schema data, on topics starting
+  ``/foxglove/`` (written by replay and ``rlutf log views``; live only with ``record_views``).
 
 ``log_time`` is when the service received or sent a message, ``publish_time`` its
 ``stamp_ns``. The effective configuration is MCAP metadata named ``rlutf.config`` whose one key
@@ -22,7 +23,7 @@ from functools import cache
 from importlib import metadata, resources
 from typing import IO, Any, NamedTuple
 
-from mcap.writer import CompressionType, Writer
+from service.logs.mcapwriter import McapWriter
 
 MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
@@ -43,6 +44,8 @@ def _library() -> str:
 
 LIBRARY = _library()
 DEFAULT_CHUNK_SIZE = 1024 * 1024
+#: zstd level of the chunks: see BENCHMARKS.md ("The recorder's cost per scan").
+DEFAULT_ZSTD_LEVEL = 1
 
 
 class Record(NamedTuple):
@@ -106,12 +109,16 @@ def config_from_metadata(data: Mapping[str, str]) -> dict[str, Any] | None:
 class LogWriter:
     """Writes one log file: channels and schemas are registered on first use.
 
-    Not thread-safe (neither is :class:`mcap.writer.Writer`): one thread owns it.
+    Not thread-safe: one thread owns it. The file is written by :class:`McapWriter`, the same
+    bytes as ``mcap.writer.Writer`` with the same zstd level.
 
     Args:
         output: a binary stream; the caller closes it after :meth:`finish`.
         converter: called with every written record; what it returns is written too.
         chunk_size: uncompressed chunk size, bytes, at which a chunk is closed.
+        zstd_level: the chunks' zstd level.
+        schemas: schema data to log for these schema names instead of :func:`schema_data`'s
+            (a copy of a log keeps the log's own).
     """
 
     def __init__(
@@ -119,15 +126,21 @@ class LogWriter:
         output: IO[bytes],
         converter: Converter | None = None,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
+        zstd_level: int = DEFAULT_ZSTD_LEVEL,
+        schemas: Mapping[str, bytes] | None = None,
     ) -> None:
-        self._writer = Writer(output, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer = McapWriter(output, chunk_size, zstd_level)
+        self._given = dict(schemas or {})
         self._writer.start(profile="", library=LIBRARY)
         self._converter = converter
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
-        self._sequence: dict[int, int] = {}
-        self.messages = 0
         self.dirty = False
+
+    @property
+    def messages(self) -> int:
+        """Messages written."""
+        return sum(self._writer.counts.values())
 
     def _channel(self, topic: str, schema_name: str) -> int:
         key = (topic, schema_name)
@@ -136,7 +149,7 @@ class LogWriter:
             return channel
         schema_id = self._schemas.get(schema_name)
         if schema_id is None:
-            data = schema_data(schema_name)
+            data = self._given.get(schema_name) or schema_data(schema_name)
             schema_id = 0
             if data is not None:
                 schema_id = self._writer.register_schema(schema_name, SCHEMA_ENCODING, data)
@@ -147,29 +160,28 @@ class LogWriter:
 
     def write(self, record: Record) -> None:
         """Write one message, then whatever the converter makes of it."""
-        self._add(record)
+        self.add(*record)
         if self._converter is not None:
             for extra in self._converter(record):
-                self._add(extra)
+                self.add(*extra)
 
     def write_all(self, records: Iterable[Record]) -> None:
         """Write several messages."""
         for record in records:
             self.write(record)
 
-    def _add(self, record: Record) -> None:
-        channel = self._channel(record.topic, record.schema_name)
-        sequence = self._sequence.get(channel, 0)
-        self._sequence[channel] = sequence + 1
-        self._writer.add_message(
-            channel_id=channel,
-            log_time=record.log_time_ns,
-            data=record.payload,
-            publish_time=record.publish_time_ns,
-            sequence=sequence % 2**32,
-        )
-        self.messages += 1
+    def add(
+        self, topic: str, schema_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int
+    ) -> None:
+        """Write one message, and nothing made of it (the converter is not called)."""
+        channel = self._channels.get((topic, schema_name)) or self._channel(topic, schema_name)
+        self._writer.add_message(channel, log_time_ns, payload, publish_time_ns)
         self.dirty = True
+
+    @property
+    def converts(self) -> bool:
+        """Whether written messages go through a converter."""
+        return self._converter is not None
 
     def write_config(self, config: Mapping[str, Any]) -> None:
         """Store the effective configuration as ``rlutf.config`` metadata."""

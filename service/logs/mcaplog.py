@@ -3,8 +3,12 @@
 :meth:`McapRecorder.record` only enqueues: it never blocks and never raises. When the queue is
 full the message is not recorded, :attr:`McapRecorder.overflowed` counts it, and once the queue
 has drained the writer logs an Event with code ``recorder_overflow`` on ``{prefix}/events``
-saying how many were lost. Everything else happens on the writer thread: JSON Schema
-registration, the Foxglove views (:mod:`service.logs.foxglove`), chunking and zstd compression.
+saying how many were lost. Everything else happens on the writer thread, a batch of messages at
+a time: JSON Schema registration, chunking and zstd compression (:mod:`service.logs.mcapwriter`),
+and the Foxglove views (:mod:`service.logs.foxglove`) when asked for (``foxglove=True``, the
+setting ``record_views``). By default a live log holds the WIRE.md channels only: the views are
+optional channels, and ``rlutf log views`` or ``rlutf replay`` write them from the log, off the
+live service's main process (they cost it more than the rest of recording together).
 
 Files are named ``rlutf[-{instance}]-{UTC start}-{n}.mcap`` in the record folder. A file is
 written as ``NAME.mcap.part``, flushed (chunk closed, fsync) at least every ``flush_interval_s``
@@ -33,11 +37,11 @@ from collections import deque
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from typing import IO, Any, NamedTuple, cast
 
 from schemas import Event, EventCode, encode
 from service.logs.foxglove import FoxgloveConverter
-from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
+from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, DEFAULT_ZSTD_LEVEL, LogWriter, Record
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id
 
 log = logging.getLogger(__name__)
@@ -52,6 +56,11 @@ _ROTATE_CHECK_BYTES = 64 * 1024
 _POLL_S = 0.02
 
 
+_Message = tuple[str, str, bytes, int, int]
+"""A queued message: topic, schema name, payload, log time, publish time (a :class:`Record`'s
+fields; a plain tuple is cheaper to make on the callers' threads)."""
+
+
 class _Config(NamedTuple):
     config: dict[str, Any]
 
@@ -60,7 +69,7 @@ class _Stop(NamedTuple):
     pass
 
 
-_Item = Record | _Config | _Stop
+_Item = _Message | _Config | _Stop
 
 
 class _Queue:
@@ -96,15 +105,16 @@ class _Queue:
         self._items.append(item)
         self._wake.set()
 
-    def get(self, timeout: float) -> _Item | None:
-        """The oldest item, waiting at most ``min(timeout, poll_s)`` for one; ``None`` if none."""
+    def take(self, timeout: float) -> list[_Item]:
+        """Every queued item, oldest first, waiting at most ``min(timeout, poll_s)`` for one
+        when none is queued (then possibly none)."""
         items = self._items
-        if items:
-            return items.popleft()
-        self._wake.clear()
-        if not items:  # a put between the test and the clear has set nothing: look again
-            self._wake.wait(min(timeout, self._poll_s))
-        return items.popleft() if items else None
+        if not items:
+            self._wake.clear()
+            if not items:  # a put between the test and the clear has set nothing: look again
+                self._wake.wait(min(timeout, self._poll_s))
+        popleft = items.popleft
+        return [popleft() for _ in range(len(items))]
 
     def empty(self) -> bool:
         """Nothing is queued."""
@@ -133,7 +143,8 @@ class McapRecorder:
         instance: the service instance's name, put in file names (replicas may share a folder).
         flush_interval_s: longest time between two flushes of an open file.
         chunk_size: uncompressed bytes at which a chunk is closed early.
-        foxglove: also log the Foxglove views.
+        zstd_level: the chunks' zstd level.
+        foxglove: also log the Foxglove views (off: ``rlutf log views`` writes them later).
     """
 
     def __init__(
@@ -146,7 +157,8 @@ class McapRecorder:
         instance: str | None = None,
         flush_interval_s: float = 1.0,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
-        foxglove: bool = True,
+        zstd_level: int = DEFAULT_ZSTD_LEVEL,
+        foxglove: bool = False,
     ) -> None:
         self.record_dir = Path(record_dir)
         self.record_dir.mkdir(parents=True, exist_ok=True)
@@ -156,6 +168,7 @@ class McapRecorder:
         self.instance = instance
         self.flush_interval_s = flush_interval_s
         self.chunk_size = chunk_size
+        self.zstd_level = zstd_level
         self._converter = FoxgloveConverter() if foxglove else None
         self._queue = _Queue(queue_size, _POLL_S)
         self._lock = threading.Lock()
@@ -189,9 +202,9 @@ class McapRecorder:
         """Queue one message; never blocks and never raises on a full queue."""
         if self._closed:
             return
-        if not self._queue.put_nowait(
-            Record(topic, schema_name, bytes(payload), log_time_ns, publish_time_ns)
-        ):
+        if type(payload) is not bytes:
+            payload = bytes(payload)
+        if not self._queue.put_nowait((topic, schema_name, payload, log_time_ns, publish_time_ns)):
             with self._lock:
                 self._overflowed += 1
                 self._unreported += 1
@@ -240,29 +253,25 @@ class McapRecorder:
     def _run(self) -> None:
         next_flush = time.monotonic() + self.flush_interval_s
         next_rotate_check = 0.0
-        check_bytes = min(_ROTATE_CHECK_BYTES, self.max_bytes // 16)
         while True:
-            item = self._queue.get(max(next_flush - time.monotonic(), 0.0))
-            if isinstance(item, _Stop):
-                break
+            batch = self._queue.take(max(next_flush - time.monotonic(), 0.0))
+            stopped = self._write(batch)
             try:
-                if item is not None:
-                    self._handle(item)
                 if self._unreported and self._queue.empty():
                     self._report_overflow()
                 now = time.monotonic()
                 if now >= next_flush:
                     self._flush()
                     next_flush = now + self.flush_interval_s
-                if now >= next_rotate_check or self._unchecked >= check_bytes:
+                if now >= next_rotate_check:
                     # Not after every message: the size check is a system call.
                     self._unchecked = 0
                     self._maybe_rotate()
                     next_rotate_check = now + _ROTATE_CHECK_S
             except Exception:  # a full disk must not stop the service
-                self.errors += 1
-                log.exception("recording failed")
-                self._abandon()
+                self._failed()
+            if stopped:
+                break
         try:
             if self._unreported:
                 self._report_overflow()
@@ -271,18 +280,42 @@ class McapRecorder:
             self.errors += 1
             log.exception("finishing the log failed")
 
-    def _handle(self, item: Record | _Config) -> None:
-        if isinstance(item, _Config):
-            self._config = item.config
-            if self._file is not None:
-                self._file.writer.write_config(item.config)
-            return
-        self._unchecked += len(item.payload)
-        # Before latching: a new file starts with the maps seen before.
-        writer = self._writer(item.log_time_ns)
-        if item.schema_name == _MAP_SCHEMA:
-            self._maps[item.topic] = item
-        writer.write(item)
+    def _write(self, batch: list[_Item]) -> bool:
+        """Write a batch of queued items; whether it ended with the stop."""
+        check_bytes = min(_ROTATE_CHECK_BYTES, self.max_bytes // 16)
+        converts = self._converter is not None
+        for item in batch:
+            try:
+                if type(item) is tuple:  # a message (not a NamedTuple): the hot path
+                    message = cast(_Message, item)
+                    topic, schema_name, payload, log_time_ns, _ = message
+                    f = self._file
+                    # Before latching: a new file starts with the maps seen before.
+                    writer = f.writer if f is not None else self._writer(log_time_ns)
+                    if schema_name == _MAP_SCHEMA:
+                        self._maps[topic] = Record(*message)
+                    if converts:
+                        writer.write(Record(*message))
+                    else:
+                        writer.add(*message)
+                    self._unchecked += len(payload)
+                    if self._unchecked >= check_bytes:
+                        self._unchecked = 0
+                        self._maybe_rotate()
+                elif isinstance(item, _Config):
+                    self._config = item.config
+                    if self._file is not None:
+                        self._file.writer.write_config(item.config)
+                else:
+                    return True
+            except Exception:  # a full disk must not stop the service
+                self._failed()
+        return False
+
+    def _failed(self) -> None:
+        self.errors += 1
+        log.exception("recording failed")
+        self._abandon()
 
     def _writer(self, first_ns: int) -> LogWriter:
         """The open file's writer; a new file if none is open, whose first own message is
@@ -308,7 +341,7 @@ class McapRecorder:
             if not final.exists() and not part.exists():
                 break
         stream = open(part, "xb")  # noqa: SIM115 -- owned by _OpenFile until _finish
-        writer = LogWriter(stream, self._converter, self.chunk_size)
+        writer = LogWriter(stream, self._converter, self.chunk_size, self.zstd_level)
         log.info("recording to %s", part)
         return _OpenFile(part, final, stream, writer, time.monotonic())
 

@@ -238,6 +238,16 @@ class LogFile:
         except Exception as err:
             raise DamagedLog(self.path, f"unreadable metadata ({type(err).__name__})") from err
 
+    def schemas(self) -> dict[str, bytes]:
+        """Each schema's data by name (empty for a file without a summary)."""
+        try:
+            summary = self._reader.get_summary()
+        except Exception as err:
+            raise DamagedLog(self.path, f"unreadable summary ({type(err).__name__})") from err
+        if summary is None:
+            return {}
+        return {s.name: s.data for s in summary.schemas.values()}
+
     def config(self) -> dict[str, Any] | None:
         """The last ``rlutf.config`` stored, if any.
 

@@ -69,4 +69,5 @@ def make_recorder(settings: Any) -> Recorder:
         max_seconds=settings.record_max_seconds,
         queue_size=settings.record_queue,
         instance=settings.instance,
+        foxglove=settings.record_views,
     )

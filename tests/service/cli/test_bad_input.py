@@ -71,6 +71,12 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["demo", "--duration", "nan"], 2, ["--duration", "finite"])
     yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
     yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
+    yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])
+    yield Bad(
+        ["serve", "--processes", "2", "--foxglove-port", "8765", "--no-record"],
+        2,
+        ["--foxglove-port", "--processes 0"],
+    )
     yield Bad(["pose", "--timeout", "0"], 2, ["--timeout", "more than 0"])
     yield Bad(["robots", "--timeout", "soon"], 2, ["--timeout", "not a number"])
     yield Bad(["events", "--seconds", "-1"], 2, ["--seconds"])

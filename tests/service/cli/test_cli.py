@@ -26,7 +26,7 @@ COMMANDS = [
 ]
 ACTIONS = {
     "map": ["put", "get", "list", "remove", "import", "build", "show", "health"],
-    "log": ["info", "recover"],
+    "log": ["info", "recover", "views"],
 }
 
 

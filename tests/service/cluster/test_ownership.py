@@ -199,3 +199,47 @@ def test_a_joining_member_takes_its_robots_away() -> None:
     assert own.owned() == [keep] and own.active(keep) and not own.active(robot)
     payload, msg = _odom(10)
     assert not own.offer(robot, "odom", payload, msg, 3)
+
+
+def test_own_poses_are_kept_undecoded_and_seed_as_followed_ones_do() -> None:
+    m = Membership("a")
+    m.update("b", alive=True)
+    own, admitted = _ownership(m)
+    robot, other = _robot_of("b", ["a", "b"]), ROBOTS[-1]
+    newer = _pose(robot, 5_000).model_copy(update={"x": 7.0})
+    own.follow_own_pose(robot, encode(_pose(robot, 3_000)), 3_000)
+    own.follow_pose(robot, encode(_pose(robot, 2_000)), LIMIT)  # older than the own one
+    assert own.last_pose(robot) == _pose(robot, 3_000)
+    own.follow_own_pose(robot, encode(newer), 5_000)
+    own.follow_own_pose(robot, encode(_pose(robot, 4_000)), 4_000)  # older: not kept
+    own.remember(_pose(robot, 4_500))  # older than the own one: not kept either
+    own.follow_own_pose(other, encode(_pose(other, 1_000)), 1_000)
+    own.follow_pose(other, encode(_pose(other, 1_500)), LIMIT)  # newer, from the bus
+    assert own.last_pose(other) == _pose(other, 1_500)
+    m.update("b", alive=False)
+    payload, msg = _odom(6_000)
+    own.offer(robot, "odom", payload, msg, 10)
+    assert [(k, m_.stamp_ns) for _, k, m_, _ in admitted] == [
+        ("initialpose", 5_000),
+        ("odom", 6_000),
+    ]
+    seed = admitted[0][2]
+    assert isinstance(seed, InitialPose) and (seed.x, seed.y, seed.theta) == (7.0, 2.0, 0.3)
+    assert own.last_pose(robot) == newer
+
+
+def test_own_poses_count_against_the_robot_bound_and_the_stamp_bound() -> None:
+    own, _ = _ownership(Membership("a"))
+    own.max_robots = 2
+    own.max_ahead_ns = 1_000_000  # the test clock counts from 1,000
+    own.follow_own_pose("r1", encode(_pose("r1", 10)), 10)
+    own.follow_pose("r2", encode(_pose("r2", 10)), LIMIT)
+    own.follow_own_pose("r3", encode(_pose("r3", 10)), 10)  # two robots held already
+    assert own.last_pose("r3") is None and own.last_pose("r1") == _pose("r1", 10)
+    own.follow_own_pose("r2", encode(_pose("r2", 20)), 20)  # a robot held: kept
+    assert own.last_pose("r2") == _pose("r2", 20)
+    ahead = 10**12
+    own.follow_own_pose("r1", encode(_pose("r1", ahead)), ahead)
+    assert own.last_pose("r1") == _pose("r1", 10) and own.figures()["poses_rejected"] == 1
+    own.forget("r2")
+    assert own.last_pose("r2") is None

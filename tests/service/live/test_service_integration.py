@@ -224,10 +224,13 @@ def test_bad_input_gets_events_and_other_robots_keep_their_poses(bench: Bench) -
 
 
 def test_worker_processes_give_the_same_poses_as_threads(tmp_path) -> None:
+    """The same poses from threads, worker processes, and the loop intake (service.live.loop)
+    with robots run on its thread or sent to worker processes."""
     results = []
-    for workers in (0, 2):
+    for workers, intake in ((0, "callback"), (2, "callback"), (0, "loop"), (1, "loop")):
         port = free_port()
-        svc = start_service(tmp_path / f"store{workers}", port, workers=workers)
+        store = tmp_path / f"store{workers}{intake}"
+        svc = start_service(store, port, workers=workers, intake=intake)
         col = Collector()
         try:
             with zenoh.open(client_config(f"tcp/127.0.0.1:{port}")) as client:
@@ -248,4 +251,4 @@ def test_worker_processes_give_the_same_poses_as_threads(tmp_path) -> None:
             svc.close()
         results.append([(p["x"], p["y"], p["theta"]) for p in col.on("rlutf/robots/rp/pose")])
     assert len(results[0]) == 12
-    assert results[0] == results[1]
+    assert results[0] == results[1] == results[2] == results[3]

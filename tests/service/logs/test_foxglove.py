@@ -187,7 +187,7 @@ def test_view_contents() -> None:
 def test_recorded_log_carries_views_with_npm_schemas(
     tmp_path: Path, foxglove_schemas: dict[str, Any], npm_prefix: Path
 ) -> None:
-    rec = McapRecorder(tmp_path)
+    rec = McapRecorder(tmp_path, foxglove=True)
     for r in simulated_inputs(steps=3):
         rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
     rec.close()

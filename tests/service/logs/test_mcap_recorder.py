@@ -8,6 +8,7 @@ import time
 from importlib import metadata
 from io import BytesIO
 from pathlib import Path
+from typing import Any
 
 from mcap.reader import make_reader
 from mcaplog_fixtures import read_all, simulated_inputs
@@ -88,7 +89,7 @@ def test_recorder_writes_part_then_renames_with_instance_name(tmp_path: Path) ->
 def test_rotation_by_size_keeps_config_and_maps_in_every_file(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path, instance="n", max_bytes=20_000, chunk_size=4096)
     rec.set_config(CONFIG)
-    inputs = simulated_inputs(steps=20)
+    inputs = simulated_inputs(steps=40)
     _record_all(rec, inputs)
     rec.close()
     assert len(rec.files) >= 3
@@ -137,13 +138,13 @@ def test_open_file_is_flushed_so_a_crash_loses_at_most_the_interval(tmp_path: Pa
 def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path, queue_size=5, foxglove=False)
     gate = threading.Event()
-    handle = rec._handle  # stall the writer thread to fill the queue
+    write = rec._write  # stall the writer thread to fill the queue
 
-    def slow(item: object) -> None:
+    def slow(batch: list[Any]) -> bool:
         gate.wait(10)
-        handle(item)  # type: ignore[arg-type]
+        return write(batch)
 
-    rec._handle = slow  # type: ignore[method-assign]
+    rec._write = slow  # type: ignore[method-assign]
     published: list[Event] = []
     rec.on_overflow = published.append
     rec.set_config(CONFIG)
@@ -167,13 +168,13 @@ def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
 def test_queued_is_the_queue_depth_and_drains_to_zero(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path, queue_size=50, foxglove=False)
     gate = threading.Event()
-    handle = rec._handle  # stall the writer thread so the depth stays put
+    write = rec._write  # stall the writer thread so the depth stays put
 
-    def slow(item: object) -> None:
+    def slow(batch: list[Any]) -> bool:
         gate.wait(10)
-        handle(item)  # type: ignore[arg-type]
+        return write(batch)
 
-    rec._handle = slow  # type: ignore[method-assign]
+    rec._write = slow  # type: ignore[method-assign]
     rec.set_config(CONFIG)
     deadline = time.monotonic() + 5
     while not rec._queue.empty() and time.monotonic() < deadline:

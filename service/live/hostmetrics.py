@@ -1,0 +1,84 @@
+"""The metrics endpoint of a host of service processes (:mod:`service.live.host`).
+
+Each process serves its own metrics (:mod:`service.live.metrics`) on a loopback port the host
+chose; every series there carries the process's name as its ``instance`` label. The host's
+endpoint, on ``--metrics-port``, reads them all at each scrape and serves them as one
+exposition, a metric family holding every process's series: one target for Prometheus, and
+the same names and labels as a single process's endpoint. A process that does not answer (it
+is starting again) is left out of that scrape, and ``rlutf_host_processes_scraped`` says how
+many answered.
+"""
+
+from __future__ import annotations
+
+import logging
+import urllib.request
+from collections.abc import Iterator
+from wsgiref.simple_server import WSGIServer
+
+from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.parser import text_string_to_metric_families
+
+log = logging.getLogger(__name__)
+
+#: Seconds the host waits for one process's metrics.
+SCRAPE_TIMEOUT_S = 2.0
+
+
+class _Merged:
+    """A collector: the processes' families, merged by name."""
+
+    def __init__(self, ports: list[int]) -> None:
+        self._ports = ports
+
+    def collect(self) -> Iterator[Metric]:
+        merged: dict[str, Metric] = {}
+        answered = 0
+        for port in self._ports:
+            try:
+                url = f"http://127.0.0.1:{port}/metrics"
+                with urllib.request.urlopen(url, timeout=SCRAPE_TIMEOUT_S) as reply:
+                    text = reply.read().decode()
+            except OSError as err:
+                log.debug("metrics of the process on port %d: %s", port, err)
+                continue
+            answered += 1
+            for family in text_string_to_metric_families(text):
+                held = merged.get(family.name)
+                if held is None:
+                    merged[family.name] = family
+                else:
+                    held.samples.extend(family.samples)
+        yield from merged.values()
+        scraped = GaugeMetricFamily(
+            "rlutf_host_processes_scraped", "Service processes whose metrics this scrape read."
+        )
+        scraped.add_metric([], answered)
+        yield scraped
+
+
+class HostMetrics:
+    """The host's endpoint on ``port`` (0: any free one), merging the processes' ``ports``."""
+
+    def __init__(self, ports: list[int], port: int, addr: str = "0.0.0.0") -> None:
+        self._ports = ports
+        self._want = (port, addr)
+        self.registry = CollectorRegistry(auto_describe=False)
+        self._server: WSGIServer | None = None
+        self.port: int | None = None
+
+    def start(self) -> None:
+        """Serve (raises OSError when the port is taken)."""
+        self.registry.register(_Merged(self._ports))
+        port, addr = self._want
+        server, _thread = start_http_server(port, addr, registry=self.registry)
+        self._server = server
+        self.port = int(server.server_address[1])
+
+    def close(self) -> None:
+        """Stop serving."""
+        if self._server is not None:
+            self._server.shutdown()
+            self._server.server_close()
+            self._server = None

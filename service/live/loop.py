@@ -1,0 +1,141 @@
+"""The robots' inputs taken from a Zenoh FIFO channel by one loop thread (``intake = "loop"``).
+
+With a callback subscriber, Zenoh calls into Python once per sample on its own thread, which
+must take the GIL each time: in a busy process that thread waits for the GIL about as long as it
+works, and samples queue up behind it. Here the subscriber puts samples into a FIFO channel
+on Zenoh's side, without Python, and one thread of ours takes them in: everything that arrived
+(up to :data:`BATCH`) goes through the same checks as a callback's
+(:meth:`service.live.intake.Intake.on_robot_sample`), in arrival order, then, when the robots
+run in this process (:class:`~service.live.shards.LoopShard`), the loop runs the ready batches
+itself before it takes in more. A scan that a newer one of its robot replaced meanwhile is
+dropped in its mailbox and counted, as always. The loop drains the channel whole, then runs at
+most :data:`RUNS` batches before it drains it again, so that under overload it is the
+mailboxes, which count what they drop, that absorb the excess, not the channel. The channel
+holds :data:`CAPACITY` samples, about two seconds of a few hundred robots.
+
+When nothing arrived and nothing was ready, the thread sleeps a little, a little longer each
+time up to :data:`IDLE_WAITS`'s last (5 ms): a control message (a new map) from another thread
+is applied within that long.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from service.live.shards import LoopShard
+
+log = logging.getLogger(__name__)
+
+#: Samples the Zenoh channel holds before it holds up the link.
+CAPACITY = 20_000
+#: Samples taken in at most before some ready batches run (the channel is drained whole
+#: first, unless it holds more than this).
+BATCH = CAPACITY
+#: Batches run at most before the channel is drained again: under overload the inputs keep
+#: coming in (and a robot's older scan is dropped in its mailbox, counted) instead of piling
+#: up in the channel until it holds up the link (where a drop would not be counted).
+RUNS = 8
+#: Sleeps of an idle loop, seconds, one after another (the last repeats).
+IDLE_WAITS = (0.0002, 0.0005, 0.001, 0.002, 0.005)
+
+
+class InputLoop:
+    """Take samples from a FIFO subscriber on one thread and run the ready batches.
+
+    Args:
+        on_sample: the checks of one sample (a callback subscriber's callback).
+        shard: the shard whose batches this thread runs, if the robots run in this process.
+    """
+
+    def __init__(self, on_sample: Callable[[zenoh.Sample], None], shard: LoopShard | None) -> None:
+        self._on_sample = on_sample
+        self._shard = shard
+        self._sub: Any = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.taken = 0
+
+    def start(self, session: zenoh.Session, key: str) -> None:
+        """Subscribe to ``key`` and start the thread."""
+        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(CAPACITY))
+        self._thread = threading.Thread(target=self._run, name="rlutf-inputs", daemon=True)
+        self._thread.start()
+
+    def _take(self) -> int:
+        taken = 0
+        while taken < BATCH:
+            sample = self._sub.try_recv()
+            if sample is None:
+                break
+            taken += 1
+            try:
+                self._on_sample(sample)
+            except Exception:  # the checks never raise; if they do, the loop goes on
+                log.exception("input %s", sample.key_expr)
+        self.taken += taken
+        return taken
+
+    def _run(self) -> None:
+        idle = 0
+        shard = self._shard
+        while not self._stop.is_set():
+            taken = self._take()
+            ran = shard.run_ready(RUNS) if shard is not None else 0
+            if taken or ran:
+                idle = 0
+            else:
+                self._stop.wait(IDLE_WAITS[idle])
+                idle = min(idle + 1, len(IDLE_WAITS) - 1)
+        while self._take():  # what arrived before the stop is taken in, not lost
+            pass
+
+    def close(self) -> None:
+        """Stop taking inputs (those already received are taken in first), unsubscribe."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(10.0)
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
+
+
+class Inputs:
+    """The robots' input subscription the settings ask for (``intake``).
+
+    ``callback``: one callback subscriber, whose callbacks run on one Zenoh thread, in arrival
+    order (a subscriber per leaf would each have a thread of its own, and a robot's scan could
+    overtake the odometry put before it). ``loop``: an :class:`InputLoop`. Either way it never
+    receives what this service puts (Events and poses go to other sessions only), so nothing
+    here waits on a queue only its own thread drains; leaves that are no input or pose (other
+    instances' Events) are dropped on the key, before any decode.
+    """
+
+    def __init__(
+        self,
+        on_sample: Callable[[zenoh.Sample], None],
+        shard: LoopShard | None,
+        intake: str = "callback",
+    ) -> None:
+        self._on_sample = on_sample
+        self.loop = InputLoop(on_sample, shard) if intake == "loop" else None
+        self._sub: Any = None
+
+    def start(self, session: zenoh.Session, key: str) -> None:
+        """Subscribe to ``key``."""
+        if self.loop is not None:
+            self.loop.start(session, key)
+        else:
+            self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def close(self) -> None:
+        """Unsubscribe (a loop takes in what was received first)."""
+        if self.loop is not None:
+            self.loop.close()
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
