@@ -68,3 +68,21 @@ def machine_steal() -> tuple[int, int]:
     with open("/proc/stat") as f:
         ticks = [int(v) for v in f.readline().split()[1:]]
     return ticks[7], sum(ticks[:8])
+
+
+def process_memory_mb(pid: int) -> dict[str, float] | None:
+    """A process's resident memory, MB: ``rss`` (``VmRSS``), its parts ``anon`` (``RssAnon``)
+    and ``file`` (``RssFile``), and ``pss`` (shared pages divided among the processes mapping
+    them, from ``smaps_rollup``); ``None`` once it is gone."""
+    keys = {"VmRSS:": "rss", "RssAnon:": "anon", "RssFile:": "file", "Pss:": "pss"}
+    found: dict[str, float] = {}
+    try:
+        for name in (f"/proc/{pid}/status", f"/proc/{pid}/smaps_rollup"):
+            with open(name) as f:
+                for line in f:
+                    field = line.split(maxsplit=2)
+                    if field and field[0] in keys:
+                        found[keys[field[0]]] = int(field[1]) / 1024.0
+    except OSError:
+        return None
+    return found if len(found) == len(keys) else None

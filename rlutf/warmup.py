@@ -9,6 +9,7 @@ process at start, so that no robot's first scan waits for the compiler.
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from shapely.geometry import box
@@ -19,8 +20,29 @@ from rlutf.raycast import cast_rays
 from rlutf.scan import Scan
 
 
+def _numba_without_blas() -> None:
+    """Load numba's array functions without scipy's BLAS, which no kernel here uses.
+
+    numba's ``numba.np.arraymath`` imports ``scipy.linalg.cython_blas``, when scipy is
+    installed (scikit-image requires it), only to tell whether ``np.dot`` can be compiled; that
+    import brings in ``scipy.linalg`` and its libraries, 12 MB of resident memory in every
+    process that loads the kernels. Hidden while the module loads, the check finds no BLAS:
+    ``np.dot`` and ``np.linalg`` would not compile in a kernel (none calls them), and scipy
+    stays importable for any other use. Nothing is done when the module is already loaded.
+    """
+    blas = "scipy.linalg.cython_blas"
+    if "numba.np.arraymath" in sys.modules or blas in sys.modules:
+        return
+    sys.modules[blas] = None  # type: ignore[assignment]  # import raises ImportError
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        del sys.modules[blas]
+
+
 def warm_up() -> None:
     """Run every kernel once, with the argument types the localizer passes, on a small map."""
+    _numba_without_blas()
     world = Map.from_shapely(box(0.0, 0.0, 6.0, 4.0).difference(box(2.5, 1.5, 3.0, 2.5)))
     pose = np.array([1.2, 1.0, 0.3])
     angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)

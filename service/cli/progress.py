@@ -11,9 +11,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-
-from rich.console import Console
-from rich.status import Status
+from typing import Any
 
 
 @contextmanager
@@ -23,14 +21,17 @@ def starting_status(command: str) -> Iterator[Callable[[str], None]]:
     Args:
         command: the command's name, at the start of every line printed.
     """
-    console = Console(stderr=True)
-    status: Status | None = None
+    status: Any = None  # rich's Status, on a terminal only
 
     def progress(message: str) -> None:
         nonlocal status
-        if console.is_terminal:
+        if sys.stderr.isatty():
             if status is None:
-                status = console.status(f"{command}: {message}")
+                # rich is imported here: a service in a container has no terminal, and its
+                # modules would stay in memory for the service's life (2 MB).
+                from rich.console import Console
+
+                status = Console(stderr=True).status(f"{command}: {message}")
                 status.start()
             else:
                 status.update(f"{command}: {message}")

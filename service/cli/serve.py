@@ -109,12 +109,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
-    from service.live.foxview import LiveViewError
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
 
     settings = load(args)
+    # Foxglove's SDK is imported only for a live view: a few MB in every process of a service.
+    live_view_errors: tuple[type[OSError], ...] = ()
+    if settings.foxglove_port is not None:
+        from service.live.foxview import LiveViewError
+
+        live_view_errors = (LiveViewError,)
     zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
     if not settings.no_store:
         usable_folder(settings.store_dir, "--store")
@@ -152,7 +157,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
-    except LiveViewError as err:  # --foxglove-port taken or --foxglove-addr not local
+    except live_view_errors as err:  # --foxglove-port taken or --foxglove-addr not local
         print(f"rlutf serve: {err} (choose another --foxglove-port)", file=sys.stderr)
         return EXIT_FAILURE
     except OSError as err:

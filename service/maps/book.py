@@ -10,12 +10,10 @@ compared on the canonical encoding of the message, so whitespace and key order d
 from __future__ import annotations
 
 import hashlib
-import multiprocessing as mp
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -23,6 +21,7 @@ from rlutf.errors import MapError
 from rlutf.map import Map as World
 from rlutf.map import MapLimits
 from schemas import Map, SchemaError, decode, encode
+from service.maps.helper import IDLE_S, TIMEOUT_S, HelperFailed, HelperProcess
 
 #: Size limit of a map a tool reads from a local file (the service's ``max_map_bytes`` applies
 #: when it is put).
@@ -155,15 +154,14 @@ def check_map(
     return CheckedMap(msg.version, content_digest(msg), world)
 
 
-def _imported() -> bool:
-    """Run in the validating process at start: unpickling it imports this module there."""
-    return True
-
-
 def _check_elsewhere(
     map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None
-) -> tuple[int, str]:
-    checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+) -> tuple[int, str] | str:
+    """:func:`check_map` in the validating process: the version and digest, or why not."""
+    try:
+        checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
+    except MapRejected as err:
+        return str(err)
     return checked.version, checked.digest
 
 
@@ -174,20 +172,31 @@ class MapChecker:
     Args:
         max_bytes: the maps' size limit, bytes.
         limits: extent and vertex limits of a map.
-        isolated: validate in a process of its own, which keeps no map: decoding a map holds
-            the interpreter's lock for seconds (pydantic and the JSON parser are C code that
-            does not let other threads run), which stalled every robot of a service whose
-            Zenoh callbacks share the process. For a service whose worker processes build the
-            maps, the main process never needs the map itself.
+        isolated: validate in a process of its own (:class:`~service.maps.helper.
+            HelperProcess`), which keeps no map: decoding a map holds the interpreter's lock for
+            seconds (pydantic and the JSON parser are C code that does not let other threads
+            run), which stalled every robot of a service whose Zenoh callbacks share the
+            process, and a hostile map costs the process that decodes it a gigabyte. For a
+            service whose worker processes build the maps, the main process never needs the
+            map itself. The process runs from :meth:`start` or the first map until no map came
+            for ``idle_s`` seconds; a map whose validation takes longer than ``timeout_s``, or
+            kills the process, is rejected.
+        idle_s: see ``isolated``.
+        timeout_s: see ``isolated``.
     """
 
     def __init__(
-        self, max_bytes: int, limits: MapLimits | None = None, isolated: bool = False
+        self,
+        max_bytes: int,
+        limits: MapLimits | None = None,
+        isolated: bool = False,
+        idle_s: float = IDLE_S,
+        timeout_s: float = TIMEOUT_S,
     ) -> None:
         self.max_bytes = max_bytes
         self.limits = limits
         self.isolated = isolated
-        self._pool: ProcessPoolExecutor | None = None
+        self.process = HelperProcess(_check_elsewhere, "rlutf-mapcheck", idle_s, timeout_s)
         self._lock = threading.Lock()
         self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
 
@@ -195,36 +204,24 @@ class MapChecker:
         """Start the validating process, if isolated, and wait until it runs (its imports take
         a second or more: at start, not when the first map comes)."""
         if self.isolated:
-            self._executor().submit(_imported).result()
+            self.process.start()
 
     def close(self) -> None:
         """Stop the validating process, if any."""
-        with self._lock:
-            pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-
-    def _executor(self) -> ProcessPoolExecutor:
-        with self._lock:
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
-            return self._pool
+        self.process.close()
 
     def _check(self, map_id: str, payload: bytes) -> CheckedMap:
         if not self.isolated:
             return check_map(
                 payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
             )
-        pool = self._executor()
         try:
-            version, digest = pool.submit(
-                _check_elsewhere, map_id, payload, self.max_bytes, self.limits
-            ).result()
-        except BrokenProcessPool as err:  # killed (out of memory?): the next map gets a new one
-            with self._lock:
-                if self._pool is pool:
-                    self._pool = None
-            raise MapRejected(f"the process validating map {map_id!r} died: {err}") from err
+            found = self.process.call(map_id, payload, self.max_bytes, self.limits)
+        except HelperFailed as err:  # too slow, or killed (out of memory?): a new one next time
+            raise MapRejected(f"map {map_id!r}: validating it failed: {err}") from err
+        if isinstance(found, str):
+            raise MapRejected(found)
+        version, digest = found
         return CheckedMap(version, digest, None)
 
     def check(self, map_id: str, payload: bytes) -> CheckedMap:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -43,3 +44,20 @@ def test_serve_says_which_metrics_port_it_took(tmp_path: Path) -> None:
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
+
+
+def test_serve_names_a_live_view_port_in_use(tmp_path: Path) -> None:
+    """The live view's errors are caught without importing Foxglove's SDK up front."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = [
+            *(sys.executable, "-m", "service", "serve"),
+            *("-l", f"tcp/127.0.0.1:{free_port()}", "--store", str(tmp_path / "store")),
+            *("--no-record", "--no-state", "--workers", "0", "--foxglove-port", str(port)),
+        ]
+        done = subprocess.run(argv, check=False, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1, done.stderr
+    assert "choose another --foxglove-port" in done.stderr
+    assert str(port) in done.stderr

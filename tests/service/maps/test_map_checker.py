@@ -1,0 +1,147 @@
+"""The map validating process (issue 21): there while maps come, gone when idle; a hostile map
+costs it bounded time, and its death rejects one map, not the service's next ones."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+
+import pytest
+from service_harness import WORLD
+
+from bench.bigmap import warehouse_payload
+from bench.mapload import square_map
+from rlutf.map import MapLimits
+from schemas import Map, encode
+from service.maps.book import MapChecker, MapRejected, content_digest
+
+LIMITS = MapLimits(max_area=100_000.0, max_vertices=2_000_000)
+
+
+def _small(map_id: str = "m1", version: int = 1) -> bytes:
+    return encode(Map(map_id=map_id, version=version, geometry=WORLD.to_geojson()))
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    # a child that ended but was not reaped yet is a zombie
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def _cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _wait(cond: Callable[[], bool], timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return cond()
+
+
+def test_the_validating_process_ends_when_idle_and_comes_back_for_the_next_map() -> None:
+    checker = MapChecker(1 << 26, LIMITS, isolated=True, idle_s=1.0)
+    try:
+        checker.start()
+        first = checker.process.pid
+        assert first is not None
+        payload = _small()
+        checked = checker.check("m1", payload)
+        assert checked.version == 1 and checked.world is None
+        assert checked.digest == content_digest(Map.model_validate_json(payload))
+        assert _wait(lambda: _gone(first), 5.0), "the idle validating process still runs"
+        assert checker.process.pid is None
+        # the next map starts a process again, and is validated the same way
+        again = checker.check("m1", _small(version=2))
+        assert again.version == 2
+        assert checker.process.pid not in (None, first)
+        assert checker.process.started == 2
+    finally:
+        checker.close()
+    assert checker.process.pid is None
+
+
+def test_a_process_in_use_is_not_ended() -> None:
+    checker = MapChecker(1 << 26, LIMITS, isolated=True, idle_s=1.5)
+    try:
+        checker.start()
+        pid = checker.process.pid
+        for version in range(1, 5):  # a map every 0.5 s: never idle for 1.5 s
+            assert checker.check("m1", _small(version=version)).version == version
+            time.sleep(0.5)
+        assert checker.process.pid == pid
+    finally:
+        checker.close()
+
+
+def test_hostile_maps_are_refused_by_the_validating_process() -> None:
+    checker = MapChecker(1 << 20, LIMITS, isolated=True)
+    try:
+        with pytest.raises(MapRejected, match="max_map_area"):
+            checker.check("square", square_map("square", 2000.0))
+        with pytest.raises(MapRejected, match="payload too large"):
+            checker.check("big", b" " * (2 << 20))
+        with pytest.raises(MapRejected, match="map_id"):
+            checker.check("other", _small("m1"))
+        assert checker.check("m1", _small()).version == 1
+        assert checker.process.started == 1
+    finally:
+        checker.close()
+
+
+def test_a_map_that_takes_too_long_is_rejected_and_its_process_stopped() -> None:
+    payload, _ = warehouse_payload(4.0)  # about 0.6 s to validate on a free core
+    checker = MapChecker(1 << 26, None, isolated=True, timeout_s=0.1)
+    try:
+        checker.start()
+        pid = checker.process.pid
+        assert pid is not None
+        t0 = time.monotonic()
+        with pytest.raises(MapRejected, match=r"longer than 0\.1 s"):
+            checker.check("warehouse", payload)
+        assert time.monotonic() - t0 < 10.0
+        assert _gone(pid)
+        assert checker.check("m1", _small()).version == 1  # a new process
+        assert checker.process.started == 2
+    finally:
+        checker.close()
+
+
+def test_a_killed_validating_process_rejects_its_map_only() -> None:
+    payload, _ = warehouse_payload(8.0)  # about 1.2 s to validate on a free core
+    checker = MapChecker(1 << 26, None, isolated=True)
+    errors: list[Exception] = []
+
+    def check() -> None:
+        try:
+            checker.check("warehouse", payload)
+        except MapRejected as err:
+            errors.append(err)
+
+    try:
+        checker.start()
+        pid = checker.process.pid
+        assert pid is not None
+        busy = _cpu_s(pid) + 0.1
+        thread = threading.Thread(target=check)
+        thread.start()
+        # killed while it decodes the map (its CPU time grows)
+        assert _wait(lambda: _cpu_s(pid) > busy, 20.0)
+        os.kill(pid, signal.SIGKILL)
+        thread.join(30.0)
+        assert len(errors) == 1 and "died" in str(errors[0]), errors
+        assert checker.check("m1", _small()).version == 1
+        assert checker.process.pid not in (None, pid)
+    finally:
+        checker.close()
