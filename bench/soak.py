@@ -91,6 +91,7 @@ def verdicts(run: dict[str, Any], args: argparse.Namespace, warmup: float) -> li
             args.rotate_seconds,
             int(h.get("processed", -1)),
             overflow,
+            max(1, args.processes),
         ),
     ]
 
@@ -190,10 +191,13 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
     lines = [
         f"Command: `python -m bench.soak --robots {args.robots} --minutes {args.minutes:g} "
         f"--rotate-seconds {args.rotate_seconds:g} --sample-s {args.sample_s:g} "
-        f"--warmup-minutes {warmup:g} --loop-seconds {args.loop_seconds:g}{write}`",
+        f"--warmup-minutes {warmup:g} --loop-seconds {args.loop_seconds:g}"
+        f"{f' --processes {args.processes}' if args.processes else ''}{write}`",
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
-        f"{platform.python_version()}. One `rlutf serve` (recording on, a new file every "
+        f"{platform.python_version()}. One `rlutf serve"
+        f"{f' --processes {args.processes}' if args.processes else ''}` (recording on, a new "
+        "file every "
         f"{args.rotate_seconds:g} s) and one load-generator process share the cores: "
         f"{args.robots} robots at 10 Hz, 360-beam scans, 1 cm noise, each driving a "
         f"{args.loop_seconds:g} s loop (a path and back) with continuous drifting odometry, "
@@ -265,6 +269,12 @@ def main(argv: list[str] | None = None) -> int:
         help="each robot's loop, there and back (default 30; its scans are precomputed)",
     )
     p.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    p.add_argument(
+        "--processes",
+        type=int,
+        default=0,
+        help="run `rlutf serve --processes N` (N service processes behind a host)",
+    )
     p.add_argument("--seed", type=int, default=7, help="random seed of the simulated fleet")
     p.add_argument(
         "--no-write",

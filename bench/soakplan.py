@@ -192,10 +192,12 @@ def logs_verdicts(
     rotate_seconds: float,
     poses_published: int,
     recorder_overflow: int,
+    processes: int = 1,
 ) -> list[Verdict]:
     """Rotation happened, nothing is left as ``.part``, every file reads end to end, the pose
     messages of all files are the poses published (less what the recorder reported lost), and
-    the files name one run (the service started once), numbered 0, 1, 2 ... in file order.
+    the files name one run per service process (each started once), each run's files numbered
+    0, 1, 2 ... in file order.
     """
     need = expected_files(run_seconds, rotate_seconds)
     longest = max((f.span_s for f in files), default=math.nan)
@@ -204,6 +206,10 @@ def logs_verdicts(
     missing = poses_published - recorded
     runs = {f.run for f in files}
     numbers = [f.sequence for f in files]
+    in_order = all(
+        [f.sequence for f in files if f.run == run] == list(range(sum(f.run == run for f in files)))
+        for run in runs
+    )
     return [
         Verdict(
             "logs rotated",
@@ -236,8 +242,8 @@ def logs_verdicts(
             hard=True,
         ),
         Verdict(
-            "the files are one run, numbered in order",
-            len(runs) == 1 and None not in runs and numbers == list(range(len(files))),
+            "the files are one run per process, numbered in order",
+            len(runs) == processes and None not in runs and in_order,
             f"{len(runs)} run(s) named ({', '.join(sorted(str(r)[:8] for r in runs))}); "
             f"file numbers {numbers}",
             hard=True,

@@ -25,8 +25,11 @@ from bench.fleetrun import (
     stop_service,
     timed_publishing,
 )
-from bench.procstat import children, cpu_seconds, rss_tree_mb
+from bench.procstat import cpu_seconds, descendants, rss_tree_mb
 from bench.soakplan import FileCheck, LatencyHistogram
+
+#: The instance name ``start_service`` gives the service (a host answers for its processes).
+INSTANCE = "fleetbench"
 
 #: Longest wait, after the last scan, for the service to drain before the final counts, s.
 DRAIN_S = 60.0
@@ -150,14 +153,14 @@ class _Sampler:
         self.requests, self.replies = requests, replies
         self.t0 = time.monotonic()
         self.main0 = cpu_seconds(proc.pid)
-        self.workers: dict[int, float] = {p: cpu_seconds(p) for p in children(proc.pid)}
+        self.workers: dict[int, float] = {p: cpu_seconds(p) for p in descendants(proc.pid)}
         self.workers0 = sum(self.workers.values())
         self.gen0 = cpu_seconds(gen.pid)
         self.n = 0
 
     def cpu(self) -> tuple[float, float, float]:
         """CPU seconds since the start: service main, its workers (each as last seen), generator."""
-        for p in children(self.proc.pid):
+        for p in descendants(self.proc.pid):
             c = cpu_seconds(p)
             if math.isfinite(c):
                 self.workers[p] = c
@@ -184,7 +187,7 @@ class _Sampler:
         """One sample (see the module docstring); ``nan`` where a figure did not come."""
         minute = (time.monotonic() - self.t0) / 60.0
         main, workers, gen_cpu = self.cpu()
-        h = query_health(self.session, timeout=timeout)
+        h = query_health(self.session, timeout=timeout, instance=INSTANCE)
         extra = h.get("extra", {})
         g = self._generator_figures(timeout)
         lat = h.get("latency_ms", {})
@@ -279,7 +282,7 @@ def _wait_drained(session: Any, timeout: float) -> float:
     start = time.monotonic()
     before: tuple[Any, ...] = ()
     while (waited := time.monotonic() - start) < timeout:
-        h = query_health(session, timeout=2.0)
+        h = query_health(session, timeout=2.0, instance=INSTANCE)
         extra = h.get("extra", {})
         now = (h.get("processed"), h.get("dropped"), extra.get("scans_not_processed"))
         if h and extra.get("pending_inputs") == 0 and now == before:
@@ -297,7 +300,10 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-soak-"))
     env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
     service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
-    proc = start_service(endpoint, tmp, True, args.workers, env=env, stderr=service_log)
+    flags = ("--processes", str(args.processes)) if args.processes else ()
+    proc = start_service(
+        endpoint, tmp, True, args.workers, serve_flags=flags, env=env, stderr=service_log
+    )
     ctx = mp.get_context("spawn")
     out, requests, replies = ctx.Queue(), ctx.Queue(), ctx.Queue()
     ready, go, began, ended, finish = (ctx.Event() for _ in range(5))
@@ -356,7 +362,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         time.sleep(1.0)  # the last poses on their way to the generator
         finish.set()
         result = out.get(timeout=120)
-        health = query_health(session)
+        health = query_health(session, instance=INSTANCE)
         requests.put(None)
         session.close()
         stop_code = stop_service(proc, timeout=120)

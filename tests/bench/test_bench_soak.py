@@ -82,6 +82,12 @@ def test_logs_verdicts() -> None:
     # the files of one start of the service: one run, numbered from 0 in file order
     two_runs = [*files[:3], files[3]._replace(run="run-b")]
     assert not logs_verdicts(two_runs, [], 60.0, 15.0, 16, 0)[4].ok
+    # `--processes 2`: a run per process, each numbered from 0
+    two_processes = [*files[:2], files[2]._replace(run="run-b", sequence=0)]
+    two_processes.append(files[3]._replace(run="run-b", sequence=1))
+    assert logs_verdicts(two_processes, [], 60.0, 15.0, 16, 0, processes=2)[4].ok
+    assert not logs_verdicts(two_runs, [], 60.0, 15.0, 16, 0, processes=2)[4].ok
+    assert not logs_verdicts(files, [], 60.0, 15.0, 16, 0, processes=2)[4].ok
     gap = [*files[:3], files[3]._replace(sequence=4)]
     assert not logs_verdicts(gap, [], 60.0, 15.0, 16, 0)[4].ok
     untagged = [f._replace(run=None) for f in files]
