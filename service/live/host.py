@@ -100,8 +100,7 @@ def process_settings(
 class _Process:
     """One of the host's processes: its command, the running child, its restarts."""
 
-    def __init__(self, k: int, name: str, command: list[str], env: dict[str, str]) -> None:
-        self.k = k
+    def __init__(self, name: str, command: list[str], env: dict[str, str]) -> None:
         self.name = name
         self.command = command
         self.env = env
@@ -181,7 +180,7 @@ class Host:
         from service.live.node import LocalizationService
         from service.logs.recording import make_recorder
 
-        self.processes.append(_Process(0, own.instance, [], {}))
+        self.processes.append(_Process(own.instance, [], {}))
         self.service = LocalizationService(own, recorder=make_recorder(own))
         # It compiles the localizer's kernels on a first start after an install (or loads
         # them); the others start once it is ready and load them from numba's cache, instead
@@ -199,7 +198,7 @@ class Host:
             path.write_text(json.dumps(data))
             command = [self._python, "-m", "service", "serve", "--settings", str(path)]
             command += ["--host-pid", str(os.getpid())]  # it stops when this process is gone
-            self.processes.append(_Process(k, data["instance"], command, env))
+            self.processes.append(_Process(data["instance"], command, env))
         others = self.processes[1:]
         for p in others:
             p.start()

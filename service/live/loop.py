@@ -58,7 +58,6 @@ class InputLoop:
         self._sub: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.taken = 0
 
     def start(self, session: zenoh.Session, key: str) -> None:
         """Subscribe to ``key`` and start the thread."""
@@ -77,7 +76,6 @@ class InputLoop:
                 self._on_sample(sample)
             except Exception:  # the checks never raise; if they do, the loop goes on
                 log.exception("input %s", sample.key_expr)
-        self.taken += taken
         return taken
 
     def _run(self) -> None:
