@@ -209,15 +209,19 @@ def test_bad_input_gets_events_and_other_robots_keep_their_poses(bench: Bench) -
         encoding=JSON,
     )
     assert col.wait_for(lambda: any(e["code"] == "invalid_map" for e in events("rlutf/events")))
-    # the good robot kept being localized correctly throughout
+    # the good robot kept being localized correctly throughout: every scan it sent since is
+    # answered, or replaced by its next scan before processing and counted as dropped (the
+    # contract allows that under load; a scan lost silently fails here)
     _drive(bench, [good], 10, col)
-    poses = col.on("rlutf/robots/good/pose")
-    assert len(poses) >= n_before + 15
-    assert all(
-        _error(p, good.truth[i]) < 0.08
-        for p, i in zip(poses[-10:], range(good.step - 9, good.step + 1), strict=True)
-    )
+    sent = len(BAD_SCANS) + 10
     health = json.loads(bench.service.health())
+    poses = col.on("rlutf/robots/good/pose")
+    assert len(poses) - n_before + health["dropped"] >= sent
+    assert len(poses) - n_before >= sent - 2  # a drop is rare, not the rule
+    step_of = {good.stamp(i): i for i in range(good.step - 9, good.step + 1)}
+    last = [p for p in poses if p["stamp_ns"] in step_of]
+    assert len(last) >= 8
+    assert all(_error(p, good.truth[step_of[p["stamp_ns"]]]) < 0.08 for p in last)
     assert health["rejected"] >= len(BAD_SCANS) + 1
     for s in subs:
         s.undeclare()
