@@ -36,7 +36,6 @@ same seed and inputs give the same poses bit for bit.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -46,7 +45,7 @@ from rlutf.field import WideSearch, wide_search
 from rlutf.map import Map, coarse_map
 from rlutf.mapchange import Returns
 from rlutf.motion import wrap_scalar
-from rlutf.problem import Problem, Scorer
+from rlutf.problem import Problem
 from rlutf.quality import farthest_on_map, pose_quality
 from rlutf.raycast import Beams
 from rlutf.refine import Refinement, refine_pose
@@ -57,59 +56,14 @@ from rlutf.relocalize import (
     RelocalizeSettings,
     robust_cost,
 )
+from rlutf.result import LocalizeResult
 from rlutf.scan import Scan
 from rlutf.search import RandomSearch
+from rlutf.stages import search_stages, stage_search
 
 __all__ = ["LocalizeResult", "Localizer", "LocalizerConfig", "Status"]
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class LocalizeResult:
-    """Outcome of one update.
-
-    Attributes:
-        pose: ``(3,)`` the corrected pose ``(x, y, theta)`` in the map frame.
-        discrepancy: the discrepancy at ``pose``; ``inf`` when no comparison was possible.
-        iterations: search rounds used (0 when the prediction was accepted).
-        status: ``tracking``, ``corrected`` or ``lost``.
-        evaluations: candidate poses scored, the prediction included.
-        covariance: ``(3, 3)`` covariance of ``pose`` (m^2, m rad, rad^2), or ``None``.
-        fit: share of the scan's returns within ``fit_distance`` of the map at ``pose``.
-        sigma: the range noise estimated from the scan at ``pose``, metres (NaN if none).
-        refine_casts: casts of the scan made by the refinement.
-        hypotheses: while a relocalization cannot decide, the places the robot may be, best
-            first (``pose`` is the first); empty otherwise.
-        relocalizing: this update belongs to a relocalization (the map was searched or its
-            hypotheses followed); the one where a hypothesis wins has status ``corrected``.
-        score: the localization score in [0, 1] (:func:`rlutf.quality.localization_score`):
-            under 0.5 when ``lost``.
-        deviation_range: the radius around the position that holds the true one with 95 %
-            probability, metres (:func:`rlutf.quality.deviation_range`); for a lost pose, the
-            distance to the farthest corner of the map.
-        returns: the scan's returns beside the ranges cast at ``pose`` (for map health,
-            :mod:`rlutf.mapchange`); ``None`` when the update compared none.
-        fit_needed: the share of the returns that had to fit for the pose to be trusted:
-            ``min_fit``, or more for a robot whose scans usually fit better (its typical share
-            less a margin); NaN where the update did not apply it (relocalizations).
-    """
-
-    pose: FloatArray
-    discrepancy: float
-    iterations: int
-    status: Status
-    evaluations: int
-    covariance: FloatArray | None = None
-    fit: float = math.nan
-    sigma: float = math.nan
-    refine_casts: int = 0
-    hypotheses: tuple[Hypothesis, ...] = ()
-    relocalizing: bool = False
-    score: float = 0.0
-    deviation_range: float = math.inf
-    returns: Returns | None = None
-    fit_needed: float = math.nan
 
 
 class Localizer:
@@ -284,8 +238,10 @@ class Localizer:
                 # Algorithm 1's step 4: the prediction fits; the refinement started from it.
                 best, rounds, evaluations = predicted, 0, 1
             else:
-                best, rounds, evaluations = self._rlutf(
-                    first, predicted, mot, fit.area_start if gate else None
+                # Algorithm 1's comparison and random search
+                start_d = fit.area_start if gate else None
+                best, rounds, evaluations = search_stages(
+                    cfg, self._rng, first, predicted, mot, self._correction, self._typical, start_d
                 )
                 fit = self._fit(first, best)
             if first is not problem:
@@ -483,45 +439,6 @@ class Localizer:
         other = self._fit(problem, predicted)
         return other if _better(other, fit, self.config.select_scale) else fit
 
-    def _rlutf(
-        self,
-        problem: Problem,
-        predicted: FloatArray,
-        mot: FloatArray,
-        scored: float | None = None,
-    ) -> tuple[FloatArray, int, int]:
-        """Algorithm 1's comparison and random search: ``(best pose, rounds, evaluations)``;
-        ``scored`` is the prediction's discrepancy if known."""
-        cfg = self.config
-        best = predicted
-        best_d = float(problem.score(predicted[None])[0]) if scored is None else scored
-        evaluations = 1
-        rounds = 0
-        if best_d < cfg.accept_below:
-            return best, rounds, evaluations
-        delta, delta_theta = self._initial_radii(mot)
-        for _stage in range(max(cfg.max_stages, 1)):
-            start = best
-            search = self._search(start, delta, delta_theta)
-            search.best_d = best_d
-            score = self._scorer(problem, search)
-            evaluations += search.run(score)
-            best, best_d = search.best, search.best_d
-            if not math.isfinite(best_d):
-                break
-            rounds += search.rounds
-            radii = self._next_radii(start, best, best_d, delta, delta_theta)
-            if radii is None:
-                break
-            delta, delta_theta = radii
-        return best, rounds, evaluations
-
-    def _scorer(self, problem: Problem, search: RandomSearch) -> Scorer:
-        cfg = self.config
-        if problem.cap is None or cfg.mode == "paper" or cfg.cap_per_radius == 0:
-            return Scorer(problem, search, None)
-        return Scorer(problem, search, (problem.cap, cfg.cap_per_radius))
-
     def _wide(
         self, problem: Problem, predicted: FloatArray, spread: tuple[float, float]
     ) -> tuple[FloatArray, int, int, Refinement]:
@@ -550,64 +467,8 @@ class Localizer:
         return self._beams[1]
 
     def _search(self, start: FloatArray, delta: float, delta_theta: float) -> RandomSearch:
-        cfg = self.config
-        paper = cfg.mode == "paper"
-        return RandomSearch(
-            self._rng,
-            start,
-            delta,
-            delta_theta,
-            candidates=cfg.candidates,
-            max_rounds=cfg.max_rounds,
-            delta_min=cfg.delta_min,
-            # The paper halves one radius; the default mode also waits for the heading radius.
-            delta_theta_min=math.inf if paper else cfg.delta_theta_min,
-            epsilon=cfg.accept_below,
-            elitist=not paper,
-        )
-
-    def _initial_radii(self, mot: FloatArray) -> tuple[float, float]:
-        """Search radii (position, heading) of the first stage."""
-        cfg = self.config
-        if not cfg.adaptive or cfg.mode == "paper":
-            return cfg.delta, cfg.delta_theta
-        travel = math.hypot(float(mot[0]), float(mot[1]))
-        turn = abs(float(mot[2]))
-        moved, turned = self._correction
-        delta = cfg.delta_start + cfg.delta_per_metre * travel + cfg.delta_per_correction * moved
-        delta_theta = (
-            cfg.delta_theta_start
-            + cfg.delta_theta_per_radian * turn
-            + cfg.delta_theta_per_metre * travel
-            + cfg.delta_per_correction * turned
-        )
-        return min(cfg.delta, delta), min(cfg.delta_theta, delta_theta)
-
-    def _next_radii(
-        self, start: FloatArray, best: FloatArray, best_d: float, delta: float, delta_theta: float
-    ) -> tuple[float, float] | None:
-        """Radii of another search stage around ``best``, or ``None`` when done.
-
-        A stage that ends over ``lost_threshold`` is followed by one with the full radii; one
-        whose best pose moved most of the way to the edge of its radii, by one with the radii
-        doubled (the error may be larger than the odometry suggested).
-        """
-        cfg = self.config
-        if not cfg.adaptive or cfg.mode == "paper":
-            return None
-        if delta >= cfg.delta and delta_theta >= cfg.delta_theta:
-            return None
-        if best_d > cfg.lost_above:
-            return cfg.delta, cfg.delta_theta
-        moved = math.hypot(float(best[0] - start[0]), float(best[1] - start[1]))
-        turned = abs(float(best[2] - start[2]))
-        if (
-            moved > cfg.expand_fraction * delta
-            or turned > cfg.expand_fraction * delta_theta
-            or best_d > cfg.surprise_ratio * self._typical
-        ):
-            return min(cfg.delta, 2.0 * delta), min(cfg.delta_theta, 2.0 * delta_theta)
-        return None
+        """The random search of one stage (:func:`rlutf.stages.stage_search`)."""
+        return stage_search(self.config, self._rng, start, delta, delta_theta)
 
 
 def _better(a: Refinement, b: Refinement, scale: float) -> bool:
