@@ -78,6 +78,7 @@ def render(
             f"| {r['cpu_main']:.2f} / {r['cpu_workers']:.2f} / {r['cpu_generator']:.2f} "
             f"| {r['steal']:.1f} "
             f"| {r['rss_first']:.0f} / {r['rss_peak']:.0f} / {r['rss_last']:.0f} "
+            f"| {r['pss_peak']:.0f} "
             f"| {'yes' if ok else 'no'} |"
         )
         print(rows[-1], flush=True)
@@ -116,10 +117,11 @@ def render(
             "| worker compute p50 ms "
             f"| CPU ms per scan: {parts} / generator "
             "| CPU stolen by the hypervisor, % "
-            "| service RSS MB first / peak / last "
+            "| service RSS MB first / peak / last (VmRSS, added up over its processes) "
+            "| service Pss MB peak (shared pages counted once) "
             "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-            "| --- |",
+            "| --- | --- |",
             *rows,
             "",
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",
@@ -140,7 +142,7 @@ def render(
                     f"Where the service's CPU goes at {sizes[-1]} robots: CPU ms per scan sent, "
                     "by thread (the kernel's per-thread counters over the publishing interval; "
                     "Python thread names from `py-spy dump`; threads doing the same job added "
-                    "up, both workers added up).",
+                    "up, both workers (or the host's other processes) added up).",
                     "",
                     "| process | thread | CPU ms per scan |",
                     "| --- | --- | ---: |",

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.procstat import cpu_seconds, descendants, machine_steal, rss_tree_mb
+from bench.procstat import cpu_seconds, descendants, machine_steal, pss_tree_mb, rss_tree_mb
 from bench.threads import python_thread_names, task_cpu, thread_table
 
 RATE_HZ = 10.0
@@ -280,10 +280,12 @@ def run_size(
 
     ``door`` and ``serve_flags`` let another front door be measured the same way
     (:mod:`bench.ros2`). With ``threads``, the result's ``threads`` holds the service's CPU per
-    scan sent by thread (:mod:`bench.threads`), main process and workers apart.
+    scan sent by thread (:mod:`bench.threads`), main process and workers apart (host and its
+    other service processes apart with ``--processes``).
     """
     from service.live.sessions import free_port
 
+    hosted = "--processes" in serve_flags
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-fleet-"))
     proc = start_service(endpoint, tmp, record, workers, serve_flags)
@@ -294,6 +296,7 @@ def run_size(
         args=(endpoint, robots, duration, door, out, ready, go, began, ended),
     )
     rss: list[float] = []
+    pss: list[float] = []
     stop = threading.Event()
     try:
         time.sleep(2.0)
@@ -303,6 +306,7 @@ def run_size(
         def sample() -> None:
             while not stop.wait(1.0):
                 rss.append(rss_tree_mb(proc.pid))
+                pss.append(pss_tree_mb(proc.pid))
 
         threading.Thread(target=sample, daemon=True).start()
         go.set()
@@ -322,7 +326,10 @@ def run_size(
         by_thread: dict[str, dict[str, float]] = {}
         if threads:
             for p, start in tasks0.items():
-                table = by_thread.setdefault("main" if p == proc.pid else "workers", {})
+                # A host of service processes (--processes) runs process 0 itself.
+                label = ("host" if p == proc.pid else "processes") if hosted else None
+                label = label or ("main" if p == proc.pid else "workers")
+                table = by_thread.setdefault(label, {})
                 names = python_thread_names(p)
                 for name, ms in thread_table(start, tasks1[p], names, result["scans_sent"]):
                     table[name] = table.get(name, 0.0) + ms
@@ -331,7 +338,7 @@ def run_size(
         stop.set()
         stop_service(proc)
         shutil.rmtree(tmp, ignore_errors=True)
-    return _figures(
+    row = _figures(
         robots,
         result,
         h,
@@ -342,6 +349,8 @@ def run_size(
         steal1[1] - steal0[1],
         by_thread,
     )
+    row["pss_peak"] = max(pss) if pss else math.nan
+    return row
 
 
 def _figures(

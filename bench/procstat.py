@@ -49,6 +49,23 @@ def rss_tree_mb(pid: int) -> float:
     return total / 1024.0
 
 
+def pss_tree_mb(pid: int) -> float:
+    """Proportional resident memory of a process and its descendants, MB: each shared page
+    (a library mapped by several of them) divided among the processes that map it, so the
+    sum is what the tree takes from the machine (``Pss`` in ``smaps_rollup``)."""
+    total = 0
+    for p in [pid, *descendants(pid)]:
+        try:
+            with open(f"/proc/{p}/smaps_rollup") as f:
+                for line in f:
+                    if line.startswith("Pss:"):
+                        total += int(line.split()[1])
+                        break
+        except OSError:
+            continue
+    return total / 1024.0
+
+
 def cpu_seconds(pid: int) -> float:
     """User plus system CPU time of one process so far, seconds (``nan`` once it is gone)."""
     try:
