@@ -185,6 +185,7 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
     s, g, h = run["samples"], run["generator"], run["health"]
     main, workers, gen = run["cpu"]
     rss = [x["rss_service_mb"] for x in s] or [math.nan]
+    pss = [x.get("pss_service_mb", math.nan) for x in s] or [math.nan]
     grss = [x["rss_generator_mb"] for x in s] or [math.nan]
     files = run["files"]
     write = " --write" if args.write else ""
@@ -217,7 +218,9 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
         f"{h.get('received')} of {2 * g['scans_sent'] + 2 * args.robots} sent (scans, "
         "odometry, initial poses); service RSS first / peak / last "
         f"{rss[0]:.0f} / {max(rss):.0f} / {rss[-1]:.0f} MB (slope over the whole run "
-        f"{slope_per_10min([x['minute'] for x in s], rss):+.2f} MB per 10 min), generator "
+        f"{slope_per_10min([x['minute'] for x in s], rss):+.2f} MB per 10 min; VmRSS added up "
+        f"over its processes), its Pss (shared pages counted once) {pss[0]:.0f} / "
+        f"{max(pss):.0f} / {pss[-1]:.0f} MB, generator "
         f"{grss[0]:.0f} / {max(grss):.0f} / {grss[-1]:.0f} MB; the generator ended "
         f"{g['behind_s']:.2f} s behind its schedule; "
         + (

@@ -25,7 +25,7 @@ from bench.fleetrun import (
     stop_service,
     timed_publishing,
 )
-from bench.procstat import cpu_seconds, descendants, rss_tree_mb
+from bench.procstat import cpu_seconds, descendants, pss_tree_mb, rss_tree_mb
 from bench.soakplan import FileCheck, LatencyHistogram
 
 #: The instance name ``start_service`` gives the service (a host answers for its processes).
@@ -195,6 +195,7 @@ class _Sampler:
         return {
             "minute": minute,
             "rss_service_mb": rss_tree_mb(self.proc.pid),
+            "pss_service_mb": pss_tree_mb(self.proc.pid),
             "rss_generator_mb": rss_tree_mb(self.gen.pid),
             "cpu_main_s": main,
             "cpu_workers_s": workers,
