@@ -190,10 +190,16 @@ class FleetEngine:
         return self._scan(robot, message, received_ns)
 
     def _add_odometry(self, robot: _Robot, msg: Odometry) -> None:
+        """Keep one odometry reading; all or nothing, so that :func:`service.guard.guarded`
+        needs no snapshot of the robot for it (the common input, half of a robot's inputs)."""
         pose = np.array([msg.x, msg.y, msg.theta], dtype=np.float64)
         i = bisect.bisect_right(robot.odom_stamps, msg.stamp_ns)
         robot.odom_stamps.insert(i, msg.stamp_ns)
-        robot.odom_poses.insert(i, pose)
+        try:
+            robot.odom_poses.insert(i, pose)
+        except BaseException:
+            del robot.odom_stamps[i]
+            raise
         if len(robot.odom_stamps) > 4096:  # a robot that sends odometry but no scans
             del robot.odom_stamps[:2048], robot.odom_poses[:2048]
 

@@ -108,11 +108,14 @@ def guarded(engine: Engine, robot: Any, message: Message, received_ns: int) -> l
             Outbound("rejected", key, b"", message.stamp_ns, robot.robot_id),
             *engine._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
         ]
-    saved = Snapshot(robot)
+    # Odometry only appends to the robot's readings, all or nothing (FleetEngine._add_odometry):
+    # nothing to put back, and no snapshot to take for half of the inputs.
+    saved = None if isinstance(message, Odometry) else Snapshot(robot)
     try:
         return engine._handle(robot, message, received_ns)
     except Exception as err:  # one robot's failure never reaches the others or the caller
-        saved.restore(robot)
+        if saved is not None:
+            saved.restore(robot)
         text = (
             f"{kind} {message.stamp_ns} not applied: {type(err).__name__}: {str(err)[:200]}"
             f"{where(err)}; the robot's state is as before it"

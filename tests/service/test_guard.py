@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from typing import Any
+from typing import Any, SupportsIndex
 
 import numpy as np
 import pytest
@@ -182,6 +182,36 @@ def test_a_failing_update_is_undone_and_gives_an_internal_error_event() -> None:
         expected += plain.handle("r1", scan, Run.received(i) + 1)
         got += attacked.handle("r1", scan, Run.received(i) + 1)
         assert _poses(got) == _poses(expected), f"step {i}: the failed update left a trace"
+
+
+class _FailingList(list[np.ndarray]):
+    """A robot's odometry poses whose next insert fails (out of memory, say)."""
+
+    def insert(self, index: SupportsIndex, value: np.ndarray) -> None:
+        raise MemoryError("no room")
+
+
+def test_a_failing_odometry_reading_leaves_no_trace() -> None:
+    # Odometry is applied without a snapshot (half of the inputs): all or nothing by itself.
+    run = Run.make(WORLD, 6, STEPS)
+    plain, attacked = _engine(), _engine()
+    _start(plain, run)
+    _start(attacked, run)
+    robot = attacked._robots["r1"]
+    stamps, poses = list(robot.odom_stamps), robot.odom_poses
+    robot.odom_poses = _FailingList(poses)
+    out = attacked.handle("r1", run.odometry(1), Run.received(1))
+    (event,) = _events(out)
+    assert event["code"] == "internal_error" and event["key"] == "rlutf/robots/r1/odom"
+    assert robot.odom_stamps == stamps and list(robot.odom_poses) == poses
+    robot.odom_poses = list(robot.odom_poses)
+    for i in range(1, STEPS + 1):
+        expected = plain.handle("r1", run.odometry(i), Run.received(i))
+        got = attacked.handle("r1", run.odometry(i), Run.received(i))
+        scan = run.scan(i)
+        expected += plain.handle("r1", scan, Run.received(i) + 1)
+        got += attacked.handle("r1", scan, Run.received(i) + 1)
+        assert _poses(got) == _poses(expected), f"step {i}: the failed reading left a trace"
 
 
 def test_limits_are_settings_and_recorded_for_replay() -> None:
