@@ -1,0 +1,216 @@
+"""Where a scan's CPU goes before any bus: the localizer, the engine around it, a worker's pipe.
+
+Run: ``python -m bench.floor [--robots 20] [--steps 200] [--write]``.
+
+The fleet benchmark (:mod:`bench.fleet`) measures the whole service; this one peels it, on the
+same simulated fleet (:mod:`service.sim`, 360-beam scans at 10 Hz, drifting odometry), with no
+Zenoh and no other process competing:
+
+1. *localizer*: ``Localizer.update`` alone on the decoded scans (the motion from the odometry);
+2. *engine*: each robot's odometry and scan payloads decoded (the JSON robots put) and handed
+   to :class:`service.engine.FleetEngine`, as a worker does: the guard, the pose and its
+   quality, map health evidence, the encoded PoseEstimate;
+3. *behind a pipe*: the same payloads sent to a real worker process
+   (:func:`service.live.worker.worker_main`) over its pipe, ``IN_FLIGHT`` batches at a time as
+   the service sends them, the answers read back; the worker's CPU and the feeder's.
+
+Each figure is CPU time (user + system) per scan over the measured steps, after every robot's
+first :data:`WARM` steps (the first update searches wide, the kernels load). The differences
+are what each layer costs; the rest of the service (the bus, the recorder, the views) is the
+fleet benchmark's figure less the last row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import platform
+import time
+from typing import Any
+
+from bench.report import section_main
+from service.sim.plan import FleetPlan, FleetSpec, plan_fleet
+from service.sim.wire import JsonWire, map_payload
+
+SECTION = "floor"
+#: Steps of every robot before the clock starts.
+WARM = 20
+#: Batches in a worker's pipe at once (the service's ``PIPE_IN_FLIGHT`` floor).
+IN_FLIGHT = 16
+T0 = 1_000_000_000
+PERIOD = 100_000_000
+
+
+def _cpu(pid: int | None = None) -> float:
+    if pid is None:
+        t = os.times()
+        return t.user + t.system
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _fleet(robots: int, steps: int) -> tuple[FleetPlan, JsonWire]:
+    plan = plan_fleet(FleetSpec(robots=robots, poses=steps + 1, seed=7, map_id="sim"))
+    return plan, JsonWire(plan)
+
+
+def localizer_ms(plan: FleetPlan, steps: int) -> float:
+    """CPU ms per ``Localizer.update`` over the plan's robots (scans decoded beforehand)."""
+    from rlutf.localizer import Localizer, LocalizerConfig
+    from rlutf.motion import relative
+
+    config = LocalizerConfig()
+    world = plan.world
+    robots = [
+        (Localizer(world, r.initial, config, seed=k), r)
+        for k, r in enumerate(plan.robots)
+        if r.initial is not None
+    ]
+
+    def run(a: int, b: int) -> int:
+        n = 0
+        for k in range(a, b):
+            for loc, r in robots:
+                loc.update(relative(r.odometry_at(k - 1), r.odometry_at(k)), r.scans[r.index(k)])
+                n += 1
+        return n
+
+    run(1, WARM)
+    c0 = _cpu()
+    n = run(WARM, steps)
+    return 1e3 * (_cpu() - c0) / n
+
+
+def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
+    """CPU ms per scan of decoding a robot's odometry and scan and handling both."""
+    from schemas import InitialPose, LaserScan, Odometry, decode
+    from service.config import Settings
+    from service.engine import FleetEngine
+    from service.keys import Keys
+    from service.live.worker import evidence, world_of_payload
+
+    s = Settings()
+    eng = FleetEngine(
+        Keys(), s.localizer, int(s.event_interval_s * 1e9), None, evidence(s.map_health)
+    )
+    eng.register_map("sim", 1, world_of_payload(map_payload(plan)), 0)
+    ids = [r.robot_id for r in plan.robots]
+    for i, rid in enumerate(ids):
+        eng.handle(rid, decode(Odometry, wire.odometry(i, 0, T0)), T0)
+        start = wire.initial_pose(i, T0)
+        if start is not None:
+            eng.handle(rid, decode(InitialPose, start), T0)
+
+    def run(a: int, b: int) -> int:
+        n = 0
+        for k in range(a, b):
+            st = T0 + k * PERIOD
+            for i, rid in enumerate(ids):
+                eng.handle(rid, decode(Odometry, wire.odometry(i, k, st)), st)
+                eng.handle(rid, decode(LaserScan, wire.scan(i, k, st)), st + 1000)
+                n += 1
+        return n
+
+    run(1, WARM)
+    c0 = _cpu()
+    n = run(WARM, steps)
+    return 1e3 * (_cpu() - c0) / n
+
+
+def pipe_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> tuple[float, float]:
+    """CPU ms per scan of a worker process fed over its pipe, and of the feeding process."""
+    from service.config import Settings
+    from service.live.worker import recv, send, worker_main
+
+    s = Settings()
+    ctx = mp.get_context("spawn")
+    conn, child = ctx.Pipe()
+    args = (child, "rlutf", s.localizer, int(s.event_interval_s * 1e9), 2, None, s.map_health)
+    proc = ctx.Process(target=worker_main, args=args, daemon=True)
+    proc.start()
+    child.close()
+    try:
+        if recv(conn)[0] != "ready":
+            raise RuntimeError("the worker did not start")
+        send(conn, ("map", "sim", 1, map_payload(plan), 0))
+        ids = [r.robot_id for r in plan.robots]
+        for i, rid in enumerate(ids):
+            batch: list[tuple[str, bytes, int]] = [("odom", wire.odometry(i, 0, T0), T0)]
+            start = wire.initial_pose(i, T0)
+            if start is not None:
+                batch.append(("initialpose", start, T0))
+            send(conn, ("batch", rid, batch))
+            recv(conn)
+
+        def run(a: int, b: int) -> int:
+            pending = n = 0
+            for k in range(a, b):
+                st = T0 + k * PERIOD
+                for i, rid in enumerate(ids):
+                    odom = ("odom", wire.odometry(i, k, st), st)
+                    send(conn, ("batch", rid, [odom, ("scan", wire.scan(i, k, st), st + 1000)]))
+                    pending, n = pending + 1, n + 1
+                    while pending >= IN_FLIGHT:
+                        _answer: Any = recv(conn)
+                        pending -= 1
+            for _ in range(pending):
+                recv(conn)
+            return n
+
+        run(1, WARM)
+        w0, f0 = _cpu(proc.pid), _cpu()
+        n = run(WARM, steps)
+        return 1e3 * (_cpu(proc.pid) - w0) / n, 1e3 * (_cpu() - f0) / n
+    finally:
+        send(conn, ("stop",))
+        proc.join(10)
+
+
+def render(args: argparse.Namespace) -> str:
+    """Measure the three layers and return the section."""
+    plan, wire = _fleet(args.robots, args.steps)
+    started = time.time()
+    loc = localizer_ms(plan, args.steps)
+    eng = engine_ms(plan, wire, args.steps)
+    worker, feeder = pipe_ms(plan, wire, args.steps)
+    scans = args.robots * (args.steps - WARM)
+    engine = "engine: payloads decoded, `FleetEngine.handle` (odometry and scan)"
+    rows = [
+        ("localizer: `Localizer.update` on decoded scans", loc, "-"),
+        (engine, eng, f"{eng - loc:+.3f}"),
+        ("behind a pipe: a worker, fed as the service feeds it", worker, f"{worker - eng:+.3f}"),
+        ("the feeding process's side of the pipe", feeder, "-"),
+    ]
+    return "\n".join(
+        [
+            f"Command: `python -m bench.floor --robots {args.robots} --steps {args.steps} --write`",
+            "",
+            f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
+            f"{platform.python_version()}; {args.robots} simulated robots, {scans} scans "
+            f"measured per row (after {WARM} steps each), one process at a time (the worker "
+            f"row: two, the worker and its feeder); {time.time() - started:.0f} s in all. Load "
+            f"average at the end: {os.getloadavg()[0]:.1f}.",
+            "",
+            "| layer | CPU ms per scan | added by the layer |",
+            "| --- | ---: | ---: |",
+            *(f"| {name} | {ms:.3f} | {more} |" for name, ms, more in rows),
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry."""
+    p = argparse.ArgumentParser(
+        prog="python -m bench.floor",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robots", type=int, default=20, help="simulated robots")
+    p.add_argument("--steps", type=int, default=200, help="steps per robot (10 per second)")
+    return section_main(p, render, SECTION, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
