@@ -341,6 +341,39 @@ def answer_on_method(name: str) -> Method:
     return Method("answer-on", "RLuTF, answer on another map", make)
 
 
+class RawAnswer:
+    """RLuTF tracking on the map, each pose then aligned by ICP on the raw points (a trial of
+    keeping the log's points beside the walls for the answer); the aligned pose is where the
+    next update predicts from."""
+
+    def __init__(self, world: Map, pose: FloatArray, seed: int, samples: WallSamples) -> None:
+        from rlutf.localizer import Localizer
+
+        self._loc = Localizer(world, pose, LocalizerConfig(), seed=seed)
+        self._samples = samples
+        self._icp = ICP_SETTINGS["gate 2 m to 0.2 m, 50 steps"]
+
+    def update(self, motion: FloatArray, scan: Scan) -> Estimate:
+        """Track on the map, align on the raw points."""
+        result = self._loc.update(motion, scan)
+        aligned = PointToLineIcp(None, result.pose, self._icp, self._samples)
+        pose = aligned.update(np.zeros(3), scan).pose
+        if pose is None:
+            return Estimate(result.pose.copy(), result.status, None)
+        self._loc._pose = pose.copy()
+        return Estimate(pose.copy(), result.status, None)
+
+
+def raw_answer_method(name: str) -> Method:
+    """:class:`RawAnswer` on ``name``'s raw even-scan points."""
+    samples = raw_points(name)
+    return Method(
+        "raw-answer",
+        "RLuTF, answer on the raw points",
+        make=lambda w, p, s: RawAnswer(w, p, s, samples),
+    )
+
+
 def leave_out_method(name: str, config: IcpConfig, window: int) -> Method:
     """ICP on ``name``'s raw points without the even scans around each tracked one."""
 
