@@ -41,14 +41,17 @@ from bench.evenodd_runs import (
     LOGS,
     Errors,
     MapRecipe,
+    answer_on_method,
     coarse_to_fine_method,
     even_map,
     from_reference,
+    hit_to_wall,
     icp_from_reference,
     icp_method,
     leave_out_method,
     odd_base,
     odd_run,
+    raw_answer_method,
     rlutf_method,
     tracked,
     update_seconds,
@@ -56,6 +59,7 @@ from bench.evenodd_runs import (
 )
 from bench.methods import Method
 from bench.report import replace_section
+from bench.wallfit import WallFit
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import coarse_map
 
@@ -66,6 +70,8 @@ NEIGHBOURS_SECTION = "evenodd-neighbours"
 COARSE_SECTION = "evenodd-coarse"
 #: The section of ``--cost``.
 COST_SECTION = "evenodd-cost"
+#: The section of ``--fitted-walls``.
+FITTED_SECTION = "evenodd-fitted"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
 
@@ -275,6 +281,69 @@ def render_coarse(
     return "\n".join([*lines, ""])
 
 
+def render_fitted(
+    args: argparse.Namespace, progress: Callable[[str], None] = lambda s: None
+) -> str:
+    """The trial of walls moved onto the hit points (:mod:`bench.wallfit`)."""
+    logs = [s for s in args.logs.split(",") if s]
+    seeds = [ODOM5_SEED + i for i in range(args.seeds)]
+    config = LocalizerConfig()
+    recipes = {
+        "fitted walls: the cell edges traced, moved onto the hits, simplified at 0.25 cell": (
+            MapRecipe(simplify=0.0, fit=WallFit())
+        ),
+        "fitted walls: the map as built (simplified at half a cell) moved onto the hits": (
+            MapRecipe(fit=WallFit(simplify=0.0))
+        ),
+    }
+    lines = [
+        "### A trial: walls moved onto the hit points",
+        "",
+        f"Command: `{_command(args)}`.",
+        "",
+        "The same runs as above. *Fitted walls*: the map `rlutf map build` traces (surface "
+        "offset 0.4 cell), its vertices then moved so that the walls pass through the even "
+        "scans' hit points (those in cells that are not free), by the regularised "
+        "least-squares fit of `bench.wallfit.fit_walls` (`bench.wallfit.WallFit` defaults: "
+        "hits within 5 cm of a wall whose free side faces the scanner, Huber 1.5 cm, "
+        "displacements held to each other along the ring, at most 5 cm). *Answer on fitted "
+        "walls*: the default localizer tracks on the map as built, and each of its poses is "
+        "refined on the fitted walls of the first row (`bench.evenodd_runs.CoarseToFine`). "
+        "*Answer by ICP on the raw points*: the default localizer tracks on the map as built, "
+        "and each of its poses is aligned by ICP on the raw points (gate 2 m to 0.2 m, 50 "
+        "steps), the aligned pose fed back (`bench.evenodd_runs.RawAnswer`: a trial of keeping "
+        "the log's points beside the walls for the answer). "
+        "*From reference*: each odd scan refined once from its corrected pose. *Hit to wall*: "
+        "median distance from the even scans' hits in cells that are not free to the nearest "
+        "wall. "
+        f"Odometry seeds {', '.join(map(str, seeds))}.",
+        "",
+        "| log | map | walls | hit to wall cm | RMSE cm | median cm | p95 cm | max cm | "
+        "over 0.5 m | from reference: RMSE / median cm |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name in logs:
+        worlds = {"as `rlutf map build` writes it": even_map(name)}
+        worlds.update({label: even_map(name, r) for label, r in recipes.items()})
+        for label, world in worlds.items():
+            progress(f"{name}: {label}")
+            e = tracked(rlutf_method(config), name, world, seeds)
+            ref = from_reference(name, world, config)
+            cells = f"{label} | {len(world.segments)} | {hit_to_wall(name, world):.2f}"
+            lines.append(f"| {name} {_row(cells, e)} {_cm(ref.rmse)} / {_cm(ref.percentile(50))} |")
+        fitted = even_map(name, next(iter(recipes.values())))
+        progress(f"{name}: answer on fitted walls")
+        answer = tracked(answer_on_method(name), name, fitted, seeds)
+        label = f"answer on fitted walls | {len(fitted.segments)} | -"
+        lines.append(f"| {name} {_row(label, answer)} - |")
+        built = even_map(name)
+        progress(f"{name}: answer by ICP on the raw points")
+        raw = tracked(raw_answer_method(name), name, built, seeds)
+        label = f"answer by ICP on the raw points | {len(built.segments)} | -"
+        lines.append(f"| {name} {_row(label, raw)} - |")
+    return "\n".join([*lines, ""])
+
+
 def render_cost(args: argparse.Namespace, progress: Callable[[str], None] = lambda s: None) -> str:
     """Time per update of the localizer on the built maps, with and without the coarse map."""
     logs = [s for s in args.logs.split(",") if s]
@@ -327,6 +396,8 @@ def _command(args: argparse.Namespace) -> str:
         parts.append("--cost")
     elif args.coarse:
         parts.append("--coarse-to-fine")
+    elif args.fitted:
+        parts.append("--fitted-walls")
     elif not args.variants:
         parts.append("--no-variants")
     return " ".join([*parts, "--write"])
@@ -356,6 +427,12 @@ def main(argv: list[str] | None = None) -> int:
         help="only the coarse-to-fine trial (its own section)",
     )
     p.add_argument(
+        "--fitted-walls",
+        dest="fitted",
+        action="store_true",
+        help="only the trial of walls moved onto the hit points (its own section)",
+    )
+    p.add_argument(
         "--cost",
         action="store_true",
         help="only the time per update, with and without the coarse map (its own section; run "
@@ -369,6 +446,8 @@ def main(argv: list[str] | None = None) -> int:
         text, section = render_cost(args, _stderr), COST_SECTION
     elif args.coarse:
         text, section = render_coarse(args, _stderr), COARSE_SECTION
+    elif args.fitted:
+        text, section = render_fitted(args, _stderr), FITTED_SECTION
     else:
         text, section = render(args, _stderr), SECTION
     print(text)

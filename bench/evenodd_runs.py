@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 from functools import cache
 
 import numpy as np
+import shapely
 from scipy.spatial import cKDTree
 
 from bench.baselines.common import Estimate
@@ -20,12 +21,14 @@ from bench.baselines.icp import IcpConfig, PointToLineIcp, WallSamples, point_sa
 from bench.carmen import ODOM5_SEED, RANGE_MAX, carmen_run, slam_odometry
 from bench.methods import Method, RlutfTracker, Trace, track
 from bench.scenarios import DATA, FloatArray, IntArray, Run
+from bench.wallfit import WallFit, fit_walls
 from rlutf.localizer import LocalizerConfig
-from rlutf.map import Map
+from rlutf.map import Map, geometry_from_geojson
 from rlutf.problem import Problem
 from rlutf.raycast import Beams
 from rlutf.refine import refine_pose
 from rlutf.scan import Scan
+from service.maps.mapimport.grid import OccupancyGrid
 
 LOGS = ("intel", "aces")
 #: Updates further off than this count as diverged, metres.
@@ -52,6 +55,8 @@ class MapRecipe:
         free_thresh: hit ratio under which a cell is free.
         occupied_thresh: hit ratio over which a cell is occupied (cells in between are
             unknown, and unknown cells are walls).
+        fit: if set, the traced walls are then moved onto the even scans' hit points
+            (:func:`bench.wallfit.fit_walls`; the hits in free cells are left out).
     """
 
     resolution: float = 0.05
@@ -59,6 +64,7 @@ class MapRecipe:
     simplify: float | None = None
     free_thresh: float = 0.25
     occupied_thresh: float = 0.65
+    fit: WallFit | None = None
 
 
 @dataclass(frozen=True)
@@ -115,19 +121,52 @@ def _even_scans(name: str) -> tuple:  # type: ignore[type-arg]
 
 
 @cache
+def _grid(
+    name: str, resolution: float, free_thresh: float, occupied_thresh: float
+) -> OccupancyGrid:
+    from service.maps.mapimport import build_grid
+
+    return build_grid(
+        _even_scans(name),
+        resolution=resolution,
+        free_thresh=free_thresh,
+        occupied_thresh=occupied_thresh,
+    )
+
+
+def _wall_hits(name: str, grid: OccupancyGrid) -> tuple[FloatArray, FloatArray]:
+    """The even scans' hit points in cells of ``grid`` that are not free, and their sensors."""
+    points, sensors, _ = _raw_cloud(name)
+    cell = np.floor(grid.to_local(points) / grid.resolution).astype(np.int64)
+    walls = ~grid.free[cell[:, 1], cell[:, 0]]
+    return points[walls], sensors[walls]
+
+
+@cache
 def even_map(name: str, recipe: MapRecipe = MapRecipe()) -> Map:
     """The map of ``name``'s even scans, built as ``rlutf map build`` builds a log's."""
-    from service.maps.mapimport import build_grid, grid_to_map
+    from service.maps.mapimport import grid_to_map
 
-    grid = build_grid(
-        _even_scans(name),
-        resolution=recipe.resolution,
-        free_thresh=recipe.free_thresh,
-        occupied_thresh=recipe.occupied_thresh,
-    )
+    grid = _grid(name, recipe.resolution, recipe.free_thresh, recipe.occupied_thresh)
     offset = recipe.surface_cells * recipe.resolution
     built = grid_to_map(grid, map_id=name, surface_offset=offset, simplify=recipe.simplify)
-    return Map.from_geojson(built.map["geometry"])
+    if recipe.fit is None:
+        return Map.from_geojson(built.map["geometry"])
+    geometry = geometry_from_geojson(built.map["geometry"])
+    hits, sensors = _wall_hits(name, grid)
+    return Map.from_shapely(fit_walls(geometry, hits, sensors, recipe.fit))
+
+
+def hit_to_wall(name: str, world: Map) -> float:
+    """Median distance (cm) from the hits in the cells of the default grid that are not free to
+    the nearest wall of ``world``."""
+    base = MapRecipe()
+    hits, _ = _wall_hits(name, _grid(name, base.resolution, base.free_thresh, base.occupied_thresh))
+    segments = shapely.linestrings(world.segments.reshape(-1, 2, 2))
+    _, distance = shapely.STRtree(segments).query_nearest(
+        shapely.points(hits), return_distance=True, all_matches=False
+    )
+    return 100.0 * float(np.median(distance))
 
 
 @cache
@@ -289,6 +328,50 @@ def coarse_to_fine_method(name: str, coarse: MapRecipe) -> Method:
         return CoarseToFine(world, pose, config, seed, coarse_map)
 
     return Method("coarse-to-fine", "RLuTF coarse to fine", make)
+
+
+def answer_on_method(name: str) -> Method:
+    """RLuTF (``LocalizerConfig()``) tracking on ``name``'s map as built, each pose refined on
+    the map it is given (:class:`CoarseToFine`)."""
+    built = even_map(name)
+
+    def make(world: Map, pose: FloatArray, seed: int) -> CoarseToFine:
+        return CoarseToFine(world, pose, LocalizerConfig(), seed, built)
+
+    return Method("answer-on", "RLuTF, answer on another map", make)
+
+
+class RawAnswer:
+    """RLuTF tracking on the map, each pose then aligned by ICP on the raw points (a trial of
+    keeping the log's points beside the walls for the answer); the aligned pose is where the
+    next update predicts from."""
+
+    def __init__(self, world: Map, pose: FloatArray, seed: int, samples: WallSamples) -> None:
+        from rlutf.localizer import Localizer
+
+        self._loc = Localizer(world, pose, LocalizerConfig(), seed=seed)
+        self._samples = samples
+        self._icp = ICP_SETTINGS["gate 2 m to 0.2 m, 50 steps"]
+
+    def update(self, motion: FloatArray, scan: Scan) -> Estimate:
+        """Track on the map, align on the raw points."""
+        result = self._loc.update(motion, scan)
+        aligned = PointToLineIcp(None, result.pose, self._icp, self._samples)
+        pose = aligned.update(np.zeros(3), scan).pose
+        if pose is None:
+            return Estimate(result.pose.copy(), result.status, None)
+        self._loc._pose = pose.copy()
+        return Estimate(pose.copy(), result.status, None)
+
+
+def raw_answer_method(name: str) -> Method:
+    """:class:`RawAnswer` on ``name``'s raw even-scan points."""
+    samples = raw_points(name)
+    return Method(
+        "raw-answer",
+        "RLuTF, answer on the raw points",
+        make=lambda w, p, s: RawAnswer(w, p, s, samples),
+    )
 
 
 def leave_out_method(name: str, config: IcpConfig, window: int) -> Method:
