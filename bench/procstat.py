@@ -35,35 +35,29 @@ def descendants(pid: int) -> list[int]:
     return found
 
 
-def rss_tree_mb(pid: int) -> float:
-    """Resident memory of a process and its children, MB."""
+def _kb_mb(pids: list[int], name: str, field: str) -> float:
+    """The ``field`` line (kB) of ``/proc/PID/{name}`` added up over ``pids``, MB (processes
+    gone meanwhile count 0)."""
     total = 0
-    for p in [pid, *children(pid)]:
+    for p in pids:
         try:
-            with open(f"/proc/{p}/status") as f:
-                for line in f:
-                    if line.startswith("VmRSS:"):
-                        total += int(line.split()[1])
+            with open(f"/proc/{p}/{name}") as f:
+                total += next((int(line.split()[1]) for line in f if line.startswith(field)), 0)
         except OSError:
             continue
     return total / 1024.0
+
+
+def rss_tree_mb(pid: int) -> float:
+    """Resident memory of a process and its children, MB."""
+    return _kb_mb([pid, *children(pid)], "status", "VmRSS:")
 
 
 def pss_tree_mb(pid: int) -> float:
     """Proportional resident memory of a process and its descendants, MB: each shared page
     (a library mapped by several of them) divided among the processes that map it, so the
     sum is what the tree takes from the machine (``Pss`` in ``smaps_rollup``)."""
-    total = 0
-    for p in [pid, *descendants(pid)]:
-        try:
-            with open(f"/proc/{p}/smaps_rollup") as f:
-                for line in f:
-                    if line.startswith("Pss:"):
-                        total += int(line.split()[1])
-                        break
-        except OSError:
-            continue
-    return total / 1024.0
+    return _kb_mb([pid, *descendants(pid)], "smaps_rollup", "Pss:")
 
 
 def cpu_seconds(pid: int) -> float:
