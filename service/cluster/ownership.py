@@ -38,7 +38,7 @@ import logging
 import queue
 import threading
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
@@ -62,9 +62,13 @@ OWNED_LISTED = 50
 
 @dataclass(frozen=True)
 class _Odom:
+    """A reading kept for a seed; one of a robot owned elsewhere as it came (``message`` None,
+    ``stamp_ns`` its receive time), decoded only if a seed needs it (:func:`_decoded`)."""
+
     stamp_ns: int
     payload: bytes
-    message: Odometry
+    message: Odometry | None
+    max_bytes: int = 0
 
 
 class Ownership:
@@ -281,25 +285,27 @@ class Ownership:
                 self._release(robot)  # moved away just now; rebalance may not have run yet
         if kind in ("scan", "relocalize"):  # a relocalization is its owner's to run
             return
+        if kind == "odom":  # kept as it came, decoded if a seed needs it (see _Odom)
+            now = self._clock()
+            with self.lock:
+                tail = self._tails.get(robot)
+                if tail is None:
+                    if self._full(self._tails):
+                        return
+                    tail = self._tails[robot] = deque(maxlen=TAIL_MAX)
+                tail.append(_Odom(now, bytes(payload), None, max_bytes))
+                while tail[0].stamp_ns < now - self._tail_ns:
+                    tail.popleft()
+            return
         try:
             msg = decode(MODELS[kind], payload, max_bytes=max_bytes)
         except SchemaError:
             return  # its owner reports it
-        with self.lock:
-            if isinstance(msg, InitialPose):
+        if isinstance(msg, InitialPose):
+            with self.lock:
                 placed = self._placed.get(robot)
                 if placed is None or msg.stamp_ns >= placed[1].stamp_ns:
                     self._placed[robot] = (bytes(payload), msg)
-                return
-            assert isinstance(msg, Odometry)
-            tail = self._tails.get(robot)
-            if tail is None:
-                if self._full(self._tails):
-                    return
-                tail = self._tails[robot] = deque(maxlen=TAIL_MAX)
-            tail.append(_Odom(msg.stamp_ns, bytes(payload), msg))
-            while tail[0].stamp_ns < msg.stamp_ns - self._tail_ns:
-                tail.popleft()
 
     # ------------------------------------------------------------------------ inputs
     def offer(
@@ -383,11 +389,12 @@ class Ownership:
         seed: tuple[bytes, InitialPose | Relocalize] | None,
     ) -> None:
         """Hand the odometry tail and the seed to the engine; the robot is localized here."""
-        tail = sorted(self._tails.pop(robot, ()), key=lambda o: o.stamp_ns)
+        tail = sorted(_decoded(self._tails.pop(robot, ())), key=lambda o: o.stamp_ns)
         if anchor_ns is not None:
             before = [i for i, o in enumerate(tail) if o.stamp_ns <= anchor_ns]
             tail = tail[before[-1] :] if before else tail
         for o in tail:
+            assert o.message is not None
             self._pass(robot, "odom", o.payload, o.message, self._clock())
         self._active.add(robot)
         if seed is not None:
@@ -479,3 +486,15 @@ class Ownership:
                 "resumed_relocalize": self.resumed_relocalize,
                 "poses_rejected": self.poses_rejected,
             }
+
+
+def _decoded(tail: Iterable[_Odom]) -> list[_Odom]:
+    """A tail's readings decoded, with their own stamps (undecodable ones left out)."""
+    out = []
+    for o in tail:
+        try:
+            msg = o.message or decode(Odometry, o.payload, max_bytes=o.max_bytes)
+        except SchemaError:
+            continue  # its robot's owner reported it
+        out.append(_Odom(msg.stamp_ns, o.payload, msg))
+    return out

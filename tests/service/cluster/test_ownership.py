@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import time
 
+import pytest
 from scaleout_harness import wait_until
 
 from schemas import Hypothesis, InitialPose, Odometry, PoseEstimate, Relocalize, encode
@@ -102,6 +103,49 @@ def test_takeover_seeds_from_the_last_pose_with_the_odometry_tail() -> None:
     fig = own.figures()
     assert fig["owned"] == [robot] and fig["handover_seeds"] == 1
     assert fig["ignored_not_owner"] == 5 + 5  # offers refused and ignore() calls
+
+
+def test_odometry_of_a_robot_owned_elsewhere_is_decoded_only_for_its_seed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from service.cluster import ownership
+
+    decoded: list[type] = []
+    real = ownership.decode
+
+    def counting(model: type, payload: bytes, max_bytes: int = LIMIT) -> object:
+        decoded.append(model)
+        return real(model, payload, max_bytes=max_bytes)
+
+    monkeypatch.setattr("service.cluster.ownership.decode", counting)
+    m = Membership("a")
+    m.update("b", alive=True)
+    now = [0]
+    admitted: Admitted = []
+    own = Ownership(
+        m,
+        lambda robot, kind, payload, msg, received: admitted.append((robot, kind, msg, received)),
+        lambda: now[0],
+        tail_ns=1_000,
+    )
+    own.ready = True
+    robot = _robot_of("b", ["a", "b"])
+    for at, payload in (
+        (200, _odom(2_900)[0]),  # received longer than tail_ns before the last: trimmed
+        (600, b'{"stamp_ns": 3000, "x": '),  # undecodable: its owner reports it, left out
+        (1_500, _odom(3_100)[0]),
+    ):
+        now[0] = at
+        own.ignore(robot, "odom", payload, LIMIT)
+    assert decoded == []  # kept as they came
+    own.follow_pose(robot, encode(_pose(robot, 3_050)), LIMIT)
+    m.update("b", alive=False)
+    now[0] = 1_600
+    payload, msg = _odom(3_200)
+    assert own.offer(robot, "odom", payload, msg, 20)
+    kinds = [(k, m_.stamp_ns) for _, k, m_, _ in admitted]
+    assert kinds == [("odom", 3_100), ("initialpose", 3_050), ("odom", 3_200)]
+    assert decoded.count(Odometry) == 2  # the two readings left in the tail, at the seed
 
 
 def test_a_robot_taken_over_while_ambiguous_is_relocalized_again() -> None:
