@@ -125,6 +125,10 @@ class Outcome(NamedTuple):
     pose: PoseEstimate | None
 
 
+#: Seconds a relocalization's outcome waits, after the Event ``relocalized``, for a pose.
+POSE_AFTER_S = 2.0
+
+
 def put_request(
     session: zenoh.Session,
     prefix: str,
@@ -148,6 +152,9 @@ def put_request(
         return Outcome("waiting", None)
     ended: queue.Queue[Literal["done", "refused"]] = queue.Queue()
     last: list[PoseEstimate] = []
+    # The Event and the pose of the update that relocalized the robot go out on different
+    # paths, either first: after the Event, the outcome's pose is one received after it.
+    relocalized, pose_after = threading.Event(), threading.Event()
     failures = {
         (EventCode.MAP_NOT_FOUND, keys.map(request.map_id)),
         (EventCode.MAP_NOT_FOUND, key),
@@ -161,6 +168,7 @@ def put_request(
             return
         on_event(robot, ev)
         if ev.code == EventCode.RELOCALIZED and kind == "relocalize":
+            relocalized.set()
             ended.put("done")
         elif (ev.code, ev.key) in failures:
             ended.put("refused")
@@ -171,6 +179,8 @@ def put_request(
         except SchemaError:
             return
         last[:] = [pose]
+        if relocalized.is_set():
+            pose_after.set()
         if kind == "initialpose" and pose.map_id == request.map_id:
             ended.put("done")
 
@@ -184,6 +194,8 @@ def put_request(
             result = ended.get(timeout=wait)
         except queue.Empty:
             return Outcome("waiting", last[0] if last else None)
+        if result == "done" and kind == "relocalize":
+            pose_after.wait(POSE_AFTER_S)  # the robot's next scan gives it
         return Outcome(result, last[0] if last else None)
     finally:
         for s in subs:
