@@ -327,9 +327,8 @@ def run_size(
         if threads:
             for p, start in tasks0.items():
                 # A host of service processes (--processes) runs process 0 itself.
-                label = ("host" if p == proc.pid else "processes") if hosted else None
-                label = label or ("main" if p == proc.pid else "workers")
-                table = by_thread.setdefault(label, {})
+                labels = ("host", "processes") if hosted else ("main", "workers")
+                table = by_thread.setdefault(labels[0] if p == proc.pid else labels[1], {})
                 names = python_thread_names(p)
                 for name, ms in thread_table(start, tasks1[p], names, result["scans_sent"]):
                     table[name] = table.get(name, 0.0) + ms

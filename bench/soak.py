@@ -185,7 +185,7 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
     s, g, h = run["samples"], run["generator"], run["health"]
     main, workers, gen = run["cpu"]
     rss = [x["rss_service_mb"] for x in s] or [math.nan]
-    pss = [x.get("pss_service_mb", math.nan) for x in s] or [math.nan]
+    pss = [x["pss_service_mb"] for x in s] or [math.nan]
     grss = [x["rss_generator_mb"] for x in s] or [math.nan]
     files = run["files"]
     write = " --write" if args.write else ""
