@@ -215,6 +215,16 @@ class Settings(BaseSettings):
         "take long (relocalizing or lost), so that a relocalization holds up only its own "
         "robot; one robot's updates always run in order; 1: one update at a time per worker.",
     )
+    worker_nice: int = Field(
+        0,
+        ge=0,
+        le=19,
+        description="Niceness the worker processes add to the service's (0: none). Past what "
+        "the cores hold, a positive value keeps the main process, which takes every input in "
+        "and counts what it drops, ahead of the workers: the excess is dropped, counted, in the "
+        "robots' mailboxes instead of waiting in the bus's queues (answered seconds late, or "
+        "lost uncounted), at the cost of fewer scans answered (BENCHMARKS.md, 'Overload').",
+    )
     metrics_port: int | None = Field(
         None,
         ge=0,

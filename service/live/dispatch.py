@@ -74,6 +74,7 @@ class Dispatcher:
         loop: with ``workers=0``, the batches run on the thread that takes the inputs in
             (:class:`~service.live.shards.LoopShard`, :mod:`service.live.loop`), not on
             threads of their own.
+        nice: niceness the worker processes add to this one's (``os.nice``).
     """
 
     def __init__(
@@ -91,8 +92,10 @@ class Dispatcher:
         limits: Limits | None = None,
         map_health: bool = True,
         loop: bool = False,
+        nice: int = 0,
     ) -> None:
         self.keys = keys
+        self.nice = nice
         self.limits = limits or Limits()
         self.map_health = map_health
         self.clock = clock

@@ -139,6 +139,7 @@ class LocalizationService:
             self._on_done,
             self._on_drop,
             threads=settings.worker_threads,
+            nice=settings.worker_nice,
             clock=self.clock,
             on_seed=self._record_seed,
             on_lost=self._on_worker_lost,

@@ -99,6 +99,7 @@ class Dispatcher(Protocol):
     threads: int
     limits: Limits
     map_health: bool
+    nice: int
     lock: threading.Lock
     boxes: dict[str, Mailbox]
     stopping: bool
@@ -332,6 +333,7 @@ class ProcessShard(Shard):
                 d.threads,
                 d.limits,
                 d.map_health,
+                d.nice,
             ),
             name=f"rlutf-worker-{self.index}",
             daemon=True,

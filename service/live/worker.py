@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 import pickle
 import sys
 import threading
@@ -146,6 +147,7 @@ def worker_main(
     threads: int,
     limits: Limits | None = None,
     map_health: bool = True,
+    nice: int = 0,
 ) -> None:
     """Entry point of a worker process: apply batches until told to stop.
 
@@ -158,7 +160,14 @@ def worker_main(
     (with ``threads`` 1, everything runs here, one batch at a time). A map is registered before
     any batch sent after it is read. Running batches here rather than on a pool thread saves a
     thread hand-off per scan.
+
+    With ``nice``, the process runs that much nicer than the service: when the cores cannot keep
+    up, the service's main process (the inputs, the drops it counts, the poses it publishes)
+    takes the CPU it needs first, and what is left over is dropped, counted, in the robots'
+    mailboxes (``worker_nice``; ``BENCHMARKS.md``, "Overload").
     """
+    if nice:
+        os.nice(nice)
     warm_up()
     engine = FleetEngine(Keys(prefix), config, interval, limits, evidence(map_health))
     hand_over = HandOver(engine)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import os
 
 from rlutf.localizer import LocalizerConfig
 from schemas import LaserScan, Odometry
@@ -56,6 +57,21 @@ def test_odometry_alone_goes_once_the_mailbox_holds_enough() -> None:
     assert dispatcher.shards[0].in_flight == 0 and dispatcher.pending() == _ODOM_ALONE - 1
     dispatcher.submit("r", "odom", b"{}", Odometry(stamp_ns=99, x=0, y=0, theta=0), 99)
     assert dispatcher.shards[0].in_flight == 1 and dispatcher.pending() == 0
+
+
+def test_worker_processes_run_nicer_than_the_service_by_worker_nice() -> None:
+    """Under overload the main process (inputs, counted drops) keeps the CPU it needs."""
+    dispatcher = Dispatcher(
+        Keys("rlutf"), LocalizerConfig(), 1, 0, lambda done: None, _no_drop, nice=3
+    )
+    dispatcher.start()
+    try:
+        pid = dispatcher.shards[0].process.pid  # type: ignore[attr-defined]
+        assert pid is not None
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(mine + 3, 19)
+    finally:
+        dispatcher.stop()
 
 
 def _scan(stamp: int) -> LaserScan:
