@@ -11,7 +11,7 @@ itself before it takes in more. A scan that a newer one of its robot replaced me
 dropped in its mailbox and counted, as always. The loop drains the channel whole, then runs at
 most :data:`RUNS` batches before it drains it again, so that under overload it is the
 mailboxes, which count what they drop, that absorb the excess, not the channel. The channel
-holds :data:`CAPACITY` samples, about two seconds of a few hundred robots.
+holds :data:`CAPACITY` samples, a fraction of a second of a fleet.
 
 When nothing arrived and nothing was ready, the thread sleeps a little, a little longer each
 time up to :data:`IDLE_WAITS`'s last (5 ms): a control message (a new map) from another thread
@@ -31,8 +31,13 @@ from service.live.shards import LoopShard
 
 log = logging.getLogger(__name__)
 
-#: Samples the Zenoh channel holds before it holds up the link.
-CAPACITY = 20_000
+#: Samples the Zenoh channel holds before it holds up the link: about a third of a second of 100
+#: robots' inputs. A sample waiting in the channel can keep the whole buffer it was received in
+#: alive, so the channel's memory is not its samples' size: at 20,000 samples a process of
+#: ``--processes 2`` under overload (300 robots on 2 cores) grew past 600 MB in 20 s, the host
+#: past 1.3 GB added up; at 1,000, 494 MB added up (BENCHMARKS.md, "Fleet: processes behind one
+#: host").
+CAPACITY = 1_000
 #: Samples taken in at most before some ready batches run (the channel is drained whole
 #: first, unless it holds more than this).
 BATCH = CAPACITY
