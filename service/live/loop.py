@@ -8,10 +8,10 @@ on Zenoh's side, without Python, and one thread of ours takes them in: everythin
 (:meth:`service.live.intake.Intake.on_robot_sample`), in arrival order, then, when the robots
 run in this process (:class:`~service.live.shards.LoopShard`), the loop runs the ready batches
 itself before it takes in more. A scan that a newer one of its robot replaced meanwhile is
-dropped in its mailbox and counted, as always. The loop drains the channel whole, then runs at
-most :data:`RUNS` batches before it drains it again, so that under overload it is the
-mailboxes, which count what they drop, that absorb the excess, not the channel. The channel
-holds :data:`CAPACITY` samples, a fraction of a second of a fleet.
+dropped in its mailbox and counted, as always. The loop drains the channel whole, then runs
+ready batches for :data:`RUN_BUDGET_S` at most (one at least) before it drains it again, so
+that under overload it is the mailboxes, which count what they drop, that absorb the excess,
+not the channel. The channel holds :data:`CAPACITY` samples, a fraction of a second of a fleet.
 
 When nothing arrived and nothing was ready, the thread sleeps a little, a little longer each
 time up to :data:`IDLE_WAITS`'s last (5 ms): a control message (a new map) from another thread
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -41,10 +42,16 @@ CAPACITY = 1_000
 #: Samples taken in at most before some ready batches run (the channel is drained whole
 #: first, unless it holds more than this).
 BATCH = CAPACITY
-#: Batches run at most before the channel is drained again: under overload the inputs keep
-#: coming in (and a robot's older scan is dropped in its mailbox, counted) instead of piling
-#: up in the channel until it holds up the link (where a drop would not be counted).
-RUNS = 8
+#: Seconds of ready batches run at most (one batch at least) before the channel is drained
+#: again: under overload the inputs keep coming in (and a robot's older scan is dropped in its
+#: mailbox, counted) instead of piling up in the channel until it holds up the link (where a
+#: drop would not be counted). A budget of time, not of batches: at most 8 batches a round, the
+#: rounds' intake left the updates too little of the thread past 150 robots, the robots waited
+#: longer between updates, and longer waits made costlier updates (wide searches): at 200
+#: robots on 2 cores a batch's compute p50 rose to 3.5-4 ms and 5,202 to 6,339 scans of 40,000
+#: were answered; with 20 ms a round, 1.3-1.4 ms and 7,976 to 8,914, scan to pose p50 70-85 ms
+#: instead of 0.5-1.7 s (BENCHMARKS.md, "Fleet: processes behind one host").
+RUN_BUDGET_S = 0.02
 #: Sleeps of an idle loop, seconds, one after another (the last repeats).
 IDLE_WAITS = (0.0002, 0.0005, 0.001, 0.002, 0.005)
 
@@ -88,7 +95,8 @@ class InputLoop:
         shard = self._shard
         while not self._stop.is_set():
             taken = self._take()
-            ran = shard.run_ready(RUNS) if shard is not None else 0
+            until = time.perf_counter() + RUN_BUDGET_S
+            ran = shard.run_ready(until=until) if shard is not None else 0
             if taken or ran:
                 idle = 0
             else:

@@ -261,8 +261,9 @@ class LoopShard(ThreadShard):
         self.run_ready()  # what was queued before the stop
         self.pool.shutdown(wait=True)
 
-    def run_ready(self, limit: int | None = None) -> int:
-        """Run the ready batches (long ones on the pool), ``limit`` at most, and apply control
+    def run_ready(self, limit: int | None = None, until: float | None = None) -> int:
+        """Run the ready batches (long ones on the pool), ``limit`` at most, until
+        ``time.perf_counter()`` reaches ``until`` (checked after each batch), and apply control
         messages.
 
         Returns:
@@ -287,6 +288,8 @@ class LoopShard(ThreadShard):
                 self.pool.submit(self._execute, robot, entries)
             else:
                 self._execute(robot, entries)
+            if until is not None and time.perf_counter() >= until:
+                break
         return started
 
 

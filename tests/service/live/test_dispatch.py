@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import time
 
 from rlutf.localizer import LocalizerConfig
 from schemas import LaserScan, Odometry
@@ -72,6 +73,24 @@ def test_worker_processes_run_nicer_than_the_service_by_worker_nice() -> None:
         assert os.getpriority(os.PRIO_PROCESS, pid) == min(mine + 3, 19)
     finally:
         dispatcher.stop()
+
+
+def test_the_loop_runs_ready_batches_for_its_time_budget_then_takes_inputs_again() -> None:
+    """The loop's round of updates ends on time (one batch at least), however many are ready."""
+    done: list[str] = []
+    dispatcher = Dispatcher(
+        Keys("rlutf"), LocalizerConfig(), 0, 0, lambda d: done.append(d.robot), _no_drop,
+        threads=1, loop=True,
+    )  # fmt: skip
+    shard = dispatcher.loop
+    assert shard is not None
+    robots = [f"amr-{i}" for i in range(6)]
+    for i, robot in enumerate(robots):
+        dispatcher.submit(robot, "scan", b"{}", _scan(100 + i), 100 + i)
+    assert shard.run_ready(until=time.perf_counter()) == 1  # the budget spent: one batch
+    assert shard.run_ready(limit=2) == 2
+    assert shard.run_ready(until=time.perf_counter() + 60.0) == 3  # the rest, within budget
+    assert done == robots and shard.run_ready(until=time.perf_counter() + 60.0) == 0
 
 
 def _scan(stamp: int) -> LaserScan:
