@@ -27,6 +27,7 @@ import multiprocessing as mp
 import os
 import platform
 import time
+from collections.abc import Callable
 from typing import Any
 
 from bench.report import section_main
@@ -40,6 +41,15 @@ WARM = 20
 IN_FLIGHT = 16
 T0 = 1_000_000_000
 PERIOD = 100_000_000
+
+
+def _measured(run: Callable[[int, int], int], steps: int) -> float:
+    """CPU ms of this process per scan of ``run(WARM, steps)``, after ``run(1, WARM)``; ``run``
+    returns the scans it handled."""
+    run(1, WARM)
+    c0 = _cpu()
+    n = run(WARM, steps)
+    return 1e3 * (_cpu() - c0) / n
 
 
 def _cpu(pid: int | None = None) -> float:
@@ -77,10 +87,7 @@ def localizer_ms(plan: FleetPlan, steps: int) -> float:
                 n += 1
         return n
 
-    run(1, WARM)
-    c0 = _cpu()
-    n = run(WARM, steps)
-    return 1e3 * (_cpu() - c0) / n
+    return _measured(run, steps)
 
 
 def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
@@ -113,10 +120,7 @@ def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
                 n += 1
         return n
 
-    run(1, WARM)
-    c0 = _cpu()
-    n = run(WARM, steps)
-    return 1e3 * (_cpu() - c0) / n
+    return _measured(run, steps)
 
 
 def pipe_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> tuple[float, float]:

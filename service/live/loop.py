@@ -34,10 +34,8 @@ log = logging.getLogger(__name__)
 
 #: Samples the Zenoh channel holds before it holds up the link: about a third of a second of 100
 #: robots' inputs. A sample waiting in the channel can keep the whole buffer it was received in
-#: alive, so the channel's memory is not its samples' size: at 20,000 samples a process of
-#: ``--processes 2`` under overload (300 robots on 2 cores) grew past 600 MB in 20 s, the host
-#: past 1.3 GB added up; at 1,000, 494 MB added up (BENCHMARKS.md, "Fleet: processes behind one
-#: host").
+#: alive, so the channel's memory is not its samples' size (20,000 let a process grow past
+#: 600 MB under overload; BENCHMARKS.md, "Fleet: processes behind one host").
 CAPACITY = 1_000
 #: Samples taken in at most before some ready batches run (the channel is drained whole
 #: first, unless it holds more than this).
@@ -45,12 +43,10 @@ BATCH = CAPACITY
 #: Seconds of ready batches run at most (one batch at least) before the channel is drained
 #: again: under overload the inputs keep coming in (and a robot's older scan is dropped in its
 #: mailbox, counted) instead of piling up in the channel until it holds up the link (where a
-#: drop would not be counted). A budget of time, not of batches: at most 8 batches a round, the
-#: rounds' intake left the updates too little of the thread past 150 robots, the robots waited
-#: longer between updates, and longer waits made costlier updates (wide searches): at 200
-#: robots on 2 cores a batch's compute p50 rose to 3.5-4 ms and 5,202 to 6,339 scans of 40,000
-#: were answered; with 20 ms a round, 1.3-1.4 ms and 7,976 to 8,914, scan to pose p50 70-85 ms
-#: instead of 0.5-1.7 s (BENCHMARKS.md, "Fleet: processes behind one host").
+#: drop would not be counted). A budget of time rather than of batches, so that a round's updates
+#: keep their share of the thread however many inputs came in (whether it answers more than 8
+#: batches a round did is within the run-to-run spread so far: BENCHMARKS.md, "Fleet: processes
+#: behind one host").
 RUN_BUDGET_S = 0.02
 #: Sleeps of an idle loop, seconds, one after another (the last repeats).
 IDLE_WAITS = (0.0002, 0.0005, 0.001, 0.002, 0.005)

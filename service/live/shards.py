@@ -261,17 +261,16 @@ class LoopShard(ThreadShard):
         self.run_ready()  # what was queued before the stop
         self.pool.shutdown(wait=True)
 
-    def run_ready(self, limit: int | None = None, until: float | None = None) -> int:
-        """Run the ready batches (long ones on the pool), ``limit`` at most, until
-        ``time.perf_counter()`` reaches ``until`` (checked after each batch), and apply control
-        messages.
+    def run_ready(self, until: float | None = None) -> int:
+        """Run the ready batches (long ones on the pool) until ``time.perf_counter()`` reaches
+        ``until`` (checked after each batch: one runs at least), and apply control messages.
 
         Returns:
             The batches started.
         """
         d = self.dispatcher
         started = 0
-        while limit is None or started < limit:
+        while True:
             with d.lock:
                 work = self.take()
                 if work is not None and work[0] is None:
@@ -289,8 +288,7 @@ class LoopShard(ThreadShard):
             else:
                 self._execute(robot, entries)
             if until is not None and time.perf_counter() >= until:
-                break
-        return started
+                return started
 
 
 class ProcessShard(Shard):
