@@ -31,6 +31,7 @@ from typing import Any
 from rlutf.localizer import LocalizerConfig
 from service.guard import Limits
 from service.keys import InputKind, Keys, Message
+from service.live.publishing import PoseOut
 from service.live.shards import (
     IN_FLIGHT,
     Done,
@@ -93,9 +94,11 @@ class Dispatcher:
         map_health: bool = True,
         loop: bool = False,
         nice: int = 0,
+        poses: PoseOut | None = None,
     ) -> None:
         self.keys = keys
         self.nice = nice
+        self.poses = poses
         self.limits = limits or Limits()
         self.map_health = map_health
         self.clock = clock

@@ -20,6 +20,7 @@ is applied within that long.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -28,6 +29,7 @@ from typing import Any
 
 import zenoh
 
+from service.live.publishing import HOLD_S, PoseOut
 from service.live.shards import LoopShard
 
 log = logging.getLogger(__name__)
@@ -60,9 +62,15 @@ class InputLoop:
         shard: the shard whose batches this thread runs, if the robots run in this process.
     """
 
-    def __init__(self, on_sample: Callable[[zenoh.Sample], None], shard: LoopShard | None) -> None:
+    def __init__(
+        self,
+        on_sample: Callable[[zenoh.Sample], None],
+        shard: LoopShard | None,
+        poses: PoseOut | None = None,
+    ) -> None:
         self._on_sample = on_sample
         self._shard = shard
+        self._poses = poses
         self._sub: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -89,10 +97,17 @@ class InputLoop:
     def _run(self) -> None:
         idle = 0
         shard = self._shard
+        poses = self._poses
+        after: Callable[[], object] | None = None
+        if poses is not None:
+            poses.hold()
+            after = functools.partial(poses.release, HOLD_S)
         while not self._stop.is_set():
             taken = self._take()
             until = time.perf_counter() + RUN_BUDGET_S
-            ran = shard.run_ready(until=until) if shard is not None else 0
+            ran = shard.run_ready(until=until, after_batch=after) if shard is not None else 0
+            if poses is not None:
+                poses.release()
             if taken or ran:
                 idle = 0
             else:
@@ -100,6 +115,8 @@ class InputLoop:
                 idle = min(idle + 1, len(IDLE_WAITS) - 1)
         while self._take():  # what arrived before the stop is taken in, not lost
             pass
+        if poses is not None:
+            poses.release()
 
     def close(self) -> None:
         """Stop taking inputs (those already received are taken in first), unsubscribe."""
@@ -127,9 +144,10 @@ class Inputs:
         on_sample: Callable[[zenoh.Sample], None],
         shard: LoopShard | None,
         intake: str = "callback",
+        poses: PoseOut | None = None,
     ) -> None:
         self._on_sample = on_sample
-        self.loop = InputLoop(on_sample, shard) if intake == "loop" else None
+        self.loop = InputLoop(on_sample, shard, poses) if intake == "loop" else None
         self._sub: Any = None
 
     def start(self, session: zenoh.Session, key: str) -> None:

@@ -146,8 +146,14 @@ class LocalizationService:
             limits=settings.limits,
             map_health=settings.map_health,
             loop=settings.intake == "loop",
+            poses=self.out,
         )
-        self.inputs = Inputs(self._on_robot_sample, self.dispatcher.loop, settings.intake)
+        self.inputs = Inputs(
+            self._on_robot_sample,
+            self.dispatcher.loop,
+            settings.intake,
+            self.dispatcher.poses if self.dispatcher.loop is not None else None,
+        )
         self.mapfeed = MapFeed(
             self.keys,
             self.maps,

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
+from typing import Protocol
 
 import zenoh
 
@@ -23,6 +25,19 @@ log = logging.getLogger(__name__)
 
 EVENT_SCHEMA = SCHEMA_NAMES[Event]
 JSON = zenoh.Encoding.APPLICATION_JSON
+
+#: Seconds a pose's put waits at most for the others of its round (checked after each batch):
+#: the poses of the updates at hand are put back to back, at a fraction of the cost of lone
+#: puts (:meth:`service.live.publishing.Announcer.hold`).
+HOLD_S = 0.005
+
+
+class PoseOut(Protocol):
+    """Where poses go out (:class:`service.live.publishing.Announcer`)."""
+
+    def hold(self) -> None: ...
+
+    def release(self, older_than: float = 0.0) -> int: ...
 
 
 class Announcer:
@@ -46,13 +61,42 @@ class Announcer:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self.closed = False
+        # Pose puts held until release(), per thread that asked (see hold()): .held, .since.
+        self._local = threading.local()
 
     def attach(self, session: zenoh.Session) -> None:
         """Publish poses on ``session`` from now on."""
         self._session = session
 
+    def hold(self) -> None:
+        """Hold the pose puts of the calling thread until it calls :meth:`release`.
+
+        The threads that publish poses (the loop thread, :mod:`service.live.loop`; a worker's
+        receiving thread, :class:`service.live.shards.ProcessShard`) put the poses of the
+        updates at hand back to back: a put among others costs a fraction of a lone one, which
+        wakes the bus's sending thread for itself (``python -m bench.wakeups``). Only the put is
+        held: the recording, the pose query and the rest are not.
+        """
+        self._local.held = []
+        self._local.since = 0.0
+
+    def release(self, older_than: float = 0.0) -> int:
+        """Put the calling thread's held poses, in the order they were made, unless the oldest
+        was held less than ``older_than`` seconds. Returns the poses put."""
+        local = self._local
+        held: list[tuple[zenoh.Publisher, bytes]] | None = getattr(local, "held", None)
+        if not held or (older_than and time.perf_counter() - local.since < older_than):
+            return 0
+        local.held = []
+        for pub, payload in held:
+            try:
+                pub.put(payload)
+            except zenoh.ZError:
+                log.warning("could not publish a pose", exc_info=True)
+        return len(held)
+
     def close(self) -> None:
-        """Undeclare the pose publishers."""
+        """Undeclare the pose publishers (what a thread holds, it puts before it ends)."""
         self.closed = True
         with self._lock:
             for pub in self._publishers.values():
@@ -97,6 +141,12 @@ class Announcer:
                                 allowed_destination=zenoh.Locality.REMOTE,
                             )
                             self._publishers[key] = pub
+                held = getattr(self._local, "held", None)
+                if held is not None:
+                    if not held:
+                        self._local.since = time.perf_counter()
+                    held.append((pub, payload))
+                    return
                 pub.put(payload)
             else:
                 self.outbox.put(key, payload)  # never waits: see service.live.outbox

@@ -25,6 +25,7 @@ from rlutf.localizer import LocalizerConfig
 from service.engine import FleetEngine, Outbound
 from service.guard import Limits
 from service.keys import Keys
+from service.live.publishing import HOLD_S, PoseOut
 from service.live.supervise import History
 from service.live.worker import (
     Entry,
@@ -34,6 +35,7 @@ from service.live.worker import (
     recv,
     run_batch,
     send,
+    waiting,
     worker_main,
 )
 
@@ -100,6 +102,7 @@ class Dispatcher(Protocol):
     limits: Limits
     map_health: bool
     nice: int
+    poses: PoseOut | None
     lock: threading.Lock
     boxes: dict[str, Mailbox]
     stopping: bool
@@ -261,9 +264,12 @@ class LoopShard(ThreadShard):
         self.run_ready()  # what was queued before the stop
         self.pool.shutdown(wait=True)
 
-    def run_ready(self, until: float | None = None) -> int:
+    def run_ready(
+        self, until: float | None = None, after_batch: Callable[[], object] | None = None
+    ) -> int:
         """Run the ready batches (long ones on the pool) until ``time.perf_counter()`` reaches
-        ``until`` (checked after each batch: one runs at least), and apply control messages.
+        ``until`` (checked after each batch: one runs at least), and apply control messages;
+        ``after_batch`` is called after each batch run here.
 
         Returns:
             The batches started.
@@ -287,6 +293,8 @@ class LoopShard(ThreadShard):
                 self.pool.submit(self._execute, robot, entries)
             else:
                 self._execute(robot, entries)
+                if after_batch is not None:
+                    after_batch()
             if until is not None and time.perf_counter() >= until:
                 return started
 
@@ -399,29 +407,38 @@ class ProcessShard(Shard):
 
     def _recv(self, conn: Connection, generation: int) -> None:
         d = self.dispatcher
-        while True:
-            try:
-                msg = recv(conn)
-            except (EOFError, OSError):
-                break
-            if msg[0] == "stopped":
-                return
-            if msg[0] == "ready":
-                self.ready_event.set()
-                continue
-            _, robot, outputs, compute_s = msg
-            with d.lock:
-                self.inflight.pop(robot, None)
-                box = d.boxes.get(robot)
-                if box is not None:
-                    for out in outputs:
-                        if out.kind == "pose":
-                            box.history.note_pose(out.payload, out.received_ns)
-                self.finish(robot)
-                send = self.wake()
-            if send:
-                self.drain()  # the worker gets its next batches before we publish these
-            d.deliver(Done(robot, outputs, compute_s))
+        poses = d.poses
+        if poses is not None:
+            poses.hold()  # the poses of the answers waiting in the pipe go out together
+        try:
+            while True:
+                try:
+                    msg = recv(conn)
+                except (EOFError, OSError):
+                    break
+                if msg[0] == "stopped":
+                    return
+                if msg[0] == "ready":
+                    self.ready_event.set()
+                    continue
+                _, robot, outputs, compute_s = msg
+                with d.lock:
+                    self.inflight.pop(robot, None)
+                    box = d.boxes.get(robot)
+                    if box is not None:
+                        for out in outputs:
+                            if out.kind == "pose":
+                                box.history.note_pose(out.payload, out.received_ns)
+                    self.finish(robot)
+                    send = self.wake()
+                if send:
+                    self.drain()  # the worker gets its next batches before we publish these
+                d.deliver(Done(robot, outputs, compute_s))
+                if poses is not None:
+                    poses.release(HOLD_S if waiting(conn) else 0.0)
+        finally:
+            if poses is not None:
+                poses.release()
         if not d.stopping and generation == self.generation:
             d.worker_lost(self)
 

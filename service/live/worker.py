@@ -62,6 +62,14 @@ def recv(conn: Connection) -> Any:
     return pickle.loads(conn.recv_bytes())
 
 
+def waiting(conn: Connection) -> bool:
+    """Whether a message waits in the pipe (``False`` once it is closed)."""
+    try:
+        return conn.poll(0)
+    except (EOFError, OSError):
+        return False
+
+
 def run_batch(engine: FleetEngine, robot: str, entries: list[Entry]) -> list[Outbound]:
     outputs: list[Outbound] = []
     for e in entries:
