@@ -60,6 +60,8 @@ class InputLoop:
     Args:
         on_sample: the checks of one sample (a callback subscriber's callback).
         shard: the shard whose batches this thread runs, if the robots run in this process.
+        poses: where the poses of those batches go out: their puts are held and put together
+            after each batch once the oldest is :data:`HOLD_S` old, and at the end of a round.
     """
 
     def __init__(

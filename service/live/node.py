@@ -148,12 +148,7 @@ class LocalizationService:
             loop=settings.intake == "loop",
             poses=self.out,
         )
-        self.inputs = Inputs(
-            self._on_robot_sample,
-            self.dispatcher.loop,
-            settings.intake,
-            self.dispatcher.poses if self.dispatcher.loop is not None else None,
-        )
+        self.inputs = Inputs(self._on_robot_sample, self.dispatcher.loop, settings.intake, self.out)
         self.mapfeed = MapFeed(
             self.keys,
             self.maps,
