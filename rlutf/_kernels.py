@@ -300,11 +300,17 @@ def scan_terms(
     range_max: float,
     full_circle: bool,
     max_gap: float,
-) -> tuple[np.ndarray, bool, np.ndarray]:
+    cap: float,
+) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+           np.ndarray, np.ndarray, float]:  # fmt: skip
     """What one scan's comparison needs, in one pass: the beams with a return, whether the
     polygons close through the sensor (:func:`rlutf.scan.needs_origin`), and each kept beam's
     polar-area weight (:class:`rlutf.discrepancy.PolarArea`, trapezoid rule over the real
-    polygon's perimeter). Returns ``(kept indices, closing, weights)``."""
+    polygon's perimeter); and the kept beams gathered (one call, not a dozen array operations
+    in Python per scan): their angles, cosines, sines, ranges, squared ranges, the capped
+    area's band ``2 cap rho_r`` (empty for ``cap <= 0``) and the longest kept range (0 if none).
+    Returns ``(kept indices, closing, weights, angles, cos, sin, ranges, squared ranges, band,
+    longest)``."""
     n_all = len(ranges)
     keep = np.empty(n_all, dtype=np.int64)
     n = 0
@@ -315,8 +321,27 @@ def scan_terms(
             n += 1
     keep = keep[:n]
     weights = np.zeros(n)
+    k_angles = np.empty(n)
+    k_cos = np.empty(n)
+    k_sin = np.empty(n)
+    k_ranges = np.empty(n)
+    k_sq = np.empty(n)
+    band = np.empty(n if cap > 0.0 else 0)
+    two_cap = 2.0 * cap
+    longest = 0.0
+    for k in range(n):
+        i = keep[k]
+        r = ranges[i]
+        k_angles[k] = angles[i]
+        k_cos[k] = cos_a[i]
+        k_sin[k] = sin_a[i]
+        k_ranges[k] = r
+        k_sq[k] = r * r
+        if cap > 0.0:
+            band[k] = two_cap * r
+        longest = max(longest, r)
     if n == 0:
-        return keep, True, weights
+        return keep, True, weights, k_angles, k_cos, k_sin, k_ranges, k_sq, band, longest
     widest = 0.0
     perimeter = 0.0
     for k in range(n - 1):
@@ -344,4 +369,4 @@ def scan_terms(
     scale = 0.25 / max(perimeter, 1e-9)
     for k in range(n):
         weights[k] *= scale
-    return keep, closing, weights
+    return keep, closing, weights, k_angles, k_cos, k_sin, k_ranges, k_sq, band, longest

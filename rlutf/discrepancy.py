@@ -185,16 +185,22 @@ class PolarArea:
 
     @classmethod
     def of_terms(
-        cls, real_ranges: FloatArray, weights: FloatArray, cap: float | None = None
+        cls,
+        real_ranges: FloatArray,
+        weights: FloatArray,
+        cap: float | None = None,
+        real_sq: FloatArray | None = None,
+        band: FloatArray | None = None,
     ) -> PolarArea:
         """The area against ``real_ranges`` with per-beam ``weights`` computed already (by
-        :func:`rlutf._kernels.scan_terms`, say)."""
+        :func:`rlutf._kernels.scan_terms`, say), and if given, the squared ranges and the band
+        of ``cap`` (:meth:`band`) too."""
         area = cls.__new__(cls)
         area._ranges = np.ascontiguousarray(real_ranges, dtype=np.float64)
-        area.real_sq = area._ranges * area._ranges
+        area.real_sq = area._ranges * area._ranges if real_sq is None else real_sq
         area.weights = weights
         area._cap = cap
-        area._bands = {}
+        area._bands = {} if band is None or cap is None else {cap: band}
         return area
 
     def band(self, cap: float | None) -> FloatArray:

@@ -30,37 +30,40 @@ class Problem:
         self.offset = np.ascontiguousarray(scan.sensor_offset, dtype=np.float64)
         self.scan_range = scan.range_max
         self.range_max = scan.range_max
-        keep, self.closing, weights = _kernels.scan_terms(
-            scan.ranges,
-            beams.angles,
-            beams.cos,
-            beams.sin,
-            scan.range_min,
-            scan.range_max,
-            scan.covers_full_circle(),
-            config.max_gap,
+        kind = config.discrepancy
+        self.cap = config.area_cap if kind == "area" else None
+        (keep, self.closing, weights, angles, cos, sin, real, real_sq, band, longest) = (
+            _kernels.scan_terms(
+                scan.ranges,
+                beams.angles,
+                beams.cos,
+                beams.sin,
+                scan.range_min,
+                scan.range_max,
+                scan.covers_full_circle(),
+                config.max_gap,
+                self.cap if self.cap is not None else 0.0,
+            )
         )
         self.count = len(keep)
         if self.count < config.min_returns:
             return
-        self.beams = beams.take(keep)
-        self.real_ranges = scan.ranges[keep]
-        kind = config.discrepancy
-        self.cap = config.area_cap if kind == "area" else None
+        self.beams = beams if len(keep) == len(beams) else Beams(angles, cos, sin)
+        self.real_ranges = real
         if kind != "turning":
             # The combined discrepancy keeps the exact area: capped, its turning term (which
             # people and grazed edges disturb the most) would dominate.
-            self.area = PolarArea.of_terms(self.real_ranges, weights, self.cap)
+            given = band if len(band) == self.count else None
+            self.area = PolarArea.of_terms(real, weights, self.cap, real_sq, given)
         if self.cap is not None:
             # A virtual range past the real one plus the cap counts as the cap, so no beam needs
             # casting farther than the longest return plus the widest cap of a search.
             widest = max(self.cap, config.cap_per_radius * 2.0 * config.delta)
-            longest = float(self.real_ranges.max()) + widest
-            self.range_max = min(self.range_max, longest)
+            self.range_max = min(self.range_max, longest + widest)
         if kind != "area":
             points = beam_points(self.real_ranges, self.beams.cos, self.beams.sin, self.offset)
-            real = np.vstack([points, self.offset[None, :2]]) if self.closing else points
-            self.real_steps = turning_steps(simplify_ring(real, config.simplify_tolerance))
+            ring = np.vstack([points, self.offset[None, :2]]) if self.closing else points
+            self.real_steps = turning_steps(simplify_ring(ring, config.simplify_tolerance))
 
     def on(self, world: Map) -> Problem:
         """The same comparison against another version of the walls (a shallow copy)."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,11 +60,24 @@ class RefineSettings:
     prior_position: float = 0.5
     prior_heading: float = 0.5
 
-    @property
+    @cached_property
     def prior_information(self) -> FloatArray:
-        """``(3,)`` the prior's information per unit variance, ``1 / sigma^2`` per axis."""
+        """``(3,)`` the prior's information per unit variance, ``1 / sigma^2`` per axis (made
+        once: every refinement asks; read-only)."""
         p, h = self.prior_position**-2, self.prior_heading**-2
-        return np.array([p, p, h])
+        out = np.array([p, p, h])
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def kernel_constants(self) -> tuple[float, float, float]:
+        """``(cos(max_incidence), the kernel's smallest scale, its largest)`` as the compiled
+        refinement takes them (made once: every refinement asks)."""
+        return (
+            math.cos(self.max_incidence),
+            CAUCHY_EFFICIENT * self.sigma_min,
+            CAUCHY_EFFICIENT * self.sigma_max,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,6 +158,7 @@ def refine_pose(
     residuals = np.empty(n)
     covariance = np.empty((3, 3))
     prior = settings.prior_information
+    min_cos_incidence, scale_min, scale_max = settings.kernel_constants
     weights, real_sq, band, limit = area if area is not None else (_EMPTY, _EMPTY, _EMPTY, 0.0)
     casts, sigma, used, fitted, ok, d_start, d_final, gated = _lm.refine(
         np.ascontiguousarray(pose, dtype=np.float64),
@@ -152,9 +167,9 @@ def refine_pose(
         beams.sin,
         np.ascontiguousarray(real_ranges, dtype=np.float64),
         float(max_range),
-        math.cos(settings.max_incidence),
-        CAUCHY_EFFICIENT * settings.sigma_min,
-        CAUCHY_EFFICIENT * settings.sigma_max,
+        min_cos_incidence,
+        scale_min,
+        scale_max,
         prior,
         settings.iterations if iterations is None else iterations,
         settings.tolerance,
