@@ -14,6 +14,11 @@ Zenoh and no other process competing:
    (:func:`service.live.worker.worker_main`) over its pipe, ``IN_FLIGHT`` batches at a time as
    the service sends them, the answers read back; the worker's CPU and the feeder's.
 
+A second table splits the localizer's own cost: its tracking updates (no search) timed one by
+one and grouped by the casts of the scan their refinement made, with the line through them:
+the cost that grows with the casts (ray casting and the least squares, compiled) against the
+part that does not (mostly Python), the most a compiled tracking step could save.
+
 Each figure is CPU time (user + system) per scan over the measured steps, after every robot's
 first :data:`WARM` steps (the first update searches wide, the kernels load). The differences
 are what each layer costs; the rest of the service (the bus, the recorder, the views) is the
@@ -23,12 +28,15 @@ fleet benchmark's figure less the last row.
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing as mp
 import os
 import platform
 import time
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from bench.report import section_main
 from service.sim.plan import FleetPlan, FleetSpec, plan_fleet
@@ -88,6 +96,49 @@ def localizer_ms(plan: FleetPlan, steps: int) -> float:
         return n
 
     return _measured(run, steps)
+
+
+def update_costs(plan: FleetPlan, steps: int) -> dict[int, list[float]]:
+    """CPU µs of each tracking update (no search: the prediction was accepted and refined) by
+    the casts of the scan its refinement made, over the plan's robots after :data:`WARM` steps.
+
+    Each update is timed by this thread's CPU clock, so the figures leave out time other
+    processes took."""
+    from rlutf.localizer import Localizer, LocalizerConfig
+    from rlutf.motion import relative
+
+    config = LocalizerConfig()
+    robots = [
+        (Localizer(plan.world, r.initial, config, seed=k), r)
+        for k, r in enumerate(plan.robots)
+        if r.initial is not None
+    ]
+    costs: dict[int, list[float]] = {}
+    clock = time.thread_time_ns
+    for k in range(1, steps):
+        for loc, r in robots:
+            motion = relative(r.odometry_at(k - 1), r.odometry_at(k))
+            scan = r.scans[r.index(k)]
+            t0 = clock()
+            result = loc.update(motion, scan)
+            spent = (clock() - t0) / 1e3
+            if k >= WARM and result.iterations == 0 and result.status == "tracking":
+                costs.setdefault(result.refine_casts, []).append(spent)
+    return costs
+
+
+def cost_fit(costs: dict[int, list[float]]) -> tuple[float, float]:
+    """``(fixed µs, µs per cast)``: the least-squares line through the median cost of each
+    number of casts, weighted by the updates that made that many (medians: an update the
+    scheduler or the allocator held up is an outlier, not a cost of its casts)."""
+    if len(costs) < 2:
+        return math.nan, math.nan
+    casts = sorted(costs)
+    x = np.array(casts, dtype=np.float64)
+    y = np.array([float(np.median(costs[c])) for c in casts])
+    w = np.sqrt(np.array([float(len(costs[c])) for c in casts]))
+    per_cast, fixed = np.polyfit(x, y, 1, w=w)
+    return float(fixed), float(per_cast)
 
 
 def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
@@ -177,6 +228,7 @@ def render(args: argparse.Namespace) -> str:
     plan, wire = _fleet(args.robots, args.steps)
     started = time.time()
     loc = localizer_ms(plan, args.steps)
+    costs = update_costs(plan, args.steps)  # right after: the machine's speed drifts
     eng = engine_ms(plan, wire, args.steps)
     worker, feeder = pipe_ms(plan, wire, args.steps)
     scans = args.robots * (args.steps - WARM)
@@ -200,8 +252,38 @@ def render(args: argparse.Namespace) -> str:
             "| layer | CPU ms per scan | added by the layer |",
             "| --- | ---: | ---: |",
             *(f"| {name} | {ms:.3f} | {more} |" for name, ms, more in rows),
+            "",
+            *_cost_table(costs),
         ]
     )
+
+
+def _cost_table(costs: dict[int, list[float]]) -> list[str]:
+    """The tracking updates by casts, and the line through them."""
+    fixed, per_cast = cost_fit(costs)
+    total = sum(len(v) for v in costs.values())
+    mean_casts = sum(c * len(v) for c, v in costs.items()) / max(total, 1)
+    lines = [
+        f"The tracking updates (the prediction accepted and refined, no search: {total} of "
+        f"them) by the casts of the scan their refinement made, each timed by its thread's CPU "
+        "clock:",
+        "",
+        "| casts | updates | median µs | mean µs |",
+        "| ---: | ---: | ---: | ---: |",
+    ]
+    for c in sorted(costs):
+        v = costs[c]
+        lines.append(f"| {c} | {len(v)} | {float(np.median(v)):.0f} | {float(np.mean(v)):.0f} |")
+    lines += [
+        "",
+        f"Least-squares line through the medians (weighted by updates): **{fixed:.0f} µs fixed + "
+        f"{per_cast:.0f} "
+        f"µs per cast**; {mean_casts:.2f} casts on average, so "
+        f"{100 * fixed / (fixed + per_cast * mean_casts):.0f} % of an average tracking update "
+        "is the part that does not grow with the casts: mostly the Python around the compiled "
+        "kernels (the scan's terms, the refinement's call, the pose's quality, the result).",
+    ]
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
