@@ -49,11 +49,13 @@ from typing import Any
 
 from bench.report import section_main
 from bench.soakplan import (
+    LONG_RUN_MINUTES,
     Verdict,
     counted_verdict,
     exit_code,
     logs_verdicts,
     memory_verdict,
+    outcome,
     overflow_verdict,
     queue_verdict,
     slope_per_10min,
@@ -168,15 +170,15 @@ def _table(samples: list[dict[str, Any]], rows: int = 10) -> list[str]:
     return lines
 
 
-def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
-    """Run the soak and return the Markdown section; ``outcome`` receives the verdicts."""
+def render(args: argparse.Namespace, into: list[Verdict]) -> str:
+    """Run the soak and return the Markdown section; ``into`` receives the verdicts."""
     warmup = args.warmup_minutes
     if warmup is None:
         warmup = min(5.0, round(args.minutes / 3, 2))
     load = os.getloadavg()[0]
     run = run_soak(args)
     found = verdicts(run, args, warmup)
-    outcome.extend(found)
+    into.extend(found)
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     _save_series(run, OUT / f"soak-{stamp}")
     title = f"rlutf serve, {args.robots} robots at 10 Hz, recording rotated every "
@@ -207,7 +209,7 @@ def render(args: argparse.Namespace, outcome: list[Verdict]) -> str:
         "",
         "| verdict | | figures |",
         "| --- | --- | --- |",
-        *(f"| {v.name} | {'pass' if v.ok else 'FAIL'} | {v.detail} |" for v in found),
+        *(f"| {v.name} | {outcome(v, args.minutes)} | {v.detail} |" for v in found),
         "",
         f"Over the run: {g['scans_sent']} scans sent, {g['poses']} poses received, "
         f"{h.get('dropped')} dropped and {h.get('extra', {}).get('scans_not_processed')} not "
@@ -286,17 +288,23 @@ def main(argv: list[str] | None = None) -> int:
         default=False,
         help="only print (the default)",
     )
-    outcome: list[Verdict] = []
+    judged: list[Verdict] = []
     minutes: list[float] = []
 
     def run(args: argparse.Namespace) -> str:
         minutes.append(args.minutes)
-        return render(args, outcome)
+        return render(args, judged)
 
-    code = section_main(p, run, SECTION, argv) or exit_code(outcome, minutes[0])
-    for v in outcome:
-        if not v.ok:
+    code = section_main(p, run, SECTION, argv) or exit_code(judged, minutes[0])
+    for v in judged:
+        said = outcome(v, minutes[0])
+        if said == "FAIL":
             print(f"soak: {v.name}: FAIL ({v.detail})", file=sys.stderr)
+        elif said != "pass":
+            print(
+                f"soak: {v.name}: not judged in a run under {LONG_RUN_MINUTES:g} min ({v.detail})",
+                file=sys.stderr,
+            )
     return code
 
 

@@ -14,6 +14,7 @@ from bench.soakplan import (
     exit_code,
     logs_verdicts,
     memory_verdict,
+    outcome,
     queue_grows,
     queue_verdict,
     slope_per_10min,
@@ -104,6 +105,10 @@ def test_exit_code_judges_memory_and_queues_only_on_long_runs() -> None:
     assert exit_code([leak, counted_verdict(10, 10, 0, 0)], minutes=1) == 0
     assert exit_code([leak], minutes=30) == 1
     assert exit_code([counted_verdict(10, 9, 0, 0)], minutes=1) == 1
+    # a short run says so rather than FAIL for a trend it cannot show; a long one fails it
+    assert outcome(leak, 1) == "not judged" and outcome(leak, 30) == "FAIL"
+    assert outcome(counted_verdict(10, 9, 0, 0), 1) == "FAIL"
+    assert outcome(counted_verdict(10, 10, 0, 0), 1) == "pass"
 
 
 def test_latency_histogram_percentiles() -> None:
