@@ -152,6 +152,10 @@ class Dispatcher:
         first.start()
         if isinstance(first, ProcessShard):
             first.wait_ready(progress, started)
+            if first.compiled:
+                # A process that compiled keeps the compiler's memory (about 130 MB) for as long
+                # as it runs; its replacement loads the kernels from the cache in a second.
+                first.refresh(progress, started)
         for s in rest:
             s.start()
         for s in rest:

@@ -3,8 +3,9 @@
 A worker process holds a :class:`~service.engine.FleetEngine` for the robots the dispatcher gave
 it. The main process sends pickled tuples over a pipe: ``("map", ...)``, ``("batch", robot,
 [(kind, payload, received_ns), ...])``, ``("forget", robot)``, ``("stop",)``, or ``("many",
-[those])``; the worker says ``("ready",)`` once its kernels are compiled or loaded, answers each
-batch with ``("done", robot, outputs, compute_s)``, and ``("stopped",)``.
+[those])``; the worker says ``("ready", compiled)`` once its kernels are compiled (``compiled``
+true: numba's cache did not hold them) or loaded, answers each batch with ``("done", robot,
+outputs, compute_s)``, and ``("stopped",)``.
 """
 
 from __future__ import annotations
@@ -176,13 +177,13 @@ def worker_main(
     """
     if nice:
         os.nice(nice)
-    warm_up()
+    compiled = warm_up()
     engine = FleetEngine(Keys(prefix), config, interval, limits, evidence(map_health))
     hand_over = HandOver(engine)
     tune_gc()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
     send_lock = threading.Lock()
-    send(conn, ("ready",))  # the kernels are compiled or loaded: this process can localize
+    send(conn, ("ready", compiled))  # the kernels are compiled or loaded: it can localize
 
     def answer(msg: tuple[Any, ...]) -> None:
         try:
