@@ -16,6 +16,7 @@ from shapely.geometry import box
 
 from rlutf.localizer import Localizer, LocalizerConfig
 from rlutf.map import Map
+from rlutf.mapchange import ChangeGrid
 from rlutf.raycast import cast_rays
 from rlutf.scan import Scan
 
@@ -80,7 +81,12 @@ def warm_up() -> bool:
         # pose, so the random search scores candidates.
         loc = Localizer(world, pose, config, spread=(0.1, 0.05))
         loc.update(np.zeros(3), scan)
-        loc.update(slip, scan)
+        result = loc.update(slip, scan)
+        if result.returns is not None:
+            # Map health's evidence of a scan (the service counts every update's returns):
+            # not compiled here, each worker compiled it at its first scan, a second and more
+            # in which its robots' scans waited and were dropped.
+            ChangeGrid(world).add(result.returns, 1_000_000_000, "warm-up")
     # A relocalization: the map's search grid and the branch and bound.
     loc = Localizer(world, pose)
     loc.relocalize()

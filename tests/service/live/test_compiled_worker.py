@@ -8,6 +8,7 @@ Real worker processes, a real (empty, then filled) numba cache.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -44,6 +45,50 @@ def test_a_worker_that_compiled_is_replaced_by_one_that_loads_the_kernels(
         assert said and "compiling" in said[0]  # the wait was explained, once
     finally:
         dispatcher.stop()
+    # What the warm-up compiled is all a worker's robots need: their first scans (map health's
+    # evidence included) compile nothing more, so none of them waits for the compiler.
+    run = subprocess.run(
+        [sys.executable, "-c", _ROBOTS],
+        check=False,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["loaded", "poses", "nothing-compiled"], run.stdout
+
+
+#: A worker's engine on a small simulated fleet: its kernels loaded, then scans with map health.
+_ROBOTS = """
+from rlutf.warmup import compiled_here, warm_up
+from schemas import InitialPose, LaserScan, Odometry, decode
+from service.config import Settings
+from service.engine import FleetEngine
+from service.keys import Keys
+from service.live.worker import evidence, world_of_payload
+from service.sim.plan import FleetSpec, plan_fleet
+from service.sim.wire import JsonWire, map_payload
+
+print("compiled" if warm_up() else "loaded")
+plan = plan_fleet(FleetSpec(robots=2, poses=12, seed=3, map_id="sim"))
+wire = JsonWire(plan)
+s = Settings()
+engine = FleetEngine(Keys(), s.localizer, 10**9, None, evidence(True))
+engine.register_map("sim", 1, world_of_payload(map_payload(plan)), 0)
+poses = 0
+for k in range(12):
+    for i, r in enumerate(plan.robots):
+        t = 10**9 + k * 10**8
+        engine.handle(r.robot_id, decode(Odometry, wire.odometry(i, k, t)), t)
+        start = wire.initial_pose(i, t) if k == 0 else None
+        if start is not None:
+            engine.handle(r.robot_id, decode(InitialPose, start), t)
+        out = engine.handle(r.robot_id, decode(LaserScan, wire.scan(i, k, t)), t + 1000)
+        poses += sum(o.kind == "pose" for o in out)
+print("poses" if poses >= 20 else f"only {poses} poses")
+print("compiled-at-a-scan" if compiled_here() else "nothing-compiled")
+"""
 
 
 def test_a_worker_that_loaded_the_kernels_is_kept() -> None:
