@@ -45,7 +45,7 @@ from service.live.shards import (
     Shard,
     ThreadShard,
 )
-from service.live.worker import Entry
+from service.live.worker import Entry, send
 from service.maps.book import LoadedMap
 
 log = logging.getLogger(__name__)
@@ -153,9 +153,7 @@ class Dispatcher:
         if isinstance(first, ProcessShard):
             first.wait_ready(progress, started)
             if first.compiled:
-                # A process that compiled keeps the compiler's memory (about 130 MB) for as long
-                # as it runs; its replacement loads the kernels from the cache in a second.
-                first.refresh(progress, started)
+                _refresh(first, progress, started)
         for s in rest:
             s.start()
         for s in rest:
@@ -362,3 +360,18 @@ def _once(progress: Callable[[str], None] | None) -> Callable[[str], None] | Non
             told(message)
 
     return once
+
+
+def _refresh(shard: ProcessShard, progress: Callable[[str], None] | None, started: float) -> None:
+    """Replace a worker that compiled the localizer's kernels, before it has any work, by one
+    that loads them from numba's cache (in a second), and wait until it is ready: a process that
+    compiled keeps the compiler's memory, about 130 MB, for as long as it runs
+    (:func:`rlutf.warmup.compiled_here`)."""
+    shard.generation += 1  # its receiving thread ends with it, and replaces nothing
+    send(shard.conn, ("stop",))
+    shard.process.join(30.0)
+    if shard.process.is_alive():
+        shard.process.terminate()
+    shard.compiled = False
+    shard.respawn()
+    shard.wait_ready(progress, started)

@@ -454,30 +454,6 @@ class ProcessShard(Shard):
         self.conn, self.process = self._spawn()
         self.start()
 
-    def refresh(self, progress: Callable[[str], None] | None, started: float) -> None:
-        """Replace a worker that has had no work yet by a new process, and wait until it is
-        ready: the worker that compiled the localizer's kernels keeps the compiler's memory
-        (about 130 MB) for as long as it runs, where a new one loads them from numba's cache
-        in a second (:func:`rlutf.warmup.compiled_here`)."""
-        assert not self.inflight and not self.ready, "refresh is for a worker with no work"
-        self.generation += 1  # its receiving thread ends with it, without a replacement
-        with self.dispatcher.lock:
-            self.outbox.append(("stop",))
-            send = not self.sending
-            self.sending = True
-        if send:
-            self.drain()
-        self.process.join(30.0)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(5.0)
-        self.conn.close()
-        self.ready_event = threading.Event()
-        self.compiled = False
-        self.conn, self.process = self._spawn()
-        self.start()
-        self.wait_ready(progress, started)
-
     def stop(self, deadline: float) -> None:
         """Wait for what is queued and in flight, then tell the worker to stop."""
         d = self.dispatcher
