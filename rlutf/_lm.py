@@ -178,6 +178,7 @@ def refine(
     prior: np.ndarray,
     max_iterations: int,
     tolerance: float,
+    heading_tolerance: float,
     fit_distance: float,
     area_weights: np.ndarray,
     area_real_sq: np.ndarray,
@@ -205,11 +206,15 @@ def refine(
     scale_max] / 2.3849`` (95 % efficiency on Gaussian noise; beams off by much more than the
     noise, people and map errors, weigh almost nothing). The small ``prior`` (information per
     unit variance, diagonal ``(3,)``) holds directions the scan does not constrain (a corridor's
-    axis) at the start pose. Stops when a step is under ``tolerance`` (metres and radians), after
-    ``max_iterations`` casts, or when no step lowers the cost.
+    axis) at the start pose. Stops after ``max_iterations`` casts, when no step lowers the cost,
+    or on a step shorter than ``tolerance`` (metres) that turns less than ``heading_tolerance``
+    (radians): that last step is taken without a cast (most refinements save one or two casts
+    so; the step's error is of second order in its length).
 
     Writes the final pose, its virtual ranges and residuals, and its covariance ``sigma^2 (J^T J +
-    sigma^2 prior)^-1`` over the inlier beams (``|r| <= 3 sigma``). Returns ``(casts, sigma,
+    sigma^2 prior)^-1`` over the inlier beams (``|r| <= 3 sigma``); after a last step taken
+    without a cast, the ranges, residuals and covariance are those of the cast before it, at
+    most ``tolerance`` away. Returns ``(casts, sigma,
     beams used, beams within fit_distance, whether the covariance exists, the polar area of the
     start pose, that of the final pose, gated)``.
 
@@ -278,8 +283,10 @@ def refine(
                 continue
             for r in range(3):
                 step[r] = inverse[r, 0] * b[0] + inverse[r, 1] * b[1] + inverse[r, 2] * b[2]
-            if math.hypot(step[0], step[1]) < tolerance and abs(step[2]) < tolerance:
-                # At the bottom: a step this small is not worth a cast.
+            if math.hypot(step[0], step[1]) < tolerance and abs(step[2]) < heading_tolerance:
+                # Near the bottom: a step this small is taken as the linearisation gives it,
+                # without a cast to check it (its error is of second order in the step).
+                x, y, t = x + step[0], y + step[1], t + step[2]
                 converged = True
                 break
             nx_, ny_, nt_ = x + step[0], y + step[1], t + step[2]

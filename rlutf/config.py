@@ -101,7 +101,10 @@ class LocalizerConfig:
             simplified walls have fewer. A drawn map (one that barely simplifies) is tracked on
             directly. 0: always on the map.
         refine_iterations: most casts of the scan per refinement.
-        refine_tolerance: the refinement stops on a step under this, metres and radians.
+        refine_tolerance: a refinement step shorter than this, metres, that also turns less
+            than ``refine_heading_tolerance`` is taken without casting the scan again, and ends
+            the refinement (the step's error is of second order in its length).
+        refine_heading_tolerance: the same bound on the step's turn, radians.
         noise_min: smallest range noise the refinement assumes, metres.
         noise_max: largest range noise the refinement assumes, metres.
         max_incidence: the refinement leaves out beams hitting a wall more obliquely than this,
@@ -181,7 +184,8 @@ class LocalizerConfig:
     refine: bool = True
     coarse_tolerance: float = 0.07
     refine_iterations: int = 12
-    refine_tolerance: float = 1e-4
+    refine_tolerance: float = 1e-3
+    refine_heading_tolerance: float = 3e-4
     noise_min: float = 0.002
     noise_max: float = 0.2
     max_incidence: float = math.radians(80.0)
@@ -221,6 +225,7 @@ class LocalizerConfig:
             "delta_min",
             "max_gap",
             "refine_tolerance",
+            "refine_heading_tolerance",
             "noise_min",
             "noise_max",
             "max_incidence",
@@ -344,6 +349,7 @@ class LocalizerConfig:
         return RefineSettings(
             iterations=self.refine_iterations,
             tolerance=self.refine_tolerance,
+            heading_tolerance=self.refine_heading_tolerance,
             sigma_min=self.noise_min,
             sigma_max=self.noise_max,
             max_incidence=self.max_incidence,

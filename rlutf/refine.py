@@ -41,7 +41,8 @@ class RefineSettings:
 
     Attributes:
         iterations: most casts (each step, tried or taken, casts every beam once).
-        tolerance: stop when a step moves less than this, metres and radians.
+        tolerance: a step shorter than this (metres) that also turns less than
+            ``heading_tolerance`` (radians) is taken without a cast, and ends the refinement.
         sigma_min: smallest range noise assumed, metres (the kernel's scale never goes under
             ``2.38 sigma_min``; keeps a near-perfect fit from rejecting every beam).
         sigma_max: largest range noise assumed at the start, metres (a far-off start pose sees
@@ -53,7 +54,8 @@ class RefineSettings:
     """
 
     iterations: int = 12
-    tolerance: float = 1e-4
+    tolerance: float = 1e-3
+    heading_tolerance: float = 3e-4
     sigma_min: float = 0.002
     sigma_max: float = 0.2
     max_incidence: float = math.radians(80.0)
@@ -173,6 +175,7 @@ def refine_pose(
         prior,
         settings.iterations if iterations is None else iterations,
         settings.tolerance,
+        settings.heading_tolerance,
         float(fit_distance),
         weights,
         real_sq,
