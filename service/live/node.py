@@ -27,7 +27,6 @@ from typing import Any
 
 import zenoh
 
-from rlutf.warmup import warm_up
 from schemas import (
     SCHEMA_NAMES,
     Event,
@@ -61,6 +60,7 @@ from service.live.robots import RobotView, robots_key
 from service.live.sessions import zenoh_config
 from service.live.shards import Done
 from service.live.stats import Stats
+from service.live.warmaside import warm_up_aside
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import Held, MapBook
@@ -230,7 +230,7 @@ class LocalizationService:
         # first scan. Worker processes do it as they start; with them, this process never runs
         # an update, and loaded kernels cost ~60 MB of resident memory a process.
         if not self.dispatcher.processes:
-            warm_up()
+            warm_up_aside(progress)  # compiled by a child on a first start
         self.recorder.set_config(s.effective())
         if hasattr(self.recorder, "on_overflow"):
             # Already in the log; published so operators see it live.

@@ -27,6 +27,7 @@ from service.guard import Limits
 from service.keys import Keys
 from service.live.publishing import HOLD_S, PoseOut
 from service.live.supervise import History
+from service.live.warmaside import COMPILING
 from service.live.worker import (
     Entry,
     HandOver,
@@ -494,7 +495,4 @@ class ProcessShard(Shard):
             waited = time.monotonic() - started
             if progress is not None and waited > 3.0 and not said:
                 said = True
-                progress(
-                    "compiling the localizer's kernels (first start only; about 30 s on 2 cores, "
-                    "then they load from numba's cache in about a second)"
-                )
+                progress(COMPILING)
