@@ -279,7 +279,7 @@ def _report(
 ) -> Any:
     """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
     final summary."""
-    from service.logs.audit import all_passed, audit, render, run_verdict
+    from service.logs.audit import all_passed, audit, render, run_verdict, version_note
 
     k, n = place
     heading = "Audit" if n == 1 else f"Audit of run {k}"
@@ -319,6 +319,9 @@ def _report(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
         )
     console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
+    note = None if ok else version_note(run.files)
+    if note is not None:
+        console.print(f"[yellow]{note}[/yellow]")
     return run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
 
 

@@ -238,3 +238,32 @@ def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:
             v.out,
         )
     console.print(table)
+
+
+def written_by(files: Sequence[Path]) -> str | None:
+    """What wrote a run's log (its first file's MCAP header, e.g. ``rlutf 0.4.0``); ``None``
+    when it cannot be read."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(files[0], "rb") as f:
+            return str(make_reader(f).get_header().library)
+    except Exception:  # mcap raises many types on a damaged file; the replay said so already
+        return None
+
+
+def version_note(files: Sequence[Path]) -> str | None:
+    """Why a failed audit may be no tampering: the log was written by another version of rlutf,
+    whose localizer computes other poses (every version that changes a pose is a new version);
+    ``None`` when the versions are the same or the writer is not rlutf."""
+    from service.logs.mcapfile import LIBRARY
+
+    writer = written_by(files)
+    if writer is None or writer == LIBRARY or not writer.startswith("rlutf "):
+        return None
+    version = writer.removeprefix("rlutf ")
+    return (
+        f"the log was written by {writer} and replayed by {LIBRARY}: another version's localizer "
+        f"computes other poses, so they differ without any tampering; audit it with that "
+        f"version (pip install 'rlutf=={version}', or its container image)"
+    )

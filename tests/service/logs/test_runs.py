@@ -156,6 +156,24 @@ def test_a_tampered_run_fails_alone(
     assert len(failed) == 1 and failed[0][1].strip() == str(RUNS + 1)
     assert bad.run_id[:8] in failed[0][3]
     assert f"run {RUNS + 1} of {RUNS + 1}: {bad.run_id}" in text
+    assert "written by" not in text  # the same version: nothing excuses the difference
+
+
+def test_a_log_of_another_version_that_fails_says_why(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A log written by another version of rlutf (its MCAP header's library), whose poses do not
+    # reproduce here: the audit fails, and says which version to audit it with.
+    monkeypatch.setattr("service.logs.mcapfile.LIBRARY", "rlutf 0.0.1")
+    old = record_run(tmp_path / "logs", tmp_path, 0, tamper=True)
+    monkeypatch.undo()
+    with open(old.files[0], "rb") as f:
+        assert make_reader(f).get_header().library == "rlutf 0.0.1"
+    code = main(["replay", str(old.files[0]), "--out", str(tmp_path / "x.mcap"), "--quiet"])
+    assert code == 1
+    text = " ".join(capsys.readouterr().out.split())
+    assert "audit: FAILED" in text
+    assert "written by rlutf 0.0.1" in text and "pip install 'rlutf==0.0.1'" in text
 
 
 def test_log_info_describes_each_run(
