@@ -243,12 +243,12 @@ def render_verdicts(verdicts: Sequence[RunVerdict], console: Console) -> None:
 def written_by(files: Sequence[Path]) -> str | None:
     """What wrote a run's log (its first file's MCAP header, e.g. ``rlutf 0.4.0``); ``None``
     when it cannot be read."""
-    from mcap.reader import make_reader
+    from service.logs.mcapread import LogError, LogFile
 
     try:
-        with open(files[0], "rb") as f:
-            return str(make_reader(f).get_header().library)
-    except Exception:  # mcap raises many types on a damaged file; the replay said so already
+        with LogFile(files[0]) as lf:
+            return lf.library()
+    except LogError:  # the replay said so already
         return None
 
 

@@ -56,6 +56,7 @@ class LogInfo:
     metadata: list[str]
     run: dict[str, str] | None = None
     carried_maps: int = 0
+    writer: str | None = None
 
     @property
     def messages(self) -> int:
@@ -125,6 +126,7 @@ def log_info(path: Path) -> LogInfo:
             [name for name, _ in lf.metadata()],
             tag.to_metadata() if tag is not None else None,
             carried,
+            lf.library(),
         )
 
 
@@ -152,6 +154,8 @@ def _clock(ns: int) -> str:
 def render_info(info: LogInfo, console: Console) -> None:
     """Print a log's info as tables."""
     console.print(f"[bold]{info.path}[/bold]  {info.size:,} bytes, {info.messages:,} messages")
+    # The version whose localizer computed the poses: audit the log with that version.
+    console.print(f"written by: {info.writer or 'unknown'}")
     run = info.run
     if run is not None:
         started = _when(int(run.get("started_ns", "0")))
@@ -276,6 +280,8 @@ def render_runs(runs: Sequence[RunInfo], console: Console) -> None:
         first = run.tags[0]
         started = f", started {_when(first.started_ns)}" if first is not None else ""
         console.rule(f"run {k} of {len(runs)}: {run.label}{started}")
+        writers = sorted({f.writer or "unknown" for f in info.files})
+        console.print(f"written by: {', '.join(writers)}")
         span = info.time_range
         if span is not None:
             start, end = span

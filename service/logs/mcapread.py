@@ -207,6 +207,14 @@ class LogFile:
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
 
     # ------------------------------------------------------------------ queries
+    def library(self) -> str | None:
+        """What wrote the file: its MCAP header's library (``rlutf 0.5.0`` for this service's
+        logs: the version whose localizer computed its poses); ``None`` if unreadable."""
+        try:
+            return str(self._reader.get_header().library)
+        except Exception:  # the library raises many types on garbage
+            return None
+
     def channels(self) -> list[ChannelInfo]:
         """Every channel, by topic."""
         out = [

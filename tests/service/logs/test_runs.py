@@ -24,7 +24,7 @@ from rlutf.sim import make_building
 from service.cli.main import main
 from service.logs.audit import all_passed, audit
 from service.logs.logtools import log_info, runs_info
-from service.logs.mcapfile import Record
+from service.logs.mcapfile import LIBRARY, Record
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
 from service.logs.replay import REPLAY_INSTANCE, MixedRuns, replay
@@ -174,6 +174,11 @@ def test_a_log_of_another_version_that_fails_says_why(
     text = " ".join(capsys.readouterr().out.split())
     assert "audit: FAILED" in text
     assert "written by rlutf 0.0.1" in text and "pip install 'rlutf==0.0.1'" in text
+    # log info names the writer before any audit
+    assert main(["log", "info", str(old.files[0]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["writer"] == "rlutf 0.0.1"
+    assert main(["log", "info", str(old.files[0])]) == 0
+    assert "written by: rlutf 0.0.1" in capsys.readouterr().out
 
 
 def test_log_info_describes_each_run(
@@ -190,6 +195,7 @@ def test_log_info_describes_each_run(
     assert main(["log", "info", *map(str, logs_of(logs))]) == 0
     text = capsys.readouterr().out
     assert text.count("files of run") == RUNS and f"run {RUNS} of {RUNS}" in text
+    assert text.count(f"written by: {LIBRARY}") == RUNS
 
 
 def test_rotated_files_carry_maps_outside_their_own_time(
