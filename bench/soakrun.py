@@ -261,7 +261,8 @@ def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
 
 def _progress(s: dict[str, Any]) -> None:
     print(
-        f"[soak {s['minute']:5.1f} min] service {s['rss_service_mb']:.0f} MB, generator "
+        f"[soak {s['minute']:5.1f} min] service {s['rss_service_mb']:.0f} MB (Pss "
+        f"{s['pss_service_mb']:.0f}: shared pages once), generator "
         f"{s['rss_generator_mb']:.0f} MB; sent {s['sent']}, poses {s['poses']}, dropped "
         f"{s['dropped']}, not processed {s['not_processed']}; latency p50 "
         f"{s['latency_p50_ms']:.1f} p99 {s['latency_p99_ms']:.1f} ms; pending "

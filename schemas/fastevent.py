@@ -31,8 +31,6 @@ def encode_scan_dropped(key: str, stamp_ns: int) -> bytes:
             f'{{"stamp_ns":{stamp_ns},"level":"info","code":"{EventCode.SCAN_DROPPED}",'
             f'"key":{quoted},"message":"{scan_dropped_message(stamp_ns)}"}}'
         )
-        if text.isascii():  # the common case: a service's keys are ASCII
-            return text.encode()
         try:
             return text.encode()
         except UnicodeEncodeError:  # a lone surrogate: the model says what is wrong
