@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Any
 
 import numpy as np
 from shapely.geometry import box
@@ -41,6 +42,14 @@ def _numba_without_blas() -> None:
         del sys.modules[blas]
 
 
+def kernels() -> list[Any]:
+    """The localizer's compiled kernels: every numba dispatcher of its kernel modules."""
+    from rlutf import _bnb, _changes, _grid, _kernels, _lm
+
+    modules = (_bnb, _changes, _grid, _kernels, _lm)
+    return [v for m in modules for v in vars(m).values() if getattr(v, "stats", None) is not None]
+
+
 def compiled_here() -> bool:
     """Whether this process compiled any of the localizer's kernels (numba's cache did not hold
     them: a first start after an install, or a cache that does not match the sources).
@@ -48,14 +57,7 @@ def compiled_here() -> bool:
     Such a process keeps the compiler's memory for as long as it runs: about 290 MB resident
     after :func:`warm_up` against about 160 MB for one that loaded the kernels from the cache
     (CPython 3.11, numba 0.68). From numba's per-kernel cache statistics."""
-    from rlutf import _bnb, _changes, _grid, _kernels, _lm
-
-    for module in (_bnb, _changes, _grid, _kernels, _lm):
-        for value in vars(module).values():
-            stats = getattr(value, "stats", None)
-            if stats is not None and getattr(stats, "cache_misses", None):
-                return True
-    return False
+    return any(getattr(kernel.stats, "cache_misses", None) for kernel in kernels())
 
 
 def warm_up() -> bool:

@@ -16,7 +16,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 
-from rlutf.warmup import warm_up
+from rlutf.warmup import kernels, warm_up
 
 log = logging.getLogger(__name__)
 
@@ -39,19 +39,10 @@ def cache_holds_kernels() -> bool:
     then compiles here, as without this check). ``False`` when numba's cache is not laid out as
     this code knows (numba 0.6x's ``FunctionCache``), so a child warms up first, to be safe.
     """
-    from rlutf import _bnb, _changes, _grid, _kernels, _lm
-
     try:
-        for module in (_bnb, _changes, _grid, _kernels, _lm):
-            for value in vars(module).values():
-                cache = getattr(value, "_cache", None)
-                if cache is None or not hasattr(value, "stats"):
-                    continue
-                if not os.path.exists(cache._cache_file._index_path):
-                    return False
+        return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels())
     except AttributeError:
         return False
-    return True
 
 
 def warm_up_aside(progress: Callable[[str], None] | None = None) -> bool:
