@@ -1,6 +1,8 @@
 """Maps from logs that match the log: the even scans build the map, the odd scans are tracked.
 
-Run: ``python -m bench.evenodd [--logs intel,aces] [--seeds 3] [--no-variants] [--write]``.
+Run: ``python -m bench.evenodd [--logs intel,aces] [--seeds 3] [--no-variants] [--write]``
+(one of ``--neighbours``, ``--coarse-to-fine``, ``--fitted-walls``, ``--settle``, ``--cost``
+instead: that section only).
 
 The check an outside user makes of ``rlutf map build`` on a public CARMEN log: the even scans
 (0, 2, 4, ...) at their corrected poses build the map as ``rlutf map build`` does
@@ -57,6 +59,7 @@ from bench.evenodd_runs import (
     update_seconds,
     variants,
 )
+from bench.evenodd_settle import render_settle
 from bench.methods import Method
 from bench.report import replace_section
 from bench.wallfit import WallFit
@@ -72,6 +75,8 @@ COARSE_SECTION = "evenodd-coarse"
 COST_SECTION = "evenodd-cost"
 #: The section of ``--fitted-walls``.
 FITTED_SECTION = "evenodd-fitted"
+#: The section of ``--settle``.
+SETTLE_SECTION = "evenodd-settle"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
 
@@ -398,6 +403,8 @@ def _command(args: argparse.Namespace) -> str:
         parts.append("--coarse-to-fine")
     elif args.fitted:
         parts.append("--fitted-walls")
+    elif args.settle:
+        parts.append("--settle")
     elif not args.variants:
         parts.append("--no-variants")
     return " ".join([*parts, "--write"])
@@ -433,6 +440,12 @@ def main(argv: list[str] | None = None) -> int:
         help="only the trial of walls moved onto the hit points (its own section)",
     )
     p.add_argument(
+        "--settle",
+        action="store_true",
+        help="only where each refinement settles from a start a few centimetres off, apart "
+        "from tracking (its own section)",
+    )
+    p.add_argument(
         "--cost",
         action="store_true",
         help="only the time per update, with and without the coarse map (its own section; run "
@@ -448,6 +461,9 @@ def main(argv: list[str] | None = None) -> int:
         text, section = render_coarse(args, _stderr), COARSE_SECTION
     elif args.fitted:
         text, section = render_fitted(args, _stderr), FITTED_SECTION
+    elif args.settle:
+        logs = [s for s in args.logs.split(",") if s]
+        text, section = render_settle(logs, _command(args), _stderr), SETTLE_SECTION
     else:
         text, section = render(args, _stderr), SECTION
     print(text)
