@@ -213,6 +213,9 @@ class EventCode:
     """The localizer found no pose under its acceptance threshold."""
     SCAN_DROPPED: Final = "scan_dropped"
     """A newer scan replaced an unprocessed older one."""
+    MAP_DROPPED: Final = "map_dropped"
+    """A map put was not taken: too many map puts already waited to be checked or stored (a
+    flood). The service then loads what the store holds; the message says what happened."""
     RECORDER_OVERFLOW: Final = "recorder_overflow"
     """The MCAP recorder's queue was full and messages were not logged."""
     MAP_UPDATED: Final = "map_updated"

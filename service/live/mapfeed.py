@@ -3,11 +3,19 @@
 Map puts seen by the service's subscriber and maps a robot needs (fetched with a Zenoh get from
 whatever storage answers) are parsed on one thread, recorded, and broadcast to the dispatcher's
 shards, so the Zenoh callbacks stay fast.
+
+A map of real size takes a second or more to check, and a client may put maps faster than that
+(a tool in a loop, a hostile peer): the puts that wait are bounded (:data:`MAX_WAITING` puts,
+:data:`WAITING_BYTES` bytes). A put beyond them is not loaded, with an Event ``map_dropped`` (at
+most one a second, counting the puts since the last); once the puts that waited are done, the
+service fetches the stored version of every map it dropped a put of, so that it ends on what the
+store holds, as if it had seen every put.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -24,6 +32,19 @@ from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
 log = logging.getLogger(__name__)
 
 MAP_SCHEMA = SCHEMA_NAMES[Map]
+
+#: Map puts that may wait to be checked (the one being checked not counted).
+MAX_WAITING = 4
+#: Bytes of map puts that may wait to be checked; a put arriving when none waits is always
+#: taken, however large (the size limit is the check's to enforce).
+WAITING_BYTES = 64 * 1024 * 1024
+#: Seconds between two Events ``map_dropped``.
+DROP_EVENT_S = 1.0
+#: Seconds between two looks at whether the store has caught up, after dropped puts.
+CATCH_UP_S = 0.5
+#: Maps whose dropped puts are followed by a fetch of the stored version; the puts of more
+#: maps are dropped with an Event that asks for them again.
+MAX_STALE = 1024
 
 GlobalEvent = Callable[[str, str, str, str, int | None], None]
 """Publish an event not tied to a robot: level, code, key, message, time."""
@@ -64,8 +85,21 @@ class MapFeed:
         self.timeout_s = timeout_s
         self._global_event = global_event
         self._robot_event = robot_event
-        self._tasks: queue.Queue[tuple[str, str, bytes] | None] = queue.Queue()
+        # (kind, map id, payload or robot, an offer's arrival number and the version held then)
+        self._tasks: queue.Queue[tuple[str, str, bytes, int, int] | None] = queue.Queue()
         self._fetching: dict[str, float] = {}
+        self._lock = threading.Lock()
+        self._waiting = 0  # offers queued, not yet checked
+        self._waiting_bytes = 0
+        self._fetches: set[str] = set()  # maps a fetch task is queued for
+        self._stale: set[str] = set()  # maps a put of which was dropped: fetched when caught up
+        self._puts = 0  # map puts seen
+        self._last_put: dict[str, int] = {}  # map id -> arrival number of its newest put in flight
+        self._dropped = 0  # puts dropped since the last Event
+        self._drop_event_at = -math.inf
+        #: Whether the embedded store still has puts to store (the stored version of a map
+        #: whose puts were dropped is fetched once it has none).
+        self.store_busy: Callable[[], bool] = lambda: False
         self._session: zenoh.Session | None = None
         self._thread: threading.Thread | None = None
 
@@ -93,34 +127,130 @@ class MapFeed:
         except KeyError_ as err:
             self._global_event("error", EventCode.INVALID_KEY, key, str(err), None)
             return
-        if map_id is not None:
-            self._tasks.put(("offer", map_id, sample.payload.to_bytes()))
+        if map_id is None:
+            return
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            self._puts += 1
+            taken = self._waiting == 0 or (
+                self._waiting < MAX_WAITING and self._waiting_bytes + len(payload) <= WAITING_BYTES
+            )
+            if taken:
+                self._waiting += 1
+                self._waiting_bytes += len(payload)
+                self._last_put[map_id] = self._puts
+                held = self.book.get(map_id)
+                version = -1 if held is None else held.version
+                self._tasks.put(("offer", map_id, payload, self._puts, version))
+                return
+            follow = map_id in self._stale or len(self._stale) < MAX_STALE
+            if follow:
+                self._stale.add(map_id)
+                self._last_put[map_id] = self._puts
+            self._dropped += 1
+            now = time.monotonic()
+            if now - self._drop_event_at < DROP_EVENT_S:
+                return
+            self._drop_event_at = now
+            dropped, self._dropped = self._dropped, 0
+            waiting, waiting_mb = self._waiting, self._waiting_bytes / 1e6
+        then = (
+            f"when they are done the service loads what the store holds for {map_id}"
+            if follow
+            else f"put {map_id} again (the puts of {MAX_STALE} other maps are already dropped)"
+        )
+        self._global_event(
+            "warning",
+            EventCode.MAP_DROPPED,
+            key,
+            f"{dropped} map put(s) not loaded ({len(payload)} bytes, this one): {waiting} map "
+            f"puts ({waiting_mb:.1f} MB) already wait to be checked; {then}",
+            None,
+        )
 
     def need(self, map_id: str, robot: str) -> None:
-        """Queue a fetch of ``map_id``, which ``robot`` waits for."""
-        self._tasks.put(("fetch", map_id, robot.encode()))
+        """Queue a fetch of ``map_id``, which ``robot`` waits for (one fetch queued per map)."""
+        with self._lock:
+            if map_id in self._fetches:
+                return
+            self._fetches.add(map_id)
+        self._tasks.put(("fetch", map_id, robot.encode(), 0, -1))
 
     def _run(self) -> None:
         while True:
-            task = self._tasks.get()
+            try:
+                task = self._tasks.get(timeout=CATCH_UP_S if self._stale else None)
+            except queue.Empty:
+                self._catch_up()
+                continue
             if task is None:
                 return
-            kind, map_id, payload = task
+            kind, map_id, payload, number, held_then = task
             try:
                 if kind == "offer":
-                    self._offer(map_id, payload)
+                    self._offer(map_id, payload, number=number, held_then=held_then)
                 else:
+                    with self._lock:
+                        self._fetches.discard(map_id)
                     self._fetch(map_id, payload.decode())
             except Exception:
                 log.exception("map task %s %s failed", kind, map_id)
+            finally:
+                if kind == "offer":
+                    with self._lock:
+                        self._waiting -= 1
+                        self._waiting_bytes -= len(payload)
+                        if self._last_put.get(map_id) == number:
+                            del self._last_put[map_id]
+            del task, payload  # a map's payload is not kept while the thread waits
+            self._catch_up()
 
-    def _offer(self, map_id: str, payload: bytes) -> bool:
+    def _catch_up(self) -> None:
+        """When no put waits here or in the embedded store: load the stored version of the maps
+        whose puts were dropped."""
+        with self._lock:
+            if self._waiting or not self._stale or self.store_busy():
+                return
+            stale, self._stale = sorted(self._stale), set()
+            for map_id in stale:
+                self._last_put.pop(map_id, None)
+        for map_id in stale:
+            try:
+                self._refresh(map_id)
+            except Exception:
+                log.exception("fetching map %s after dropped puts failed", map_id)
+
+    def _refresh(self, map_id: str) -> None:
+        if self._session is None:
+            return
+        for reply in self._session.get(self.keys.map(map_id), timeout=self.timeout_s):
+            if reply.ok is not None:
+                self._offer(map_id, reply.ok.payload.to_bytes(), quiet=True)
+
+    def _offer(
+        self,
+        map_id: str,
+        payload: bytes,
+        quiet: bool = False,
+        number: int = 0,
+        held_then: int = -1,
+    ) -> bool:
+        """Check a map put, load it if it is newer; ``quiet``: a stored version fetched again,
+        which is no client's put (an older one than held is no conflict to report).
+
+        ``number``: the put's arrival number; ``held_then``: the version this service held
+        when it arrived (-1: none). A put newer than that, which conflicts now only because a
+        newer put of the map came after it (and the store, say, stored that one first), was
+        superseded, not refused: no conflict is reported for it."""
         key = self.keys.map(map_id)
         # Validated first, with no lock held: a big map takes a while, and the robots' inputs
         # go through the dispatcher's lock.
         try:
             checked = self.book.check(map_id, payload)
         except MapRejected as err:
+            if quiet:
+                log.warning("the stored map %s is not valid: %s", map_id, err)
+                return False
             self._global_event("error", EventCode.INVALID_MAP, key, str(err), self.clock())
             return False
         # Order matters for replay: the map is recorded and reaches the shards at one instant
@@ -136,6 +266,12 @@ class MapFeed:
                 self._record(loaded)
                 self.dispatcher.broadcast_map(loaded)
         self.dispatcher.flush()
+        with self._lock:
+            later = bool(number) and self._last_put.get(map_id, number) > number
+        superseded = later and checked[0] > held_then
+        if conflict is not None and (quiet or superseded):
+            log.info("%s: %s", "superseded" if superseded else "not newer", conflict)
+            return True
         if conflict is not None:
             self._global_event(
                 "error", EventCode.MAP_VERSION_CONFLICT, key, str(conflict), received

@@ -251,7 +251,11 @@ class LocalizationService:
                     "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
                 ),
                 checker=self.maps.checker,
+                on_drop=lambda key, msg: self.keywatch.limited(
+                    "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg, self.clock()
+                ),
             )
+            self.mapfeed.store_busy = self._storage.busy
         self.mapfeed.start(session)
         self._declared += [
             session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample),

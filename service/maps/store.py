@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 
 #: Map puts that may wait to be stored; a flood of puts beyond it is refused, with an Event.
 _QUEUED = 16
+#: Bytes of map puts that may wait to be stored (a put that arrives when none waits is always
+#: taken, however large: the size limit is the check's to enforce).
+_QUEUED_BYTES = 64 * 1024 * 1024
 
 
 class MapStore(Protocol):
@@ -143,6 +146,8 @@ class MapStorage:
         on_error: reports a bad key or a map that could not be written: ``(key, message)``.
         limits: extent and vertex limits of a map.
         checker: validates puts (the service's, so that a put is validated once).
+        on_drop: reports a put not stored because too many already waited (default:
+            ``on_error``).
     """
 
     def __init__(
@@ -154,6 +159,7 @@ class MapStorage:
         on_error: Callable[[str, str], None] | None = None,
         limits: MapLimits | None = None,
         checker: MapChecker | None = None,
+        on_drop: Callable[[str, str], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -161,6 +167,10 @@ class MapStorage:
         self.limits = limits
         self.checker = checker or MapChecker(max_bytes, limits)
         self.on_error = on_error or (lambda key, msg: None)
+        self.on_drop = on_drop or self.on_error
+        self._applying = False
+        self._queued_bytes = 0
+        self._queue_lock = threading.Lock()  # not _lock, which a file write holds
         self._versions: dict[str, Held] = {}
         self._lock = threading.Lock()
         for map_id, payload in store.items():
@@ -192,17 +202,39 @@ class MapStorage:
         if map_id is None:
             return
         payload = None if sample.kind == zenoh.SampleKind.DELETE else sample.payload.to_bytes()
-        try:
-            self._tasks.put_nowait((key, map_id, payload))
-        except queue.Full:
-            self.on_error(key, f"map {map_id} not stored: {_QUEUED} puts already wait")
+        size = 0 if payload is None else len(payload)
+        with self._queue_lock:
+            waiting = self._tasks.qsize()
+            if waiting and (waiting >= _QUEUED or self._queued_bytes + size > _QUEUED_BYTES):
+                held = self._queued_bytes / 1e6
+                dropped = True
+            else:
+                self._queued_bytes += size
+                self._tasks.put_nowait((key, map_id, payload))
+                dropped = False
+        if dropped:
+            self.on_drop(
+                key,
+                f"map {map_id} not stored: {waiting} puts ({held:.1f} MB) already wait to be "
+                "stored; put it again",
+            )
+
+    def busy(self) -> bool:
+        """Whether puts wait to be stored, or one is being stored."""
+        return self._applying or not self._tasks.empty()
 
     def _run(self) -> None:
         while (task := self._tasks.get()) is not None:
+            self._applying = True
             try:
                 self._apply(*task)
             except Exception:
                 log.exception("storing %s failed", task[0])
+            finally:
+                with self._queue_lock:
+                    self._queued_bytes -= 0 if task[2] is None else len(task[2])
+                self._applying = False
+            del task  # the payload is not kept while the thread waits
 
     def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:
         if payload is None:  # `rlutf map remove`: an operator's choice

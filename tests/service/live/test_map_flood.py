@@ -1,0 +1,112 @@
+"""A flood of map puts costs bounded memory, and the service still ends on the stored map.
+
+A map of real size takes a second or more to check; a client that puts maps faster than that
+(a tool in a loop, a hostile peer) must not make the puts pile up in the service or the store.
+The puts beyond a few waiting ones are dropped with an Event ``map_dropped``, and once the
+service has caught up it loads what the store holds, so that it ends on the last put's map.
+Here the check is slowed down so that a few small maps are a flood.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+from service_harness import JSON, WORLD, Collector, running_bench
+
+from schemas import Map, encode
+from service.keys import Keys
+from service.live import mapfeed
+from service.live.sessions import session_config
+from service.maps import store as store_module
+from service.maps.book import MapBook, MapChecker
+from service.maps.store import FileMapStore, MapStorage
+
+pytestmark = pytest.mark.integration
+PUTS = 12
+
+
+def _payload(version: int, map_id: str = "m1") -> bytes:
+    return encode(Map(map_id=map_id, version=version, geometry=WORLD.to_geojson()))
+
+
+class SlowChecker(MapChecker):
+    """A checker that takes ``seconds`` longer per map, as a map of real size does."""
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__(10_000_000)
+        self.seconds = seconds
+
+    def check(self, map_id: str, payload: bytes) -> Any:
+        time.sleep(self.seconds)
+        return super().check(map_id, payload)
+
+
+def test_the_store_drops_puts_beyond_its_bytes_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    size = len(_payload(1))
+    monkeypatch.setattr(store_module, "_QUEUED_BYTES", 2 * size + size // 2)  # two wait
+    dropped: list[str] = []
+    with zenoh.open(session_config("peer")) as session:
+        storage = MapStorage(
+            session,
+            Keys(),
+            FileMapStore(tmp_path),
+            10_000_000,
+            checker=SlowChecker(0.2),
+            on_drop=lambda key, message: dropped.append(message),
+        )
+        try:
+            for version in range(1, PUTS + 1):
+                session.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+            deadline = time.monotonic() + 10
+            while (storage.busy() or storage.held("m1") is None) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not storage.busy()
+            held = storage.held("m1")
+        finally:
+            storage.close()
+    # The first put is checked, two wait, the rest are dropped with a reason each.
+    assert held is not None and held[0] <= 4
+    assert len(dropped) >= PUTS - 4
+    assert "already wait to be stored; put it again" in dropped[0]
+
+
+def test_the_service_drops_map_puts_it_cannot_check_in_time_then_loads_the_stored_map(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(mapfeed, "MAX_WAITING", 1)
+    slow_check = MapBook.check
+
+    def check(book: MapBook, map_id: str, payload: bytes) -> Any:
+        time.sleep(0.3)
+        return slow_check(book, map_id, payload)
+
+    monkeypatch.setattr(MapBook, "check", check)
+    with running_bench(tmp_path) as bench:
+        events = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", events)
+        for version in range(1, PUTS + 1):
+            bench.client.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+
+        def loaded() -> int:
+            held = bench.service.maps.get("m1")
+            return 0 if held is None else held.version
+
+        assert events.wait_for(lambda: loaded() == PUTS, timeout=30.0), loaded()
+        assert events.wait_for(
+            lambda: any(e["code"] == "map_updated" for e in events.on("rlutf/events")[-1:])
+        )
+        codes = [e["code"] for e in events.on("rlutf/events")]
+        sub.undeclare()
+    # Some puts were dropped, with an Event that says what the service does next ...
+    drops = [e for e in events.on("rlutf/events") if e["code"] == "map_dropped"]
+    assert drops and "the service loads what the store holds for m1" in drops[0]["message"]
+    assert drops[0]["level"] == "warning"
+    # ... fewer versions were loaded than put, and no put was called a conflict.
+    assert 1 <= codes.count("map_updated") < PUTS
+    assert "map_version_conflict" not in codes and "invalid_map" not in codes
