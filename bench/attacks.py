@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -32,6 +33,7 @@ class Context:
         scale: 1.0 for the full campaign, smaller for ``--quick``.
         duration: seconds the attack may take (``mixed`` runs this long).
         notes: what the attack wants reported beside its figures.
+        extra: figures of the attack's own that its targets read.
     """
 
     session: Any
@@ -41,6 +43,7 @@ class Context:
     scale: float = 1.0
     duration: float = 10.0
     notes: list[str] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
 
     def count(self, full: int) -> int:
         """``full`` scaled for the mode, at least 1."""
@@ -137,6 +140,43 @@ def map_40k(ctx: Context) -> int:
         ctx.session.put("rlutf/robots/atk-round/scan", _scan([20.0] * 360))
         time.sleep(0.1)
     return 8
+
+
+def map_flood(ctx: Context) -> int:
+    """A 5 MB map put again and again, each time one version newer, for the duration."""
+    vertices = ctx.count(200_000)
+    ring = [
+        [round(40.0 + 40.0 * math.cos(2 * math.pi * k / vertices), 4),
+         round(40.0 + 40.0 * math.sin(2 * math.pi * k / vertices), 4)]
+        for k in range(vertices)
+    ]  # fmt: skip
+    geometry = json.dumps({"type": "Polygon", "coordinates": [[*ring, ring[0]]]}).encode()
+    loaded: list[int] = []
+    found = re.compile(r"map flood version (\d+) loaded")
+
+    def on_event(sample: Any) -> None:
+        hit = found.search(json.loads(sample.payload.to_bytes()).get("message", ""))
+        if hit:
+            loaded.append(int(hit.group(1)))
+
+    sub = ctx.session.declare_subscriber("rlutf/events", on_event)
+    start = time.monotonic()
+    n = 0
+    while time.monotonic() - start < 0.6 * ctx.duration:
+        n += 1
+        body = b'{"map_id": "flood", "version": %d, "geometry": %s}' % (n, geometry)
+        ctx.session.put("rlutf/maps/flood", body)
+        time.sleep(0.02)
+    end = time.monotonic() + 0.4 * ctx.duration + 20.0  # the last put's map, at the end
+    while (not loaded or loaded[-1] != n) and time.monotonic() < end:
+        time.sleep(0.1)
+    sub.undeclare()
+    last = loaded[-1] if loaded else 0
+    ctx.extra["last_loaded"] = last
+    ctx.notes.append(
+        f"{n} puts of {len(body) / 1e6:.1f} MB, {len(loaded)} loaded, the last version {last}"
+    )
+    return n
 
 
 def scan_far(ctx: Context) -> int:
@@ -330,6 +370,7 @@ CLASSES: dict[str, Callable[[Context], int]] = {
     "burst-fresh": burst_fresh,
     "map-2km": map_2km,
     "map-40k": map_40k,
+    "map-flood": map_flood,
     "scan-1e5": scan_far,
     "kill-worker": kill_worker,
     "forged-pose": forged_pose,
