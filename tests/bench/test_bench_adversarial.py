@@ -44,7 +44,7 @@ def test_misses_names_the_targets_missed() -> None:
     assert adversarial.misses(good, None) == []
     bad = {**good, "gap": 5.0, "term_s": None, "health_missed": 3}
     assert adversarial.misses(bad, None) == ["health", "gap", "sigterm"]
-    flood = {**good, "class": "map-flood", "sent": 9, "last_loaded": 9}
+    flood = {**good, "class": "map-flood", "sent": 9, "last_loaded": 8, "stored": 8}
     assert adversarial.misses(flood, None) == []
     assert adversarial.misses({**flood, "last_loaded": 7}, None) == ["map"]
 
