@@ -185,7 +185,11 @@ class Settings(BaseSettings):
     no_record: bool = Field(False, description="Do not record MCAP logs.")
     record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
     record_max_seconds: float = Field(3600.0, gt=0, description="Rotate logs after seconds.")
-    record_queue: int = Field(20000, gt=0, description="Recorder queue length, messages.")
+    record_queue: int = Field(
+        20000,
+        gt=0,
+        description="Recorder queue length, messages (those of 16 kB or more: 256 MiB at most).",
+    )
     record_views: bool = Field(
         False,
         description="Also record the Foxglove views (map, scans, poses, tf) in the live logs; "

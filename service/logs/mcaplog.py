@@ -54,6 +54,12 @@ _ROTATE_CHECK_S = 0.1
 _ROTATE_CHECK_BYTES = 64 * 1024
 #: The writer thread takes the queued messages this often, seconds (see :class:`_Queue`).
 _POLL_S = 0.02
+#: A message of this many bytes or more is large (a scan of 360 beams is about 3 kB): the large
+#: messages waiting hold at most :data:`LARGE_QUEUED` bytes, since the queue's length alone would
+#: let 20,000 scans of 1 MB (the message limit) wait.
+LARGE = 16 * 1024
+#: Bytes of large messages that may wait (a map of the 64 MiB limit always fits when none waits).
+LARGE_QUEUED = 256 * 1024 * 1024
 
 
 _Message = tuple[str, str, bytes, int, int]
@@ -86,15 +92,24 @@ class _Queue:
     def __init__(self, maxsize: int, poll_s: float) -> None:
         self._items: deque[_Item] = deque()
         self._maxsize = maxsize
+        self._large = 0  # bytes of large messages queued
+        self._large_lock = threading.Lock()
         self._soon = max(maxsize // 4, 1)
         self._poll_s = poll_s
         self._wake = threading.Event()
 
     def put_nowait(self, item: _Item) -> bool:
-        """Append unless full; ``False`` when full."""
+        """Append unless full (in messages, or in bytes of large messages); ``False`` when
+        full."""
         items = self._items
         if len(items) >= self._maxsize:
             return False
+        size = len(cast(_Message, item)[2]) if type(item) is tuple else 0
+        if size >= LARGE:
+            with self._large_lock:
+                if self._large and self._large + size > LARGE_QUEUED:
+                    return False
+                self._large += size
         items.append(item)
         if len(items) >= self._soon and not self._wake.is_set():
             self._wake.set()
@@ -114,7 +129,14 @@ class _Queue:
             if not items:  # a put between the test and the clear has set nothing: look again
                 self._wake.wait(min(timeout, self._poll_s))
         popleft = items.popleft
-        return [popleft() for _ in range(len(items))]
+        taken = [popleft() for _ in range(len(items))]
+        if self._large:
+            sizes = (len(cast(_Message, m)[2]) for m in taken if type(m) is tuple)
+            large = sum(n for n in sizes if n >= LARGE)
+            if large:
+                with self._large_lock:
+                    self._large -= large
+        return taken
 
     def empty(self) -> bool:
         """Nothing is queued."""
@@ -139,7 +161,8 @@ class McapRecorder:
         record_dir: folder of the logs; created if missing.
         max_bytes: rotate a file once it is this large.
         max_seconds: rotate a file this long after it was opened.
-        queue_size: messages the queue holds; past that they are counted and dropped.
+        queue_size: messages the queue holds; past that (or past :data:`LARGE_QUEUED` bytes of
+            large messages) they are counted and dropped.
         instance: the service instance's name, put in file names (replicas may share a folder).
         flush_interval_s: longest time between two flushes of an open file.
         chunk_size: uncompressed bytes at which a chunk is closed early.

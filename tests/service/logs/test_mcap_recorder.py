@@ -10,10 +10,12 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any
 
+import pytest
 from mcap.reader import make_reader
 from mcaplog_fixtures import read_all, simulated_inputs
 
 from schemas import SCHEMA_NAMES, Event, EventCode, decode
+from service.logs import mcaplog
 from service.logs.logtools import recover
 from service.logs.mcapfile import (
     CONFIG_KEY,
@@ -163,6 +165,38 @@ def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
     assert "95 messages" in events[0].message
     assert published == events
     assert len(read_all(rec.files[0], ["rlutf.Odometry"])) == 5
+
+
+def test_large_messages_are_bounded_in_bytes_not_only_in_count(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A flood of scans at the message limit (1 MB) must not fill a queue of 20,000 messages.
+    monkeypatch.setattr(mcaplog, "LARGE_QUEUED", 3 * mcaplog.LARGE)
+    rec = McapRecorder(tmp_path, queue_size=1000, foxglove=False)
+    gate = threading.Event()
+    write = rec._write  # stall the writer thread to fill the queue
+
+    def slow(batch: list[Any]) -> bool:
+        gate.wait(10)
+        return write(batch)
+
+    rec._write = slow  # type: ignore[method-assign]
+    rec.set_config(CONFIG)
+    deadline = time.monotonic() + 5
+    while not rec._queue.empty() and time.monotonic() < deadline:
+        time.sleep(0.01)  # until the writer holds the config item and waits
+    big = b"{" + b" " * (mcaplog.LARGE - 2) + b"}"
+    for i in range(5):
+        rec.record("rlutf/robots/r1/scan", "rlutf.LaserScan", big, i + 1, i)
+    for i in range(5):  # small messages still go in
+        rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', i + 10, i)
+    assert rec.overflowed == 2 and rec.queued == 8
+    gate.set()
+    assert wait_drained(rec)
+    rec.record("rlutf/robots/r1/scan", "rlutf.LaserScan", big, 20, 20)  # room again
+    assert rec.overflowed == 2
+    rec.close()
+    assert len(read_all(rec.files[0], ["rlutf.LaserScan"])) == 4
 
 
 def test_queued_is_the_queue_depth_and_drains_to_zero(tmp_path: Path) -> None:
