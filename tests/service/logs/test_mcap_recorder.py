@@ -137,22 +137,33 @@ def test_open_file_is_flushed_so_a_crash_loses_at_most_the_interval(tmp_path: Pa
     rec.close()
 
 
-def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
-    rec = McapRecorder(tmp_path, queue_size=5, foxglove=False)
+def _stall(rec: McapRecorder) -> threading.Event:
+    """Stall the writer thread before each batch it writes until the returned event is set."""
     gate = threading.Event()
-    write = rec._write  # stall the writer thread to fill the queue
+    write = rec._write
 
     def slow(batch: list[Any]) -> bool:
         gate.wait(10)
         return write(batch)
 
     rec._write = slow  # type: ignore[method-assign]
+    return gate
+
+
+def _held_by_writer(rec: McapRecorder) -> None:
+    """Wait until the stalled writer has taken what was queued (the config item) and waits."""
+    deadline = time.monotonic() + 5
+    while not rec._queue.empty() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
+    rec = McapRecorder(tmp_path, queue_size=5, foxglove=False)
+    gate = _stall(rec)
     published: list[Event] = []
     rec.on_overflow = published.append
     rec.set_config(CONFIG)
-    deadline = time.monotonic() + 5
-    while not rec._queue.empty() and time.monotonic() < deadline:
-        time.sleep(0.01)  # until the writer holds the config item and waits
+    _held_by_writer(rec)
     t0 = time.perf_counter()
     for i in range(100):
         rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', i + 1, i)
@@ -173,18 +184,9 @@ def test_large_messages_are_bounded_in_bytes_not_only_in_count(
     # A flood of scans at the message limit (1 MB) must not fill a queue of 20,000 messages.
     monkeypatch.setattr(mcaplog, "LARGE_QUEUED", 3 * mcaplog.LARGE)
     rec = McapRecorder(tmp_path, queue_size=1000, foxglove=False)
-    gate = threading.Event()
-    write = rec._write  # stall the writer thread to fill the queue
-
-    def slow(batch: list[Any]) -> bool:
-        gate.wait(10)
-        return write(batch)
-
-    rec._write = slow  # type: ignore[method-assign]
+    gate = _stall(rec)
     rec.set_config(CONFIG)
-    deadline = time.monotonic() + 5
-    while not rec._queue.empty() and time.monotonic() < deadline:
-        time.sleep(0.01)  # until the writer holds the config item and waits
+    _held_by_writer(rec)
     big = b"{" + b" " * (mcaplog.LARGE - 2) + b"}"
     for i in range(5):
         rec.record("rlutf/robots/r1/scan", "rlutf.LaserScan", big, i + 1, i)
@@ -201,18 +203,9 @@ def test_large_messages_are_bounded_in_bytes_not_only_in_count(
 
 def test_queued_is_the_queue_depth_and_drains_to_zero(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path, queue_size=50, foxglove=False)
-    gate = threading.Event()
-    write = rec._write  # stall the writer thread so the depth stays put
-
-    def slow(batch: list[Any]) -> bool:
-        gate.wait(10)
-        return write(batch)
-
-    rec._write = slow  # type: ignore[method-assign]
+    gate = _stall(rec)
     rec.set_config(CONFIG)
-    deadline = time.monotonic() + 5
-    while not rec._queue.empty() and time.monotonic() < deadline:
-        time.sleep(0.01)  # until the writer holds the config item and waits
+    _held_by_writer(rec)
     assert rec.queued == 0
     for i in range(7):
         rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', i + 1, i)
