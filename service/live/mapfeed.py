@@ -28,6 +28,7 @@ from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
 from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
+from service.maps.store import FileMapStore, MapStorage
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +168,36 @@ class MapFeed:
             f"puts ({waiting_mb:.1f} MB) already wait to be checked; {then}",
             None,
         )
+
+    def embed_store(
+        self,
+        session: zenoh.Session,
+        store: FileMapStore,
+        max_bytes: int,
+        report: Callable[[str, str, str, str, str], None],
+    ) -> MapStorage:
+        """The embedded store on ``session``, whose puts reach this feed through it.
+
+        Map puts then come here only once the store has taken them, so that the service and its
+        store cannot disagree on a put one of them dropped under a flood. ``report(kind, level,
+        code, key, message)``: an Event, at most one a second per kind.
+        """
+        storage = MapStorage(
+            session,
+            self.keys,
+            store,
+            max_bytes,
+            on_error=lambda key, msg: report(
+                "invalid_map", "error", EventCode.INVALID_MAP, key, msg
+            ),
+            checker=self.book.checker,
+            on_drop=lambda key, msg: report(
+                "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg
+            ),
+            forward=self.on_sample,
+        )
+        self.store_busy = storage.busy
+        return storage
 
     def need(self, map_id: str, robot: str) -> None:
         """Queue a fetch of ``map_id``, which ``robot`` waits for (one fetch queued per map)."""

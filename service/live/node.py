@@ -242,23 +242,20 @@ class LocalizationService:
         self.outbox.start(session)
         self.out.attach(session)
         if not s.no_store:
-            self._storage = MapStorage(
+            self._storage = self.mapfeed.embed_store(
                 session,
-                self.keys,
                 FileMapStore(s.store_dir),
                 s.max_map_bytes,
-                on_error=lambda key, msg: self.keywatch.limited(
-                    "invalid_map", "error", EventCode.INVALID_MAP, key, msg, self.clock()
-                ),
-                checker=self.maps.checker,
-                on_drop=lambda key, msg: self.keywatch.limited(
-                    "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg, self.clock()
+                lambda kind, level, code, key, text: self.keywatch.limited(
+                    kind, level, code, key, text, self.clock()
                 ),
             )
-            self.mapfeed.store_busy = self._storage.busy
+        else:
+            self._declared.append(
+                session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample)
+            )
         self.mapfeed.start(session)
         self._declared += [
-            session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample),
             session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
             session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),

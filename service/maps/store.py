@@ -148,6 +148,8 @@ class MapStorage:
         checker: validates puts (the service's, so that a put is validated once).
         on_drop: reports a put not stored because too many already waited (default:
             ``on_error``).
+        forward: called with every sample on ``{prefix}/maps/*`` this storage did not drop:
+            the service beside it follows the maps so, and never loads a put its store dropped.
     """
 
     def __init__(
@@ -160,6 +162,7 @@ class MapStorage:
         limits: MapLimits | None = None,
         checker: MapChecker | None = None,
         on_drop: Callable[[str, str], None] | None = None,
+        forward: Callable[[zenoh.Sample], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -171,6 +174,8 @@ class MapStorage:
         self._applying = False
         self._queued_bytes = 0
         self._queue_lock = threading.Lock()  # not _lock, which a file write holds
+        self.forward = forward
+        self._forwarded = zenoh.KeyExpr(keys.maps)
         self._versions: dict[str, Held] = {}
         self._lock = threading.Lock()
         for map_id, payload in store.items():
@@ -193,14 +198,23 @@ class MapStorage:
             return self._versions.get(map_id)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        if (
+            self._take(sample)
+            and self.forward is not None
+            and self._forwarded.intersects(sample.key_expr)
+        ):
+            self.forward(sample)
+
+    def _take(self, sample: zenoh.Sample) -> bool:
+        """Queue a put or a removal; ``False`` when it was dropped (too many wait)."""
         key = str(sample.key_expr)
         try:
             map_id = self.keys.parse_map_key(key)
         except KeyError_ as err:
             self.on_error(key, str(err))
-            return
+            return True
         if map_id is None:
-            return
+            return True
         payload = None if sample.kind == zenoh.SampleKind.DELETE else sample.payload.to_bytes()
         size = 0 if payload is None else len(payload)
         with self._queue_lock:
@@ -220,6 +234,7 @@ class MapStorage:
                 f"map {map_id} not {what}: {waiting} puts ({held:.1f} MB) already wait to be "
                 f"stored; {again} it again",
             )
+        return not dropped
 
     def busy(self) -> bool:
         """Whether puts wait to be stored, or one is being stored."""

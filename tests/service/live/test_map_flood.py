@@ -110,3 +110,40 @@ def test_the_service_drops_map_puts_it_cannot_check_in_time_then_loads_the_store
     # ... fewer versions were loaded than put, and no put was called a conflict.
     assert 1 <= codes.count("map_updated") < PUTS
     assert "map_version_conflict" not in codes and "invalid_map" not in codes
+
+
+def test_the_service_never_loads_a_put_its_store_dropped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The store holds fewer waiting puts than the service would: without the puts reaching the
+    # service through its store, the service took puts the store dropped, and ended on a version
+    # the store never held (seen in the campaign: the service on 228, the store on 217).
+    monkeypatch.setattr(store_module, "_QUEUED", 2)
+    slow_check = MapChecker.check
+
+    def check(checker: MapChecker, map_id: str, payload: bytes) -> Any:
+        time.sleep(0.2)
+        return slow_check(checker, map_id, payload)
+
+    monkeypatch.setattr(MapChecker, "check", check)
+    with running_bench(tmp_path) as bench:
+        events = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", events)
+        for version in range(1, PUTS + 1):
+            bench.client.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+        storage = bench.service._storage
+        assert storage is not None
+
+        def settled() -> bool:
+            held, mine = storage.held("m1"), bench.service.maps.get("m1")
+            return not storage.busy() and held is not None and mine is not None
+
+        assert events.wait_for(settled, timeout=30.0)
+        time.sleep(1.0)  # anything left to load
+        held, mine = storage.held("m1"), bench.service.maps.get("m1")
+        codes = [e["code"] for e in events.on("rlutf/events")]
+        sub.undeclare()
+    assert held is not None and mine is not None
+    assert held[0] < PUTS  # the store dropped the last puts ...
+    assert "map_dropped" in codes
+    assert mine.version == held[0]  # ... and the service is on the store's version
