@@ -45,6 +45,26 @@ class SlowChecker(MapChecker):
         return super().check(map_id, payload)
 
 
+def _slowed(monkeypatch: pytest.MonkeyPatch, cls: Any, seconds: float) -> None:
+    """``cls.check`` (a map check) takes ``seconds`` longer, as a map of real size does."""
+    check = cls.check
+
+    def slow(self: Any, map_id: str, payload: bytes) -> Any:
+        time.sleep(seconds)
+        return check(self, map_id, payload)
+
+    monkeypatch.setattr(cls, "check", slow)
+
+
+def _flood(client: zenoh.Session) -> tuple[Collector, Any]:
+    """The service's Events from now on, then :data:`PUTS` versions of a map put at once."""
+    events = Collector()
+    sub = client.declare_subscriber("rlutf/events", events)
+    for version in range(1, PUTS + 1):
+        client.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+    return events, sub
+
+
 def test_the_store_drops_puts_beyond_its_bytes_and_says_so(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -80,18 +100,9 @@ def test_the_service_drops_map_puts_it_cannot_check_in_time_then_loads_the_store
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(mapfeed, "MAX_WAITING", 1)
-    slow_check = MapBook.check
-
-    def check(book: MapBook, map_id: str, payload: bytes) -> Any:
-        time.sleep(0.3)
-        return slow_check(book, map_id, payload)
-
-    monkeypatch.setattr(MapBook, "check", check)
+    _slowed(monkeypatch, MapBook, 0.3)
     with running_bench(tmp_path) as bench:
-        events = Collector()
-        sub = bench.client.declare_subscriber("rlutf/events", events)
-        for version in range(1, PUTS + 1):
-            bench.client.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+        events, sub = _flood(bench.client)
 
         def loaded() -> int:
             held = bench.service.maps.get("m1")
@@ -119,18 +130,9 @@ def test_the_service_never_loads_a_put_its_store_dropped(
     # service through its store, the service took puts the store dropped, and ended on a version
     # the store never held (seen in the campaign: the service on 228, the store on 217).
     monkeypatch.setattr(store_module, "_QUEUED", 2)
-    slow_check = MapChecker.check
-
-    def check(checker: MapChecker, map_id: str, payload: bytes) -> Any:
-        time.sleep(0.2)
-        return slow_check(checker, map_id, payload)
-
-    monkeypatch.setattr(MapChecker, "check", check)
+    _slowed(monkeypatch, MapChecker, 0.2)
     with running_bench(tmp_path) as bench:
-        events = Collector()
-        sub = bench.client.declare_subscriber("rlutf/events", events)
-        for version in range(1, PUTS + 1):
-            bench.client.put("rlutf/maps/m1", _payload(version), encoding=JSON)
+        events, sub = _flood(bench.client)
         storage = bench.service._storage
         assert storage is not None
 
