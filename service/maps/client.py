@@ -184,7 +184,9 @@ def _confirm(session: zenoh.Session, key: str, msg: Map, payload: bytes, timeout
     else:
         print(
             f"rlutf map put: the storage still holds version {held.version} of {key} after "
-            f"{timeout:g} s; version {msg.version} was not confirmed",
+            f"{timeout:g} s; version {msg.version} was not confirmed (a store busy with other "
+            "map puts drops more with an Event map_dropped: `rlutf events`; put it again, or "
+            "give it longer with --timeout)",
             file=sys.stderr,
         )
     return 1

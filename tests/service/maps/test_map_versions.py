@@ -18,7 +18,8 @@ from rlutf.map import Map as World
 from schemas import Map, decode, encode
 from service.cli.main import main
 from service.live.sessions import free_port
-from service.maps.book import MapBook, VersionConflict, content_digest, put_verdict
+from service.maps import store as store_module
+from service.maps.book import MapBook, MapChecker, VersionConflict, content_digest, put_verdict
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 MOVED = World.from_shapely(affinity.translate(WORLD.geometry, 0.01, 0.0))
@@ -190,3 +191,32 @@ def test_store_and_service_agree_after_a_restart(tmp_path: Path) -> None:
         assert stored is not None
         assert content_digest(stored) == content_digest(decode(Map, _payload(2)))
         sub.undeclare()
+
+
+def test_map_put_that_a_busy_store_drops_fails_and_says_why(
+    bench: Bench,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from service.maps.book import MapChecker
+
+    bench.put_map(version=1)
+    assert Collector().wait_for(lambda: (s := _stored(bench)) is not None and s.version == 1)
+    monkeypatch.setattr(store_module, "_QUEUED", 1)
+    check = MapChecker.check
+
+    def slow(checker: MapChecker, map_id: str, payload: bytes) -> Any:
+        time.sleep(1.5)
+        return check(checker, map_id, payload)
+
+    monkeypatch.setattr(MapChecker, "check", slow)
+    bench.put_map(version=2)  # being checked
+    bench.put_map(version=3, world=MOVED)  # waits: the store's queue is full
+    time.sleep(0.2)
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1, MOVED))
+    code = main(["map", "put", str(path), "-e", bench.endpoint, "--timeout", "1", "--version", "9"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "version 9 was not confirmed" in err and "map_dropped" in err
