@@ -28,7 +28,7 @@ from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
 from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
-from service.maps.store import FileMapStore, MapStorage
+from service.maps.store import FileMapStore, MapStorage, room_for
 
 log = logging.getLogger(__name__)
 
@@ -133,8 +133,8 @@ class MapFeed:
         payload = sample.payload.to_bytes()
         with self._lock:
             self._puts += 1
-            taken = self._waiting == 0 or (
-                self._waiting < MAX_WAITING and self._waiting_bytes + len(payload) <= WAITING_BYTES
+            taken = room_for(
+                self._waiting, self._waiting_bytes, len(payload), MAX_WAITING, WAITING_BYTES
             )
             if taken:
                 self._waiting += 1

@@ -41,6 +41,12 @@ _QUEUED = 16
 _QUEUED_BYTES = 64 * 1024 * 1024
 
 
+def room_for(waiting: int, waiting_bytes: int, size: int, most: int, most_bytes: int) -> bool:
+    """Whether a put of ``size`` bytes may wait behind ``waiting`` puts of ``waiting_bytes``:
+    always when none waits (however large), else within ``most`` puts and ``most_bytes``."""
+    return waiting == 0 or (waiting < most and waiting_bytes + size <= most_bytes)
+
+
 class MapStore(Protocol):
     """Persistence of map payloads by id."""
 
@@ -171,7 +177,7 @@ class MapStorage:
         self.checker = checker or MapChecker(max_bytes, limits)
         self.on_error = on_error or (lambda key, msg: None)
         self.on_drop = on_drop or self.on_error
-        self._applying = False
+        self._pending = 0  # puts queued or being stored
         self._queued_bytes = 0
         self._queue_lock = threading.Lock()  # not _lock, which a file write holds
         self.forward = forward
@@ -219,13 +225,12 @@ class MapStorage:
         size = 0 if payload is None else len(payload)
         with self._queue_lock:
             waiting = self._tasks.qsize()
-            if waiting and (waiting >= _QUEUED or self._queued_bytes + size > _QUEUED_BYTES):
-                held = self._queued_bytes / 1e6
-                dropped = True
-            else:
+            dropped = not room_for(waiting, self._queued_bytes, size, _QUEUED, _QUEUED_BYTES)
+            held = self._queued_bytes / 1e6
+            if not dropped:
+                self._pending += 1
                 self._queued_bytes += size
                 self._tasks.put_nowait((key, map_id, payload))
-                dropped = False
         if dropped:
             what = "removed" if payload is None else "stored"
             again = "remove" if payload is None else "put"
@@ -238,19 +243,18 @@ class MapStorage:
 
     def busy(self) -> bool:
         """Whether puts wait to be stored, or one is being stored."""
-        return self._applying or not self._tasks.empty()
+        return self._pending > 0
 
     def _run(self) -> None:
         while (task := self._tasks.get()) is not None:
-            self._applying = True
             try:
                 self._apply(*task)
             except Exception:
                 log.exception("storing %s failed", task[0])
             finally:
                 with self._queue_lock:
+                    self._pending -= 1
                     self._queued_bytes -= 0 if task[2] is None else len(task[2])
-                self._applying = False
             del task  # the payload is not kept while the thread waits
 
     def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:

@@ -33,18 +33,6 @@ def _payload(version: int, map_id: str = "m1") -> bytes:
     return encode(Map(map_id=map_id, version=version, geometry=WORLD.to_geojson()))
 
 
-class SlowChecker(MapChecker):
-    """A checker that takes ``seconds`` longer per map, as a map of real size does."""
-
-    def __init__(self, seconds: float) -> None:
-        super().__init__(10_000_000)
-        self.seconds = seconds
-
-    def check(self, map_id: str, payload: bytes) -> Any:
-        time.sleep(self.seconds)
-        return super().check(map_id, payload)
-
-
 def _slowed(monkeypatch: pytest.MonkeyPatch, cls: Any, seconds: float) -> None:
     """``cls.check`` (a map check) takes ``seconds`` longer, as a map of real size does."""
     check = cls.check
@@ -70,6 +58,7 @@ def test_the_store_drops_puts_beyond_its_bytes_and_says_so(
 ) -> None:
     size = len(_payload(1))
     monkeypatch.setattr(store_module, "_QUEUED_BYTES", 2 * size + size // 2)  # two wait
+    _slowed(monkeypatch, MapChecker, 0.2)
     dropped: list[str] = []
     with zenoh.open(session_config("peer")) as session:
         storage = MapStorage(
@@ -77,7 +66,7 @@ def test_the_store_drops_puts_beyond_its_bytes_and_says_so(
             Keys(),
             FileMapStore(tmp_path),
             10_000_000,
-            checker=SlowChecker(0.2),
+            checker=MapChecker(10_000_000),
             on_drop=lambda key, message: dropped.append(message),
         )
         try:
