@@ -83,15 +83,20 @@ def _square_map(map_id: str, side: float) -> bytes:
     return json.dumps({"map_id": map_id, "version": 1, "geometry": geometry}).encode()
 
 
-def _round_map(map_id: str, vertices: int, radius: float = 20.0) -> bytes:
+def _round_geometry(vertices: int, radius: float, digits: int = 6) -> dict[str, Any]:
+    """A round room of ``vertices`` vertices, its coordinates rounded to ``digits``."""
     ring = [
         [
-            round(radius + radius * math.cos(2 * math.pi * k / vertices), 6),
-            round(radius + radius * math.sin(2 * math.pi * k / vertices), 6),
+            round(radius + radius * math.cos(2 * math.pi * k / vertices), digits),
+            round(radius + radius * math.sin(2 * math.pi * k / vertices), digits),
         ]
         for k in range(vertices)
     ]
-    geometry = {"type": "Polygon", "coordinates": [[*ring, ring[0]]]}
+    return {"type": "Polygon", "coordinates": [[*ring, ring[0]]]}
+
+
+def _round_map(map_id: str, vertices: int, radius: float = 20.0) -> bytes:
+    geometry = _round_geometry(vertices, radius)
     return json.dumps({"map_id": map_id, "version": 1, "geometry": geometry}).encode()
 
 
@@ -144,13 +149,7 @@ def map_40k(ctx: Context) -> int:
 
 def map_flood(ctx: Context) -> int:
     """A 5 MB map put again and again, each time one version newer, for the duration."""
-    vertices = ctx.count(200_000)
-    ring = [
-        [round(40.0 + 40.0 * math.cos(2 * math.pi * k / vertices), 4),
-         round(40.0 + 40.0 * math.sin(2 * math.pi * k / vertices), 4)]
-        for k in range(vertices)
-    ]  # fmt: skip
-    geometry = json.dumps({"type": "Polygon", "coordinates": [[*ring, ring[0]]]}).encode()
+    geometry = json.dumps(_round_geometry(ctx.count(200_000), 40.0, digits=4)).encode()
     loaded: list[int] = []
     found = re.compile(r"map flood version (\d+) loaded")
 
