@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cache
 
@@ -407,34 +407,56 @@ def tracked(method: Method, name: str, world: Map, seeds: Sequence[int]) -> Erro
     return Errors(np.concatenate(out))
 
 
+#: A refinement of scan ``k`` of the odd run from a start pose: the settled pose.
+Refiner = Callable[[int, Scan, FloatArray], FloatArray]
+
+
+def rlutf_refiner(world: Map, config: LocalizerConfig) -> Refiner:
+    """The localizer's refinement with ``config`` on ``world``."""
+    settings = config.refine_settings()
+    beams: list[Beams] = []
+
+    def refine(k: int, scan: Scan, start: FloatArray) -> FloatArray:
+        if not beams:
+            beams.append(Beams.of(scan.angles))
+        p = Problem(world, scan, config, beams[0])
+        fit = refine_pose(
+            world, start, p.beams, p.real_ranges, p.offset, p.scan_range, settings,
+            fit_distance=config.fit_distance,
+        )  # fmt: skip
+        return np.asarray(fit.pose)
+
+    return refine
+
+
+def icp_refiner(name: str, config: IcpConfig, window: int = 0) -> Refiner:
+    """ICP on the raw points (``window`` > 0: without the even scans around the scan, as
+    :class:`LeaveOutIcp`); a pose it cannot align is infinitely off."""
+    leave = LeaveOutIcp(name, odd_base(name).truth[0], config, window) if window else None
+
+    def refine(k: int, scan: Scan, start: FloatArray) -> FloatArray:
+        samples = raw_points(name) if leave is None else leave.samples_for(k)
+        pose = PointToLineIcp(None, start, config, samples).update(np.zeros(3), scan).pose
+        return np.full(3, np.inf) if pose is None else np.asarray(pose)
+
+    return refine
+
+
+def at_reference(run: Run, refine: Refiner) -> Errors:
+    """Each odd scan of ``run`` refined once from its corrected pose (no tracking), cm off."""
+    out = [
+        math.hypot(*(refine(k, run.scans[k], run.truth[k])[:2] - run.truth[k, :2])) * 100.0
+        for k in range(1, len(run.scans))
+    ]
+    return Errors(np.asarray(out))
+
+
 def from_reference(name: str, world: Map, config: LocalizerConfig) -> Errors:
     """Each odd scan refined once from its corrected pose on ``world`` (no tracking)."""
-    run = odd_run(name, world)
-    beams = Beams.of(run.scans[0].angles)
-    settings = config.refine_settings()
-    out = []
-    for k in range(1, len(run.scans)):
-        problem = Problem(world, run.scans[k], config, beams)
-        fit = refine_pose(
-            world, run.truth[k], problem.beams, problem.real_ranges, problem.offset,
-            problem.scan_range, settings, fit_distance=config.fit_distance,
-        )  # fmt: skip
-        out.append(math.hypot(*(fit.pose[:2] - run.truth[k, :2])) * 100.0)
-    return Errors(np.asarray(out))
+    return at_reference(odd_run(name, world), rlutf_refiner(world, config))
 
 
 def icp_from_reference(name: str, config: IcpConfig, window: int = 0) -> Errors:
     """ICP on the raw points, each odd scan aligned once from its corrected pose (``window``
     > 0: without the even scans around it, as :class:`LeaveOutIcp`)."""
-    run = odd_base(name)
-    leave = LeaveOutIcp(name, run.truth[0], config, window) if window > 0 else None
-    out = []
-    for k in range(1, len(run.scans)):
-        samples = raw_points(name) if leave is None else leave.samples_for(k)
-        pose = (
-            PointToLineIcp(None, run.truth[k], config, samples)
-            .update(np.zeros(3), run.scans[k])
-            .pose
-        )
-        out.append(math.inf if pose is None else math.hypot(*(pose[:2] - run.truth[k, :2])) * 100)
-    return Errors(np.asarray(out))
+    return at_reference(odd_base(name), icp_refiner(name, config, window))

@@ -20,25 +20,20 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from bench.baselines.icp import IcpConfig, PointToLineIcp
 from bench.evenodd_runs import (
     ICP_SETTINGS,
     Errors,
-    LeaveOutIcp,
     MapRecipe,
+    Refiner,
+    at_reference,
     even_map,
-    odd_base,
+    icp_refiner,
     odd_run,
-    raw_points,
+    rlutf_refiner,
 )
 from bench.scenarios import FloatArray
 from bench.wallfit import WallFit
 from rlutf.localizer import LocalizerConfig
-from rlutf.map import Map
-from rlutf.problem import Problem
-from rlutf.raycast import Beams
-from rlutf.refine import refine_pose
-from rlutf.scan import Scan
 
 #: Standard deviation of the start's offset in x and in y, metres (a tracking prediction's
 #: typical error on these logs: a few centimetres).
@@ -52,9 +47,6 @@ SEED = 11
 #: ICP settings (the best of :data:`bench.evenodd_runs.ICP_SETTINGS` on both logs).
 ICP = "gate 2 m to 0.2 m, 50 steps"
 
-#: A refinement of scan ``k`` of the odd run from a start pose: the settled pose.
-Refiner = Callable[[int, Scan, FloatArray], FloatArray]
-
 
 def offsets(count: int) -> FloatArray:
     """``(count, STARTS, 3)`` start offsets, the same for every method."""
@@ -64,55 +56,19 @@ def offsets(count: int) -> FloatArray:
     return out
 
 
-def rlutf_refiner(world: Map) -> Refiner:
-    """The localizer's refinement (default settings) on ``world``."""
-    config = LocalizerConfig()
-    settings = config.refine_settings()
-    beams: list[Beams] = []
-
-    def refine(k: int, scan: Scan, start: FloatArray) -> FloatArray:
-        if not beams:
-            beams.append(Beams.of(scan.angles))
-        p = Problem(world, scan, config, beams[0])
-        fit = refine_pose(
-            world, start, p.beams, p.real_ranges, p.offset, p.scan_range, settings,
-            fit_distance=config.fit_distance,
-        )  # fmt: skip
-        return np.asarray(fit.pose)
-
-    return refine
-
-
-def icp_refiner(name: str, config: IcpConfig, window: int = 0) -> Refiner:
-    """ICP on the raw points (``window`` > 0: without the even scans around the scan)."""
-    leave = LeaveOutIcp(name, odd_base(name).truth[0], config, window) if window else None
-
-    def refine(k: int, scan: Scan, start: FloatArray) -> FloatArray:
-        samples = raw_points(name) if leave is None else leave.samples_for(k)
-        pose = PointToLineIcp(None, start, config, samples).update(np.zeros(3), scan).pose
-        return np.full(3, np.inf) if pose is None else np.asarray(pose)
-
-    return refine
-
-
 def settle(name: str, refine: Refiner) -> tuple[Errors, Errors, float]:
     """Errors (cm) from the corrected pose itself and from the first offset start, and the
     median spread (cm) of the settled poses over :data:`STARTS` offsets."""
     run = odd_run(name, even_map(name))
     moves = offsets(len(run.scans))
-    at_truth, moved, spread = [], [], []
+    moved, spread = [], []
     for k in range(1, len(run.scans)):
         truth = run.truth[k]
-        at_truth.append(_cm_off(refine(k, run.scans[k], truth), truth))
         settled = np.array([refine(k, run.scans[k], truth + m) for m in moves[k]])
-        moved.append(_cm_off(settled[0], truth))
+        moved.append(math.hypot(*(settled[0, :2] - truth[:2])) * 100.0)
         mean = settled.mean(axis=0)
         spread.append(float(np.median(np.hypot(*(settled[:, :2] - mean[:2]).T))) * 100.0)
-    return Errors(np.asarray(at_truth)), Errors(np.asarray(moved)), float(np.median(spread))
-
-
-def _cm_off(pose: FloatArray, truth: FloatArray) -> float:
-    return math.hypot(*(pose[:2] - truth[:2])) * 100.0
+    return at_reference(run, refine), Errors(np.asarray(moved)), float(np.median(spread))
 
 
 def render_settle(
@@ -137,12 +93,13 @@ def render_settle(
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     cfg = ICP_SETTINGS[ICP]
+    config = LocalizerConfig()
     for name in logs:
         methods: list[tuple[str, Refiner]] = [
-            ("RLuTF refinement on the built map", rlutf_refiner(even_map(name))),
+            ("RLuTF refinement on the built map", rlutf_refiner(even_map(name), config)),
             (
                 "RLuTF refinement on the fitted walls (the built map moved onto the hits)",
-                rlutf_refiner(even_map(name, MapRecipe(fit=WallFit(simplify=0.0)))),
+                rlutf_refiner(even_map(name, MapRecipe(fit=WallFit(simplify=0.0))), config),
             ),
             ("ICP on the raw points of every even scan", icp_refiner(name, cfg)),
             ("ICP on the raw points, window 1 left out", icp_refiner(name, cfg, 1)),

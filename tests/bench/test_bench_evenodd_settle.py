@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 from shapely.geometry import box
 
-from bench.evenodd_settle import SIGMA_THETA, SIGMA_XY, STARTS, offsets, rlutf_refiner
+from bench.evenodd_runs import rlutf_refiner
+from bench.evenodd_settle import SIGMA_THETA, SIGMA_XY, STARTS, offsets
+from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
 from rlutf.scan import Scan
@@ -28,7 +30,7 @@ def test_the_refinement_settles_at_the_truth_of_a_noise_free_scan_from_an_offset
     angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
     ranges = cast_rays(world, truth, angles, 10.0)[0]
     scan = Scan.create(ranges, float(angles[0]), float(angles[1] - angles[0]), 0.05, 10.0)
-    refine = rlutf_refiner(world)
+    refine = rlutf_refiner(world, LocalizerConfig())
     for move in offsets(3)[1]:
         settled = refine(1, scan, truth + move)
         assert np.hypot(*(settled[:2] - truth[:2])) < 1e-3
