@@ -28,12 +28,13 @@ fleet benchmark's figure less the last row.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import multiprocessing as mp
 import os
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -98,12 +99,15 @@ def localizer_ms(plan: FleetPlan, steps: int) -> float:
     return _measured(run, steps)
 
 
-def update_costs(plan: FleetPlan, steps: int) -> dict[int, list[float]]:
+def update_costs(
+    plan: FleetPlan, steps: int, compiled: dict[int, list[float]] | None = None
+) -> dict[int, list[float]]:
     """CPU µs of each tracking update (no search: the prediction was accepted and refined) by
     the casts of the scan its refinement made, over the plan's robots after :data:`WARM` steps.
 
     Each update is timed by this thread's CPU clock, so the figures leave out time other
-    processes took."""
+    processes took. With ``compiled``, the µs of each of those updates spent inside the
+    localizer's compiled kernels (:func:`in_kernels`) go there, by casts likewise."""
     from rlutf.localizer import Localizer, LocalizerConfig
     from rlutf.motion import relative
 
@@ -115,16 +119,72 @@ def update_costs(plan: FleetPlan, steps: int) -> dict[int, list[float]]:
     ]
     costs: dict[int, list[float]] = {}
     clock = time.thread_time_ns
+    spent_in = [0]
     for k in range(1, steps):
-        for loc, r in robots:
-            motion = relative(r.odometry_at(k - 1), r.odometry_at(k))
-            scan = r.scans[r.index(k)]
-            t0 = clock()
-            result = loc.update(motion, scan)
-            spent = (clock() - t0) / 1e3
-            if k >= WARM and result.iterations == 0 and result.status == "tracking":
-                costs.setdefault(result.refine_casts, []).append(spent)
+        with in_kernels(spent_in) if compiled is not None and k >= WARM else _no_kernels():
+            for loc, r in robots:
+                motion = relative(r.odometry_at(k - 1), r.odometry_at(k))
+                scan = r.scans[r.index(k)]
+                spent_in[0] = 0
+                t0 = clock()
+                result = loc.update(motion, scan)
+                spent = (clock() - t0) / 1e3
+                if k >= WARM and result.iterations == 0 and result.status == "tracking":
+                    costs.setdefault(result.refine_casts, []).append(spent)
+                    if compiled is not None:
+                        compiled.setdefault(result.refine_casts, []).append(spent_in[0] / 1e3)
     return costs
+
+
+#: The modules of the localizer's compiled kernels (numba), called from its Python code.
+KERNEL_MODULES = ("rlutf._lm", "rlutf._kernels", "rlutf._grid", "rlutf._changes", "rlutf._bnb")
+
+
+@contextlib.contextmanager
+def in_kernels(spent: list[int]) -> Iterator[None]:
+    """Within the block, every call from Python into a kernel of :data:`KERNEL_MODULES` adds
+    the CPU ns of this thread it took to ``spent[0]``.
+
+    Only the kernels no other kernel calls are wrapped (those that Python calls): a kernel
+    compiled within the block may call the others, which must stay numba's own."""
+    import importlib
+    import inspect
+    import re
+
+    from numba.core.dispatcher import Dispatcher
+
+    modules = [importlib.import_module(name) for name in KERNEL_MODULES]
+    source = "\n".join(inspect.getsource(m) for m in modules)
+    clock = time.thread_time_ns
+    saved: list[tuple[Any, str, Any]] = []
+
+    def timed(kernel: Any) -> Callable[..., Any]:
+        def call(*args: Any) -> Any:
+            t0 = clock()
+            try:
+                return kernel(*args)
+            finally:
+                spent[0] += clock() - t0
+
+        return call
+
+    for module in modules:
+        for attr, value in list(vars(module).items()):
+            if not isinstance(value, Dispatcher) or value.py_func.__module__ != module.__name__:
+                continue
+            if not re.search(rf"(?<!def )(?<![\w.]){attr}\(", source):  # no kernel calls it
+                saved.append((module, attr, value))
+                setattr(module, attr, timed(value))
+    try:
+        yield
+    finally:
+        for module, attr, value in saved:
+            setattr(module, attr, value)
+
+
+@contextlib.contextmanager
+def _no_kernels() -> Iterator[None]:
+    yield
 
 
 def cost_fit(costs: dict[int, list[float]]) -> tuple[float, float]:
@@ -228,7 +288,8 @@ def render(args: argparse.Namespace) -> str:
     plan, wire = _fleet(args.robots, args.steps)
     started = time.time()
     loc = localizer_ms(plan, args.steps)
-    costs = update_costs(plan, args.steps)  # right after: the machine's speed drifts
+    compiled: dict[int, list[float]] = {}
+    costs = update_costs(plan, args.steps, compiled)  # right after: the machine's speed drifts
     eng = engine_ms(plan, wire, args.steps)
     worker, feeder = pipe_ms(plan, wire, args.steps)
     scans = args.robots * (args.steps - WARM)
@@ -253,36 +314,55 @@ def render(args: argparse.Namespace) -> str:
             "| --- | ---: | ---: |",
             *(f"| {name} | {ms:.3f} | {more} |" for name, ms, more in rows),
             "",
-            *_cost_table(costs),
+            *_cost_table(costs, compiled),
         ]
     )
 
 
-def _cost_table(costs: dict[int, list[float]]) -> list[str]:
-    """The tracking updates by casts, and the line through them."""
+def _cost_table(costs: dict[int, list[float]], compiled: dict[int, list[float]]) -> list[str]:
+    """The tracking updates by casts, the line through them, and their time in the kernels."""
     fixed, per_cast = cost_fit(costs)
     total = sum(len(v) for v in costs.values())
     mean_casts = sum(c * len(v) for c, v in costs.items()) / max(total, 1)
     lines = [
         f"The tracking updates (the prediction accepted and refined, no search: {total} of "
         f"them) by the casts of the scan their refinement made, each timed by its thread's CPU "
-        "clock:",
+        "clock; *in the kernels*: the part of each spent inside the localizer's compiled "
+        "kernels (numba), timed around each call Python makes into one (`bench.floor.in_kernels`"
+        "), *outside*: the rest (Python, numpy, shapely, numba's call overhead):",
         "",
-        "| casts | updates | median µs | mean µs |",
-        "| ---: | ---: | ---: | ---: |",
+        "| casts | updates | median µs | mean µs | in the kernels, median µs "
+        "| outside, median µs |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for c in sorted(costs):
-        v = costs[c]
-        lines.append(f"| {c} | {len(v)} | {float(np.median(v)):.0f} | {float(np.mean(v)):.0f} |")
+        v, k = costs[c], compiled.get(c, [])
+        rest = [a - b for a, b in zip(v, k, strict=True)] if len(k) == len(v) else []
+        inside = f"{float(np.median(k)):.0f}" if rest else "-"
+        outside = f"{float(np.median(rest)):.0f}" if rest else "-"
+        lines.append(
+            f"| {c} | {len(v)} | {float(np.median(v)):.0f} | {float(np.mean(v)):.0f} | "
+            f"{inside} | {outside} |"
+        )
+    all_v = [x for v in costs.values() for x in v]
+    all_k = [x for k in compiled.values() for x in k]
     lines += [
         "",
         f"Least-squares line through the medians (weighted by updates): **{fixed:.0f} µs fixed + "
         f"{per_cast:.0f} "
         f"µs per cast**; {mean_casts:.2f} casts on average, so "
         f"{100 * fixed / (fixed + per_cast * mean_casts):.0f} % of an average tracking update "
-        "is the part that does not grow with the casts: mostly the Python around the compiled "
-        "kernels (the scan's terms, the refinement's call, the pose's quality, the result).",
+        "is the part that does not grow with the casts.",
     ]
+    if all_k and len(all_k) == len(all_v):
+        mean_v, mean_k = float(np.mean(all_v)), float(np.mean(all_k))
+        lines += [
+            "",
+            f"Of an average tracking update ({mean_v:.0f} µs), **{mean_k:.0f} µs "
+            f"({100 * mean_k / mean_v:.0f} %) run inside the compiled kernels** and "
+            f"{mean_v - mean_k:.0f} µs outside them: the most a tracking step compiled whole "
+            "could save (the timing wraps add about a microsecond to the outside part).",
+        ]
     return lines
 
 

@@ -29,3 +29,32 @@ def test_update_costs_grow_with_casts_and_the_line_splits_them() -> None:
     fixed, per_cast = cost_fit({2: [100.0, 100.0, 500.0], 3: [130.0], 4: [160.0, 161.0, 159.0]})
     assert math.isclose(per_cast, 30.0, rel_tol=1e-9) and math.isclose(fixed, 40.0, rel_tol=1e-9)
     assert all(math.isnan(x) for x in cost_fit({3: [1.0, 2.0]}))
+
+
+def test_time_in_the_kernels_is_part_of_each_update_and_the_kernels_come_back() -> None:
+    import rlutf._lm as lm
+
+    refine = lm.refine
+    plan, _ = _fleet(3, 40)
+    compiled: dict[int, list[float]] = {}
+    costs = update_costs(plan, 40, compiled)
+    assert compiled.keys() == costs.keys()
+    for casts, totals in costs.items():
+        inside = compiled[casts]
+        assert len(inside) == len(totals)
+        # every tracking update refines: some of it runs in the kernels, never more than all
+        assert all(0 < k <= t for k, t in zip(inside, totals, strict=True)), (casts, inside)
+    assert lm.refine is refine  # numba's dispatcher is back once the block ends
+
+
+def test_only_the_kernels_python_calls_are_wrapped() -> None:
+    import rlutf._kernels as kernels
+    import rlutf._lm as lm
+    from bench.floor import in_kernels
+
+    spent = [0]
+    with in_kernels(spent):
+        assert not hasattr(lm.refine, "py_func")  # wrapped: Python calls it
+        assert hasattr(kernels.cast_ray, "py_func")  # a kernel calls it: numba's own
+        assert hasattr(lm._cost, "py_func")
+    assert hasattr(lm.refine, "py_func")
