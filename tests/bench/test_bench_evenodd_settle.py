@@ -7,7 +7,7 @@ import numpy as np
 from shapely.geometry import box
 
 from bench.evenodd_runs import rlutf_refiner
-from bench.evenodd_settle import SIGMA_THETA, SIGMA_XY, STARTS, offsets
+from bench.evenodd_settle import SIGMA_THETA, SIGMA_XY, STARTS, correlation, offsets
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
@@ -35,3 +35,14 @@ def test_the_refinement_settles_at_the_truth_of_a_noise_free_scan_from_an_offset
         settled = refine(1, scan, truth + move)
         assert np.hypot(*(settled[:2] - truth[:2])) < 1e-3
         assert abs(settled[2] - truth[2]) < 1e-3
+
+
+def test_the_errors_correlation_is_per_axis_and_leaves_out_failed_scans() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(200, 2))
+    b = np.column_stack([2.0 * a[:, 0] + 1.0, -a[:, 1]])
+    b[7] = np.inf  # a scan ICP could not align
+    cx, cy = correlation(a, b)
+    assert np.isclose(cx, 1.0) and np.isclose(cy, -1.0)
+    independent = rng.normal(size=(200, 2))
+    assert all(abs(c) < 0.3 for c in correlation(a, independent))
