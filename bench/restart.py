@@ -44,8 +44,20 @@ SECTION = "restart"
 TAIL_S = 2.0
 
 
-def generator(endpoint: str, robots: int, duration: float, out: Any, ready: Any, go: Any) -> None:
-    """Load generator (a separate process): every scan's put time and every pose's arrival."""
+def generator(
+    endpoint: str,
+    robots: int,
+    duration: float,
+    out: Any,
+    ready: Any,
+    go: Any,
+    errors: bool = False,
+) -> None:
+    """Load generator (a separate process): every scan's put time and every pose's arrival
+    (with ``errors``, also each pose's stamp and its distance from the robot's true position
+    then, as ``stamped``: ``(robot id, arrival ns, stamp ns, metres off)``)."""
+    import json
+
     import zenoh
 
     from service.live.sessions import client_config
@@ -61,11 +73,15 @@ def generator(endpoint: str, robots: int, duration: float, out: Any, ready: Any,
     poses: list[tuple[str, int]] = []  # (robot id, arrival ns)
     lock = threading.Lock()
 
+    payloads: list[tuple[str, int, bytes]] = []  # (robot id, arrival ns, PoseEstimate)
+
     def on_pose(sample: Any) -> None:
         now = time.time_ns()
         robot = str(sample.key_expr).split("/")[2]
         with lock:
             poses.append((robot, now))
+            if errors:
+                payloads.append((robot, now, sample.payload.to_bytes()))
 
     fleet = SimFleet(plan, JsonWire(plan), lambda: zenoh.open(client_config(endpoint)))
     fleet.put_map()
@@ -104,12 +120,22 @@ def generator(endpoint: str, robots: int, duration: float, out: Any, ready: Any,
     watcher.join(1.0)
     sub.undeclare()
     fleet.close()
+    stamped = []
+    index = {robot: i for i, robot in enumerate(ids)}
     with lock:
+        for robot, at, payload in payloads:
+            pose = json.loads(payload)
+            plan_robot = plan.robots[index[robot]]
+            step = round((pose["stamp_ns"] - t0) / spec.period_ns)
+            x, y = plan_robot.truth[plan_robot.index(step)][:2]
+            off = math.hypot(pose["x"] - x, pose["y"] - y)
+            stamped.append((robot, at, pose["stamp_ns"], off))
         out.put(
             {
                 "ids": ids,
                 "puts": puts,
                 "poses": poses,
+                "stamped": stamped,
                 "links": links,
                 "sessions": len(fleet.sessions),
             }
@@ -176,6 +202,21 @@ def figures(raw: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def kill_header(module: str, args: argparse.Namespace, service: str, kill: str) -> list[str]:
+    """The command and machine lines of a kill under load (``service``: who serves the fleet;
+    ``kill``: what is killed and what follows)."""
+    return [
+        f"Command: `python -m {module} --robots {args.robots} --kill-after "
+        f"{args.kill_after:g} --duration {args.duration:g} --write`",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
+        f"{platform.python_version()}; {service} and one load-generator process share the "
+        f"cores; {args.robots} robots at 10 Hz, 360-beam scans. {kill} Load average at the end "
+        f"of the run: {os.getloadavg()[0]:.1f}.",
+        "",
+    ]
+
+
 def render(args: argparse.Namespace) -> str:
     """Run once and return the section."""
     f = figures(measure(args.robots, args.duration, args.kill_after))
@@ -184,19 +225,14 @@ def render(args: argparse.Namespace) -> str:
     def q(a: np.ndarray, p: float) -> str:
         return f"{float(np.percentile(a, p)):.2f}"
 
-    load = os.getloadavg()[0]
     return "\n".join(
         [
-            f"Command: `python -m bench.restart --robots {args.robots} --kill-after "
-            f"{args.kill_after:g} --duration {args.duration:g} --write`",
-            "",
-            f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
-            f"{platform.python_version()}; one `rlutf serve` (recording on, durable pose state, "
-            "the default layout) and one load-generator process share the cores; "
-            f"{args.robots} robots at 10 Hz, 360-beam scans. SIGKILL at "
-            f"{args.kill_after:g} s, the same command started again at once. Load average at "
-            f"the end of the run: {load:.1f}.",
-            "",
+            *kill_header(
+                "bench.restart",
+                args,
+                "one `rlutf serve` (recording on, durable pose state, the default layout)",
+                f"SIGKILL at {args.kill_after:g} s, the same command started again at once.",
+            ),
             "| robots | resumed (a pose from the new service) | kill to ready s "
             "| ready to the last robot session reconnected s "
             "| next scan to first pose s: p50 / p90 / max | within 2 s of the next scan "
@@ -210,17 +246,20 @@ def render(args: argparse.Namespace) -> str:
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Command-line entry."""
+def kill_parser(prog: str, doc: str | None, robots: int) -> argparse.ArgumentParser:
+    """The options of a kill under load (this module's and :mod:`bench.failover`'s)."""
     p = argparse.ArgumentParser(
-        prog="python -m bench.restart",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--robots", type=int, default=100, help="fleet size")
+    p.add_argument("--robots", type=int, default=robots, help="fleet size")
     p.add_argument("--duration", type=float, default=30.0, help="seconds the robots drive")
     p.add_argument("--kill-after", type=float, default=10.0, help="seconds before the SIGKILL")
-    return section_main(p, render, SECTION, argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry."""
+    return section_main(kill_parser("python -m bench.restart", __doc__, 100), render, SECTION, argv)
 
 
 if __name__ == "__main__":
