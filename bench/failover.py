@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import multiprocessing as mp
 import os
 import shutil
@@ -101,11 +102,13 @@ def figures(raw: dict[str, Any]) -> dict[str, Any]:
     by_robot: dict[str, list[tuple[int, float]]] = {r: [] for r in ids}
     for robot, at, _stamp, off in raw["stamped"]:
         by_robot[robot].append((at, off))
-    moved: list[float] = []  # seconds from the kill to the next pose
+    moved: list[float] = []  # seconds from the kill to the next pose (inf: none came)
     later: list[float] = []  # gaps after that one, seconds
     first_off: list[float] = []  # metres off, the first pose after each gap
     for arrivals in by_robot.values():
         arrivals.sort()
+        if not arrivals or arrivals[-1][0] <= killed:
+            moved.append(math.inf)  # no pose after the kill: never served again
         for (a, _), (b, off) in itertools.pairwise(arrivals):
             if b - a <= gap_ns or b <= killed:
                 continue

@@ -44,9 +44,18 @@ def test_a_robot_that_lost_its_owner_counts_from_the_kill_to_its_next_pose() -> 
 
 def test_a_scan_answered_by_two_owners_is_counted_once_per_scan() -> None:
     stamped = [("r0", 1 * S, 5, 0.0), ("r0", 1 * S + 1, 5, 0.0), ("r0", 2 * S, 6, 0.0)]
-    f = figures({"ids": ["r0"], "stamped": stamped, "killed": 3 * S})
+    f = figures({"ids": ["r0"], "stamped": stamped, "killed": 0})  # the kill before them all
     assert f["twice"] == 1
     assert f["moved_count"] == 0 and math.isnan(float(f["moved"][0]))
+    assert f["later_count"] == 1  # the second between its last two poses
+
+
+def test_a_robot_never_served_after_the_kill_is_moved_and_late() -> None:
+    killed = 10 * S
+    stamped = [*_every_100ms("lost", 9 * S, killed), *_every_100ms("fine", 9 * S, 12 * S)]
+    f = figures({"ids": ["lost", "fine", "silent"], "stamped": stamped, "killed": killed})
+    assert f["moved_count"] == 2  # "lost" stopped at the kill; "silent" never had a pose
+    assert f["within_2s"] == 0 and all(math.isinf(float(x)) for x in f["moved"])
 
 
 def test_children_are_read_from_proc() -> None:
