@@ -15,7 +15,6 @@ bottom is).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -62,20 +61,16 @@ def settle(name: str, refine: Refiner) -> tuple[Errors, Errors, float, FloatArra
     positions from the first offset less the corrected ones (m; ``inf`` where it failed)."""
     run = odd_run(name, even_map(name))
     moves = offsets(len(run.scans))
-    moved, spread, off = [], [], []
+    spread, off = [], []
     for k in range(1, len(run.scans)):
         truth = run.truth[k]
         settled = np.array([refine(k, run.scans[k], truth + m) for m in moves[k]])
         off.append(settled[0, :2] - truth[:2])
-        moved.append(math.hypot(*(settled[0, :2] - truth[:2])) * 100.0)
         mean = settled.mean(axis=0)
         spread.append(float(np.median(np.hypot(*(settled[:, :2] - mean[:2]).T))) * 100.0)
-    return (
-        at_reference(run, refine),
-        Errors(np.asarray(moved)),
-        float(np.median(spread)),
-        np.array(off),
-    )
+    first = np.array(off)
+    moved = Errors(np.hypot(*first.T) * 100.0)
+    return at_reference(run, refine), moved, float(np.median(spread)), first
 
 
 def correlation(a: FloatArray, b: FloatArray) -> tuple[float, float]:
@@ -122,10 +117,12 @@ def render_settle(
             ("ICP on the raw points, window 1 left out", icp_refiner(name, cfg, 1)),
         ]
         errors: list[FloatArray] = []
+        medians: list[float] = []
         for label, refine in methods:
             progress(f"{name}: {label}")
             at_truth, moved, spread, off = settle(name, refine)
             errors.append(off)
+            medians.append(moved.percentile(50))
             lines.append(
                 f"| {name} | {label} | {moved.rmse:.2f} | {moved.percentile(50):.2f} | "
                 f"{moved.percentile(95):.2f} | {at_truth.rmse:.2f} / "
@@ -137,8 +134,7 @@ def render_settle(
             f"{both.rmse:.2f} | {both.percentile(50):.2f} | {both.percentile(95):.2f} | - | - |"
         )
         cx, cy = correlation(errors[0], errors[2])
-        rlutf_median = float(np.median(np.hypot(*errors[0].T))) * 100.0
-        icp_median = float(np.median(np.hypot(*errors[2].T))) * 100.0
+        rlutf_median, icp_median = medians[0], medians[2]
         closer = both.percentile(50) < min(rlutf_median, icp_median)
         notes.append(
             f"{name}: {cx:.2f} in x and {cy:.2f} in y, and their mean settles "

@@ -121,7 +121,8 @@ def update_costs(
     clock = time.thread_time_ns
     spent_in = [0]
     for k in range(1, steps):
-        with in_kernels(spent_in) if compiled is not None and k >= WARM else _no_kernels():
+        timing = compiled is not None and k >= WARM
+        with in_kernels(spent_in) if timing else contextlib.nullcontext():
             for loc, r in robots:
                 motion = relative(r.odometry_at(k - 1), r.odometry_at(k))
                 scan = r.scans[r.index(k)]
@@ -180,11 +181,6 @@ def in_kernels(spent: list[int]) -> Iterator[None]:
     finally:
         for module, attr, value in saved:
             setattr(module, attr, value)
-
-
-@contextlib.contextmanager
-def _no_kernels() -> Iterator[None]:
-    yield
 
 
 def cost_fit(costs: dict[int, list[float]]) -> tuple[float, float]:
