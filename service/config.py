@@ -196,7 +196,12 @@ class Settings(BaseSettings):
         "off, `rlutf log views` or `rlutf replay` writes them from a log.",
     )
 
-    workers: int = Field(-1, ge=-1, description="Worker processes; -1: one per core; 0: threads.")
+    workers: int = Field(
+        -1,
+        ge=-1,
+        description="Worker processes; -1: one per usable core (CPU affinity, container CPU "
+        "quota); 0: threads.",
+    )
     intake: Literal["callback", "loop"] = Field(
         "callback",
         description="How robot inputs come in: 'callback', a Zenoh callback per sample; "

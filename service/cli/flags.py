@@ -181,7 +181,8 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
         "--workers",
         type=number(int, minimum=-1),
         metavar="N",
-        help="worker processes (-1: one per core, the default; 0: in-process thread)",
+        help="worker processes (-1: one per core this process may use, its "
+        "container's CPU limit included, the default; 0: in-process thread)",
     )
     p.add_argument(
         "--processes",

@@ -92,7 +92,8 @@ def register(sub: Any) -> None:
         "--workers",
         type=number(int, minimum=-1),
         default=-1,
-        help="service worker processes (-1: one per core, the default; 0: in-process thread)",
+        help="service worker processes (-1: one per core this process may use, its "
+        "container's CPU limit included, the default; 0: in-process thread)",
     )
     demo.add_argument("--quiet", action="store_true", help="no live table, summary only")
     demo.add_argument("--verbose-health", action="store_true", help="print the final health")

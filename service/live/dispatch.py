@@ -31,6 +31,7 @@ from typing import Any
 from rlutf.localizer import LocalizerConfig
 from service.guard import Limits
 from service.keys import InputKind, Keys, Message
+from service.live.cores import usable_cores
 from service.live.publishing import PoseOut
 from service.live.shards import (
     IN_FLIGHT,
@@ -61,7 +62,8 @@ class Dispatcher:
         keys: key layout.
         config: localizer parameters.
         workers: worker processes; 0 runs one shard on threads of this process; -1 one process
-            per core.
+            per core this process may use (:func:`service.live.cores.usable_cores`: its CPU
+            affinity and its container's CPU quota, not the machine's cores).
         event_interval_ns: least time between two events of one code for one robot.
         on_done: called (from a shard's thread) with each finished batch.
         on_drop: called (under the dispatcher's lock, keep it short) when a scan is replaced
@@ -117,7 +119,7 @@ class Dispatcher:
         self.boxes: dict[str, Mailbox] = {}
         self.stopping = False
         self.dropped = 0
-        count = (os.cpu_count() or 1) if workers < 0 else workers
+        count = usable_cores() if workers < 0 else workers
         self.processes = count > 0
         self.loop: LoopShard | None = None
         if count == 0 and loop:

@@ -1,0 +1,114 @@
+"""How many cores the service may use: what ``workers = -1`` ("one per core") counts.
+
+``os.cpu_count()`` is the machine's cores. In a container it is the node's: a pod limited to
+2 CPUs on a 64-core node would start 64 worker processes, each with its own copy of the
+localizer's kernels (about 75 MB of private memory), and be killed at its memory limit before it
+serves, or throttled to a crawl by its CPU quota. The cores a process may use are fewer than the
+machine's in two ways, and :func:`usable_cores` takes both:
+
+- its CPU affinity (``taskset``, ``docker --cpuset-cpus``, Kubernetes' static CPU manager):
+  :func:`os.sched_getaffinity`;
+- its cgroup's CPU bandwidth quota (``docker --cpus``, a Kubernetes CPU limit): ``cpu.max`` in
+  cgroup v2 (``"QUOTA PERIOD"`` or ``"max PERIOD"``), ``cpu.cfs_quota_us`` and
+  ``cpu.cfs_period_us`` in cgroup v1 (quota ``-1``: none), on the process's cgroup or any cgroup
+  above it (each limits the ones below), rounded up: a quota of 1.5 CPUs is 2 cores.
+
+The kernel's documents: Documentation/admin-guide/cgroup-v2.rst ("cpu.max") and
+Documentation/scheduler/sched-bwc.rst (cgroup v1).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path, PurePosixPath
+
+#: Where the cgroup file systems are mounted.
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+#: The calling process's cgroups, one line per hierarchy: ``ID:CONTROLLERS:PATH``.
+PROC_CGROUP = Path("/proc/self/cgroup")
+#: Where a cgroup v1 hierarchy with the ``cpu`` controller may be mounted under the root.
+_V1_CPU_DIRS = ("cpu", "cpu,cpuacct", "cpuacct,cpu")
+
+
+def usable_cores(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP) -> int:
+    """The cores this process may use: its CPU affinity, capped by its cgroup's CPU quota.
+
+    At least 1. Where a file cannot be read or parsed (no cgroups, another system), that limit
+    is not applied.
+    """
+    try:
+        count = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        count = os.cpu_count() or 1
+    quota = cpu_quota(root, proc_cgroup)
+    if quota is not None:
+        count = min(count, quota)
+    return max(1, count)
+
+
+def cpu_quota(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP) -> int | None:
+    """The smallest CPU bandwidth quota on this process's cgroups, in whole cores (rounded up);
+    ``None`` if there is none.
+
+    A cgroup v2 quota is looked for first; cgroup v1 only where no ``cpu.max`` was found (a
+    host with both mounts has its controllers in one of them)."""
+    try:
+        lines = proc_cgroup.read_text().splitlines()
+    except OSError:
+        return None
+    v2_path, v1_path = None, None
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        hierarchy, controllers, path = parts
+        if hierarchy == "0" and controllers == "":
+            v2_path = path
+        elif "cpu" in controllers.split(","):
+            v1_path = path
+    found_v2, quotas = False, []
+    if v2_path is not None:
+        for cgroup in _self_and_ancestors(root, v2_path):
+            text = _read(cgroup / "cpu.max")
+            if text is None:
+                continue
+            found_v2 = True
+            quota = _cores(*text.split()[:2]) if len(text.split()) == 2 else None
+            if quota is not None:
+                quotas.append(quota)
+    if not found_v2 and v1_path is not None:
+        for name in _V1_CPU_DIRS:
+            for cgroup in _self_and_ancestors(root / name, v1_path):
+                quota_text = _read(cgroup / "cpu.cfs_quota_us")
+                period_text = _read(cgroup / "cpu.cfs_period_us")
+                if quota_text is None or period_text is None:
+                    continue
+                quota = _cores(quota_text, period_text)
+                if quota is not None:
+                    quotas.append(quota)
+    return min(quotas) if quotas else None
+
+
+def _self_and_ancestors(mount: Path, path: str) -> list[Path]:
+    """``mount/path`` and each directory above it, up to ``mount`` itself."""
+    parts = PurePosixPath("/", path).parts[1:]
+    return [mount.joinpath(*parts[:n]) for n in range(len(parts), -1, -1)]
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def _cores(quota: str, period: str) -> int | None:
+    """Whole cores of a quota and period in microseconds; ``None`` for no quota."""
+    try:
+        q, p = int(quota), int(period)
+    except ValueError:  # "max": no quota
+        return None
+    if q <= 0 or p <= 0:  # cgroup v1's -1: no quota
+        return None
+    return max(1, math.ceil(q / p))

@@ -1,0 +1,104 @@
+"""The cores ``workers = -1`` counts: CPU affinity capped by a container's CPU quota."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from service.config import Settings
+from service.keys import Keys
+from service.live.cores import cpu_quota, usable_cores
+from service.live.dispatch import Dispatcher
+
+
+def _tree(root: Path, files: dict[str, str], cgroup: str) -> Path:
+    """Cgroup files under ``root`` and a /proc/self/cgroup that puts the process in ``cgroup``."""
+    for name, text in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text + "\n")
+    proc = root / "proc-self-cgroup"
+    proc.write_text(cgroup)
+    return proc
+
+
+def _affinity() -> int:
+    return len(os.sched_getaffinity(0))
+
+
+def test_v2_quota_of_the_process_cgroup_rounds_up(tmp_path: Path) -> None:
+    proc = _tree(tmp_path, {"kubepods/pod1/c1/cpu.max": "150000 100000"}, "0::/kubepods/pod1/c1\n")
+    assert cpu_quota(tmp_path, proc) == 2  # 1.5 CPUs: 2 cores
+    assert usable_cores(tmp_path, proc) == min(_affinity(), 2)
+
+
+def test_v2_an_ancestor_limits_the_cgroups_below_it(tmp_path: Path) -> None:
+    files = {
+        "kubepods/cpu.max": "max 100000",
+        "kubepods/pod1/cpu.max": "100000 100000",  # 1 CPU for the pod
+        "kubepods/pod1/c1/cpu.max": "max 100000",  # no limit of the container's own
+    }
+    proc = _tree(tmp_path, files, "0::/kubepods/pod1/c1\n")
+    assert cpu_quota(tmp_path, proc) == 1
+    assert usable_cores(tmp_path, proc) == 1
+
+
+def test_v2_a_container_sees_its_own_cgroup_at_the_root(tmp_path: Path) -> None:
+    # With a cgroup namespace the process is at "/" and the mount is its container's cgroup;
+    # without one, /proc says the host's path and only the mount's root file exists.
+    proc = _tree(tmp_path, {"cpu.max": "50000 100000"}, "0::/\n")
+    assert cpu_quota(tmp_path, proc) == 1  # half a CPU: still one worker
+    proc = _tree(tmp_path, {"cpu.max": "200000 100000"}, "0::/system.slice/docker-ab.scope\n")
+    assert cpu_quota(tmp_path, proc) == 2
+
+
+def test_no_quota_is_the_affinity(tmp_path: Path) -> None:
+    proc = _tree(tmp_path, {"a/cpu.max": "max 100000"}, "0::/a\n")
+    assert cpu_quota(tmp_path, proc) is None
+    assert usable_cores(tmp_path, proc) == _affinity()
+    assert usable_cores(tmp_path, tmp_path / "no-such-file") == _affinity()
+
+
+def test_v1_quota(tmp_path: Path) -> None:
+    files = {
+        "cpu,cpuacct/docker/abc/cpu.cfs_quota_us": "300000",
+        "cpu,cpuacct/docker/abc/cpu.cfs_period_us": "100000",
+    }
+    text = "12:memory:/docker/abc\n4:cpu,cpuacct:/docker/abc\n1:name=systemd:/docker/abc\n"
+    proc = _tree(tmp_path, files, text)
+    assert cpu_quota(tmp_path, proc) == 3
+    files = {"cpu/cpu.cfs_quota_us": "-1", "cpu/cpu.cfs_period_us": "100000"}
+    proc = _tree(tmp_path / "none", files, "3:cpu:/\n")
+    assert cpu_quota(tmp_path / "none", proc) is None
+
+
+def test_v2_is_taken_before_v1(tmp_path: Path) -> None:
+    files = {
+        "cpu.max": "100000 100000",
+        "cpu/cpu.cfs_quota_us": "400000",
+        "cpu/cpu.cfs_period_us": "100000",
+    }
+    proc = _tree(tmp_path, files, "3:cpu:/\n0::/\n")
+    assert cpu_quota(tmp_path, proc) == 1
+
+
+@pytest.mark.parametrize("text", ["", "garbage", "12 x", "0 100000", "100000 0", "\xff"])
+def test_unreadable_quota_is_no_limit(tmp_path: Path, text: str) -> None:
+    proc = _tree(tmp_path, {"cpu.max": text}, "0::/\n")
+    assert cpu_quota(tmp_path, proc) is None
+    assert usable_cores(tmp_path, proc) >= 1
+
+
+def test_this_machine() -> None:
+    quota = cpu_quota()
+    expected = _affinity() if quota is None else min(_affinity(), quota)
+    assert usable_cores() == max(1, expected)
+
+
+def test_workers_minus_one_counts_usable_cores() -> None:
+    s = Settings()
+    assert s.workers == -1
+    d = Dispatcher(Keys(), s.localizer, -1, 0, lambda *a: None, lambda *a: None)
+    assert len(d.shards) == usable_cores()  # made, not started: no process yet
