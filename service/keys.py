@@ -157,8 +157,8 @@ class Keys:
         """What is wrong with a put (or, with ``delete``, a DELETE) on ``key``, if anything.
 
         ``None`` for what the service takes or publishes itself: the inputs and outputs of
-        robots, maps and Events, and keys outside the prefix. A robot input with an invalid id
-        is also ``None`` here: the input subscriber reports it.
+        robots, maps, Events and MapHealth, and keys outside the prefix. A robot input with an
+        invalid id is also ``None`` here: the input subscriber reports it.
         """
         head = f"{self.prefix}/"
         if not key.startswith(head):
@@ -211,6 +211,8 @@ class Keys:
             )
         if top == "events" and not rest and not delete:
             return None  # the instances' own Events
+        if top == "maphealth" and len(rest) == 1 and not delete:
+            return None  # another instance's (or process's) MapHealth (WIRE.md v1.2)
         return OddKey(
             "unknown_key",
             "error",

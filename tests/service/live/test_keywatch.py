@@ -49,11 +49,19 @@ def test_odd_keys_are_classified(key: str, delete: bool, kind: str) -> None:
         "rlutf/robots/r1/events",
         "rlutf/maps/m1",
         "rlutf/events",
+        "rlutf/maphealth/m1",  # another instance's or process's MapHealth
         "other/robots/r1/scan/x",
     ],
 )
 def test_the_service_keys_are_not_odd(key: str) -> None:
     assert Keys().odd(key, delete=False) is None
+
+
+def test_maphealth_keys_beyond_the_service_s_are_odd() -> None:
+    extra = Keys().odd("rlutf/maphealth/m1/x", delete=False)
+    assert extra is not None and extra.code == "invalid_key"
+    deleted = Keys().odd("rlutf/maphealth/m1", delete=True)
+    assert deleted is not None and deleted.code == "invalid_key"
 
 
 def test_printable_escapes_control_characters() -> None:
