@@ -9,6 +9,7 @@ Here the check is slowed down so that a few small maps are a flood.
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -119,14 +120,33 @@ def test_the_service_never_loads_a_put_its_store_dropped(
     # service through its store, the service took puts the store dropped, and ended on a version
     # the store never held (seen in the campaign: the service on 228, the store on 217).
     monkeypatch.setattr(store_module, "_QUEUED", 2)
-    # A second a check: the burst of puts reaches the store well within the first check, so it
-    # drops the last ones even on a loaded machine (at 0.2 s, a CI run beside other work spread
-    # the burst over more than one check, and the store took the last put).
-    _slowed(monkeypatch, MapChecker, 1.0)
+    # The store's first check waits until every put of the burst has reached the store, so it
+    # drops the last ones however loaded the machine is (a check slowed by a fixed time, 0.2 s
+    # then 1 s, let a CI run beside other work spread the burst over more than one check, and
+    # the store took the last put).
+    burst_in = threading.Event()
+    taken = []
+    take = MapStorage._take
+
+    def counted(self: MapStorage, sample: zenoh.Sample) -> bool:
+        taken.append(1)
+        if len(taken) >= PUTS:
+            burst_in.set()
+        return take(self, sample)
+
+    monkeypatch.setattr(MapStorage, "_take", counted)
+    check = MapChecker.check
+
+    def held_back(self: MapChecker, map_id: str, payload: bytes) -> Any:
+        burst_in.wait(30.0)
+        return check(self, map_id, payload)
+
+    monkeypatch.setattr(MapChecker, "check", held_back)
     with running_bench(tmp_path) as bench:
         events, sub = _flood(bench.client)
         storage = bench.service._storage
         assert storage is not None
+        assert burst_in.wait(30.0), len(taken)
 
         def settled() -> bool:
             held, mine = storage.held("m1"), bench.service.maps.get("m1")
