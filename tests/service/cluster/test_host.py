@@ -88,6 +88,10 @@ def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -
         assert first["extra"]["host"] is True
         assert {p["name"] for p in first["extra"]["processes"]} == set(NAMES)
         sub = session.declare_subscriber("rlutf/robots/*/pose", poses)
+        health_puts: list[bytes] = []
+        health_sub = session.declare_subscriber(
+            "rlutf/maphealth/*", lambda s: health_puts.append(s.payload.to_bytes())
+        )
         world = Map(map_id="m1", version=1, geometry=WORLD.to_geojson())
         session.put("rlutf/maps/m1", encode(world), encoding=JSON)
         assert wait_until(
@@ -103,9 +107,13 @@ def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -
         expected = {n: sorted(r for r in robots if split[r] == n) for n in NAMES}
         assert wait_until(lambda: _owned(_health(session, "h")) == expected, 5.0), text()
         assert all(expected.values())
+        assert wait_until(lambda: len(health_puts) >= 2, 20.0), text()
+        time.sleep(1.5)  # the Health the host polls is a second old at most
         both = _health(session, "h")
         parts = both["extra"]["by_process"]
         assert both["processed"] == sum(parts[n]["processed"] for n in NAMES) > 0
+        # each process's MapHealth puts reach the other, which takes them for what they are
+        assert both["rejected"] == 0, parts
 
         body = urllib.request.urlopen(f"http://127.0.0.1:{metrics}/metrics", timeout=10).read()
         exposition = body.decode()
@@ -131,6 +139,7 @@ def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -
         driver.stop()
         t_stop = time.monotonic()
         sub.undeclare()
+        health_sub.undeclare()
         host.send_signal(signal.SIGTERM)
         assert host.wait(30) == 0, text()
     finally:
