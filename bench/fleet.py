@@ -3,7 +3,8 @@
 Run: ``python -m bench.fleet [--robots 25,50,100,150] [--duration 20] [--write]``.
 
 For each fleet size, a ``rlutf serve`` subprocess (router on a loopback port, embedded store,
-worker processes, recording on unless ``--no-record``) serves a load-generator process that
+its default layout unless ``--workers`` or ``--processes`` say, recording on unless
+``--no-record``) serves a load-generator process that
 publishes, for every robot, odometry and a 360-beam scan at 10 Hz (phases staggered) from a
 simulated run precomputed before the clock starts (:mod:`service.sim`, run by
 :mod:`bench.fleetrun`), and times each scan put to its pose put.
@@ -38,15 +39,33 @@ def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
     return rows
 
 
+def default_processes() -> int:
+    """The service processes ``rlutf serve`` runs with no layout flag, here (its ``processes``
+    default resolved: :meth:`service.config.Settings.service_processes`)."""
+    from service.config import Settings
+
+    return Settings().service_processes()
+
+
 def render(
     sizes: list[int],
     duration: float,
     record: bool,
-    workers: int,
+    workers: int | None = None,
     threads: bool = False,
-    processes: int = 0,
+    processes: int | None = None,
 ) -> str:
-    """Run every size and return the Markdown section."""
+    """Run every size and return the Markdown section (``workers`` and ``processes`` ``None``:
+    the service's default layout)."""
+    asked = ("" if record else " --no-record") + (
+        "" if workers is None else f" --workers {workers}"
+    )
+    asked += " --threads" if threads else ""
+    asked += "" if processes is None else f" --processes {processes}"
+    default = workers is None and processes is None
+    if processes is None:
+        processes = 0 if workers is not None else default_processes()
+    workers = -1 if workers is None else workers
     rows = []
     by_thread: dict[str, dict[str, float]] = {}
     held = 0
@@ -84,15 +103,15 @@ def render(
         print(rows[-1], flush=True)
     best = min(need)
     sizes_arg = ",".join(str(s) for s in sizes)
-    flags = ("" if record else " --no-record") + (f" --workers {workers}" if workers >= 0 else "")
-    flags += " --threads" if threads else ""
-    flags += f" --processes {processes}" if processes else ""
+    flags = asked
+    command = "rlutf serve" if default else f"rlutf serve --processes {processes}"
     who = (
-        f"One `rlutf serve --processes {processes}` ({processes} service processes that each "
+        f"One `{command}` ({processes} service processes that each "
         "own a share of the robots, the first of which, the host, is also the router and the "
         "map store; recording "
         if processes
-        else "One `rlutf serve` (recording "
+        else f"One `rlutf serve{'' if default else ' --processes 0'}` (its main process and "
+        "worker processes; recording "
     )
     parts = "host / service processes" if processes else "service main / workers"
     return "\n".join(
@@ -165,12 +184,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", default="25,50,100,150", help="fleet sizes, comma-separated")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per size")
     p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
-    p.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="service worker processes (the layout of workers; default: the service's layout)",
+    )
     p.add_argument(
         "--processes",
         type=int,
-        default=0,
-        help="run `rlutf serve --processes N` (N service processes behind a host)",
+        help="run `rlutf serve --processes N` (N service processes behind a host; 0: the "
+        "layout of workers; default: the service's layout, `rlutf serve` with no flag)",
     )
     p.add_argument(
         "--threads",

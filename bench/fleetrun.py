@@ -40,7 +40,7 @@ def start_service(
     endpoint: str,
     tmp: Path,
     record: bool,
-    workers: int,
+    workers: int | None,
     serve_flags: tuple[str, ...] = (),
     env: dict[str, str] | None = None,
     stderr: Any = subprocess.DEVNULL,
@@ -52,7 +52,8 @@ def start_service(
         endpoint: the Zenoh endpoint to listen on.
         tmp: folder for the map store (``store``) and the recording (``logs``).
         record: record MCAP logs.
-        workers: service worker processes.
+        workers: service worker processes (``None``: no ``--workers``, the service's default
+            layout).
         serve_flags: more flags for ``rlutf serve``.
         env: extra environment variables (``RLUTF_*`` settings).
         stderr: where the service's log goes (``subprocess.Popen``'s argument).
@@ -60,7 +61,8 @@ def start_service(
     """
     exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
     cmd = [exe, "serve", "--listen", endpoint, "--store", str(tmp / "store")]
-    cmd += ["--instance", instance, "--workers", str(workers)]
+    cmd += ["--instance", instance]
+    cmd += [] if workers is None else ["--workers", str(workers)]
     cmd += ["--record", str(tmp / "logs")] if record else ["--no-record"]
     cmd += serve_flags
     full_env = None if env is None else {**os.environ, **env}

@@ -148,7 +148,7 @@ def measure(robots: int, duration: float, kill_after: float) -> dict[str, Any]:
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-restart-"))
-    proc = start_service(endpoint, tmp, True, -1)
+    proc = start_service(endpoint, tmp, True, None)  # the default layout
     ctx = mp.get_context("spawn")
     out, ready, go = ctx.Queue(), ctx.Event(), ctx.Event()
     gen = ctx.Process(target=generator, args=(endpoint, robots, duration, out, ready, go))
@@ -160,7 +160,7 @@ def measure(robots: int, duration: float, kill_after: float) -> dict[str, Any]:
         killed = time.time_ns()
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-        proc = start_service(endpoint, tmp, True, -1)  # returns once its token is declared
+        proc = start_service(endpoint, tmp, True, None)  # returns once it is ready
         up = time.time_ns()
         result = out.get(timeout=duration + 120)
         gen.join(10)
@@ -168,6 +168,13 @@ def measure(robots: int, duration: float, kill_after: float) -> dict[str, Any]:
         stop_service(proc)
         shutil.rmtree(tmp, ignore_errors=True)
     return {**result, "killed": killed, "up": up}
+
+
+def _layout() -> str:
+    from bench.fleet import default_processes
+
+    n = default_processes()
+    return f"{n} service processes behind the router" if n else "one process and its workers"
 
 
 def figures(raw: dict[str, Any]) -> dict[str, Any]:
@@ -230,7 +237,8 @@ def render(args: argparse.Namespace) -> str:
             *kill_header(
                 "bench.restart",
                 args,
-                "one `rlutf serve` (recording on, durable pose state, the default layout)",
+                "one `rlutf serve` (recording on, durable pose state, the default layout: "
+                f"{_layout()})",
                 f"SIGKILL at {args.kill_after:g} s, the same command started again at once.",
             ),
             "| robots | resumed (a pose from the new service) | kill to ready s "

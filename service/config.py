@@ -209,12 +209,13 @@ class Settings(BaseSettings):
         "also runs the robots' updates: no thread hand-off per input).",
     )
     processes: int = Field(
-        0,
-        ge=0,
+        -1,
+        ge=-1,
         le=64,
         description="Service processes behind this one (each a full instance owning a share "
         "of the robots, named INSTANCE-pK; this one routes and holds the map store); 0: this "
-        "process localizes, with its workers.",
+        "process localizes, with its workers; -1: one per usable core where there are two or "
+        "more, in router mode, with no live view and no workers asked for, else 0.",
     )
     worker_threads: int = Field(
         4,
@@ -364,6 +365,31 @@ class Settings(BaseSettings):
     def map_limits(self) -> MapLimits:
         """What a map may cost (``max_map_area``, ``max_map_vertices``)."""
         return MapLimits(self.max_map_area, self.max_map_vertices)
+
+    def service_processes(self, cores: int | None = None) -> int:
+        """The service processes ``processes`` asks for, ``-1`` resolved (``cores``: the usable
+        cores, :func:`service.cores.usable_cores` when ``None``).
+
+        ``-1`` is one process per usable core (BENCHMARKS.md, "The layouts at 200 robots": on
+        two cores the layout of processes answers more scans with a shorter tail and less
+        memory, and loses none uncounted) except where the other layout is what serves: one
+        core (a host process with nothing to spread), ``--mode client`` or ``peer`` (an instance
+        of a fleet deployment, scaled by its replicas), a live view (``--foxglove-port``: each
+        process sees only its own robots) or ``workers`` set (the layout of workers asked for).
+        """
+        if self.processes >= 0:
+            return self.processes
+        if (
+            self.mode != "router"
+            or self.foxglove_port is not None
+            or "workers" in self.model_fields_set
+        ):
+            return 0
+        if cores is None:
+            from service.cores import usable_cores
+
+            cores = usable_cores()
+        return cores if cores >= 2 else 0
 
     def effective(self) -> dict[str, Any]:
         """The configuration as JSON-ready data (what ``rlutf config`` prints)."""

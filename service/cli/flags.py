@@ -186,10 +186,12 @@ def settings_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--processes",
-        type=number(int, minimum=0, maximum=64),
+        type=number(int, minimum=-1, maximum=64),
         metavar="N",
         help="N full service processes, each owning a share of the robots, behind this one "
-        "(router and map store); 0 (default): this process localizes, with --workers",
+        "(router and map store); 0: this process localizes, with --workers; -1 (default): one "
+        "per usable core in router mode, unless there is one core, a --foxglove-port or "
+        "--workers (then 0)",
     )
     p.add_argument(
         "--metrics-port",

@@ -91,9 +91,14 @@ def register(sub: Any) -> None:
     demo.add_argument(
         "--workers",
         type=number(int, minimum=-1),
-        default=-1,
-        help="service worker processes (-1: one per core this process may use, its "
-        "container's CPU limit included, the default; 0: in-process thread)",
+        help="run the service as one process with N worker processes (-1: one per core "
+        "this process may use; 0: in-process thread) instead of its default layout",
+    )
+    demo.add_argument(
+        "--processes",
+        type=number(int, minimum=-1, maximum=64),
+        help="N service processes behind the router (default -1: one per core this process "
+        "may use, as `rlutf serve`; 0: one process with its workers)",
     )
     demo.add_argument("--quiet", action="store_true", help="no live table, summary only")
     demo.add_argument("--verbose-health", action="store_true", help="print the final health")
@@ -128,13 +133,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
         usable_folder(settings.record_dir, "--record")
     stop = threading.Event()
 
+    # A host's process is stopped by its host, which says so itself: not a warning there.
+    level = logging.INFO if args.host_pid is not None else logging.WARNING
+
     def on_signal(signum: int, _frame: object) -> None:
-        logging.getLogger("rlutf").warning("signal %d: stopping", signum)
+        logging.getLogger("rlutf").log(level, "signal %d: stopping", signum)
         stop.set()
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    if settings.processes > 0:
+    processes = settings.service_processes()
+    if processes > 0:
         if settings.foxglove_port is not None:
             print(
                 "rlutf serve: --foxglove-port needs --processes 0 (each of the processes sees "
@@ -142,7 +151,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return EXIT_USAGE
-        return serve_host(settings, stop)
+        return serve_host(settings.model_copy(update={"processes": processes}), stop)
     if args.host_pid is not None:
         follow_host(args.host_pid, stop)
     try:

@@ -29,9 +29,9 @@ from collections.abc import Callable
 from typing import Any
 
 from rlutf.localizer import LocalizerConfig
+from service.cores import usable_cores
 from service.guard import Limits
 from service.keys import InputKind, Keys, Message
-from service.live.cores import usable_cores
 from service.live.publishing import PoseOut
 from service.live.shards import (
     IN_FLIGHT,
@@ -62,7 +62,7 @@ class Dispatcher:
         keys: key layout.
         config: localizer parameters.
         workers: worker processes; 0 runs one shard on threads of this process; -1 one process
-            per core this process may use (:func:`service.live.cores.usable_cores`: its CPU
+            per core this process may use (:func:`service.cores.usable_cores`: its CPU
             affinity and its container's CPU quota, not the machine's cores).
         event_interval_ns: least time between two events of one code for one robot.
         on_done: called (from a shard's thread) with each finished batch.

@@ -346,8 +346,15 @@ class Host:
                 found[h.instance] = h
         return found
 
-    def health(self) -> bytes:
-        """The host's Health: its processes' counters added up (see the module docstring)."""
+    def health(self, fresh: bool = False) -> bytes:
+        """The host's Health: its processes' counters added up (see the module docstring).
+
+        From the figures the poller took (a second old at most), or with ``fresh`` from the
+        processes' Health asked for now (a get on the bus: not from a Zenoh callback)."""
+        if fresh:
+            got = self.process_health()
+            with self._lock:
+                self._healths = got
         with self._lock:
             got = dict(self._healths)
         parts = list(got.values())

@@ -1,7 +1,8 @@
 """``rlutf demo``: the service on its embedded defaults with a simulated fleet, shown live.
 
-Everything is real: the same :class:`~service.live.node.LocalizationService` as ``rlutf serve`` (a
-Zenoh router in this process, the file-backed map store, worker processes, the MCAP recorder),
+Everything is real: the same service as ``rlutf serve`` in its default layout (a Zenoh router in
+this process, the file-backed map store, the service processes behind it or, with ``--workers``,
+one :class:`~service.live.node.LocalizationService` and its worker processes, the MCAP recorder),
 an operator session that puts the map and the initial poses, and Zenoh client sessions of
 simulated robots (:mod:`service.sim`, one session per robot) publishing drifting odometry and
 noisy scans. Only the robots' motion and sensors are simulated, which is what gives a ground
@@ -26,6 +27,7 @@ from rich.table import Table
 
 from service.config import Settings
 from service.keys import Keys
+from service.live.host import Host
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
 from service.logs.recording import make_recorder
@@ -130,22 +132,30 @@ def run_demo(args: argparse.Namespace) -> int:
     plan = plan_fleet(demo_spec(args))
     with tempfile.TemporaryDirectory(prefix="rlutf-demo-") as tmp:
         store = args.store or Path(tmp) / "store"
+        layout = {"workers": args.workers} if args.workers is not None else {}
+        if args.processes is not None:
+            layout["processes"] = args.processes
         settings = Settings(
             listen=[endpoint],
             store_dir=store,
             record_dir=args.record,
             no_record=args.no_record,
-            workers=args.workers,
             instance="demo",
+            **layout,
         )
+        processes = settings.service_processes()
         console.print(
             f"[bold]rlutf demo[/bold]: service on {endpoint}, map store {store}, "
             + ("no recording" if args.no_record else f"recording to {args.record}/")
         )
-        # Returns once every worker can localize: the robots' clocks start only then.
-        service = LocalizationService(settings, recorder=make_recorder(settings)).start(
-            lambda message: console.print(f"service: {message}")
-        )
+        # Returns once every process or worker can localize: the robots' clocks start only then.
+        say = lambda message: console.print(f"service: {message}")  # noqa: E731
+        service: Host | LocalizationService
+        if processes > 0:
+            service = Host(settings.model_copy(update={"processes": processes})).start(say)
+            console.print(f"service: {processes} service processes behind the router")
+        else:
+            service = LocalizationService(settings, recorder=make_recorder(settings)).start(say)
         stop = threading.Event()
         try:
             fleet = SimFleet(
@@ -200,7 +210,9 @@ def run_demo(args: argparse.Namespace) -> int:
                 sub.undeclare()
             finally:
                 fleet.close()
-            health = service.health().decode()
+            health = (
+                service.health(fresh=True) if isinstance(service, Host) else service.health()
+            ).decode()
         finally:
             service.close()
         scores = board.snapshot()

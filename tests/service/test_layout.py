@@ -18,8 +18,9 @@ BENCH = ROOT / "bench"
 #: sub-packages' docstrings say the same.
 ALLOWED: dict[str, set[str]] = {
     "keys": set(),
+    "cores": set(),
     "guard": {"keys", "maphealth"},
-    "config": {"guard"},
+    "config": {"guard", "cores"},
     "relocalization": set(),
     "maphealth": {"keys"},
     "prepared": set(),
@@ -30,6 +31,7 @@ ALLOWED: dict[str, set[str]] = {
     "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs", "guard", "maphealth"},
     "live": {
         "keys",
+        "cores",
         "config",
         "engine",
         "relocalization",
@@ -43,6 +45,7 @@ ALLOWED: dict[str, set[str]] = {
     # the simulated fleet is a client of the service, as the command line is
     "sim": {"keys", "config", "maps", "logs", "live", "ros2", "guard"},
     "cli": {
+        "cores",
         "guard",
         "keys",
         "config",

@@ -18,23 +18,30 @@ from service.live.sessions import free_port
 pytestmark = pytest.mark.integration
 
 
+def _serve(tmp_path: Path, *flags: str) -> subprocess.Popen[str]:
+    """``rlutf serve`` on a free port with its store in ``tmp_path``, no logs, no state."""
+    argv = [sys.executable, "-m", "service", "serve", "-l", f"tcp/127.0.0.1:{free_port()}"]
+    argv += ["--store", str(tmp_path / "store"), "--no-record", "--no-state", *flags]
+    return subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+
+
+def _said_until(proc: subprocess.Popen[str], *marks: str, timeout: float = 120.0) -> str:
+    """What ``proc`` wrote on stderr until one of ``marks`` (or its end, or ``timeout``)."""
+    assert proc.stderr is not None
+    said = ""
+    end = time.monotonic() + timeout
+    while not any(m in said for m in marks) and time.monotonic() < end:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        said += line
+    return said
+
+
 def test_serve_says_which_metrics_port_it_took(tmp_path: Path) -> None:
-    argv = [
-        *(sys.executable, "-m", "service", "serve"),
-        *("-l", f"tcp/127.0.0.1:{free_port()}", "--store", str(tmp_path / "store")),
-        *("--no-record", "--no-state", "--workers", "0"),
-        *("--metrics-addr", "127.0.0.1", "--metrics-port", "0"),
-    ]
-    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+    proc = _serve(tmp_path, "--workers", "0", "--metrics-addr", "127.0.0.1", "--metrics-port", "0")
     try:
-        assert proc.stderr is not None
-        said = ""
-        end = time.monotonic() + 120
-        while "metrics on" not in said and time.monotonic() < end:
-            line = proc.stderr.readline()
-            if not line:
-                break
-            said += line
+        said = _said_until(proc, "metrics on")
         found = re.search(r"metrics on http://127\.0\.0\.1:(\d+)/metrics", said)
         assert found, said
         port = int(found[1])
@@ -61,3 +68,23 @@ def test_serve_names_a_live_view_port_in_use(tmp_path: Path) -> None:
     assert done.returncode == 1, done.stderr
     assert "choose another --foxglove-port" in done.stderr
     assert str(port) in done.stderr
+
+
+def test_serve_with_no_layout_flag_runs_one_process_per_usable_core(tmp_path: Path) -> None:
+    """``rlutf serve`` as a first start types it: on two cores or more, one service process
+    per core behind the router (the layout of processes); on one core, one process."""
+    from service.cores import usable_cores
+
+    cores = usable_cores()
+    proc = _serve(tmp_path, "--instance", "auto")
+    try:
+        # the host's line, not its processes' (auto-pK)
+        said = _said_until(proc, "ready: instance auto with", "ready: instance auto,", timeout=300)
+        if cores >= 2:
+            names = ", ".join(f"auto-p{k}" for k in range(cores))
+            assert f"ready: instance auto with {cores} processes ({names})" in said, said
+        else:
+            assert "ready: instance auto, mode router" in said, said
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from service.config import Settings
+from service.cores import cpu_quota, usable_cores
 from service.keys import Keys
-from service.live.cores import cpu_quota, usable_cores
 from service.live.dispatch import Dispatcher
 
 
