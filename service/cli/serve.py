@@ -184,13 +184,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except RuntimeError as err:  # a worker process could not start
         print(f"rlutf serve: {err}", file=sys.stderr)
         return EXIT_FAILURE
-    print(
+    ready = (
         f"rlutf serve: ready: instance {settings.instance}, mode {settings.mode}, "
         f"listening on {', '.join(settings.listen) if settings.mode != 'client' else '-'}"
-        f"{', connecting to ' + ', '.join(settings.connect) if settings.connect else ''}",
-        file=sys.stderr,
-        flush=True,
+        f"{', connecting to ' + ', '.join(settings.connect) if settings.connect else ''}"
     )
+    if args.host_pid is None:
+        print(ready, file=sys.stderr, flush=True)
+    else:  # a host's process: the host says when all are ready, and where robots connect
+        logging.getLogger("rlutf").info("%s", ready)
     if service.metrics.port is not None:
         print(
             f"rlutf serve: metrics on http://{settings.metrics_addr}:{service.metrics.port}/metrics",

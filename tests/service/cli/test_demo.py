@@ -29,6 +29,7 @@ def test_demo_answers_every_robot_and_its_logs_audit(tmp_path: Path) -> None:
     for _, poses, scans in rows:
         assert int(scans) >= 35 and int(poses) >= 0.9 * int(scans), out
     assert "WARNING" not in out and "rejected 0" in out, out
+    assert "instance demo-p" not in out, out  # the processes' own start lines are logs, not news
     files = sorted(logs.glob("*.mcap"))
     cores = usable_cores()
     if cores >= 2:  # the layout of processes: a run per process
