@@ -16,6 +16,7 @@ from typing import Any, NoReturn
 
 from service.cli import logs, maps, operate, query, robots, serve, simulate
 from service.cli.errors import EXIT_FAILURE, EXIT_USAGE, explain
+from service.kernelcache import writable_kernel_cache
 
 #: The command groups, in the order ``rlutf --help`` lists their commands.
 GROUPS = (serve, simulate, maps, query, operate, robots, logs)
@@ -103,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_number_lists(sys.argv[1:] if argv is None else list(argv)))
     _setup_logging(getattr(args, "log_level", "WARNING"))
+    # Before anything imports numba: a read-only cache (a read-only container) would stop the
+    # kernels from loading at all.
+    writable_kernel_cache()
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE

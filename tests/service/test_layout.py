@@ -19,6 +19,7 @@ BENCH = ROOT / "bench"
 ALLOWED: dict[str, set[str]] = {
     "keys": set(),
     "cores": set(),
+    "kernelcache": set(),
     "guard": {"keys", "maphealth"},
     "config": {"guard", "cores"},
     "relocalization": set(),
@@ -46,6 +47,7 @@ ALLOWED: dict[str, set[str]] = {
     "sim": {"keys", "config", "maps", "logs", "live", "ros2", "guard"},
     "cli": {
         "cores",
+        "kernelcache",
         "guard",
         "keys",
         "config",
