@@ -74,9 +74,10 @@ def writable_kernel_cache(
         )
         return None
     if Path(given).is_dir():
-        # Contents only: the read-only modes of an image's folders would make the copy as
-        # unusable as the original.
-        shutil.copytree(given, copy, dirs_exist_ok=True, copy_function=shutil.copyfile)
+        # Contents only (the read-only modes of an image's folders would make the copy as
+        # unusable as the original), and only files the copy lacks: a command run again (a
+        # health check every 30 s) copies nothing, and what numba added to the copy stays.
+        shutil.copytree(given, copy, dirs_exist_ok=True, copy_function=_copy_new)
         for folder, _, files in os.walk(copy):
             os.chmod(folder, 0o700)
             for name in files:
@@ -84,3 +85,9 @@ def writable_kernel_cache(
     environ[VARIABLE] = str(copy)
     log.info("numba's cache %s is read-only: the kernels load from a copy in %s", given, copy)
     return copy
+
+
+def _copy_new(source: str, target: str) -> str:
+    if not os.path.exists(target):
+        shutil.copyfile(source, target)
+    return target

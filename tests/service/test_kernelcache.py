@@ -44,9 +44,13 @@ def test_a_read_only_cache_is_copied_where_it_can_be_written(tmp_path: Path) -> 
     assert (copy / "rlutf_abc" / "_kernels.cast-1.py311.1.nbc").read_bytes() == b"kernel"
     for path in [copy, *copy.rglob("*")]:  # numba writes beside what it loads
         assert path.stat().st_mode & 0o200, path
-    # a second start (the copy already there) takes it again
+    # a second start (the copy already there) takes it again, and keeps what numba wrote there
+    (copy / "rlutf_abc" / "_kernels.cast-1.py311.nbi").write_bytes(b"index, one more entry")
     env = {VARIABLE: str(cache)}
     assert writable_kernel_cache(env, tmp_path / "tmp", can_write) == copy
+    assert (
+        copy / "rlutf_abc" / "_kernels.cast-1.py311.nbi"
+    ).read_bytes() == b"index, one more entry"
     for path in [cache, *cache.rglob("*")]:  # so that pytest can remove it
         path.chmod(0o755)
 
