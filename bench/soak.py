@@ -47,6 +47,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.fleet import default_processes
 from bench.report import section_main
 from bench.soakplan import (
     LONG_RUN_MINUTES,
@@ -93,7 +94,7 @@ def verdicts(run: dict[str, Any], args: argparse.Namespace, warmup: float) -> li
             args.rotate_seconds,
             int(h.get("processed", -1)),
             overflow,
-            max(1, args.processes),
+            max(1, args.serve_processes),
         ),
     ]
 
@@ -170,6 +171,12 @@ def _table(samples: list[dict[str, Any]], rows: int = 10) -> list[str]:
     return lines
 
 
+def _layout_text(processes: int) -> str:
+    if processes:
+        return f"{processes} service processes behind the router"
+    return "one process and its worker processes"
+
+
 def render(args: argparse.Namespace, into: list[Verdict]) -> str:
     """Run the soak and return the Markdown section; ``into`` receives the verdicts."""
     warmup = args.warmup_minutes
@@ -195,11 +202,12 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
         f"Command: `python -m bench.soak --robots {args.robots} --minutes {args.minutes:g} "
         f"--rotate-seconds {args.rotate_seconds:g} --sample-s {args.sample_s:g} "
         f"--warmup-minutes {warmup:g} --loop-seconds {args.loop_seconds:g}"
-        f"{f' --processes {args.processes}' if args.processes else ''}{write}`",
+        f"{'' if args.processes is None else f' --processes {args.processes}'}{write}`",
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
         f"{platform.python_version()}. One `rlutf serve"
-        f"{f' --processes {args.processes}' if args.processes else ''}` (recording on, a new "
+        f"{'' if args.processes is None else f' --processes {args.processes}'}` ("
+        f"{_layout_text(args.serve_processes)}; recording on, a new "
         "file every "
         f"{args.rotate_seconds:g} s) and one load-generator process share the cores: "
         f"{args.robots} robots at 10 Hz, 360-beam scans, 1 cm noise, each driving a "
@@ -273,12 +281,16 @@ def main(argv: list[str] | None = None) -> int:
         default=30.0,
         help="each robot's loop, there and back (default 30; its scans are precomputed)",
     )
-    p.add_argument("--workers", type=int, default=-1, help="service worker processes")
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="service worker processes (the layout of workers; default: the service's layout)",
+    )
     p.add_argument(
         "--processes",
         type=int,
-        default=0,
-        help="run `rlutf serve --processes N` (N service processes behind a host)",
+        help="run `rlutf serve --processes N` (N service processes behind a host; 0: the "
+        "layout of workers; default: the service's layout, `rlutf serve` with no flag)",
     )
     p.add_argument("--seed", type=int, default=7, help="random seed of the simulated fleet")
     p.add_argument(
@@ -293,6 +305,13 @@ def main(argv: list[str] | None = None) -> int:
 
     def run(args: argparse.Namespace) -> str:
         minutes.append(args.minutes)
+        # The layout run (``serve_processes``; 0: workers); ``processes`` stays as given, for
+        # the command the section shows.
+        if args.processes is not None:
+            args.serve_processes = args.processes
+        else:
+            args.serve_processes = 0 if args.workers is not None else default_processes()
+        args.workers = -1 if args.workers is None else args.workers
         return render(args, judged)
 
     code = section_main(p, run, SECTION, argv) or exit_code(judged, minutes[0])

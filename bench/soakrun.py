@@ -302,7 +302,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-soak-"))
     env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
     service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
-    flags = ("--processes", str(args.processes)) if args.processes else ()
+    flags = ("--processes", str(args.serve_processes)) if args.serve_processes else ()
     proc = start_service(
         endpoint, tmp, True, args.workers, serve_flags=flags, env=env, stderr=service_log
     )
