@@ -370,7 +370,7 @@ class Settings(BaseSettings):
         """The service processes ``processes`` asks for, ``-1`` resolved (``cores``: the usable
         cores, :func:`service.cores.usable_cores` when ``None``).
 
-        ``-1`` is one process per usable core (BENCHMARKS.md, "The layouts at 200 robots": on
+        ``-1`` is one process per usable core (BENCHMARKS.md, "The default layout: processes": on
         two cores the layout of processes answers more scans with a shorter tail and less
         memory, and loses none uncounted) except where the other layout is what serves: one
         core (a host process with nothing to spread), ``--mode client`` or ``peer`` (an instance
