@@ -166,6 +166,9 @@ def measure(robots: int, duration: float, kill_after: float) -> dict[str, Any]:
         gen.join(10)
     finally:
         stop_service(proc)
+        if gen.is_alive():  # the service did not come back: the robots stop too
+            gen.terminate()
+            gen.join(10)
         shutil.rmtree(tmp, ignore_errors=True)
     return {**result, "killed": killed, "up": up}
 

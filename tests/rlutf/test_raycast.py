@@ -22,8 +22,9 @@ def brute_force(world: Map, poses: np.ndarray, angles: np.ndarray, max_range: fl
                 if den == 0:
                     continue
                 px, py = ax - x, ay - y
-                t = (px * ey - py * ex) / den
-                s = (px * dy - py * dx) / den
+                with np.errstate(over="ignore"):  # a ray all but parallel: t, s infinite, no hit
+                    t = (px * ey - py * ex) / den
+                    s = (px * dy - py * dx) / den
                 if 0 <= t <= max_range and 0 <= s <= 1:
                     out[k, j] = min(out[k, j], t)
     return out
