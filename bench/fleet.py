@@ -23,7 +23,7 @@ import argparse
 import os
 import platform
 
-from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size
+from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
 from bench.report import section_main
 
 SECTION = "fleet"
@@ -37,14 +37,6 @@ def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
             if ms >= 0.005:
                 rows.append(f"| {process} | {name} | {ms:.3f} |")
     return rows
-
-
-def default_processes() -> int:
-    """The service processes ``rlutf serve`` runs with no layout flag, here (its ``processes``
-    default resolved: :meth:`service.config.Settings.service_processes`)."""
-    from service.config import Settings
-
-    return Settings().service_processes()
 
 
 def render(
@@ -63,9 +55,7 @@ def render(
     asked += " --threads" if threads else ""
     asked += "" if processes is None else f" --processes {processes}"
     default = workers is None and processes is None
-    if processes is None:
-        processes = 0 if workers is not None else default_processes()
-    workers = -1 if workers is None else workers
+    workers, processes = serve_layout(workers, processes)
     rows = []
     by_thread: dict[str, dict[str, float]] = {}
     held = 0

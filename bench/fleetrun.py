@@ -36,6 +36,25 @@ WARMUP_STEPS = int(2 * RATE_HZ)
 SEED = 7
 
 
+def serve_layout(workers: int | None, processes: int | None) -> tuple[int, int]:
+    """``(workers, processes)`` that ``rlutf serve`` runs with a benchmark's ``--workers`` and
+    ``--processes`` (``None``: not given). Neither given is the service's default layout, as
+    :meth:`service.config.Settings.service_processes` resolves it here; ``--workers`` alone is
+    the layout of workers."""
+    from service.config import Settings
+
+    if processes is None:
+        processes = 0 if workers is not None else Settings().service_processes()
+    return (-1 if workers is None else workers), processes
+
+
+def layout_text(processes: int) -> str:
+    """The layout of ``processes`` service processes (0: the layout of workers), in words."""
+    if processes:
+        return f"{processes} service processes behind the router"
+    return "one process and its worker processes"
+
+
 def start_service(
     endpoint: str,
     tmp: Path,

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.fleetrun import RATE_HZ, SEED, start_service, stop_service
+from bench.fleetrun import RATE_HZ, SEED, layout_text, serve_layout, start_service, stop_service
 from bench.report import section_main
 
 SECTION = "restart"
@@ -173,13 +173,6 @@ def measure(robots: int, duration: float, kill_after: float) -> dict[str, Any]:
     return {**result, "killed": killed, "up": up}
 
 
-def _layout() -> str:
-    from bench.fleet import default_processes
-
-    n = default_processes()
-    return f"{n} service processes behind the router" if n else "one process and its workers"
-
-
 def figures(raw: dict[str, Any]) -> dict[str, Any]:
     """Per robot: its next scan after the restart, and its first pose after it."""
     killed, up, ids = raw["killed"], raw["up"], raw["ids"]
@@ -241,7 +234,7 @@ def render(args: argparse.Namespace) -> str:
                 "bench.restart",
                 args,
                 "one `rlutf serve` (recording on, durable pose state, the default layout: "
-                f"{_layout()})",
+                f"{layout_text(serve_layout(None, None)[1])})",
                 f"SIGKILL at {args.kill_after:g} s, the same command started again at once.",
             ),
             "| robots | resumed (a pose from the new service) | kill to ready s "

@@ -47,7 +47,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.fleet import default_processes
+from bench.fleetrun import layout_text, serve_layout
 from bench.report import section_main
 from bench.soakplan import (
     LONG_RUN_MINUTES,
@@ -171,12 +171,6 @@ def _table(samples: list[dict[str, Any]], rows: int = 10) -> list[str]:
     return lines
 
 
-def _layout_text(processes: int) -> str:
-    if processes:
-        return f"{processes} service processes behind the router"
-    return "one process and its worker processes"
-
-
 def render(args: argparse.Namespace, into: list[Verdict]) -> str:
     """Run the soak and return the Markdown section; ``into`` receives the verdicts."""
     warmup = args.warmup_minutes
@@ -207,7 +201,7 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
         f"{platform.python_version()}. One `rlutf serve"
         f"{'' if args.processes is None else f' --processes {args.processes}'}` ("
-        f"{_layout_text(args.serve_processes)}; recording on, a new "
+        f"{layout_text(args.serve_processes)}; recording on, a new "
         "file every "
         f"{args.rotate_seconds:g} s) and one load-generator process share the cores: "
         f"{args.robots} robots at 10 Hz, 360-beam scans, 1 cm noise, each driving a "
@@ -307,11 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         minutes.append(args.minutes)
         # The layout run (``serve_processes``; 0: workers); ``processes`` stays as given, for
         # the command the section shows.
-        if args.processes is not None:
-            args.serve_processes = args.processes
-        else:
-            args.serve_processes = 0 if args.workers is not None else default_processes()
-        args.workers = -1 if args.workers is None else args.workers
+        args.workers, args.serve_processes = serve_layout(args.workers, args.processes)
         return render(args, judged)
 
     code = section_main(p, run, SECTION, argv) or exit_code(judged, minutes[0])
