@@ -324,11 +324,14 @@ class Host:
     def _poll_health(self) -> None:
         """Take the processes' Health every :data:`HEALTH_POLL_S` (the host's thread)."""
         while True:
-            got = self.process_health()
-            with self._lock:
-                self._healths = got
+            self._refresh()
             if self._stopping.wait(HEALTH_POLL_S):
                 return
+
+    def _refresh(self) -> None:
+        got = self.process_health()
+        with self._lock:
+            self._healths = got
 
     def process_health(self, timeout: float = 2.0) -> dict[str, Health]:
         """Each live process's Health, by name (a get on the bus: not from a callback)."""
@@ -352,9 +355,7 @@ class Host:
         From the figures the poller took (a second old at most), or with ``fresh`` from the
         processes' Health asked for now (a get on the bus: not from a Zenoh callback)."""
         if fresh:
-            got = self.process_health()
-            with self._lock:
-                self._healths = got
+            self._refresh()
         with self._lock:
             got = dict(self._healths)
         parts = list(got.values())
