@@ -80,7 +80,8 @@ def render(
         ok = r["p99"] <= 50.0 and r["uncounted"] == 0 and r["dropped"] <= 0.01 * r["sent"]
         held = n if ok else held
         rows.append(
-            f"| {n} | {r['sent']} | {r['poses']} | {r['dropped']} | {r['not_processed']} "
+            f"| {n} | {r['sent']} | {r['poses']} | {100.0 * r['answered_after']:.1f} "
+            f"| {r['dropped']} | {r['not_processed']} "
             f"| {r['uncounted']} ({r['processed'] - r['poses']}) "
             f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['max']:.0f} | {r['service_p99']:.1f} "
             f"| {r['compute_p50']:.2f} "
@@ -119,7 +120,9 @@ def render(
             f"Load average when the run started: {load:.1f} (2 cores; above 0 means other work "
             "was competing for them).",
             "",
-            "| robots | scans sent | poses | dropped (reported) | not processed (reported) "
+            "| robots | scans sent | poses "
+            f"| answered after each robot's first {WARMUP_STEPS / RATE_HZ:g} s, % "
+            "| dropped (reported) | not processed (reported) "
             "| uncounted (of which published, not received) | latency p50 ms "
             "| p99 ms | max ms "
             "| service p99 ms (receipt to publication, its last 10,000 scans, start included) "
@@ -130,7 +133,7 @@ def render(
             "| service Pss MB peak (shared pages counted once) "
             "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-            "| --- | --- |",
+            "| --- | --- | --- |",
             *rows,
             "",
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",

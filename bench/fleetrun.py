@@ -244,6 +244,7 @@ def fleet_generator(
     sent: dict[tuple[str, int], int] = {}
     latencies: list[float] = []
     poses = 0
+    timed = 0  # scans sent after their robot's first WARMUP_STEPS
     lock = threading.Lock()
     key, robot_and_stamp = _pose_listener(door)
 
@@ -266,11 +267,13 @@ def fleet_generator(
     period = spec.period_ns
 
     def send(i: int, step: int) -> None:
+        nonlocal timed
         stamp = t0 + step * period
         fleet.odometry(i, step, stamp)
         if step > WARMUP_STEPS:
             with lock:
                 sent[(ids[i], stamp)] = time.time_ns()
+                timed += 1
         fleet.scan(i, step, stamp)
 
     scans_sent, behind, cpu = timed_publishing(robots, steps - 1, send, ready, go, began, ended)
@@ -282,6 +285,7 @@ def fleet_generator(
             "scans_sent": scans_sent,
             "poses": poses,
             "latencies": latencies,
+            "timed": timed,
             "generator_behind_s": behind,
             "generator_cpu_s": cpu,
         }
@@ -398,6 +402,8 @@ def _figures(
         "dropped": dropped,
         "not_processed": not_processed,
         "uncounted": sent - result["poses"] - dropped - not_processed,
+        # of the scans sent after each robot's first WARMUP_STEPS, the share answered
+        "answered_after": len(result["latencies"]) / max(result["timed"], 1),
         "p50": float(np.percentile(lat, 50)),
         "p99": float(np.percentile(lat, 99)),
         "max": float(lat.max()),

@@ -81,6 +81,16 @@ def machine_steal() -> tuple[int, int]:
     return ticks[7], sum(ticks[:8])
 
 
+#: The parts of a process's resident memory that :func:`process_memory_mb` reads.
+MEMORY_PARTS = ("rss", "anon", "file", "pss")
+
+
+def labelled_processes(pid: int) -> dict[str, int]:
+    """``pid`` as ``host`` and its children as ``p1``, ``p2``, ... (by process id): the names
+    under which a benchmark reports each process of a service's tree."""
+    return {"host": pid, **{f"p{k}": c for k, c in enumerate(sorted(children(pid)), start=1)}}
+
+
 def process_memory_mb(pid: int) -> dict[str, float] | None:
     """A process's resident memory, MB: ``rss`` (``VmRSS``), its parts ``anon`` (``RssAnon``)
     and ``file`` (``RssFile``), and ``pss`` (shared pages divided among the processes mapping

@@ -55,6 +55,7 @@ from bench.soakplan import (
     counted_verdict,
     exit_code,
     logs_verdicts,
+    memory_by_process,
     memory_verdict,
     outcome,
     overflow_verdict,
@@ -141,6 +142,23 @@ def _save_series(run: dict[str, Any], stem: Path) -> None:
 
 def _per_scan(cpu_s: float, scans: float) -> float:
     return 1e3 * cpu_s / scans if scans > 0 else math.nan
+
+
+def _by_process(samples: list[dict[str, Any]], warmup: float) -> list[str]:
+    table = memory_by_process(samples, warmup)
+    if not table:
+        return []
+    return [
+        "",
+        "Where the service's memory is, per process (`host`: the process `rlutf serve` started, "
+        "also the router and the map store; `p1`, ...: its other processes): each part from "
+        f"the first sample after the {warmup:g} min warm-up to the last, MB, and its "
+        "least-squares slope. `RssAnon` is the heap (Python objects, numpy arrays, Zenoh's "
+        "buffers, malloc's free lists); `RssFile` the pages of mapped files (libraries, "
+        "numba's compiled kernels) that the process has touched.",
+        "",
+        *table,
+    ]
 
 
 def _table(samples: list[dict[str, Any]], rows: int = 10) -> list[str]:
@@ -245,6 +263,7 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
         else f"Plot: `{figure.as_posix()}` (not committed).",
         "",
         *_table(s),
+        *_by_process(s, warmup),
     ]
     return "\n".join(lines)
 

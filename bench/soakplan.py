@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,6 +85,34 @@ def memory_verdict(
         f"{slope:+.2f} MB per 10 min (target <= {target:g}); {span}, {rng}",
         hard=False,
     )
+
+
+def memory_by_process(samples: Sequence[dict[str, Any]], warmup_minutes: float) -> list[str]:
+    """Where a service's memory is and where it grows: a Markdown table, a row per process
+    (``mem_{process}_{part}`` of the samples), each part (``VmRSS``, ``RssAnon``, ``RssFile``,
+    ``Pss``) as its first value after warm-up, its last, and its slope after warm-up."""
+    first = samples[0] if samples else {}
+    labels = [k[4:-4] for k in first if k.startswith("mem_") and k.endswith("_rss")]
+    if not labels:
+        return []
+    minutes = [s["minute"] for s in samples]
+    head = ("VmRSS", "RssAnon (heap)", "RssFile (mapped files)", "Pss")
+    lines = [
+        "| process | " + " | ".join(head) + " |",
+        "| --- |" + " --- |" * len(head),
+    ]
+    for label in labels:
+        cells = []
+        for part in ("rss", "anon", "file", "pss"):
+            values = [s[f"mem_{label}_{part}"] for s in samples]
+            t, v = after_warmup(minutes, values, warmup_minutes)
+            if not v:
+                cells.append("no sample")
+                continue
+            slope = round(slope_per_10min(t, v), 2) + 0.0  # no "-0.00" for a flat part
+            cells.append(f"{v[0]:.0f} -> {v[-1]:.0f} ({slope:+.2f} per 10 min)")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def queue_grows(values: Sequence[float], margin: float) -> bool:

@@ -25,7 +25,15 @@ from bench.fleetrun import (
     stop_service,
     timed_publishing,
 )
-from bench.procstat import cpu_seconds, descendants, pss_tree_mb, rss_tree_mb
+from bench.procstat import (
+    MEMORY_PARTS,
+    cpu_seconds,
+    descendants,
+    labelled_processes,
+    process_memory_mb,
+    pss_tree_mb,
+    rss_tree_mb,
+)
 from bench.soakplan import FileCheck, LatencyHistogram
 
 #: The instance name ``start_service`` gives the service (a host answers for its processes).
@@ -150,6 +158,7 @@ class _Sampler:
 
     def __init__(self, proc: Any, gen: Any, session: Any, requests: Any, replies: Any) -> None:
         self.proc, self.gen, self.session = proc, gen, session
+        self._processes: dict[str, int] | None = None
         self.requests, self.replies = requests, replies
         self.t0 = time.monotonic()
         self.main0 = cpu_seconds(proc.pid)
@@ -183,6 +192,17 @@ class _Sampler:
                 return dict(fig)
         return {}
 
+    def memory(self) -> dict[str, float]:
+        """Each service process's resident memory by part, flat (``mem_{process}_{part}``, MB;
+        ``nan`` once a process is gone), for the processes of the first sample."""
+        if self._processes is None:
+            self._processes = labelled_processes(self.proc.pid)
+        out: dict[str, float] = {}
+        for label, pid in self._processes.items():
+            m = process_memory_mb(pid) or {}
+            out.update({f"mem_{label}_{part}": m.get(part, math.nan) for part in MEMORY_PARTS})
+        return out
+
     def take(self, timeout: float) -> dict[str, Any]:
         """One sample (see the module docstring); ``nan`` where a figure did not come."""
         minute = (time.monotonic() - self.t0) / 60.0
@@ -197,6 +217,7 @@ class _Sampler:
             "rss_service_mb": rss_tree_mb(self.proc.pid),
             "pss_service_mb": pss_tree_mb(self.proc.pid),
             "rss_generator_mb": rss_tree_mb(self.gen.pid),
+            **self.memory(),
             "cpu_main_s": main,
             "cpu_workers_s": workers,
             "cpu_generator_s": gen_cpu,

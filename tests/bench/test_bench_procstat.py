@@ -8,7 +8,9 @@ import subprocess
 import sys
 import time
 
-from bench.procstat import pss_tree_mb, rss_tree_mb
+import pytest
+
+from bench.procstat import labelled_processes, process_memory_mb, pss_tree_mb, rss_tree_mb
 
 
 def test_a_child_holding_memory_counts_in_its_parents_tree() -> None:
@@ -20,6 +22,11 @@ def test_a_child_holding_memory_counts_in_its_parents_tree() -> None:
         assert child.stdout is not None and child.stdout.readline().strip() == b"ready"
         time.sleep(0.1)
         rss, pss = rss_tree_mb(os.getpid()), pss_tree_mb(os.getpid())
+        labels = labelled_processes(os.getpid())
+        assert labels["host"] == os.getpid() and child.pid in labels.values()
+        part = process_memory_mb(child.pid)
+        assert part is not None and part["anon"] > 60  # the bytearray is heap, not a file
+        assert part["rss"] == pytest.approx(part["anon"] + part["file"], abs=1.0)
         assert rss - alone_rss > 60  # the child's 64 MB, touched
         assert pss - alone_pss > 60
         assert pss < rss  # the interpreter's shared pages count once in Pss, twice in VmRSS

@@ -13,6 +13,7 @@ from bench.soakplan import (
     counted_verdict,
     exit_code,
     logs_verdicts,
+    memory_by_process,
     memory_verdict,
     outcome,
     queue_grows,
@@ -38,6 +39,30 @@ def test_memory_verdict_leaves_out_the_warm_up() -> None:
     verdict = memory_verdict(t, leak, warmup_minutes=5)
     assert not verdict.ok and "+2.00 MB per 10 min" in verdict.detail
     assert not verdict.hard
+
+
+def test_memory_by_process_names_the_process_and_the_part_that_grows() -> None:
+    t = np.arange(0, 30, 1 / 6)
+    samples = []
+    for m in t:
+        host_anon = 90 + (0.3 * (m - 5) if m >= 5 else 0.0)  # the host's heap grows 3 MB per 10 min
+        samples.append(
+            {
+                "minute": float(m),
+                "mem_host_rss": host_anon + 110, "mem_host_anon": host_anon,
+                "mem_host_file": 110.0, "mem_host_pss": host_anon + 30,
+                "mem_p1_rss": 200.0, "mem_p1_anon": 90.0, "mem_p1_file": 110.0,
+                "mem_p1_pss": 125.0,
+            }
+        )  # fmt: skip
+    lines = memory_by_process(samples, warmup_minutes=5)
+    host = next(line for line in lines if line.startswith("| host |"))
+    other = next(line for line in lines if line.startswith("| p1 |"))
+    cells = [c.strip() for c in host.split("|")[2:-1]]
+    assert cells[1] == "90 -> 97 (+3.00 per 10 min)"  # the heap
+    assert cells[2] == "110 -> 110 (+0.00 per 10 min)"  # the mapped files
+    assert "+0.00 per 10 min" in other and "+3.00" not in other
+    assert memory_by_process([{"minute": 0.0, "rss_service_mb": 1.0}], 0.0) == []
 
 
 def test_a_queue_that_creeps_up_grows_and_a_bursty_one_does_not() -> None:
