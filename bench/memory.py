@@ -31,11 +31,11 @@ from pathlib import Path
 from typing import Any
 
 from bench.fleetrun import fleet_generator, health, start_service, stop_service
-from bench.procstat import descendants, process_memory_mb
+from bench.procstat import MEMORY_PARTS, descendants, process_memory_mb
 from bench.report import section_main
 
 SECTION = "memory"
-FIELDS = ("rss", "anon", "file", "pss")
+FIELDS = MEMORY_PARTS
 
 Sample = dict[int, dict[str, float]]
 """Memory of each process of the service by pid: :func:`bench.procstat.process_memory_mb`."""

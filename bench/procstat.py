@@ -81,8 +81,10 @@ def machine_steal() -> tuple[int, int]:
     return ticks[7], sum(ticks[:8])
 
 
-#: The parts of a process's resident memory that :func:`process_memory_mb` reads.
-MEMORY_PARTS = ("rss", "anon", "file", "pss")
+#: The ``/proc`` fields that :func:`process_memory_mb` reads, and the names it gives them.
+_MEMORY_FIELDS = {"VmRSS:": "rss", "RssAnon:": "anon", "RssFile:": "file", "Pss:": "pss"}
+#: The parts of a process's resident memory that :func:`process_memory_mb` returns.
+MEMORY_PARTS = tuple(_MEMORY_FIELDS.values())
 
 
 def labelled_processes(pid: int) -> dict[str, int]:
@@ -95,7 +97,7 @@ def process_memory_mb(pid: int) -> dict[str, float] | None:
     """A process's resident memory, MB: ``rss`` (``VmRSS``), its parts ``anon`` (``RssAnon``)
     and ``file`` (``RssFile``), and ``pss`` (shared pages divided among the processes mapping
     them, from ``smaps_rollup``); ``None`` once it is gone."""
-    keys = {"VmRSS:": "rss", "RssAnon:": "anon", "RssFile:": "file", "Pss:": "pss"}
+    keys = _MEMORY_FIELDS
     found: dict[str, float] = {}
     try:
         for name in (f"/proc/{pid}/status", f"/proc/{pid}/smaps_rollup"):

@@ -19,6 +19,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from bench.procstat import MEMORY_PARTS
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
@@ -96,14 +98,19 @@ def memory_by_process(samples: Sequence[dict[str, Any]], warmup_minutes: float) 
     if not labels:
         return []
     minutes = [s["minute"] for s in samples]
-    head = ("VmRSS", "RssAnon (heap)", "RssFile (mapped files)", "Pss")
+    head = {
+        "rss": "VmRSS",
+        "anon": "RssAnon (heap)",
+        "file": "RssFile (mapped files)",
+        "pss": "Pss",
+    }
     lines = [
-        "| process | " + " | ".join(head) + " |",
+        "| process | " + " | ".join(head[part] for part in MEMORY_PARTS) + " |",
         "| --- |" + " --- |" * len(head),
     ]
     for label in labels:
         cells = []
-        for part in ("rss", "anon", "file", "pss"):
+        for part in MEMORY_PARTS:
             values = [s[f"mem_{label}_{part}"] for s in samples]
             t, v = after_warmup(minutes, values, warmup_minutes)
             if not v:
