@@ -129,10 +129,14 @@ def test_the_service_never_loads_a_put_its_store_dropped(
     take = MapStorage._take
 
     def counted(self: MapStorage, sample: zenoh.Sample) -> bool:
-        taken.append(1)
-        if len(taken) >= PUTS:
-            burst_in.set()
-        return take(self, sample)
+        # Counted once the put is queued or dropped: counted before, the check of the first put
+        # could free a place before the last put was taken, and the store stored the last put.
+        try:
+            return take(self, sample)
+        finally:
+            taken.append(1)
+            if len(taken) >= PUTS:
+                burst_in.set()
 
     monkeypatch.setattr(MapStorage, "_take", counted)
     check = MapChecker.check
