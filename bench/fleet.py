@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+from typing import Any
 
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
 from bench.report import section_main
@@ -37,6 +38,24 @@ def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
             if ms >= 0.005:
                 rows.append(f"| {process} | {name} | {ms:.3f} |")
     return rows
+
+
+#: Issue 21's target at a fleet size: of the scans sent after each robot's first 2 s, at least
+#: this share answered, ...
+TARGET_ANSWERED = 0.99
+#: ... with a p99 scan-to-pose latency of at most this, ms (and no scan uncounted).
+TARGET_P99_MS = 50.0
+
+
+def verdicts(r: dict[str, Any]) -> tuple[bool, bool]:
+    """Whether a size was held (p99 <= 50 ms, at most 1 % of all scans dropped, start included,
+    none uncounted), and whether it meets issue 21's target (at least 99 % answered and p99 <=
+    50 ms after each robot's first 2 s, none uncounted: the start, where every robot's first
+    scan searches wide at once, left out)."""
+    counted = r["uncounted"] == 0
+    held = r["p99"] <= TARGET_P99_MS and counted and r["dropped"] <= 0.01 * r["sent"]
+    meets = r["p99"] <= TARGET_P99_MS and counted and r["answered_after"] >= TARGET_ANSWERED
+    return held, meets
 
 
 def render(
@@ -58,7 +77,7 @@ def render(
     workers, processes = serve_layout(workers, processes)
     rows = []
     by_thread: dict[str, dict[str, float]] = {}
-    held = 0
+    held = met = 0
     load = os.getloadavg()[0]
     need: list[tuple[float, int, float, float]] = []
     overhead: list[str] = []
@@ -77,8 +96,9 @@ def render(
                 r["cpu_generator"],
             )
         )
-        ok = r["p99"] <= 50.0 and r["uncounted"] == 0 and r["dropped"] <= 0.01 * r["sent"]
+        ok, meets = verdicts(r)
         held = n if ok else held
+        met = n if meets else met
         rows.append(
             f"| {n} | {r['sent']} | {r['poses']} | {100.0 * r['answered_after']:.1f} "
             f"| {r['dropped']} | {r['not_processed']} "
@@ -89,7 +109,7 @@ def render(
             f"| {r['steal']:.1f} "
             f"| {r['rss_first']:.0f} / {r['rss_peak']:.0f} / {r['rss_last']:.0f} "
             f"| {r['pss_peak']:.0f} "
-            f"| {'yes' if ok else 'no'} |"
+            f"| {'yes' if ok else 'no'} | {'yes' if meets else 'no'} |"
         )
         print(rows[-1], flush=True)
     best = min(need)
@@ -131,12 +151,17 @@ def render(
             "| CPU stolen by the hypervisor, % "
             "| service RSS MB first / peak / last (VmRSS, added up over its processes) "
             "| service Pss MB peak (shared pages counted once) "
-            "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) |",
+            "| held (p99 <= 50 ms, drops <= 1 %, none uncounted) "
+            f"| issue 21's target (after the first {WARMUP_STEPS / RATE_HZ:g} s: >= 99 % "
+            "answered, p99 <= 50 ms) |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-            "| --- | --- | --- |",
+            "| --- | --- | --- | --- |",
             *rows,
             "",
             f"Largest fleet held: **{held} robots**." if held else "No size was held.",
+            f"Largest fleet that meets issue 21's target: **{met} robots**."
+            if met
+            else "No size met issue 21's target.",
             "",
             # CPU ms per scan at 10 Hz per robot is cores per 100 robots: 1000 scans/s x ms.
             "Share of the service's CPU that is not the localizer's update (1 - worker "

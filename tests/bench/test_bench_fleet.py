@@ -1,0 +1,28 @@
+"""The fleet benchmark's verdicts: held (the whole run) and issue 21's target (after the start)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bench.fleet import verdicts
+
+
+def _row(**changed: Any) -> dict[str, Any]:
+    row = {"sent": 40000, "dropped": 100, "uncounted": 0, "p99": 30.0, "answered_after": 1.0}
+    row.update(changed)
+    return row
+
+
+def test_a_size_that_drops_its_start_is_not_held_but_meets_the_target() -> None:
+    # Every robot's first scan searches wide at once: 2.6 % dropped, none after the first 2 s.
+    assert verdicts(_row(dropped=1041)) == (False, True)
+
+
+def test_the_target_asks_for_99_percent_answered_after_the_start() -> None:
+    assert verdicts(_row(answered_after=0.99)) == (True, True)
+    assert verdicts(_row(answered_after=0.989)) == (True, False)
+
+
+def test_a_slow_p99_or_an_uncounted_scan_fails_both() -> None:
+    assert verdicts(_row(p99=50.1)) == (False, False)
+    assert verdicts(_row(uncounted=1)) == (False, False)
