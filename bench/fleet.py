@@ -12,7 +12,9 @@ The generator shares the two cores with the service, as robots' traffic handling
 real host. Reported: scan-to-pose latency percentiles, scans sent, poses received, scans the
 service reports dropped (superseded before processing) or not processed, the difference
 (uncounted; in brackets, how many of those the service reports as processed, i.e. poses
-published but not received), the CPU time per scan sent of the service's main process, of its
+published but not received, and how many scans no process recorded: never taken in, lost on the
+bus before the service, as when a process's input channel is full and Zenoh's congestion
+control drops), the CPU time per scan sent of the service's main process, of its
 workers and of the generator over the publishing interval (where the two cores go), and the
 service's resident memory (main process plus workers) sampled every second.
 """
@@ -102,7 +104,8 @@ def render(
         rows.append(
             f"| {n} | {r['sent']} | {r['poses']} | {100.0 * r['answered_after']:.1f} "
             f"| {r['dropped']} | {r['not_processed']} "
-            f"| {r['uncounted']} ({r['processed'] - r['poses']}) "
+            f"| {r['uncounted']} ({r['processed'] - r['poses']}; "
+            f"{'-' if r['never_recorded'] is None else r['never_recorded']}) "
             f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['max']:.0f} | {r['service_p99']:.1f} "
             f"| {r['compute_p50']:.2f} "
             f"| {r['cpu_main']:.2f} / {r['cpu_workers']:.2f} / {r['cpu_generator']:.2f} "
@@ -143,7 +146,8 @@ def render(
             "| robots | scans sent | poses "
             f"| answered after each robot's first {WARMUP_STEPS / RATE_HZ:g} s, % "
             "| dropped (reported) | not processed (reported) "
-            "| uncounted (of which published, not received) | latency p50 ms "
+            "| uncounted (of which published, not received; never in the service's logs) "
+            "| latency p50 ms "
             "| p99 ms | max ms "
             "| service p99 ms (receipt to publication, its last 10,000 scans, start included) "
             "| worker compute p50 ms "

@@ -361,6 +361,7 @@ def run_size(
     finally:
         stop.set()
         stop_service(proc)
+        recorded = scans_recorded(tmp / "logs") if record else None
         shutil.rmtree(tmp, ignore_errors=True)
     row = _figures(
         robots,
@@ -374,7 +375,22 @@ def run_size(
         by_thread,
     )
     row["pss_peak"] = max(pss) if pss else math.nan
+    # scans that never reached an owner's log: lost on the bus before the service took them in
+    row["never_recorded"] = None if recorded is None else row["sent"] - recorded
     return row
+
+
+def scans_recorded(folder: Path) -> int:
+    """The scans the service's processes recorded in ``folder``: every scan an owner took in,
+    whatever became of it (from the files' summaries: no message is read)."""
+    from schemas import SCHEMA_NAMES, LaserScan
+    from service.logs.mcapread import LogFile
+
+    total = 0
+    for path in sorted(folder.glob("*.mcap")):
+        with LogFile(path) as log:
+            total += log.count([SCHEMA_NAMES[LaserScan]])
+    return total
 
 
 def _figures(

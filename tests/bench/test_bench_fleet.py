@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from bench.fleet import verdicts
+from bench.fleetrun import scans_recorded
+from service.logs.mcaplog import McapRecorder
 
 
 def _row(**changed: Any) -> dict[str, Any]:
@@ -26,3 +29,21 @@ def test_the_target_asks_for_99_percent_answered_after_the_start() -> None:
 def test_a_slow_p99_or_an_uncounted_scan_fails_both() -> None:
     assert verdicts(_row(p99=50.1)) == (False, False)
     assert verdicts(_row(uncounted=1)) == (False, False)
+
+
+def test_the_scans_a_service_recorded_are_counted_over_its_processes_files(
+    tmp_path: Path,
+) -> None:
+    # Two processes' logs, as a host's: scans, odometry and poses; only the scans count.
+    t0 = 1_000_000_000
+    for instance, robots in (("bench-p0", ("r1", "r2")), ("bench-p1", ("r3",))):
+        rec = McapRecorder(tmp_path, instance=instance, chunk_size=4096)
+        for step in range(5):
+            for robot in robots:
+                stamp = t0 + step * 100_000_000
+                rec.record(f"rlutf/robots/{robot}/odom", "rlutf.Odometry", b"{}", stamp, stamp)
+                rec.record(f"rlutf/robots/{robot}/scan", "rlutf.LaserScan", b"{}", stamp, stamp)
+                rec.record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", b"{}", stamp, stamp)
+        rec.close()
+    assert len(list(tmp_path.glob("*.mcap"))) == 2
+    assert scans_recorded(tmp_path) == 3 * 5
