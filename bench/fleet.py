@@ -13,10 +13,10 @@ real host. Reported: scan-to-pose latency percentiles, scans sent, poses receive
 service reports dropped (superseded before processing) or not processed, the difference
 (uncounted; in brackets, how many of those the service reports as processed, i.e. poses
 published but not received, and how many scans no process recorded: never taken in, lost on the
-bus before the service, as when a process's input channel is full and Zenoh's congestion
-control drops), the CPU time per scan sent of the service's main process, of its
-workers and of the generator over the publishing interval (where the two cores go), and the
-service's resident memory (main process plus workers) sampled every second.
+bus before the service; where on the bus, this does not tell), the CPU time per scan sent of the
+service's main process, of its workers and of the generator over the publishing interval (where
+the two cores go), and the service's resident memory (main process plus workers) sampled every
+second.
 """
 
 from __future__ import annotations

@@ -323,6 +323,7 @@ def run_size(
     rss: list[float] = []
     pss: list[float] = []
     stop = threading.Event()
+    finished = False
     try:
         time.sleep(2.0)
         gen.start()
@@ -358,10 +359,13 @@ def run_size(
                 for name, ms in thread_table(start, tasks1[p], names, result["scans_sent"]):
                     table[name] = table.get(name, 0.0) + ms
         gen.join(10)
+        finished = True
     finally:
         stop.set()
         stop_service(proc)
-        recorded = scans_recorded(tmp / "logs") if record else None
+        # read once the service has closed its files; not after a failed run, whose own error
+        # must not be hidden behind one about its logs
+        recorded = scans_recorded(tmp / "logs") if record and finished else None
         shutil.rmtree(tmp, ignore_errors=True)
     row = _figures(
         robots,
