@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from schemas import MAX_BEAMS
 from service.cli.errors import zenoh_text
 from service.cli.flags import (
     EXIT_FAILURE,
@@ -75,9 +76,9 @@ def register(sub: Any) -> None:
     )
     demo.add_argument(
         "--beams",
-        type=number(int, minimum=8, maximum=100_000),
+        type=number(int, minimum=8, maximum=MAX_BEAMS),
         default=360,
-        help="beams per scan (default 360)",
+        help=f"beams per scan (default 360, at most {MAX_BEAMS}: the wire's limit)",
     )
     demo.add_argument("--seed", type=int, default=0, help="world and fleet seed")
     demo.add_argument(

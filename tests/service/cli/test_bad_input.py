@@ -69,6 +69,7 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["demo", "--robots", "0"], 2, ["--robots", "at least 1"])
     yield Bad(["demo", "--port", "70000"], 2, ["--port", "at most 65535"])
     yield Bad(["demo", "--duration", "nan"], 2, ["--duration", "finite"])
+    yield Bad(["demo", "--beams", "9000"], 2, ["--beams", "at most 8192"])  # the wire's limit
     yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
     yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
     yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])
