@@ -51,7 +51,8 @@ def register(sub: Any) -> None:
         nargs="+",
         type=Path,
         metavar="IN",
-        help="MCAP logs, e.g. logs/*.mcap: the files of one or several runs",
+        help="MCAP logs, e.g. logs/*.mcap, or a folder of them (its *.mcap files, e.g. "
+        "logs/): the files of one or several runs",
     )
     replay.add_argument(
         "--out",
@@ -117,7 +118,9 @@ def register(sub: Any) -> None:
         'with --json an object {"runs": [...], "unreadable": [...]}. Exit 2 if a file cannot '
         "be read (among several: after describing the others).",
     )
-    info.add_argument("files", type=Path, nargs="+", metavar="FILE")
+    info.add_argument(
+        "files", type=Path, nargs="+", metavar="FILE", help="MCAP logs, or folders of them"
+    )
     info.add_argument("--json", action="store_true", help="print JSON instead of tables")
     info.set_defaults(func=cmd_info)
     rec = lsub.add_parser(
@@ -129,7 +132,13 @@ def register(sub: Any) -> None:
         "is a folder (created if missing) that gets each one under its name without .part; the "
         "recovered files are listed by run. Exit 2 if an input is not MCAP.",
     )
-    rec.add_argument("broken", type=Path, nargs="+", metavar="BROKEN.mcap")
+    rec.add_argument(
+        "broken",
+        type=Path,
+        nargs="+",
+        metavar="BROKEN.mcap",
+        help="damaged logs, or folders (their unfinished *.mcap.part logs)",
+    )
     rec.add_argument("out", type=Path, metavar="OUT")
     rec.set_defaults(func=cmd_recover)
     views = lsub.add_parser(
@@ -144,7 +153,9 @@ def register(sub: Any) -> None:
         "folder, or a path ending in /); several: OUT is a folder that gets each under its "
         "name. Exit 2 if an input cannot be read.",
     )
-    views.add_argument("logs", type=Path, nargs="+", metavar="IN")
+    views.add_argument(
+        "logs", type=Path, nargs="+", metavar="IN", help="MCAP logs, or folders of them"
+    )
     views.add_argument("--out", required=True, metavar="OUT", help="file or folder")
     views.set_defaults(func=cmd_views)
 
@@ -172,9 +183,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
     from service.logs.mcapread import LogError
     from service.logs.replayconfig import ReplayConfigError
-    from service.logs.runs import group_runs, run_outputs
+    from service.logs.runs import group_runs, log_files, run_outputs
 
     inputs, summary = list(args.inputs), None
+    if not args.ros2:  # a rosbag2 is a folder of its own
+        try:
+            inputs = log_files(inputs)
+        except LogError as err:
+            return _fail("replay", err)
     if args.ros2:
         from service.cli.ros2bags import bag_to_log
 
@@ -197,7 +213,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if not runs:
             return EXIT_BAD_INPUT
         outs = run_outputs(args.out, runs)
-        clash = next((o for o in outs for p in args.inputs if o.resolve() == p.resolve()), None)
+        clash = next((o for o in outs for p in inputs if o.resolve() == p.resolve()), None)
         if clash is not None:
             raise ValueError(f"{clash}: the output must not be an input")
         if len(outs) > 1 or str(args.out).endswith(("/", "\\")):
@@ -337,16 +353,18 @@ def cmd_info(args: argparse.Namespace) -> int:
     """``rlutf log info``."""
     from service.logs.logtools import log_info, render_info, render_runs, runs_info
     from service.logs.mcapread import LogError
+    from service.logs.runs import log_files
 
     unreadable: list[tuple[Path, LogError]] = []
     try:
-        if len(args.files) == 1:
-            info = log_info(args.files[0])
+        files = log_files(args.files)
+        if len(files) == 1:
+            info = log_info(files[0])
         else:  # one unreadable file among several is named, the others described
-            runs = runs_info(args.files, unreadable)
+            runs = runs_info(files, unreadable)
     except LogError as err:
         return _fail("log info", err)
-    if len(args.files) == 1:
+    if len(files) == 1:
         if args.json:
             print(json.dumps(info.to_json(), indent=2))
         else:
@@ -366,13 +384,18 @@ def cmd_recover(args: argparse.Namespace) -> int:
     """``rlutf log recover``."""
     from service.logs.logtools import recover
     from service.logs.mcapread import LogError
-    from service.logs.runs import group_runs
+    from service.logs.runs import group_runs, log_files
 
+    try:
+        broken_logs = log_files(args.broken, ".mcap.part")
+    except LogError as err:
+        return _fail("log recover", err)
     outs = [args.out]
-    if len(args.broken) > 1 or args.out.is_dir():
+    several = len(broken_logs) > 1 or any(p.is_dir() for p in args.broken)
+    if several or args.out.is_dir():
         args.out.mkdir(parents=True, exist_ok=True)
-        outs = [args.out / p.name.removesuffix(".part") for p in args.broken]
-    for broken, out in zip(args.broken, outs, strict=True):
+        outs = [args.out / p.name.removesuffix(".part") for p in broken_logs]
+    for broken, out in zip(broken_logs, outs, strict=True):
         try:
             report = recover(broken, out)
         except LogError as err:
@@ -422,21 +445,24 @@ def cmd_recover(args: argparse.Namespace) -> int:
 def cmd_views(args: argparse.Namespace) -> int:
     """``rlutf log views``."""
     from service.logs.mcapread import LogError
+    from service.logs.runs import log_files
     from service.logs.views import write_views
 
     out = Path(args.out)
-    if len(args.logs) > 1 or out.is_dir() or str(args.out).endswith(("/", "\\")):
-        outs = [out / p.name for p in args.logs]
-    else:
-        outs = [out]
-    clash = next((o for o in outs for p in args.logs if o.resolve() == p.resolve()), None)
+    try:
+        logs = log_files(args.logs)
+    except LogError as err:
+        return _fail("log views", err)
+    folder = any(p.is_dir() for p in args.logs) or str(args.out).endswith(("/", "\\"))
+    outs = [out / p.name for p in logs] if len(logs) > 1 or out.is_dir() or folder else [out]
+    clash = next((o for o in outs for p in logs if o.resolve() == p.resolve()), None)
     if clash is not None:
         return _fail("log views", ValueError(f"{clash}: the output must not be an input"))
     try:
         outs[0].parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         return _fail("log views", ValueError(f"{err.filename}: {err.strerror or err}"))
-    for src, dst in zip(args.logs, outs, strict=True):
+    for src, dst in zip(logs, outs, strict=True):
         try:
             report = write_views(src, dst)
         except LogError as err:

@@ -15,7 +15,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, client, zenoh_flags
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
 
 
 def register(msub: Any) -> None:
@@ -30,7 +30,10 @@ def register(msub: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the MapHealth message as JSON")
     p.add_argument("--png", type=Path, help="draw the map with the changes over it")
     p.add_argument(
-        "--log", type=Path, nargs="+", help="read the last MapHealth recorded in these logs"
+        "--log",
+        type=Path,
+        nargs="+",
+        help="read the last MapHealth recorded in these logs (MCAP files, or folders of them)",
     )
     p.add_argument("--timeout", type=float, default=3.0)
     zenoh_flags(p, client=True)
@@ -39,7 +42,13 @@ def register(msub: Any) -> None:
 
 def cmd_health(args: argparse.Namespace) -> int:
     """``rlutf map health``."""
-    found = _from_logs(args.log, args.map_id) if args.log else _from_service(args)
+    from service.logs.mcapread import LogError
+
+    try:
+        found = _from_logs(args.log, args.map_id) if args.log else _from_service(args)
+    except LogError as err:
+        print(f"rlutf map health: {err}", file=sys.stderr)
+        return EXIT_USAGE
     if found is None:
         where = "no MapHealth recorded in the logs" if args.log else "no service answered"
         print(f"rlutf map health: {where} for map {args.map_id!r}", file=sys.stderr)
@@ -86,10 +95,11 @@ def _from_logs(paths: list[Path], map_id: str) -> tuple[dict[str, Any], Any] | N
     from contextlib import ExitStack
 
     from service.logs.mcapread import LogFile, merged_messages
+    from service.logs.runs import log_files
 
     health = world = None
     with ExitStack() as stack:
-        logs = [stack.enter_context(LogFile(p)) for p in paths]
+        logs = [stack.enter_context(LogFile(p)) for p in log_files(paths)]
         for rec in merged_messages(logs, {"rlutf.MapHealth", "rlutf.Map"}):
             data = json.loads(rec.payload)
             if not isinstance(data, dict) or data.get("map_id") != map_id:

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.logs.mcapread import LogError, LogFile
+from service.logs.mcapread import LogError, LogFile, NotALog
 
 RUN_METADATA = "rlutf.run"
 """Name of the metadata record that names a file's run."""
@@ -234,3 +234,34 @@ def run_outputs(out: str | Path, runs: Sequence[LogRun]) -> list[Path]:
     suffix = path.suffix or ".mcap"
     stem = path.name.removesuffix(path.suffix)
     return [path.with_name(f"{stem}-run{k}{suffix}") for k in range(1, len(runs) + 1)]
+
+
+def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
+    """The log files ``paths`` name: a file as it is, a folder as the files in it (not in its
+    subfolders) whose names end in ``suffix``, in name order.
+
+    A log folder can then be given as it is (``rlutf replay logs/``), as a shell glob over it
+    would give its files; grouping them into runs (:func:`group_runs`) does not depend on
+    their order.
+
+    Raises:
+        service.logs.mcapread.NotALog: a folder holds no such file (the message says what it
+            holds instead: unfinished ``.mcap.part`` logs, and how to read them).
+    """
+    files: list[Path] = []
+    for path in paths:
+        if not Path(path).is_dir():
+            files.append(Path(path))
+            continue
+        found = sorted(p for p in Path(path).iterdir() if p.name.endswith(suffix) and p.is_file())
+        if not found:
+            parts = [p for p in Path(path).iterdir() if p.name.endswith(".mcap.part")]
+            hint = (
+                f"; it holds {len(parts)} unfinished log(s) (.mcap.part): copy what they hold "
+                f"with rlutf log recover {path}/ FOLDER, then use FOLDER"
+                if parts and suffix == ".mcap"
+                else ""
+            )
+            raise NotALog(f"{path}: a folder with no log file (*{suffix}) in it{hint}")
+        files.extend(found)
+    return files

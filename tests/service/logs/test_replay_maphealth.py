@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from sim_inputs import rack_beside
 
 from rlutf.map import Map as World
 from schemas import MapHealth, decode
+from service.cli.main import main
 from service.logs.replay import replay
 
 STEPS = 260
@@ -56,3 +58,24 @@ def test_nothing_changed_nothing_reported(tmp_path: Path) -> None:
     result = replay([log], None)
     assert result.maphealth["m1"]
     assert decode(MapHealth, result.maphealth["m1"][-1]).changes == ()
+
+
+def test_the_cli_reads_the_last_map_health_of_a_log_folder(
+    changed_log: tuple[Path, shapely.Polygon], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log, _ = changed_log
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    result = replay([log], folder / "replayed.mcap")
+    last = json.loads(result.maphealth["m1"][-1])
+    for given in ([str(folder)], [str(folder / "replayed.mcap")]):
+        capsys.readouterr()
+        assert main(["map", "health", "m1", "--json", "--log", *given]) == 0
+        assert json.loads(capsys.readouterr().out) == last
+    assert main(["map", "health", "other", "--log", str(folder)]) == 1
+    assert "no MapHealth recorded in the logs for map 'other'" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "notes.mcap").write_text("not a log")
+    for bad, said in (("empty", "a folder with no log file"), ("notes.mcap", "not an MCAP")):
+        assert main(["map", "health", "m1", "--log", str(tmp_path / bad)]) == 2
+        assert said in capsys.readouterr().err

@@ -344,3 +344,38 @@ def test_log_info_names_an_unreadable_file_and_describes_the_others(
     assert [r["run_id"] for r in data["runs"]] == [recorders[2].run_id]
     assert [u["path"] for u in data["unreadable"]] == [str(garbage)]
     assert "notes.mcap: not an MCAP file" in captured.err
+
+
+def test_a_log_folder_is_given_as_it_is(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``rlutf replay logs/`` (and every ``rlutf log`` command) takes the folder's ``*.mcap``
+    files, as the shell's ``logs/*.mcap`` gives them."""
+    logs, recorders = folder
+    assert main(["replay", str(logs), "--out", f"{tmp_path}/out/", "--quiet"]) == 0
+    assert f"audit: passed ({RUNS} runs)" in capsys.readouterr().out
+    assert len(list((tmp_path / "out").glob("*.replay.mcap"))) == RUNS
+    assert main(["log", "info", str(logs), "--json"]) == 0
+    by_folder = json.loads(capsys.readouterr().out)
+    assert main(["log", "info", *map(str, logs_of(logs)), "--json"]) == 0
+    assert by_folder == json.loads(capsys.readouterr().out)
+    assert [r["run_id"] for r in by_folder["runs"]] == [rec.run_id for rec in recorders]
+    # a folder of one log: that log, described as one file
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(recorders[0].files[0], one)
+    assert main(["log", "views", str(one), "--out", str(tmp_path / "views")]) == 0
+    assert (tmp_path / "views" / recorders[0].files[0].name).is_file()
+    capsys.readouterr()
+    # the unfinished logs a crash leaves: recovered from the folder, named when none is finished
+    crashed = tmp_path / "crashed"
+    crashed.mkdir()
+    for path in recorders[7].files:
+        (crashed / (path.name + ".part")).write_bytes(path.read_bytes()[:-200])
+    assert main(["replay", str(crashed), "--out", f"{tmp_path}/x/"]) == 2
+    err = capsys.readouterr().err
+    assert "a folder with no log file (*.mcap) in it" in err
+    assert f"{len(recorders[7].files)} unfinished log(s)" in err and "rlutf log recover" in err
+    assert main(["log", "recover", str(crashed), str(tmp_path / "fixed")]) == 0
+    (run,) = group_runs(logs_of(tmp_path / "fixed"))
+    assert run.run_id == recorders[7].run_id and len(run.files) == len(recorders[7].files)
