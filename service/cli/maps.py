@@ -323,6 +323,15 @@ def cmd_show(args: argparse.Namespace) -> int:
                 "`rlutf map import` write one) or the id of a stored map",
                 EXIT_USAGE,
             ) from err
+        if isinstance(data, dict) and data.get("type") in ("Feature", "FeatureCollection"):
+            from service.maps.client import collection_geometry
+
+            try:  # GeoJSON as rlutf map put takes it: drawn as the geometry it puts
+                feature = data.get("type") == "Feature"
+                data = data.get("geometry") if feature else collection_geometry(path, data)
+            except ValueError as err:
+                print(f"rlutf map show: {err}", file=sys.stderr)
+                return EXIT_FAILURE
     else:
         from schemas import valid_id
         from service.keys import Keys

@@ -34,14 +34,18 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
         data: Any = json.loads(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from err
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not UTF-8 text, so no JSON{_import_hint(path)}") from err
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: malformed JSON: {err}") from err
+        raise ValueError(f"{path}: malformed JSON: {err}{_import_hint(path)}") from err
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object")
     if data.get("type") in ("Polygon", "MultiPolygon"):
         data = {"geometry": data}
     if data.get("type") == "Feature":
         data = {"geometry": data.get("geometry")}
+    if data.get("type") == "FeatureCollection":
+        data = {"geometry": collection_geometry(path, data)}
     mid = map_id or data.get("map_id") or path.stem.split(".")[0]
     if not valid_id(str(mid)):
         raise ValueError(f"map id {mid!r} does not match [A-Za-z0-9_-]{{1,64}}; use --id")
@@ -55,6 +59,42 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
     except (SchemaError, MapRejected) as err:
         raise ValueError(f"{path}: invalid map: {err}") from err
     return payload
+
+
+def _import_hint(path: Path) -> str:
+    if path.suffix.lower() in (".yaml", ".yml", ".pgm", ".png"):
+        return f"; a map_server map (YAML and image) is imported with rlutf map import {path} --put"
+    return ""
+
+
+def collection_geometry(path: Path, data: dict[str, Any]) -> dict[str, Any]:
+    """The geometry of a GeoJSON FeatureCollection of polygons (what geojson.io and QGIS
+    export): one Polygon feature's own, else a MultiPolygon of every feature's polygons, as
+    given (the map's checks then refuse polygons that overlap).
+
+    Raises:
+        ValueError: no feature, or a feature that is not a Polygon or MultiPolygon (named).
+    """
+    features = data.get("features")
+    if not isinstance(features, list) or not features:
+        raise ValueError(f"{path}: a FeatureCollection with no features: no map in it")
+    polygons: list[Any] = []
+    for k, feature in enumerate(features, 1):
+        geometry = feature.get("geometry") if isinstance(feature, dict) else None
+        kind = geometry.get("type") if isinstance(geometry, dict) else None
+        if kind == "Polygon":
+            polygons.append(geometry["coordinates"])  # type: ignore[index]
+        elif kind == "MultiPolygon" and isinstance(geometry["coordinates"], list):  # type: ignore[index]
+            polygons.extend(geometry["coordinates"])  # type: ignore[index]
+        else:
+            raise ValueError(
+                f"{path}: feature {k} of {len(features)} is a {kind or 'feature without geometry'}"
+                ": a map is the free space as Polygon or MultiPolygon features (walls are their "
+                "boundaries, obstacles their holes)"
+            )
+    if len(polygons) == 1:
+        return {"type": "Polygon", "coordinates": polygons[0]}
+    return {"type": "MultiPolygon", "coordinates": polygons}
 
 
 NEXT = "next"
