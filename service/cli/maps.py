@@ -90,7 +90,18 @@ def register(sub: Any) -> None:
         "and import it like `map import`.",
     )
     build.add_argument(
-        "log", type=Path, help="CARMEN log (.log, .gz), MCAP log (.mcap) or, with --ros2, a bag"
+        "log",
+        type=Path,
+        nargs="+",
+        metavar="LOG",
+        help="CARMEN log (.log, .gz), MCAP logs of one run (.mcap files, or a folder of them: "
+        "the files the recorder rotated) or, with --ros2, a bag",
+    )
+    build.add_argument(
+        "--from-map",
+        metavar="ID",
+        help="with MCAP logs: only the scans of robots localized on map ID (needed when the "
+        "logs hold poses on several maps)",
     )
     build.add_argument(
         "--ros2", action="store_true", help="LOG is a rosbag2 recording with scans and poses"
@@ -260,6 +271,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 def cmd_build(args: argparse.Namespace) -> int:
     """``rlutf map build``."""
+    from service.logs.mcapread import LogError
     from service.maps.mapimport import (
         BUILT_SURFACE_CELLS,
         MapImportError,
@@ -271,34 +283,51 @@ def cmd_build(args: argparse.Namespace) -> int:
     )
 
     _outputs(args)
+    log = args.log[0]
+    mcap = not args.ros2 and (log.is_dir() or log.suffix == ".mcap")
     try:
+        if not mcap and len(args.log) > 1:
+            raise ValueError("one CARMEN log or bag at a time (several files: MCAP logs of a run)")
         if args.ros2:
             from service.ros2.bags import BagError
             from service.ros2.bags import scans_with_poses as bag_scans
 
             try:
-                posed = list(bag_scans(args.log, args.scan_topic, args.pose_topic))
+                posed = list(bag_scans(log, args.scan_topic, args.pose_topic))
             except BagError as err:
                 raise ValueError(str(err)) from err
             grid = build_grid(posed, resolution=args.resolution)
-        elif args.log.suffix == ".mcap":
-            from service.logs.mcapmaps import scans_with_poses
-
-            grid = build_grid(scans_with_poses(args.log), resolution=args.resolution)
+        elif mcap:
+            grid = build_grid(_run_scans(args.log, args.from_map), resolution=args.resolution)
         else:
-            grid = build_from_carmen(args.log, resolution=args.resolution, max_range=args.max_range)
+            grid = build_from_carmen(log, resolution=args.resolution, max_range=args.max_range)
         if args.save_grid:
             save_grid(grid, args.save_grid)
             print(f"wrote {args.save_grid}")
-        mid = args.map_id or map_id_from_name(args.log.name)
+        mid = args.map_id or map_id_from_name(log.name)
         offset = args.surface_offset
         if offset is None:
             offset = BUILT_SURFACE_CELLS * grid.resolution
         result = grid_to_map(grid, map_id=mid, surface_offset=offset, **_options(args))
-    except (MapImportError, OSError, ValueError) as err:
+    except (MapImportError, OSError, ValueError, LogError) as err:
         print(f"rlutf map build: {err}", file=sys.stderr)
         return EXIT_FAILURE
     return _finish(args, result)
+
+
+def _run_scans(given: list[Path], map_id: str | None) -> Any:
+    """The posed scans of the MCAP logs ``given`` (files or folders), which must be one run's:
+    the scans of two runs (two starts of a service, maybe two buildings) make no one map."""
+    from service.logs.mcapmaps import scans_with_poses
+    from service.logs.runs import group_runs, log_files
+
+    runs = group_runs(log_files(given))
+    if len(runs) > 1:
+        listed = "; ".join(f"{r.label}: {' '.join(map(str, r.files))}" for r in runs)
+        raise ValueError(
+            f"the logs hold {len(runs)} runs ({listed}): a map is built from one run's files"
+        )
+    return scans_with_poses(runs[0].files, map_id)
 
 
 def cmd_show(args: argparse.Namespace) -> int:

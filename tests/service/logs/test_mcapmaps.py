@@ -1,13 +1,16 @@
-"""``rlutf map build LOG.mcap``: a map from a replayed log's scans and poses."""
+"""``rlutf map build LOG.mcap``: a map from a replayed log's scans and poses, or from a run's
+rotated files (a folder), never from two runs or two maps mixed."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
-from mcaplog_fixtures import WORLD, simulated_inputs, write_log
+from mcaplog_fixtures import WORLD, read_all, simulated_inputs, write_log
 
 from service.cli.main import main
+from service.logs.mcaplog import McapRecorder
 from service.logs.mcapmaps import scans_with_poses
 from service.logs.replay import replay
 from service.maps.mapimport import build_grid, grid_to_map
@@ -37,3 +40,67 @@ def test_log_without_poses_is_a_clear_error(
     write_log(log, simulated_inputs(steps=3))
     assert main(["map", "build", str(log), "--out", str(tmp_path / "m.json")]) == 1
     assert "no scan has a pose" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("built")
+    log = write_log(tmp / "in.mcap", simulated_inputs(robots=("r1", "r2"), steps=30, beams=180))
+    replay([log], tmp / "out.mcap")
+    return tmp / "out.mcap"
+
+
+def _rerecord(source: Path, folder: Path, max_bytes: int, map_of: dict[str, str]) -> list[Path]:
+    """``source``'s messages recorded again as one run (rotated at ``max_bytes``), each robot's
+    poses on the map ``map_of`` names (default its own)."""
+    rec = McapRecorder(folder, instance="built", max_bytes=max_bytes, chunk_size=4096)
+    for r in read_all(source):
+        payload = r.payload
+        if r.schema_name == "rlutf.PoseEstimate":
+            pose = json.loads(payload)
+            pose["map_id"] = map_of.get(pose["robot_id"], pose["map_id"])
+            payload = json.dumps(pose).encode()
+        rec.record(r.topic, r.schema_name, payload, r.log_time_ns, r.publish_time_ns)
+    rec.close()
+    return rec.files
+
+
+def _built(tmp_path: Path, capsys: pytest.CaptureFixture[str], *given: str) -> tuple[int, str]:
+    out = tmp_path / "m.json"
+    out.unlink(missing_ok=True)
+    code = main(["map", "build", *given, "--id", "b", "--resolution", "0.1", "--out", str(out)])
+    err = capsys.readouterr().err
+    return code, out.read_text() if code == 0 else err
+
+
+def test_a_run_rotated_into_files_builds_the_map_of_the_whole_log(
+    replayed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    files = _rerecord(replayed, tmp_path / "logs", 40_000, {})
+    assert len(files) >= 3  # a scan and its pose may be in two files
+    code, whole = _built(tmp_path, capsys, str(replayed))
+    assert code == 0
+    assert _built(tmp_path, capsys, str(tmp_path / "logs")) == (0, whole)
+    assert _built(tmp_path, capsys, *map(str, reversed(files))) == (0, whole)
+    # one file of the run: fewer scans, another map
+    code, part = _built(tmp_path, capsys, str(files[0]))
+    assert code == 0 and part != whole
+
+
+def test_two_runs_or_two_maps_are_not_mixed(
+    replayed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs = tmp_path / "logs"
+    _rerecord(replayed, logs, 1 << 28, {})
+    _rerecord(replayed, logs, 1 << 28, {})  # a second start of the service: another run
+    code, err = _built(tmp_path, capsys, str(logs))
+    assert code == 1 and "the logs hold 2 runs" in err and "one run's files" in err
+    (two_maps,) = _rerecord(replayed, tmp_path / "floors", 1 << 28, {"r2": "floor2"})
+    code, err = _built(tmp_path, capsys, str(two_maps))
+    assert code == 1 and "2 maps (floor2, m1)" in err and "--from-map" in err
+    code, _ = _built(tmp_path, capsys, str(two_maps), "--from-map", "floor2")
+    assert code == 0
+    code, err = _built(tmp_path, capsys, str(two_maps), "--from-map", "floor3")
+    assert code == 1 and "no scan has a pose on map 'floor3'" in err
+    code, err = _built(tmp_path, capsys, str(tmp_path / "missing.mcap"))
+    assert code == 1 and "missing.mcap: cannot open" in err
