@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import json
 import re
+from collections.abc import Sequence
 
 EXIT_OK = 0
 #: The task failed: nothing answered, the service refused, the time ran out.
@@ -44,6 +45,23 @@ def zenoh_text(err: BaseException) -> str:
     """A zenoh error's message without the Rust source path it carries."""
     text = _RUST_PLACE.sub("", str(err)).strip()
     return text.rstrip(".!") or type(err).__name__
+
+
+def session_failure(err: BaseException, listen: Sequence[str]) -> str:
+    """Why a service's Zenoh session did not open, and what to do: a port another program
+    holds, or an endpoint that is not one (``tcp/127.0.0.1:99999``)."""
+    text = zenoh_text(err)
+    if "in use" in text.lower():
+        where = f" on {', '.join(listen)}" if listen else ""
+        return (
+            f"cannot open the zenoh session ({text}); the port is taken (another `rlutf serve` "
+            f"or zenohd{where}?): choose another with -l/--listen, or join it with -m client "
+            "-e ENDPOINT"
+        )
+    return (
+        f"cannot open the zenoh session ({text}); check the endpoints (-l/--listen, "
+        "-e/--connect, -c/--config): PROTOCOL/HOST:PORT, e.g. tcp/0.0.0.0:7447"
+    )
 
 
 def _os_message(err: OSError) -> tuple[str, int]:

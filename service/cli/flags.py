@@ -92,15 +92,21 @@ def writable(path: Path, flag: str) -> None:
 
 
 def usable_folder(path: Path, flag: str) -> None:
-    """Refuse a folder that cannot be created or written (its nearest existing part is a file,
-    or not writable).
+    """Create the folder, or refuse one that cannot be created or written (its nearest existing
+    part is a file, or not writable).
 
     Raises:
         CliError: naming the flag, the path and the fix.
     """
     part = path.absolute()
-    while not part.exists() and part != part.parent:
-        part = part.parent
+    try:
+        while not part.exists() and part != part.parent:
+            part = part.parent
+    except OSError as err:  # a name no file system takes, a loop of links
+        raise CliError(
+            f"{flag} {path}: cannot create the folder ({err.strerror or err}); choose another",
+            EXIT_USAGE,
+        ) from err
     if not part.is_dir():
         raise CliError(
             f"{flag} {path}: {part} is a file, not a folder; choose another folder", EXIT_USAGE
@@ -111,6 +117,13 @@ def usable_folder(path: Path, flag: str) -> None:
             "may write",
             EXIT_USAGE,
         )
+    try:  # what the checks cannot see (a read-only or virtual file system) refuses it here
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CliError(
+            f"{flag} {path}: cannot create the folder ({err.strerror or err}); choose another",
+            EXIT_USAGE,
+        ) from err
 
 
 def timeout_flag(p: argparse.ArgumentParser, default: float = 3.0, what: str = "answers") -> None:

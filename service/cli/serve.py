@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas import MAX_BEAMS
-from service.cli.errors import zenoh_text
+from service.cli.errors import session_failure
 from service.cli.flags import (
     EXIT_FAILURE,
     EXIT_OK,
@@ -161,12 +161,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             service.start(progress)
         tune_gc()
     except zenoh.ZError as err:
-        print(
-            f"rlutf serve: cannot open the zenoh session ({zenoh_text(err)}); is the port "
-            f"taken (another `rlutf serve` or zenohd on {', '.join(settings.listen)})? choose "
-            "another with -l/--listen, or join it with -m client -e ENDPOINT",
-            file=sys.stderr,
-        )
+        print(f"rlutf serve: {session_failure(err, settings.listen)}", file=sys.stderr)
         return EXIT_FAILURE
     except live_view_errors as err:  # --foxglove-port taken or --foxglove-addr not local
         print(f"rlutf serve: {err} (choose another --foxglove-port)", file=sys.stderr)
@@ -243,8 +238,7 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
             host.start(progress)
     except zenoh.ZError as err:
         host.close()
-        say(f"cannot open the zenoh session ({zenoh_text(err)}); is the port taken? choose "
-            "another with -l/--listen")  # fmt: skip
+        say(session_failure(err, settings.listen))
         return EXIT_FAILURE
     except (RuntimeError, OSError) as err:
         host.close()

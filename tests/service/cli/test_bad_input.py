@@ -49,6 +49,7 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "corrupt.mcap").write_bytes(b"garbage\x00\x01")
     (tmp_path / "foreign.txt").write_text("hello\n")
     (tmp_path / "foreign.yaml").write_text("image: x.pgm\nresolution: 0.05\n")
+    (tmp_path / "dangling").symlink_to(tmp_path / "gone")
     return tmp_path
 
 
@@ -95,6 +96,10 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--store", "foreign.txt/maps"], 2, ["--store", "not a folder"])
     yield Bad(["serve", "--record", "foreign.txt/logs"], 2, ["--record", "not a folder"])
     yield Bad(["demo", "--record", "foreign.txt"], 2, ["--record", "not a folder"])
+    # folders the checks allow and the file system does not (a read-only one; here a name
+    # longer than any file system takes, and a link to nothing on the way)
+    yield Bad(["serve", "--store", "s" * 300], 2, ["--store", "cannot create the folder"])
+    yield Bad(["serve", "--record", "dangling/logs"], 2, ["--record", "cannot create the folder"])
     # missing, corrupt or foreign files
     yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
     yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])
@@ -166,7 +171,11 @@ def test_serve_on_a_taken_port_says_so(
     err = capsys.readouterr().err
     assert code == 1
     assert f"tcp/127.0.0.1:{taken_port}" in err and "-l/--listen" in err
-    assert ".rs:" not in err
+    assert "the port is taken" in err and ".rs:" not in err
+    # not an endpoint at all: not a taken port either
+    code = _run(["serve", "-l", "tcp/127.0.0.1:99999", *common])
+    err = capsys.readouterr().err
+    assert code == 1 and "check the endpoints" in err and "port is taken" not in err
 
     free = socket.socket()
     free.bind(("127.0.0.1", 0))
