@@ -11,7 +11,7 @@ import time
 from collections.abc import Iterable, Sequence
 
 from schemas import Event, Health, PoseEstimate
-from service.live.robots import RobotState, WaitingRobot, one_sigma
+from service.live.robots import NO_SCAN_YET, RobotState, WaitingRobot, one_sigma
 
 #: A robot with no pose published for longer than this is shown as silent, seconds.
 SILENT_AFTER_S = 5.0
@@ -20,6 +20,10 @@ SILENT_AFTER_S = 5.0
 WAITING_HINT = (
     "waiting: the robot sends scans but has no pose yet; give it one with "
     "`rlutf initialpose ROBOT --map ID --pose X,Y,THETA`"
+)
+NO_SCAN_HINT = (
+    "no scan yet: the robot has an initial pose and has sent no scan since; its next scan "
+    "gives its first pose (is it sending scans? `rlutf events ROBOT`)"
 )
 
 
@@ -102,11 +106,17 @@ def robots_table(
     ]
     waits = list(waiting)
     rows += [
-        [w.robot_id, "-", "waiting", "-", "-", "-", "-", "-", age(w.age_s), "-", w.owner]
+        [w.robot_id, "-", _waiting_status(w), "-", "-", "-", "-", "-", age(w.age_s), "-", w.owner]
         for w in waits
     ]
     text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
-    return f"{text}\n\n{WAITING_HINT}" if waits else text
+    hints = [WAITING_HINT] if any(w.reason != NO_SCAN_YET for w in waits) else []
+    hints += [NO_SCAN_HINT] if any(w.reason == NO_SCAN_YET for w in waits) else []
+    return "\n\n".join([text, *hints])
+
+
+def _waiting_status(w: WaitingRobot) -> str:
+    return "no scan yet" if w.reason == NO_SCAN_YET else "waiting"
 
 
 def poses_table(poses: Iterable[PoseEstimate], now_ns: int | None = None) -> str:

@@ -24,7 +24,8 @@ def register(sub: Any) -> None:
         "its scan-to-pose latency in milliseconds and the instance that owns it. A robot with "
         "no pose for over --silent seconds shows as 'silent (last status)'. Robots that send "
         "scans but have no pose yet (no initial pose, or their map not loaded) follow with "
-        "status 'waiting'. A robot two instances answer for (during a handover) is shown once, "
+        "status 'waiting', and robots given an initial pose that have sent no scan since with "
+        "'no scan yet'. A robot two instances answer for (during a handover) is shown once, "
         "with the fresher pose. '-' marks a figure the instance does not have. Exit 1 if no "
         "instance answers.",
     )
@@ -40,7 +41,8 @@ def register(sub: Any) -> None:
         "--json",
         action="store_true",
         help="print one JSON array of robots instead of a table (each with 'silent'; waiting "
-        "robots have status 'waiting' and no pose)",
+        "robots have status 'waiting', a reason (not_initialized, map_not_found, no_scan_yet) "
+        "and no pose)",
     )
     zenoh_flags(robots, client=True)
     robots.set_defaults(func=cmd_robots)

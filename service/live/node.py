@@ -115,7 +115,7 @@ class LocalizationService:
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}
-        self.robot_view = RobotView(settings.instance, self._poses, self.clock)
+        self.robot_view = RobotView(settings.instance, self._poses, self.clock, settings.prefix)
         self._declared: list[Any] = []
         self.outbox = Outbox()  # Events go out from its thread, never from a callback's
         self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox)
@@ -367,6 +367,8 @@ class LocalizationService:
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
+        elif kind == "initialpose":
+            self.robot_view.initialized(robot, at)
 
     def _record_seed(self, robot: str, entry: Entry) -> None:
         """Record an input made to re-seed a robot whose worker died (dispatcher lock held)."""

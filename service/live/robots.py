@@ -16,8 +16,9 @@ Answer (JSON, :class:`RobotsAnswer`)::
 ``latency_ms`` are ``null`` for a pose this instance holds but did not publish (a seed).
 ``sigma_xy_m`` and ``sigma_theta_rad`` are the pose's 1-sigma uncertainty (from its covariance).
 ``waiting`` lists the robots that send scans but have no pose yet (no initial pose, or a map
-not loaded), with the age of the latest such scan's Event: at most :data:`MAX_WAITING`, the
-longest silent forgotten first.
+not loaded), with the age of the latest such scan's Event, and those given an initial pose that
+have sent no scan since (``no_scan_yet``, aged from the initial pose): at most
+:data:`MAX_WAITING`, the longest silent forgotten first.
 """
 
 from __future__ import annotations
@@ -79,7 +80,10 @@ class WaitingRobot(BaseModel):
     model_config = ConfigDict(extra="ignore", frozen=True)
 
     robot_id: str = Field(description="Robot id.")
-    reason: str = Field(description="The Event code: not_initialized or map_not_found.")
+    reason: str = Field(
+        description="Why: the Event code not_initialized or map_not_found, or no_scan_yet (an "
+        "initial pose taken in, no scan since)."
+    )
     age_s: float = Field(description="Seconds since the latest such Event (instance's clock).")
     owner: str = Field(description="The instance holding the robot.")
 
@@ -116,6 +120,8 @@ _WAITING = {
     b'"code":"not_initialized"': "not_initialized",
     b'"code":"map_not_found"': "map_not_found",
 }
+#: The reason of a robot given an initial pose that has sent no scan since.
+NO_SCAN_YET = "no_scan_yet"
 #: Robots remembered as waiting, at most (the longest silent are forgotten first).
 MAX_WAITING = 1000
 
@@ -134,8 +140,15 @@ class RobotView:
         clock: the service clock, ns since the epoch.
     """
 
-    def __init__(self, instance: str, poses: Mapping[str, bytes], clock: Callable[[], int]) -> None:
+    def __init__(
+        self,
+        instance: str,
+        poses: Mapping[str, bytes],
+        clock: Callable[[], int],
+        prefix: str = "rlutf",
+    ) -> None:
         self.instance = instance
+        self.key = robots_key(prefix, instance)
         self._poses = poses
         self._clock = clock
         self._published: dict[str, _Published] = {}
@@ -155,12 +168,23 @@ class RobotView:
         no pose (rate-limited Events, so not per scan)."""
         for code, reason in _WAITING.items():
             if code in payload:
-                with self._lock:
-                    self._waiting.pop(robot, None)  # re-inserted last: the freshest at the end
-                    self._waiting[robot] = (at_ns, reason)
-                    while len(self._waiting) > MAX_WAITING:
-                        del self._waiting[next(iter(self._waiting))]
+                self._remember(robot, at_ns, reason)
                 return
+
+    def initialized(self, robot: str, at_ns: int) -> None:
+        """An InitialPose of ``robot`` was taken in at ``at_ns``: until its first pose the robot
+        is listed as waiting for a scan (:data:`NO_SCAN_YET`), so that a robot given a pose
+        before it sends scans is not missing from the view (a refusal's Event, such as
+        ``map_not_found``, then gives the reason instead)."""
+        if robot not in self._poses:
+            self._remember(robot, at_ns, NO_SCAN_YET)
+
+    def _remember(self, robot: str, at_ns: int, reason: str) -> None:
+        with self._lock:
+            self._waiting.pop(robot, None)  # re-inserted last: the freshest at the end
+            self._waiting[robot] = (at_ns, reason)
+            while len(self._waiting) > MAX_WAITING:
+                del self._waiting[next(iter(self._waiting))]
 
     def forget(self, robot: str) -> None:
         """``robot`` is no longer held here (moved to another instance)."""
@@ -238,9 +262,11 @@ class RobotView:
         )
 
     def on_query(self, query: zenoh.Query) -> None:
-        """The queryable's callback: answer on the instance's key."""
+        """The queryable's callback: answer on the instance's key (not the query's: a get
+        consolidates the replies on one key into one, and ``{prefix}/service/*/robots`` would
+        then hear a single instance of several)."""
         with query:
-            query.reply(str(query.key_expr), self.answer(), encoding=JSON)
+            query.reply(self.key, self.answer(), encoding=JSON)
 
 
 # ---------------------------------------------------------------------------------- client

@@ -94,6 +94,17 @@ def test_robots_table_in_degrees_and_centimetres_with_silent_and_waiting_robots(
     assert blank == "" and "rlutf initialpose ROBOT --map ID --pose X,Y,THETA" in hint
 
 
+def test_a_robot_with_an_initial_pose_and_no_scan_reads_no_scan_yet() -> None:
+    waiting = WaitingRobot(robot_id="r5", reason="no_scan_yet", age_s=3.0, owner="a")
+    text, hint = robots_table([_state("r1", 0.1, "a")], [waiting]).split("\n\n")
+    assert text.splitlines()[-1].split()[:5] == ["r5", "-", "no", "scan", "yet"]
+    assert hint.startswith("no scan yet:") and "rlutf events ROBOT" in hint
+    # with a robot waiting for an initial pose too: both hints
+    other = WaitingRobot(robot_id="r6", reason="not_initialized", age_s=1.0, owner="a")
+    _, first, second = robots_table([], [waiting, other]).split("\n\n")
+    assert "rlutf initialpose" in first and second.startswith("no scan yet:")
+
+
 def test_a_table_without_waiting_robots_has_no_hint() -> None:
     assert "initialpose" not in robots_table([_state("r1", 0.1, "a")])
 

@@ -26,6 +26,7 @@ from service_harness import WORLD
 from schemas import Map, encode
 from service.cluster.membership import assign
 from service.live.host import merged_extra, process_name
+from service.live.robots import fetch_robots, merge_robots
 from service.live.sessions import client_config, free_port
 from service.logs.replay import replay
 from service.logs.runs import group_runs
@@ -107,6 +108,10 @@ def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -
         expected = {n: sorted(r for r in robots if split[r] == n) for n in NAMES}
         assert wait_until(lambda: _owned(_health(session, "h")) == expected, 5.0), text()
         assert all(expected.values())
+        # the per-robot view (rlutf robots) lists every robot, each by its process
+        assert wait_until(
+            lambda: {s.robot_id: s.owner for s in merge_robots(fetch_robots(session, "rlutf", 2))}
+            == split, 10.0), text()  # fmt: skip
         assert wait_until(lambda: len(health_puts) >= 2, 20.0), text()
         time.sleep(1.5)  # the Health the host polls is a second old at most
         both = _health(session, "h")

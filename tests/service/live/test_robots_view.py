@@ -183,3 +183,49 @@ def test_a_robot_scanning_without_an_initial_pose_is_listed_as_waiting(bench: Be
     assert (w["robot_id"], w["reason"]) == ("r9", "not_initialized")
     assert 0 <= w["age_s"] < 5
     assert w["owner"] == bench.service.settings.instance
+
+
+def test_a_robot_given_an_initial_pose_waits_for_its_first_scan_in_the_view() -> None:
+    now = [10**18]
+    poses: dict[str, bytes] = {"r1": b"{}"}
+    view = RobotView("a", poses, lambda: now[0])
+    view.initialized("r1", now[0])  # re-initialized while tracking: it has a pose
+    view.initialized("r2", now[0])
+    now[0] += 1_500_000_000
+    view.initialized("r3", now[0])
+    view.event("r3", _event("map_not_found"), now[0])  # refused: the Event says why
+    assert [(w.robot_id, w.reason, w.age_s) for w in view.waiting()] == [
+        ("r2", "no_scan_yet", 1.5),
+        ("r3", "map_not_found", 0.0),
+    ]
+    poses["r2"] = b"{}"
+    assert [w.robot_id for w in view.waiting()] == ["r3"]
+
+
+def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
+    bench: Bench,
+) -> None:
+    bench.put_map()
+    time.sleep(0.3)
+    robot = bench.robot("r7", 4)
+    robot.initial_pose("m1")
+    answer: dict = {}
+    for _ in range(40):
+        (answer,) = ask(bench, "rlutf/service/*/robots")
+        if answer["waiting"]:
+            break
+        time.sleep(0.05)
+    (w,) = answer["waiting"]
+    assert (w["robot_id"], w["reason"], w["owner"]) == (
+        "r7",
+        "no_scan_yet",
+        bench.service.settings.instance,
+    )
+    assert answer["robots"] == []
+    for _ in range(60):  # its scans: a pose, and no longer waiting
+        robot.advance()
+        (answer,) = ask(bench, "rlutf/service/*/robots")
+        if answer["robots"]:
+            break
+        time.sleep(0.05)
+    assert [r["robot_id"] for r in answer["robots"]] == ["r7"] and answer["waiting"] == []
