@@ -105,6 +105,10 @@ class Keys:
         """Where the MapHealth of map ``map_id`` is put and answered (WIRE.md v1.2)."""
         return f"{self.prefix}/maphealth/{map_id}"
 
+    def mapevidence(self, instance: str) -> str:
+        """Where an instance puts the map health evidence it counted (:mod:`service.evidence`)."""
+        return f"{self.prefix}/service/{instance}/mapevidence"
+
     @property
     def all_maphealth(self) -> str:
         """Key expression of every map's MapHealth."""
@@ -213,6 +217,8 @@ class Keys:
             return None  # the instances' own Events
         if top == "maphealth" and len(rest) == 1 and not delete:
             return None  # another instance's (or process's) MapHealth (WIRE.md v1.2)
+        if top == "service" and len(rest) == 2 and rest[1] == "mapevidence" and not delete:
+            return None  # an instance's map health evidence (service.evidence)
         return OddKey(
             "unknown_key",
             "error",

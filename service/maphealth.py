@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rlutf.localizer import LocalizeResult
@@ -185,13 +186,16 @@ class MapHealthEngine:
             state.grid.merge(h.counts)
             state.changed = True
 
-    def due(self, now_ns: int) -> list[HealthOut]:
+    def due(self, now_ns: int, reports: Callable[[str], bool] | None = None) -> list[HealthOut]:
         """The MapHealth of every map whose evidence changed and whose last put is at least
-        ``interval_ns`` before ``now_ns`` (and whose report differs from the last put)."""
+        ``interval_ns`` before ``now_ns`` (and whose report differs from the last put); with
+        ``reports``, only of the maps whose MapHealth key it says this engine reports."""
         out: list[HealthOut] = []
         for map_id in sorted(self._maps):
             state = self._maps[map_id]
             if not state.changed or state.grid is None:
+                continue
+            if reports is not None and not reports(self.keys.maphealth(map_id)):
                 continue
             if state.last_put_ns is not None and now_ns - state.last_put_ns < self.interval_ns:
                 continue

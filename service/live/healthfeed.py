@@ -1,5 +1,9 @@
 """Map health in the live service: the workers' evidence merged, published, recorded, answered.
 
+Every instance shares the evidence it counted and merges the others' (:mod:`service.evidence`),
+and one of them, the owner of the map's MapHealth key among the live instances, puts and
+records each map's MapHealth: a report of the whole fleet, from one instance.
+
 Worker processes count each scan's map health evidence beside the localizer and hand it on
 with a batch's outputs at most once a second (``evidence`` outputs,
 :class:`service.live.worker.HandOver`). :class:`HealthFeed` merges it into one
@@ -14,11 +18,13 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Callable, Iterable
+from typing import Protocol
 
 import zenoh
 
 from rlutf.map import Map as World
-from schemas import SCHEMA_NAMES, MapHealth
+from schemas import SCHEMA_NAMES, EventCode, MapHealth
+from service.evidence import decode_evidence, encode_evidence
 from service.keys import Keys
 from service.maphealth import Handed, MapHealthEngine
 from service.maps.book import MapBook
@@ -30,6 +36,12 @@ Publish = Callable[[str, bytes], None]
 Record = Callable[[str, str, bytes, int, int], None]  # key, schema, payload, log time, stamp
 
 
+class Limited(Protocol):
+    """Reports an Event of a class at most once an interval (:class:`~.keywatch.KeyWatch`)."""
+
+    def limited(self, kind: str, level: str, code: str, key: str, text: str, at: int) -> None: ...
+
+
 class HealthFeed:
     """The service's map health.
 
@@ -39,6 +51,10 @@ class HealthFeed:
         publish: puts a payload on a key.
         record: records a message (key, schema, payload, receive time, stamp).
         clock: the service clock, ns.
+
+    :meth:`share_as` makes it one of several instances: it puts the evidence counted here for
+    the others and merges theirs, and reports the maps it is told to (one instance of those
+    alive reports each map).
     """
 
     def __init__(
@@ -56,26 +72,91 @@ class HealthFeed:
         self.clock = clock
         self.engine = MapHealthEngine(keys)
         self._lock = threading.Lock()
+        self.instance: str | None = None  # None: evidence kept here (a replay, a test)
+        self.max_bytes = 0
+        self.reports: Callable[[str], bool] = lambda key: True
+        self.events: Limited | None = None
+        self.shared = self.merged_from_others = self.refused = 0
+
+    def share_as(
+        self,
+        instance: str,
+        max_bytes: int,
+        reports: Callable[[str], bool],
+        events: Limited | None = None,
+    ) -> None:
+        """Share the evidence counted here as ``instance`` and merge the other instances'
+        (:meth:`on_sample`, payloads up to ``max_bytes``); put and record the MapHealth of the
+        keys ``reports`` says this instance reports; a payload that cannot be merged is an
+        Event ``invalid_message`` from ``events`` (one a second)."""
+        self.instance, self.max_bytes, self.reports = instance, max_bytes, reports
+        self.events = events
+
+    def _refused(self, key: str, problem: str) -> None:
+        self.refused += 1
+        if self.events is not None:
+            code = EventCode.INVALID_MESSAGE
+            self.events.limited("evidence", "warning", code, key, problem, self.clock())
 
     def on_evidence(self, handed: Iterable[Handed]) -> None:
-        """Merge evidence handed on by a worker; put and record what is due."""
-        with self._lock:
-            for h in handed:
-                loaded = self.maps.get(h.map_id)
-                known = self.engine.version(h.map_id)
-                if loaded is not None and loaded.version == h.version and known != h.version:
-                    # With worker processes the map was checked there: built here once a
-                    # version, at its first evidence (its walls place the changes).
-                    world = loaded.world or World.from_geojson(
-                        json.loads(loaded.payload)["geometry"]
-                    )
-                    self.engine.register_map(h.map_id, h.version, world)
-            self.engine.merge(list(handed))
-            now = self.clock()
-            due = self.engine.due(now)
+        """Merge evidence handed on by a worker; share it with the other instances; put and
+        record what is due."""
+        handed = list(handed)
+        if self.instance is not None and handed:
+            self.publish(self.keys.mapevidence(self.instance), encode_evidence(handed))
+            self.shared += 1
+        self._merge(handed)
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        """Subscriber callback on ``{prefix}/service/*/mapevidence``: another instance's."""
+        key = str(sample.key_expr)
+        if self.instance is None or key == self.keys.mapevidence(self.instance):
+            return
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        size = len(sample.payload)
+        if size > self.max_bytes:
+            self._refused(key, f"map evidence of {size} bytes: over max_map_bytes")
+            return
+        problem = self.on_shared(sample.payload.to_bytes())
+        if problem is not None:
+            self._refused(key, problem)
+
+    def on_shared(self, payload: bytes) -> str | None:
+        """Merge evidence another instance shared (``{prefix}/service/{instance}/mapevidence``);
+        put and record what is due. Returns why the payload was refused, else ``None``."""
+        try:
+            handed = decode_evidence(payload)
+        except ValueError as err:
+            return str(err)
+        problem = self._merge(handed)
+        if problem is None:
+            self.merged_from_others += 1
+        return problem
+
+    def _merge(self, handed: list[Handed]) -> str | None:
+        try:
+            with self._lock:
+                self._register(handed)
+                self.engine.merge(handed)
+                now = self.clock()
+                due = self.engine.due(now, self.reports)
+        except ValueError as err:  # a grid of another shape than this map's
+            return str(err)
         for out in due:
             self.publish(out.key, out.payload)
             self.record(out.key, MAPHEALTH_SCHEMA, out.payload, now, out.stamp_ns)
+        return None
+
+    def _register(self, handed: list[Handed]) -> None:
+        for h in handed:
+            loaded = self.maps.get(h.map_id)
+            known = self.engine.version(h.map_id)
+            if loaded is not None and loaded.version == h.version and known != h.version:
+                # With worker processes the map was checked there: built here once a
+                # version, at its first evidence (its walls place the changes).
+                world = loaded.world or World.from_geojson(json.loads(loaded.payload)["geometry"])
+                self.engine.register_map(h.map_id, h.version, world)
 
     def on_query(self, query: zenoh.Query) -> None:
         """Answer gets on ``{prefix}/maphealth/*`` with the current MapHealth of each map."""

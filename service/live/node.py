@@ -8,8 +8,7 @@ same code replay runs.
 Scale-out: instances sharing a prefix split the fleet by rendezvous hashing over their
 liveliness tokens (:mod:`service.cluster.membership`); each localizes, records, counts and
 answers pose queries for the robots it owns only, and seeds a robot it takes over from the
-robot's last published pose (:mod:`service.cluster.ownership`). A single instance owns every
-robot.
+robot's last published pose (:mod:`service.cluster.ownership`); they share map health evidence.
 
 ROS 2 robots (``settings.ros2.enabled``) come in through :class:`service.ros2.frontdoor.
 Ros2FrontDoor` on the same session: their inputs, once validated, take the JSON inputs' path
@@ -203,6 +202,7 @@ class LocalizationService:
             self.live.record(key, schema, payload, at, stamp)  # drawn in the live view
 
         self.healthfeed = HealthFeed(self.keys, self.maps, self._publish, rec, self.clock)
+        self.healthfeed.share_as(settings.instance, settings.max_map_bytes, owns_key, self.keywatch)
         self.closed = threading.Event()
 
     # ------------------------------------------------------------------------ lifecycle
@@ -260,6 +260,7 @@ class LocalizationService:
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
             session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
             session.declare_queryable(self.keys.all_maphealth, self.healthfeed.on_query),
+            session.declare_subscriber(self.keys.mapevidence("*"), self.healthfeed.on_sample),
         ]
         restored, problems = self.posestate.open()  # the poses kept across a restart
         for problem in problems:

@@ -148,3 +148,29 @@ def _good_result(world: World, inp: Inputs) -> LocalizeResult:
     ranges = np.array([np.nan if r is None else r for r in scan.ranges])
     s = Scan.create(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max)
     return Localizer(world, start).update(np.zeros(3), s)
+
+
+def test_evidence_shared_over_the_bus_gives_the_same_report(changed) -> None:
+    """Two instances, one robot each: each merges its own evidence and the other's as
+    :mod:`service.evidence` carries it, and both hold the report one engine of both makes."""
+    from service.evidence import decode_evidence, encode_evidence
+
+    world, _, inputs = changed
+    ev = {"a": ScanEvidence(), "b": ScanEvidence()}
+    workers = {r: FleetEngine(KEYS, CONFIG, evidence=e) for r, e in ev.items()}
+    mine = {"a": _health(world), "b": _health(world)}
+    both = _health(world)
+
+    def hand(i: int) -> None:
+        if i % 10 == 0:
+            for robot, other in (("a", "b"), ("b", "a")):
+                handed = ev[robot].take()
+                both.merge(handed)
+                mine[robot].merge(handed)
+                mine[other].merge(decode_evidence(encode_evidence(handed)))
+
+    _drive(workers, inputs, world, hand)
+    hand(0)
+    report = both.answer("m1")
+    assert report is not None and mine["a"].answer("m1") == report == mine["b"].answer("m1")
+    assert decode(MapHealth, report).robots == 2

@@ -53,7 +53,8 @@ def _dist(pose: dict[str, Any], truth: Any) -> float:
 
 @pytest.mark.integration
 def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -> None:
-    """Asserted: the host is ready only with both processes, and its Health adds theirs up;
+    """Asserted: the host is ready only with both processes, and its Health adds theirs up,
+    its robot view lists every robot and its MapHealth covers every robot's scans;
     the two processes (the first in the host's own process) split the robots as rendezvous
     hashing over their names says; when the other is SIGKILLed, each of its robots is served
     again by the first within 2 s of its last pose, within 5 cm of the truth, and the host
@@ -113,6 +114,11 @@ def test_a_host_of_two_processes_serves_a_fleet_through_a_kill(tmp_path: Path) -
             lambda: {s.robot_id: s.owner for s in merge_robots(fetch_robots(session, "rlutf", 2))}
             == split, 10.0), text()  # fmt: skip
         assert wait_until(lambda: len(health_puts) >= 2, 20.0), text()
+        # one MapHealth of the whole fleet, from one process: each shares its robots' evidence
+        # and merges the other's (service.evidence), and one of them puts the map's report
+        fleet_seen = lambda: [json.loads(p)["robots"] for p in health_puts]  # noqa: E731
+        assert wait_until(lambda: fleet_seen()[-1] == len(robots), 20.0), (fleet_seen(), text())
+        assert fleet_seen() == sorted(fleet_seen()), fleet_seen()  # not two reports in turn
         time.sleep(1.5)  # the Health the host polls is a second old at most
         both = _health(session, "h")
         parts = both["extra"]["by_process"]
