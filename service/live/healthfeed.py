@@ -73,7 +73,7 @@ class HealthFeed:
         self.engine = MapHealthEngine(keys)
         self._lock = threading.Lock()
         self.instance: str | None = None  # None: evidence kept here (a replay, a test)
-        self.max_bytes = 0
+        self.max_bytes = 64 << 20
         self.reports: Callable[[str], bool] = lambda key: True
         self.events: Limited | None = None
         self.shared = self.merged_from_others = self.refused = 0
@@ -126,7 +126,7 @@ class HealthFeed:
         """Merge evidence another instance shared (``{prefix}/service/{instance}/mapevidence``);
         put and record what is due. Returns why the payload was refused, else ``None``."""
         try:
-            handed = decode_evidence(payload)
+            handed = decode_evidence(payload, self.max_bytes)
         except ValueError as err:
             return str(err)
         problem = self._merge(handed)

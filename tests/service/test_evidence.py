@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+import zstandard
 
 from rlutf.mapchange import GridCounts
 from service.evidence import CELL_BYTES, decode_evidence, encode_evidence
@@ -42,23 +43,39 @@ def test_evidence_round_trips_exactly() -> None:
             assert x.dtype == y.dtype and np.array_equal(x, y)
 
 
+def _raw(payload: bytes) -> bytes:
+    return bytes(zstandard.ZstdDecompressor().decompress(payload))
+
+
+def _zst(raw: bytes) -> bytes:
+    return bytes(zstandard.ZstdCompressor().compress(raw))
+
+
+def _stream(raw: bytes) -> bytes:
+    """A frame that does not say its size (written as a stream)."""
+    return bytes(zstandard.ZstdCompressor(write_content_size=False).compress(raw))
+
+
 def _with(change: dict[str, object]) -> bytes:
-    payload = encode_evidence([_handed()])
-    head, _, body = payload.partition(b"\n")
+    head, _, body = _raw(encode_evidence([_handed()])).partition(b"\n")
     doc = json.loads(head)
     doc["maps"][0].update(change)
-    return json.dumps(doc).encode() + b"\n" + body
+    return _zst(json.dumps(doc).encode() + b"\n" + body)
 
 
 @pytest.mark.parametrize(
     ("payload", "said"),
     [
-        (b"", "no header"),
-        (b"{not json\n", "not JSON"),
-        (b'{"maps": 3}\n', "'maps' must be a list"),
-        (b'{"maps": [' + b"{}," * 70 + b"{}]}\n", "'maps' must be a list of at most"),
-        (encode_evidence([_handed()])[:-5], "shorter than its header"),
-        (encode_evidence([_handed()]) + b"x", "longer than its header"),
+        (b"", "not a zstd frame"),
+        (b"plain text", "not a zstd frame"),
+        (_zst(bytes(2_000_000)), "not a zstd frame of at most 1000000 bytes"),  # a bomb
+        (_stream(bytes(2_000_000)), "not a zstd frame of at most 1000000 bytes"),  # unsized
+        (_zst(b""), "no header"),
+        (_zst(b"{not json\n"), "not JSON"),
+        (_zst(b'{"maps": 3}\n'), "'maps' must be a list"),
+        (_zst(b'{"maps": [' + b"{}," * 70 + b"{}]}\n"), "'maps' must be a list of at most"),
+        (_zst(_raw(encode_evidence([_handed()]))[:-5]), "shorter than its header"),
+        (_zst(_raw(encode_evidence([_handed()])) + b"x"), "longer than its header"),
         (_with({"map_id": "../etc"}), "'map_id' is not a map id"),
         (_with({"version": -1}), "'version' must be a whole number"),
         (_with({"shape": [10]}), "'shape' must be"),
@@ -71,7 +88,7 @@ def _with(change: dict[str, object]) -> bytes:
 )
 def test_a_payload_that_is_not_evidence_is_refused_with_why(payload: bytes, said: str) -> None:
     with pytest.raises(ValueError, match=said):
-        decode_evidence(payload)
+        decode_evidence(payload, 1_000_000)
 
 
 def test_repeated_cells_and_negative_counts_are_refused() -> None:
@@ -82,4 +99,4 @@ def test_repeated_cells_and_negative_counts_are_refused() -> None:
     bad.counts.counts[1, 0] = -4
     with pytest.raises(ValueError, match="a negative count"):
         decode_evidence(encode_evidence([bad]))
-    assert len(encode_evidence([_handed()]).partition(b"\n")[2]) == 3 * CELL_BYTES
+    assert len(_raw(encode_evidence([_handed()])).partition(b"\n")[2]) == 3 * CELL_BYTES
