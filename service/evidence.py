@@ -10,8 +10,8 @@ sums, ORs, minima and maxima (:meth:`rlutf.mapchange.ChangeGrid.merge`), so ever
 holds the same grid once it has merged the same counts, whatever their order, and one instance
 reports each map (``docs/extensions.md``).
 
-The payload is a zstd frame (level 1: a second of 100 robots' evidence on a simulated
-building, 8,000 cells, is 549 KB raw and 31 KB compressed, in about a millisecond) of one line
+The payload is a zstd frame (level 1; what it weighs: ``python -m bench.evidence``,
+BENCHMARKS.md "Map health evidence between instances") of one line
 of JSON (per map version counted: ``map_id``, ``version``, ``shape`` ``[nx, ny]``, ``cells``
 (K), ``scans``, ``oldest_ns``, ``newest_ns``, ``robots``), a newline, then per map version its
 arrays, little-endian: the K flat cell indices (int64), the ``7 x K`` counts (int32) and the
