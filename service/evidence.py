@@ -36,6 +36,9 @@ from service.maphealth import Handed
 #: Cells of one grid at most (a 1 km x 1 km map at the default 0.1 m cells is 10^8: far more
 #: than any building here; the receiving grid's own size is checked too).
 MAX_CELLS = 100_000_000
+#: A cell's count in one payload at most (a second of 100 robots' scans puts thousands, not
+#: millions, in the busiest cell; the grid's sums are int32, so one payload cannot wrap them).
+MAX_COUNT = 100_000_000
 #: Map versions in one payload at most.
 MAX_MAPS = 64
 #: Robot ids named in one map version's counts at most.
@@ -118,8 +121,10 @@ def decode_evidence(payload: bytes, max_bytes: int = 64 << 20) -> list[Handed]:
             raise ValueError("map evidence: a cell index outside the grid")
         if k and len(np.unique(cells)) != k:
             raise ValueError("map evidence: a cell given twice")
-        if (counts[:3] < 0).any():
-            raise ValueError("map evidence: a negative count")
+        if (counts[:3] < 0).any() or (counts[:3] > MAX_COUNT).any():
+            raise ValueError(f"map evidence: a count below 0 or above {MAX_COUNT}")
+        if (times < 0).any():
+            raise ValueError("map evidence: a stamp below 0")
         counts_of = GridCounts(
             shape,
             cells,

@@ -95,8 +95,13 @@ def test_repeated_cells_and_negative_counts_are_refused() -> None:
     payload = encode_evidence([_handed(cells=(3, 3, 40))])
     with pytest.raises(ValueError, match="a cell given twice"):
         decode_evidence(payload)
+    for row, value, said in ((1, -4, "a count below 0"), (2, 10**9, "above 100000000")):
+        bad = _handed()
+        bad.counts.counts[row, 0] = value
+        with pytest.raises(ValueError, match=said):
+            decode_evidence(encode_evidence([bad]))
     bad = _handed()
-    bad.counts.counts[1, 0] = -4
-    with pytest.raises(ValueError, match="a negative count"):
+    bad.counts.times[3, 1] = -1  # a stamp the MapHealth it would make could not carry
+    with pytest.raises(ValueError, match="a stamp below 0"):
         decode_evidence(encode_evidence([bad]))
     assert len(_raw(encode_evidence([_handed()])).partition(b"\n")[2]) == 3 * CELL_BYTES
