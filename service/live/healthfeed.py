@@ -76,7 +76,6 @@ class HealthFeed:
         self.max_bytes = 64 << 20
         self.reports: Callable[[str], bool] = lambda key: True
         self.events: Limited | None = None
-        self.shared = self.merged_from_others = self.refused = 0
 
     def share_as(
         self,
@@ -93,7 +92,6 @@ class HealthFeed:
         self.events = events
 
     def _refused(self, key: str, problem: str) -> None:
-        self.refused += 1
         if self.events is not None:
             code = EventCode.INVALID_MESSAGE
             self.events.limited("evidence", "warning", code, key, problem, self.clock())
@@ -104,7 +102,6 @@ class HealthFeed:
         handed = list(handed)
         if self.instance is not None and handed:
             self.publish(self.keys.mapevidence(self.instance), encode_evidence(handed))
-            self.shared += 1
         self._merge(handed)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -129,10 +126,7 @@ class HealthFeed:
             handed = decode_evidence(payload, self.max_bytes)
         except ValueError as err:
             return str(err)
-        problem = self._merge(handed)
-        if problem is None:
-            self.merged_from_others += 1
-        return problem
+        return self._merge(handed)
 
     def _merge(self, handed: list[Handed]) -> str | None:
         try:
