@@ -24,39 +24,21 @@ import zstandard
 from bench.report import section_main
 
 SECTION = "evidence"
-T0 = 1_000_000_000
-PERIOD = 100_000_000
 
 
 def measure(robots: int, seconds: int) -> list[tuple[int, int, int, float, float]]:
     """Per second of the fleet: (cells, raw bytes, bytes put, encode ms, decode ms)."""
-    from bench.floor import _fleet
-    from schemas import InitialPose, LaserScan, Odometry, decode
-    from service.config import Settings
-    from service.engine import FleetEngine
+    from bench.floor import _fleet, fleet_steps
     from service.evidence import decode_evidence, encode_evidence
-    from service.keys import Keys
-    from service.live.worker import evidence, world_of_payload
-    from service.sim.wire import map_payload
+    from service.live.worker import evidence
 
     plan, wire = _fleet(robots, 10 * seconds + 1)
-    s = Settings()
     counted = evidence(True)
-    engine = FleetEngine(Keys(), s.localizer, int(s.event_interval_s * 1e9), None, counted)
-    engine.register_map("sim", 1, world_of_payload(map_payload(plan)), 0)
-    ids = [r.robot_id for r in plan.robots]
-    for i, rid in enumerate(ids):
-        engine.handle(rid, decode(Odometry, wire.odometry(i, 0, T0)), T0)
-        start = wire.initial_pose(i, T0)
-        if start is not None:
-            engine.handle(rid, decode(InitialPose, start), T0)
+    step = fleet_steps(plan, wire, counted)
     rows = []
     for sec in range(seconds):
         for k in range(1 + 10 * sec, 11 + 10 * sec):
-            st = T0 + k * PERIOD
-            for i, rid in enumerate(ids):
-                engine.handle(rid, decode(Odometry, wire.odometry(i, k, st)), st)
-                engine.handle(rid, decode(LaserScan, wire.scan(i, k, st)), st + 1000)
+            step(k)
         handed = counted.take()
         t0 = time.perf_counter()
         payload = encode_evidence(handed)

@@ -197,8 +197,11 @@ def cost_fit(costs: dict[int, list[float]]) -> tuple[float, float]:
     return float(fixed), float(per_cast)
 
 
-def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
-    """CPU ms per scan of decoding a robot's odometry and scan and handling both."""
+def fleet_steps(plan: FleetPlan, wire: JsonWire, counted: Any = None) -> Callable[[int], int]:
+    """A :class:`service.engine.FleetEngine` on the plan's map, every robot's first odometry
+    and initial pose handled; returns what handles step ``k`` of every robot (its odometry,
+    then its scan, decoded from the wire) and counts the scans. ``counted``: the map health
+    evidence sink (default: the settings')."""
     from schemas import InitialPose, LaserScan, Odometry, decode
     from service.config import Settings
     from service.engine import FleetEngine
@@ -206,9 +209,8 @@ def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
     from service.live.worker import evidence, world_of_payload
 
     s = Settings()
-    eng = FleetEngine(
-        Keys(), s.localizer, int(s.event_interval_s * 1e9), None, evidence(s.map_health)
-    )
+    sink = counted if counted is not None else evidence(s.map_health)
+    eng = FleetEngine(Keys(), s.localizer, int(s.event_interval_s * 1e9), None, sink)
     eng.register_map("sim", 1, world_of_payload(map_payload(plan)), 0)
     ids = [r.robot_id for r in plan.robots]
     for i, rid in enumerate(ids):
@@ -217,17 +219,20 @@ def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
         if start is not None:
             eng.handle(rid, decode(InitialPose, start), T0)
 
-    def run(a: int, b: int) -> int:
-        n = 0
-        for k in range(a, b):
-            st = T0 + k * PERIOD
-            for i, rid in enumerate(ids):
-                eng.handle(rid, decode(Odometry, wire.odometry(i, k, st)), st)
-                eng.handle(rid, decode(LaserScan, wire.scan(i, k, st)), st + 1000)
-                n += 1
-        return n
+    def step(k: int) -> int:
+        st = T0 + k * PERIOD
+        for i, rid in enumerate(ids):
+            eng.handle(rid, decode(Odometry, wire.odometry(i, k, st)), st)
+            eng.handle(rid, decode(LaserScan, wire.scan(i, k, st)), st + 1000)
+        return len(ids)
 
-    return _measured(run, steps)
+    return step
+
+
+def engine_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> float:
+    """CPU ms per scan of decoding a robot's odometry and scan and handling both."""
+    step = fleet_steps(plan, wire)
+    return _measured(lambda a, b: sum(step(k) for k in range(a, b)), steps)
 
 
 def pipe_ms(plan: FleetPlan, wire: JsonWire, steps: int) -> tuple[float, float]:

@@ -353,11 +353,10 @@ def cmd_show(args: argparse.Namespace) -> int:
                 EXIT_USAGE,
             ) from err
         if isinstance(data, dict) and data.get("type") in ("Feature", "FeatureCollection"):
-            from service.maps.client import collection_geometry
+            from service.maps.client import unwrap_geojson
 
             try:  # GeoJSON as rlutf map put takes it: drawn as the geometry it puts
-                feature = data.get("type") == "Feature"
-                data = data.get("geometry") if feature else collection_geometry(path, data)
+                data = unwrap_geojson(path, data)["geometry"]
             except ValueError as err:
                 print(f"rlutf map show: {err}", file=sys.stderr)
                 return EXIT_FAILURE

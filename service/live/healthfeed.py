@@ -11,11 +11,18 @@ with a batch's outputs at most once a second (``evidence`` outputs,
 ``{prefix}/maphealth/{map_id}`` when it changed (at most once a second), records it (schema
 ``rlutf.MapHealth``) and answers gets there. A map version starts its evidence afresh when the
 first evidence of it arrives (the map book holds the version the robots are on).
+
+The other instances' evidence arrives on a Zenoh callback thread, which only checks its key
+and size and hands the payload to a thread of the feed's own (:meth:`HealthFeed.declare`):
+decompressing, merging and building a report (a map's polygons, its first time) run there, not
+on the thread that delivers the bus's samples.
 """
 
 from __future__ import annotations
 
 import json
+import logging
+import queue
 import threading
 from collections.abc import Callable, Iterable
 from typing import Protocol
@@ -29,7 +36,13 @@ from service.keys import Keys
 from service.maphealth import Handed, MapHealthEngine
 from service.maps.book import MapBook
 
+log = logging.getLogger(__name__)
+
 MAPHEALTH_SCHEMA = SCHEMA_NAMES[MapHealth]
+#: Other instances' evidence payloads waiting to be merged at most. An instance shares at most
+#: one a second, so a fleet of a few instances never fills it; a flood does, and what does not
+#: fit is dropped with an Event.
+WAITING = 32
 JSON = zenoh.Encoding.APPLICATION_JSON
 
 Publish = Callable[[str, bytes], None]
@@ -85,13 +98,14 @@ class HealthFeed:
         events: Limited | None = None,
     ) -> None:
         """Share the evidence counted here as ``instance`` and merge the other instances'
-        (:meth:`on_sample`, payloads up to ``max_bytes``); put and record the MapHealth of the
+        (:meth:`declare`, payloads up to ``max_bytes``); put and record the MapHealth of the
         keys ``reports`` says this instance reports; a payload that cannot be merged is an
         Event ``invalid_message`` from ``events`` (one a second)."""
         self.instance, self.max_bytes, self.reports = instance, max_bytes, reports
         self.events = events
 
-    def _refused(self, key: str, problem: str) -> None:
+    def refused(self, key: str, problem: str) -> None:
+        """An Event ``invalid_message`` for evidence from ``key`` not merged (one a second)."""
         if self.events is not None:
             code = EventCode.INVALID_MESSAGE
             self.events.limited("evidence", "warning", code, key, problem, self.clock())
@@ -104,20 +118,24 @@ class HealthFeed:
             self.publish(self.keys.mapevidence(self.instance), encode_evidence(handed))
         self._merge(handed)
 
-    def on_sample(self, sample: zenoh.Sample) -> None:
-        """Subscriber callback on ``{prefix}/service/*/mapevidence``: another instance's."""
+    def declare(self, session: zenoh.Session) -> Merging:
+        """Subscribe to the other instances' evidence (``{prefix}/service/*/mapevidence``) and
+        merge it on a thread of the feed's own. Returns what undeclares both."""
+        return Merging(self, session)
+
+    def check(self, sample: zenoh.Sample) -> bytes | None:
+        """The payload of another instance's evidence to merge, or ``None`` (this instance's
+        own, a delete, or over the size limit: refused with an Event)."""
         key = str(sample.key_expr)
         if self.instance is None or key == self.keys.mapevidence(self.instance):
-            return
+            return None
         if sample.kind != zenoh.SampleKind.PUT:
-            return
+            return None
         size = len(sample.payload)
         if size > self.max_bytes:
-            self._refused(key, f"map evidence of {size} bytes: over max_map_bytes")
-            return
-        problem = self.on_shared(sample.payload.to_bytes())
-        if problem is not None:
-            self._refused(key, problem)
+            self.refused(key, f"map evidence of {size} bytes: over max_map_bytes")
+            return None
+        return sample.payload.to_bytes()
 
     def on_shared(self, payload: bytes) -> str | None:
         """Merge evidence another instance shared (``{prefix}/service/{instance}/mapevidence``);
@@ -162,3 +180,48 @@ class HealthFeed:
                 key = self.keys.maphealth(map_id)
                 if payload is not None and ke.intersects(zenoh.KeyExpr(key)):
                     query.reply(key, payload, encoding=JSON)
+
+
+class Merging:
+    """The other instances' evidence: checked on Zenoh's callback thread, merged on our own.
+
+    The callback takes the payload out of the sample (the bus's buffer is not kept) and queues
+    it, up to :data:`WAITING` payloads; one that does not fit is dropped with an Event (its
+    counts are lost to this instance's reports, and the Event says so).
+    """
+
+    def __init__(self, feed: HealthFeed, session: zenoh.Session) -> None:
+        self._feed = feed
+        self._waiting: queue.Queue[tuple[str, bytes] | None] = queue.Queue(WAITING)
+        self._thread = threading.Thread(target=self._run, name="rlutf-evidence", daemon=True)
+        self._thread.start()
+        self._sub = session.declare_subscriber(feed.keys.mapevidence("*"), self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        payload = self._feed.check(sample)
+        if payload is None:
+            return
+        key = str(sample.key_expr)
+        try:
+            self._waiting.put_nowait((key, payload))
+        except queue.Full:
+            self._feed.refused(
+                key, f"map evidence dropped: {WAITING} payloads already wait to be merged"
+            )
+
+    def _run(self) -> None:
+        while (item := self._waiting.get()) is not None:
+            key, payload = item
+            try:
+                problem = self._feed.on_shared(payload)
+            except Exception:  # a bug here must not end the merging
+                log.exception("map evidence from %s", key)
+                continue
+            if problem is not None:
+                self._feed.refused(key, problem)
+
+    def undeclare(self) -> None:
+        """Stop the subscription, merge what already waits, stop the thread."""
+        self._sub.undeclare()
+        self._waiting.put(None)
+        self._thread.join(5.0)

@@ -260,7 +260,7 @@ class LocalizationService:
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
             session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
             session.declare_queryable(self.keys.all_maphealth, self.healthfeed.on_query),
-            session.declare_subscriber(self.keys.mapevidence("*"), self.healthfeed.on_sample),
+            self.healthfeed.declare(session),  # the other instances' map health evidence
         ]
         restored, problems = self.posestate.open()  # the poses kept across a restart
         for problem in problems:

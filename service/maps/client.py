@@ -40,12 +40,7 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
         raise ValueError(f"{path}: malformed JSON: {err}{_import_hint(path)}") from err
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object")
-    if data.get("type") in ("Polygon", "MultiPolygon"):
-        data = {"geometry": data}
-    if data.get("type") == "Feature":
-        data = {"geometry": data.get("geometry")}
-    if data.get("type") == "FeatureCollection":
-        data = {"geometry": collection_geometry(path, data)}
+    data = unwrap_geojson(path, data)
     mid = map_id or data.get("map_id") or path.stem.split(".")[0]
     if not valid_id(str(mid)):
         raise ValueError(f"map id {mid!r} does not match [A-Za-z0-9_-]{{1,64}}; use --id")
@@ -65,6 +60,24 @@ def _import_hint(path: Path) -> str:
     if path.suffix.lower() in (".yaml", ".yml", ".pgm", ".png"):
         return f"; a map_server map (YAML and image) is imported with rlutf map import {path} --put"
     return ""
+
+
+def unwrap_geojson(path: Path, data: dict[str, Any]) -> dict[str, Any]:
+    """A map file's JSON object as a Map's fields: a bare GeoJSON geometry, a Feature or a
+    FeatureCollection (:func:`collection_geometry`) becomes ``{"geometry": ...}``; anything
+    else (a Map message) is returned as it is.
+
+    Raises:
+        ValueError: a FeatureCollection that holds no map (why).
+    """
+    kind = data.get("type")
+    if kind in ("Polygon", "MultiPolygon"):
+        return {"geometry": data}
+    if kind == "Feature":
+        return {"geometry": data.get("geometry")}
+    if kind == "FeatureCollection":
+        return {"geometry": collection_geometry(path, data)}
+    return data
 
 
 def collection_geometry(path: Path, data: dict[str, Any]) -> dict[str, Any]:

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -356,3 +357,40 @@ def test_sigterm_after_a_burst_stops_the_service(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_another_instances_evidence_is_merged_off_the_bus_thread_and_a_flood_is_bounded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Another instance's map health evidence used to be decompressed and merged on Zenoh's
+    # callback thread; now the callback only queues it, for a thread of the service's own.
+    from service.live.healthfeed import WAITING
+
+    with running_bench(tmp_path) as bench:
+        feed = bench.service.healthfeed
+        merged = feed.on_shared
+        release = threading.Event()
+        threads: list[str] = []
+
+        def slow(payload: bytes) -> str | None:
+            threads.append(threading.current_thread().name)
+            release.wait(10.0)
+            return merged(payload)
+
+        monkeypatch.setattr(feed, "on_shared", slow)
+        col = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", col)
+        key = "rlutf/service/intruder/mapevidence"
+        for i in range(WAITING + 10):
+            bench.client.put(key, b"not evidence %d" % i)
+
+        def said(text: str) -> bool:
+            return any(text in e["message"] and e["key"] == key for e in col.on("rlutf/events"))
+
+        assert col.wait_for(lambda: said("map evidence dropped"), 5.0), col.on("rlutf/events")
+        assert threads and set(threads) == {"rlutf-evidence"}
+        assert _health(bench) is not None  # nothing waits on the merging
+        release.set()
+        assert col.wait_for(lambda: said("not a zstd frame"), 5.0)  # the queued ones, merged
+        assert all(e["code"] == "invalid_message" for e in col.on("rlutf/events"))
+        sub.undeclare()
