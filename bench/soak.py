@@ -161,6 +161,31 @@ def _by_process(samples: list[dict[str, Any]], warmup: float) -> list[str]:
     ]
 
 
+ROOT = Path(__file__).resolve().parent.parent  # the repository's paths are shown from here
+
+
+def _heap(grew: dict[str, Any], warmup: float) -> list[str]:
+    if not grew:
+        return []
+    lines = [
+        "",
+        "What grew in Python's allocations (`--tracemalloc`: every service process traced, a "
+        f"snapshot after the {warmup:g} min warm-up and one at the end of the load), per process: "
+        "the total, then the places that grew most (the allocation's innermost frame).",
+        "",
+        "| process | place | grew kB | blocks | kB at the end |",
+        "| --- | --- | ---: | ---: | ---: |",
+    ]
+    for label, g in grew.items():
+        lines.append(f"| {label} | all traced | {g['total_kb']:+.0f} | | |")
+        for r in g["rows"]:
+            where = r["where"].split("site-packages/")[-1].replace(f"{ROOT}/", "")
+            lines.append(
+                f"| {label} | `{where}` | {r['kb']:+.1f} | {r['blocks']:+d} | {r['kb_after']:.0f} |"
+            )
+    return lines
+
+
 def _table(samples: list[dict[str, Any]], rows: int = 10) -> list[str]:
     """Every few samples (about ``rows`` rows and the last), CPU per scan since the row above."""
     stride = max(1, math.ceil(len(samples) / rows))
@@ -214,7 +239,8 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
         f"Command: `python -m bench.soak --robots {args.robots} --minutes {args.minutes:g} "
         f"--rotate-seconds {args.rotate_seconds:g} --sample-s {args.sample_s:g} "
         f"--warmup-minutes {warmup:g} --loop-seconds {args.loop_seconds:g}"
-        f"{'' if args.processes is None else f' --processes {args.processes}'}{write}`",
+        f"{'' if args.processes is None else f' --processes {args.processes}'}"
+        f"{f' --tracemalloc {args.tracemalloc}' if args.tracemalloc else ''}{write}`",
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
         f"{platform.python_version()}. One `rlutf serve"
@@ -264,6 +290,7 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
         "",
         *_table(s),
         *_by_process(s, warmup),
+        *_heap(run.get("heap", {}), warmup),
     ]
     return "\n".join(lines)
 
@@ -306,6 +333,15 @@ def main(argv: list[str] | None = None) -> int:
         "layout of workers; default: the service's layout, `rlutf serve` with no flag)",
     )
     p.add_argument("--seed", type=int, default=7, help="random seed of the simulated fleet")
+    p.add_argument(
+        "--tracemalloc",
+        type=int,
+        default=0,
+        metavar="FRAMES",
+        help="trace Python's allocations in every service process (FRAMES frames each; costs "
+        "CPU), snapshot them after the warm-up and at the end, and report what grew (default 0: "
+        "off)",
+    )
     p.add_argument(
         "--no-write",
         dest="write",

@@ -7,8 +7,10 @@ import argparse
 import json
 import math
 import multiprocessing as mp
+import os
 import queue
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -237,6 +239,51 @@ class _Sampler:
         }
 
 
+class _HeapSnapshots:
+    """``--tracemalloc N``: every service process traces Python's allocations
+    (:mod:`service.live.heapdumps`), snapshotted after the warm-up and at the end of the load."""
+
+    def __init__(self, folder: Path, frames: int) -> None:
+        self.folder, self.frames = folder, frames
+        folder.mkdir()
+        self.taken = 0
+        self.pids: dict[str, int] = {}
+
+    def env(self) -> dict[str, str]:
+        return {"RLUTF_TRACEMALLOC": str(self.frames), "RLUTF_TRACEMALLOC_DIR": str(self.folder)}
+
+    def take(self, service_pid: int, timeout: float = 120.0) -> None:
+        """Signal every process of the service, wait until each wrote its snapshot."""
+        from service.live.heapdumps import snapshots
+
+        self.pids = self.pids or labelled_processes(service_pid)
+        self.taken += 1
+        for pid in self.pids.values():
+            os.kill(pid, signal.SIGUSR2)
+        deadline = time.monotonic() + timeout
+        sizes: list[int] = []
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            found = [snapshots(self.folder, pid) for pid in self.pids.values()]
+            now = [f[-1].stat().st_size for f in found if len(f) >= self.taken]
+            if len(now) == len(self.pids) and now == sizes:  # all written, sizes settled
+                return
+            sizes = now
+        raise RuntimeError(f"tracemalloc snapshots not written within {timeout:g} s")
+
+    def growth(self) -> dict[str, Any]:
+        """Per process: its traced allocations' growth, kB, and the largest places."""
+        from service.live.heapdumps import grown, snapshots
+
+        out: dict[str, Any] = {}
+        for label, pid in self.pids.items():
+            found = snapshots(self.folder, pid)
+            if len(found) >= 2:
+                total, rows = grown(found[0], found[-1])
+                out[label] = {"total_kb": total, "rows": [vars(r) for r in rows]}
+        return out
+
+
 def check_logs(record_dir: Path) -> tuple[list[FileCheck], list[str]]:
     """Every finished log file read end to end, and the names of ``.part`` files left."""
     from schemas import SCHEMA_NAMES, PoseEstimate
@@ -322,6 +369,9 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-soak-"))
     env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
+    heap = _HeapSnapshots(tmp / "heap", args.tracemalloc) if args.tracemalloc else None
+    env.update(heap.env() if heap is not None else {})
+    warmup = args.warmup_minutes if args.warmup_minutes is not None else min(5.0, args.minutes / 3)
     service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
     flags = ("--processes", str(args.serve_processes)) if args.serve_processes else ()
     proc = start_service(
@@ -378,9 +428,13 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
                 raise RuntimeError("the load generator is stuck: the service does not read")
             samples.append(sampler.take(timeout))
             _progress(samples[-1])
+            if heap is not None and not heap.taken and samples[-1]["minute"] >= warmup:
+                heap.take(proc.pid)
             while due <= time.monotonic():
                 due += args.sample_s
         cpu = sampler.cpu()
+        if heap is not None:  # the end of the load, before the drain
+            heap.take(proc.pid)
         drained = _wait_drained(session, timeout=DRAIN_S)
         time.sleep(1.0)  # the last poses on their way to the generator
         finish.set()
@@ -391,6 +445,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         stop_code = stop_service(proc, timeout=120)
         gen.join(30)
         files, parts = check_logs(tmp / "logs")
+        grew = heap.growth() if heap is not None else {}
     finally:
         if proc.poll() is None:
             stop_service(proc)
@@ -407,6 +462,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         "parts": parts,
         "stop_code": stop_code,
         "drained_s": drained,
+        "heap": grew,
     }
 
 

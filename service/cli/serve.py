@@ -116,6 +116,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.live.heapdumps import install_from_env
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
@@ -143,6 +144,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    install_from_env()  # RLUTF_TRACEMALLOC: a diagnosis of what grows (service.live.heapdumps)
     processes = settings.service_processes()
     if processes > 0:
         if settings.foxglove_port is not None:

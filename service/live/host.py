@@ -48,6 +48,7 @@ import zenoh
 from schemas import Health, LatencyPercentiles, SchemaError, decode, encode
 from service.config import Settings
 from service.keys import Keys
+from service.live.heapdumps import TRACE
 from service.live.sessions import free_port
 
 log = logging.getLogger(__name__)
@@ -190,7 +191,8 @@ class Host:
         self._declared.append(
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query)
         )
-        env = {k: v for k, v in os.environ.items() if not k.startswith("RLUTF_")}
+        # Settings go by file; of the RLUTF_ variables only the diagnosis's (heapdumps) pass.
+        env = {k: v for k, v in os.environ.items() if not k.startswith("RLUTF_") or k in TRACE}
         folder = Path(self._folder.name)
         for k in range(1, s.processes):
             data = process_settings(s, k, inner, ports[k])
