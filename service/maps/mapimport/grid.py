@@ -209,8 +209,14 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
     )
 
 
-def _decode(image: bytes, name: str) -> tuple[FloatArray, FloatArray | None]:
-    """Colour channels ``(H, W, C)`` and alpha ``(H, W)`` (or None), scaled to ``[0, 1]``."""
+#: Image rows converted at once: the float temporaries of a large map are a band's, not the
+#: whole image's (a 4000 x 6000 map took 1.1 GB to load in float64 at once).
+BAND_ROWS = 256
+
+
+def _decode(image: bytes, name: str) -> tuple[NDArray[Any], NDArray[Any] | None, float]:
+    """Colour channels ``(H, W, C)`` and alpha ``(H, W)`` (or None) as the image holds them,
+    and the value of full scale (``[0, 1]`` after dividing by it)."""
     try:
         img: Image.Image = Image.open(io.BytesIO(image))
         img.load()
@@ -229,31 +235,18 @@ def _decode(image: bytes, name: str) -> tuple[FloatArray, FloatArray | None]:
     if img.mode not in ("L", "LA", "RGB", "RGBA") and not img.mode.startswith("I"):
         raise MapFileError(f"{name}: unsupported image mode {img.mode!r}")
     scale = 255.0 if img.mode in ("L", "LA", "RGB", "RGBA") else 65535.0
-    arr = np.asarray(img, dtype=np.float64) / scale
+    arr = np.asarray(img)
     if arr.ndim == 2:
-        return arr[:, :, None], None
+        return arr[:, :, None], None, scale
     if img.mode in ("LA", "RGBA"):
-        return arr[:, :, :-1], arr[:, :, -1]
-    return arr, None
+        return arr[:, :, :-1], arr[:, :, -1], scale
+    return arr, None, scale
 
 
-def grid_from_image(image: bytes, meta: MapMetadata, *, name: str = "image") -> OccupancyGrid:
-    """Decode a map image with its metadata, following Nav2's map_server.
-
-    Args:
-        image: the PGM, PNG or other Pillow-readable image file's bytes.
-        meta: the YAML metadata.
-        name: how to call the image in error messages (its path).
-
-    Returns:
-        The grid, rows bottom-up.
-
-    Raises:
-        MapFileError: the bytes are not a readable image.
-    """
-    colour, alpha = _decode(image, name)
-    if colour.shape[0] == 0 or colour.shape[1] == 0:
-        raise MapFileError(f"{name}: the image is empty")
+def _classify(
+    colour: FloatArray, alpha: FloatArray | None, meta: MapMetadata
+) -> tuple[FloatArray, BoolArray, BoolArray]:
+    """Occupancy values, free and occupied cells of image rows scaled to ``[0, 1]``."""
     shade = colour.mean(axis=2)
     if meta.mode == "trinary" and alpha is not None:
         n = colour.shape[2]
@@ -274,10 +267,37 @@ def grid_from_image(image: bytes, meta: MapMetadata, *, name: str = "image") -> 
             occ > meta.occupied_thresh, 100.0, np.where(occ < meta.free_thresh, 0.0, between)
         )
         data = np.where(known, data, -1.0)
-    free = known & (occ < meta.free_thresh)
-    occupied = known & (occ > meta.occupied_thresh)
+    return data, known & (occ < meta.free_thresh), known & (occ > meta.occupied_thresh)
+
+
+def grid_from_image(image: bytes, meta: MapMetadata, *, name: str = "image") -> OccupancyGrid:
+    """Decode a map image with its metadata, following Nav2's map_server.
+
+    Args:
+        image: the PGM, PNG or other Pillow-readable image file's bytes.
+        meta: the YAML metadata.
+        name: how to call the image in error messages (its path).
+
+    Returns:
+        The grid, rows bottom-up.
+
+    Raises:
+        MapFileError: the bytes are not a readable image.
+    """
+    colour, alpha, scale = _decode(image, name)
+    rows, cols = colour.shape[:2]
+    if rows == 0 or cols == 0:
+        raise MapFileError(f"{name}: the image is empty")
+    data = np.empty((rows, cols), dtype=np.int8)
+    free = np.empty((rows, cols), dtype=bool)
+    occupied = np.empty((rows, cols), dtype=bool)
+    for r0 in range(0, rows, BAND_ROWS):  # in float64, as map_server, a band at a time
+        band = slice(r0, min(rows, r0 + BAND_ROWS))
+        a = None if alpha is None else alpha[band].astype(np.float64) / scale
+        d, f, o = _classify(colour[band].astype(np.float64) / scale, a, meta)
+        data[band], free[band], occupied[band] = d.astype(np.int8), f, o
     return OccupancyGrid(
-        data=np.ascontiguousarray(data[::-1].astype(np.int8)),
+        data=np.ascontiguousarray(data[::-1]),
         free=np.ascontiguousarray(free[::-1]),
         occupied=np.ascontiguousarray(occupied[::-1]),
         resolution=meta.resolution,

@@ -232,3 +232,33 @@ def test_grid_rejects_inconsistent_arrays() -> None:
             np.zeros((2, 2), np.int8), np.zeros((2, 2), bool), np.zeros((2, 2), bool), 0.0
         )
     assert issubclass(MapFileError, MapImportError)
+
+
+@pytest.mark.parametrize("mode", ["L", "LA", "RGB", "RGBA", "I;16"])
+@pytest.mark.parametrize("meta_mode", ["trinary", "scale", "raw"])
+def test_a_large_image_is_read_in_bands_with_no_seam(
+    mode: str, meta_mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Thresholds a pixel value meets exactly (0.2 = 1 - 204/255), where float rounding shows.
+    import service.maps.mapimport.grid as grid_module
+
+    rng = np.random.default_rng(5)
+    shape = (53, 41)
+    if mode == "I;16":
+        img = Image.fromarray(rng.integers(0, 65536, shape, dtype=np.uint16))
+    elif mode == "L":
+        img = Image.fromarray(rng.integers(0, 256, shape, dtype=np.uint8), "L")
+    else:
+        arr = rng.integers(0, 256, (*shape, len(mode)), dtype=np.uint8)
+        if mode in ("LA", "RGBA"):
+            arr[..., -1][rng.random(shape) < 0.7] = 255  # most pixels opaque
+        img = Image.fromarray(arr, mode)
+    buf = io.BytesIO()
+    img.save(buf, "PNG")
+    meta = MapMetadata("x.png", 0.05, (0.0, 0.0, 0.0), False, 0.6, 0.2, meta_mode)  # type: ignore[arg-type]
+    whole = grid_from_image(buf.getvalue(), meta)
+    monkeypatch.setattr(grid_module, "BAND_ROWS", 7)  # 8 bands, the last short
+    banded = grid_from_image(buf.getvalue(), meta)
+    for field in ("data", "free", "occupied"):
+        assert np.array_equal(getattr(whole, field), getattr(banded, field)), field
+    assert whole.free.any() and whole.occupied.any()

@@ -241,3 +241,24 @@ def test_cli_helpers() -> None:
     assert map_id_from_name("my map (v2).yaml") == "my-map-v2-yaml"
     with pytest.raises(MapImportError):
         map_id_from_name("???")
+
+
+def test_each_components_point_is_its_cell_nearest_its_centroid(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Computed a band of rows at a time (a map of millions of cells took a GB whole): the same
+    # cell as over the component at once, the first in row order among those as near.
+    import importlib
+
+    poly = importlib.import_module("service.maps.mapimport.polygonize")  # the module
+    monkeypatch.setattr(poly, "_BAND_ROWS", 3)
+    rng = np.random.default_rng(2)
+    free = rng.random((40, 30)) < 0.55
+    free[10:20, 4:12] = True  # one component of even sides: its centroid ties four cells
+    labels = np.asarray(poly._label(free, connectivity=1), dtype=np.int64)
+    n = int(labels.max())
+    got = poly._points(labels, n)
+    for k in range(1, n + 1):
+        cells = np.argwhere(labels == k)  # row order
+        d = ((cells - cells.mean(axis=0)) ** 2).sum(axis=1)
+        assert tuple(got[k]) == tuple(cells[np.argmin(d)]), k
