@@ -192,11 +192,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     else:  # a host's process: the host says when all are ready, and where robots connect
         logging.getLogger("rlutf").info("%s", ready)
     if service.metrics.port is not None:
-        print(
-            f"rlutf serve: metrics on http://{settings.metrics_addr}:{service.metrics.port}/metrics",
-            file=sys.stderr,
-            flush=True,
-        )
+        metrics = f"metrics on http://{settings.metrics_addr}:{service.metrics.port}/metrics"
+        if args.host_pid is None:
+            print(f"rlutf serve: {metrics}", file=sys.stderr, flush=True)
+        else:  # a loopback port the host scrapes; operators scrape the host's endpoint
+            logging.getLogger("rlutf").info("%s", metrics)
     if service.live.url is not None:
         print(
             f"rlutf serve: live view on {service.live.url} (Foxglove app: Open connection, "

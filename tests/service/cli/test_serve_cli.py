@@ -88,3 +88,23 @@ def test_serve_with_no_layout_flag_runs_one_process_per_usable_core(tmp_path: Pa
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
+
+
+def test_a_host_says_one_metrics_endpoint_its_own(tmp_path: Path) -> None:
+    """With several processes, each serves its metrics on a loopback port the host scrapes;
+    only the host's endpoint, which merges them, is the operator's to scrape and is said."""
+    proc = _serve(
+        tmp_path, "--processes", "2", "--metrics-addr", "127.0.0.1", "--metrics-port", "0"
+    )
+    try:
+        before = _said_until(proc, "ready:")
+        assert "ready:" in before, before
+        assert "metrics on" not in before, before  # a process's port, said before the host's
+        after = _said_until(proc, "metrics on", timeout=30)
+        found = re.search(r"metrics on http://127\.0\.0\.1:(\d+)/metrics", after)
+        assert found, after
+        with urllib.request.urlopen(f"http://127.0.0.1:{found[1]}/metrics", timeout=10) as reply:
+            assert b"rlutf_host_processes_scraped" in reply.read()  # the host's, merged
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0
