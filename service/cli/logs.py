@@ -16,6 +16,7 @@ Errors are one line on stderr, never a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -56,10 +57,10 @@ def register(sub: Any) -> None:
     )
     replay.add_argument(
         "--out",
-        required=True,
         metavar="OUT",
         help="the output log (one run); with several runs OUT-run1.mcap, OUT-run2.mcap ...; "
-        "a folder (existing, or written with a trailing /) gets one RUN.replay.mcap per run",
+        "a folder (existing, or written with a trailing /) gets one RUN.replay.mcap per run "
+        "(default: none kept, an audit only)",
     )
     replay.add_argument(
         "--tolerance",
@@ -179,7 +180,19 @@ def _fail(command: str, err: Exception) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """``rlutf replay``: sort the inputs into runs, replay and audit each on its own."""
+    """``rlutf replay``: sort the inputs into runs, replay and audit each on its own; with no
+    ``--out`` an audit only (the recomputed logs are written aside, then removed)."""
+    args.kept = args.out is not None
+    if args.kept:
+        return _replay_runs(args)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="rlutf-replay-") as scratch:
+        args.out = f"{scratch}/"
+        return _replay_runs(args)
+
+
+def _replay_runs(args: argparse.Namespace) -> int:
     from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
     from service.logs.mcapread import LogError
     from service.logs.replayconfig import ReplayConfigError
@@ -247,6 +260,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if summary is not None:
             inputs[0].unlink(missing_ok=True)
     if len(verdicts) > 1:
+        if not args.kept:
+            verdicts = [dataclasses.replace(v, out="not kept") for v in verdicts]
         render_verdicts(verdicts, console)
     if len(verdicts) > 1 or unreadable:
         console.print(verdict_line(verdicts, len(unreadable)))
@@ -304,7 +319,8 @@ def _report(
     recomputed = sum(len(v) for v in result.recomputed.values())
     console.print(
         f"replayed {result.inputs} inputs ({result.dropped} scans dropped as live, "
-        f"{result.rejected} rejected): {recomputed} poses -> {out}"
+        f"{result.rejected} rejected): {recomputed} poses -> "
+        f"{out if args.kept else 'not kept (--out keeps them)'}"
     )
     if summary is not None and args.ros2_out is not None:
         from service.cli.ros2bags import write_out

@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -124,6 +125,26 @@ def test_replay_of_a_folder_audits_ten_passing_runs(
     assert sorted(tmp_path.glob("again-run*.mcap")) == [
         tmp_path / f"again-run{k}.mcap" for k in sorted(range(1, RUNS + 1), key=str)
     ]
+
+
+def test_an_audit_with_no_out_keeps_nothing_and_says_so(
+    folder: tuple[Path, list[McapRecorder]],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # An auditor's first command: `rlutf replay logs/` (it said "--out is required").
+    logs, _ = folder
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where the scratch logs go
+    monkeypatch.chdir(tmp_path)
+    before = sorted(tmp_path.rglob("*"))
+    assert main(["replay", str(logs), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert f"audit: passed ({RUNS} runs)" in text and "FAILED" not in text
+    assert text.count("-> not kept (--out keeps them)") == RUNS
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written, nothing left aside
 
 
 def test_merging_two_runs_is_refused(
