@@ -94,8 +94,9 @@ def register(sub: Any) -> None:
         type=Path,
         nargs="+",
         metavar="LOG",
-        help="CARMEN log (.log, .gz), MCAP logs of one run (.mcap files, or a folder of them: "
-        "the files the recorder rotated) or, with --ros2, a bag",
+        help="CARMEN log (.log, .gz), MCAP logs recorded at one time (.mcap files, or a "
+        "folder of them: the files every process of one rlutf serve rotated) or, with --ros2, "
+        "a bag",
     )
     build.add_argument(
         "--from-map",
@@ -316,18 +317,25 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def _run_scans(given: list[Path], map_id: str | None) -> Any:
-    """The posed scans of the MCAP logs ``given`` (files or folders), which must be one run's:
-    the scans of two runs (two starts of a service, maybe two buildings) make no one map."""
+    """The posed scans of the MCAP logs ``given`` (files or folders) recorded at one time: the
+    runs of the processes of one ``rlutf serve`` (or of a fleet's instances) together, but not
+    runs of two times (two starts of a service, maybe two buildings under one map id)."""
     from service.logs.mcapmaps import scans_with_poses
-    from service.logs.runs import group_runs, log_files
+    from service.logs.runs import group_runs, log_files, recordings
 
     runs = group_runs(log_files(given))
-    if len(runs) > 1:
-        listed = "; ".join(f"{r.label}: {' '.join(map(str, r.files))}" for r in runs)
-        raise ValueError(
-            f"the logs hold {len(runs)} runs ({listed}): a map is built from one run's files"
+    groups = recordings(runs) or [runs]  # no message at all: said by scans_with_poses
+    if len(groups) > 1:
+        listed = "; ".join(
+            f"{k}: " + ", ".join(f"{r.label}: {' '.join(map(str, r.files))}" for r in group)
+            for k, group in enumerate(groups, 1)
         )
-    return scans_with_poses(runs[0].files, map_id)
+        raise ValueError(
+            f"the logs hold {len(groups)} recordings made at different times ({listed}): a "
+            "map is built from one of them (the runs of one start of rlutf serve, one per "
+            "process, are one recording)"
+        )
+    return scans_with_poses([f for run in groups[0] for f in run.files], map_id)
 
 
 def cmd_show(args: argparse.Namespace) -> int:

@@ -207,6 +207,36 @@ def _tagged_run(run_id: str, members: Iterable[tuple[RunTag, Path]]) -> LogRun:
     )
 
 
+def recordings(runs: Sequence[LogRun]) -> list[list[LogRun]]:
+    """Runs grouped by when their messages were logged: runs whose spans overlap (the
+    processes of one ``rlutf serve``, the instances of a fleet, recording side by side) are one
+    recording; a run that starts after every earlier one ended starts another. In time order.
+
+    Raises:
+        service.logs.mcapread.LogError: a file cannot be read.
+    """
+    spans: list[tuple[int, int, int, LogRun]] = []
+    for k, run in enumerate(runs):
+        ranges = []
+        for path in run.files:
+            with LogFile(path) as log:
+                if log.time_range is not None:
+                    ranges.append(log.time_range)
+        if ranges:
+            spans.append((min(a for a, _ in ranges), max(b for _, b in ranges), k, run))
+    spans.sort(key=lambda s: (s[0], s[2]))
+    groups: list[list[LogRun]] = []
+    end = 0
+    for first, last, _, run in spans:
+        if groups and first <= end:
+            groups[-1].append(run)
+            end = max(end, last)
+        else:
+            groups.append([run])
+            end = last
+    return groups
+
+
 def run_outputs(out: str | Path, runs: Sequence[LogRun]) -> list[Path]:
     """Where ``rlutf replay --out OUT`` writes each run's output.
 

@@ -50,17 +50,29 @@ def replayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp / "out.mcap"
 
 
-def _rerecord(source: Path, folder: Path, max_bytes: int, map_of: dict[str, str]) -> list[Path]:
+def _rerecord(
+    source: Path,
+    folder: Path,
+    max_bytes: int,
+    map_of: dict[str, str],
+    later_ns: int = 0,
+    robots: tuple[str, ...] | None = None,
+    instance: str = "built",
+) -> list[Path]:
     """``source``'s messages recorded again as one run (rotated at ``max_bytes``), each robot's
-    poses on the map ``map_of`` names (default its own)."""
-    rec = McapRecorder(folder, instance="built", max_bytes=max_bytes, chunk_size=4096)
+    poses on the map ``map_of`` names (default its own), ``later_ns`` later, only the messages
+    of ``robots`` (default all) and the rest."""
+    rec = McapRecorder(folder, instance=instance, max_bytes=max_bytes, chunk_size=4096)
     for r in read_all(source):
+        robot = r.topic.split("/")[2] if r.topic.startswith("rlutf/robots/") else None
+        if robots is not None and robot is not None and robot not in robots:
+            continue
         payload = r.payload
         if r.schema_name == "rlutf.PoseEstimate":
             pose = json.loads(payload)
             pose["map_id"] = map_of.get(pose["robot_id"], pose["map_id"])
             payload = json.dumps(pose).encode()
-        rec.record(r.topic, r.schema_name, payload, r.log_time_ns, r.publish_time_ns)
+        rec.record(r.topic, r.schema_name, payload, r.log_time_ns + later_ns, r.publish_time_ns)
     rec.close()
     return rec.files
 
@@ -92,9 +104,9 @@ def test_two_runs_or_two_maps_are_not_mixed(
 ) -> None:
     logs = tmp_path / "logs"
     _rerecord(replayed, logs, 1 << 28, {})
-    _rerecord(replayed, logs, 1 << 28, {})  # a second start of the service: another run
+    _rerecord(replayed, logs, 1 << 28, {}, later_ns=3600 * 10**9)  # a second start, later
     code, err = _built(tmp_path, capsys, str(logs))
-    assert code == 1 and "the logs hold 2 runs" in err and "one run's files" in err
+    assert code == 1 and "the logs hold 2 recordings made at different times" in err
     (two_maps,) = _rerecord(replayed, tmp_path / "floors", 1 << 28, {"r2": "floor2"})
     code, err = _built(tmp_path, capsys, str(two_maps))
     assert code == 1 and "2 maps (floor2, m1)" in err and "--from-map" in err
@@ -104,3 +116,18 @@ def test_two_runs_or_two_maps_are_not_mixed(
     assert code == 1 and "no scan has a pose on map 'floor3'" in err
     code, err = _built(tmp_path, capsys, str(tmp_path / "missing.mcap"))
     assert code == 1 and "missing.mcap: cannot open" in err
+
+
+def test_the_runs_of_one_serves_processes_build_one_map(
+    replayed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # rlutf serve runs one process per core, each recording its own robots as a run of its
+    # own, side by side: together they are the whole log (map build refused them as two runs).
+    logs = tmp_path / "logs"
+    _rerecord(replayed, logs, 1 << 28, {}, robots=("r1",), instance="host-p0")
+    _rerecord(replayed, logs, 1 << 28, {}, robots=("r2",), instance="host-p1")
+    code, whole = _built(tmp_path, capsys, str(replayed))
+    assert code == 0
+    assert _built(tmp_path, capsys, str(logs)) == (0, whole)
+    code, one = _built(tmp_path, capsys, str(next(logs.glob("*host-p0*"))))
+    assert code == 0 and one != whole  # one process's robots alone: less of the building
