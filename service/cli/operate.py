@@ -96,7 +96,7 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
         )
     said = f"{args.robot} at x {x:g} m, y {y:g} m, θ {math.degrees(theta):.1f}° on {args.map}"
     if outcome.result == "refused":
-        print(refused_hint("initialpose", args.map), file=sys.stderr)
+        print(refused_hint("initialpose", args.map, outcome.code), file=sys.stderr)
         return EXIT_FAILURE
     if outcome.result == "done":
         if args.json and outcome.pose is not None:

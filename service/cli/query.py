@@ -8,7 +8,7 @@ import sys
 import time
 from typing import Any
 
-from schemas import Event, encode
+from schemas import Event, EventCode, encode
 from service.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CliError
 from service.cli.flags import client, number, timeout_flag, zenoh_flags
 
@@ -195,7 +195,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
             print(pose_line(outcome.pose))
         return EXIT_OK
     if outcome.result == "refused":
-        print(refused_hint("relocalize", args.map), file=sys.stderr)
+        print(refused_hint("relocalize", args.map, outcome.code), file=sys.stderr)
     else:
         last = outcome.pose
         state: str = "no pose received" if last is None else last.status
@@ -232,9 +232,9 @@ def cmd_health(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def refused_hint(command: str, map_id: str) -> str:
-    """What to do when the service refused a request (its Event was printed above)."""
-    return (
-        f"rlutf {command}: the service refused the request (see the Event above); "
-        f"`rlutf map list` shows the stored maps (is {map_id!r} one?)"
-    )
+def refused_hint(command: str, map_id: str, code: str | None) -> str:
+    """What to do when the service refused a request with an Event ``code`` (printed above)."""
+    said = f"rlutf {command}: the service refused the request (see the Event above)"
+    if code == EventCode.MAP_NOT_FOUND:
+        return f"{said}; `rlutf map list` shows the stored maps (is {map_id!r} one?)"
+    return f"{said}: the field it names is out of what the service accepts"

@@ -123,6 +123,7 @@ class Outcome(NamedTuple):
 
     result: Literal["done", "refused", "waiting"]
     pose: PoseEstimate | None
+    code: str | None = None  # the refusing Event's code
 
 
 #: Seconds a relocalization's outcome waits, after the Event ``relocalized``, for a pose.
@@ -152,6 +153,7 @@ def put_request(
         return Outcome("waiting", None)
     ended: queue.Queue[Literal["done", "refused"]] = queue.Queue()
     last: list[PoseEstimate] = []
+    codes: list[str] = []
     # The Event and the pose of the update that relocalized the robot go out on different
     # paths, either first: after the Event, the outcome's pose is one received after it.
     relocalized, pose_after = threading.Event(), threading.Event()
@@ -171,6 +173,7 @@ def put_request(
             relocalized.set()
             ended.put("done")
         elif (ev.code, ev.key) in failures:
+            codes.append(ev.code)
             ended.put("refused")
 
     def on_pose(sample: zenoh.Sample) -> None:
@@ -196,7 +199,7 @@ def put_request(
             return Outcome("waiting", last[0] if last else None)
         if result == "done" and kind == "relocalize":
             pose_after.wait(POSE_AFTER_S)  # the robot's next scan gives it
-        return Outcome(result, last[0] if last else None)
+        return Outcome(result, last[0] if last else None, codes[0] if codes else None)
     finally:
         for s in subs:
             s.undeclare()

@@ -114,6 +114,20 @@ def test_initialpose_starts_a_waiting_robot_and_events_show_it(
         assert "silent (" in out.splitlines()[1]
 
 
+def test_a_refused_initial_pose_is_told_what_to_mend(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A pose beyond the service's limits used to be told to check `rlutf map list`.
+    with running_bench(tmp_path) as bench:
+        bench.put_map()
+        argv = ["initialpose", "r1", "--map", "m1", "--pose", "1e9,2,0", "-e", bench.endpoint]
+        code, out, err = _cli(capsys, *argv)
+        assert code == 1
+        assert "invalid_message" in out and "InitialPose.x" in out
+        assert "the field it names is out of what the service accepts" in err
+        assert "map list" not in err
+
+
 def test_initialpose_on_a_missing_map_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
