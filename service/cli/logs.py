@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from service.cli.flags import EXIT_OK
+from service.cli.present import console as make_console
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -166,14 +167,6 @@ def _usage(parser: argparse.ArgumentParser) -> int:
     return EXIT_BAD_INPUT
 
 
-def _console(stderr: bool = False) -> Console:
-    """A console; tables keep their columns when the output is not a terminal."""
-    from rich.console import Console
-
-    stream = sys.stderr if stderr else sys.stdout
-    return Console(stderr=stderr, width=None if stream.isatty() else 132)
-
-
 def _fail(command: str, err: Exception) -> int:
     print(f"rlutf {command}: {err}", file=sys.stderr)
     return EXIT_BAD_INPUT
@@ -231,7 +224,7 @@ def _replay_runs(args: argparse.Namespace) -> int:
             raise ValueError(f"{clash}: the output must not be an input")
         if len(outs) > 1 or str(args.out).endswith(("/", "\\")):
             outs[0].parent.mkdir(parents=True, exist_ok=True)
-        console = _console()
+        console = make_console()
         verdicts = []
         for k, (run, out) in enumerate(zip(runs, outs, strict=True), 1):
             if len(runs) > 1:
@@ -282,7 +275,7 @@ def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, labe
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
-        console=_console(stderr=True),
+        console=make_console(stderr=True),
         disable=args.quiet,
         transient=False,
     )
@@ -384,7 +377,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps(info.to_json(), indent=2))
         else:
-            render_info(info, _console())
+            render_info(info, make_console())
         return EXIT_OK
     for _path, bad in unreadable:
         _fail("log info", bad)
@@ -392,7 +385,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         named = [{"path": str(p), "error": str(e)} for p, e in unreadable]
         print(json.dumps({"runs": [r.to_json() for r in runs], "unreadable": named}, indent=2))
     else:
-        render_runs(runs, _console())
+        render_runs(runs, make_console())
     return EXIT_BAD_INPUT if unreadable else EXIT_OK
 
 

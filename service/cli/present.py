@@ -7,11 +7,28 @@ centimetres, ages as seconds or minutes, Events as one line each.
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
 from schemas import Event, Health, PoseEstimate
 from service.live.robots import NO_SCAN_YET, RobotState, WaitingRobot, one_sigma
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+
+def console(stderr: bool = False) -> Console:
+    """A rich console; tables keep their columns (and robot ids) when the output is not a
+    terminal (a pipe, a file, a CI log), where rich would squeeze them into 80 columns."""
+    from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    chosen = stream.isatty() or "COLUMNS" in os.environ  # else 132 columns
+    return Console(stderr=stderr, width=None if chosen else 132)
+
 
 #: A robot with no pose published for longer than this is shown as silent, seconds.
 SILENT_AFTER_S = 5.0

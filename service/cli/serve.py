@@ -260,6 +260,7 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
+    from service.cli.present import console
     from service.sim.demo import run_demo
 
     if args.store is not None:
@@ -267,4 +268,4 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not args.no_record:
         usable_folder(args.record, "--record")
 
-    return run_demo(args)
+    return run_demo(args, console())

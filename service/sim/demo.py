@@ -124,9 +124,10 @@ def demo_spec(args: argparse.Namespace) -> FleetSpec:
     )
 
 
-def run_demo(args: argparse.Namespace) -> int:
-    """Run the demo; returns the exit code (1 if no robot got a pose)."""
-    console = Console(stderr=False)
+def run_demo(args: argparse.Namespace, console: Console | None = None) -> int:
+    """Run the demo on ``console`` (default: stdout's); returns the exit code (1 if no robot
+    got a pose)."""
+    console = console or Console(stderr=False)
     port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     plan = plan_fleet(demo_spec(args))
