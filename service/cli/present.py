@@ -179,9 +179,13 @@ def health_table(healths: Iterable[Health]) -> str:
         ready = getattr(h, "ready", None)
         if ready is None:
             ready = (h.model_extra or {}).get("ready")
+        name = h.instance
+        processes = h.extra.get("processes") if h.extra.get("host") is True else None
+        if isinstance(processes, list):  # a host: its processes' rows follow, added up here
+            name = f"{name} (host: {len(processes)} processes added up)"
         rows.append(
             [
-                h.instance,
+                name,
                 "-" if ready is None else ("yes" if ready else "no"),
                 age(h.uptime_s),
                 str(h.robots),

@@ -9,7 +9,14 @@ import pytest
 
 from rlutf.localizer import LocalizeResult
 from schemas import Event, PoseEstimate
-from service.cli.present import age, event_line, pose_line, poses_table, robots_table
+from service.cli.present import (
+    age,
+    event_line,
+    health_table,
+    pose_line,
+    poses_table,
+    robots_table,
+)
 from service.engine import _unfit
 from service.live.robots import RobotState, WaitingRobot
 
@@ -186,3 +193,29 @@ def test_the_lost_wording_never_reads_as_a_contradiction() -> None:
     assert "under the 50 % needed" in text
     # a result that does not say what was needed: min_fit
     assert "under the 50 % needed" in _unfit(_lost(0.3, math.nan), 0.1, 0.5)
+
+
+def test_a_hosts_health_row_says_it_adds_its_processes_up() -> None:
+    from schemas import Health
+
+    def health(instance: str, received: int, **extra: object) -> Health:
+        return Health(
+            instance=instance,
+            stamp_ns=1,
+            uptime_s=5.0,
+            robots=1,
+            received=received,
+            rejected=0,
+            processed=received,
+            dropped=0,
+            ready=True,
+            extra=extra,
+        )
+
+    processes = [{"name": "h-p0"}, {"name": "h-p1"}]
+    rows = health_table(
+        [health("h", 30, host=True, processes=processes), health("h-p0", 10), health("h-p1", 20)]
+    ).splitlines()[1:]
+    assert [r.split()[0] for r in rows] == ["h", "h-p0", "h-p1"]
+    assert "(host: 2 processes added up)" in rows[0]
+    assert "host" not in rows[1] + rows[2]
