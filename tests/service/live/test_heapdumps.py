@@ -27,7 +27,12 @@ print(os.getpid())
 def _run(tmp_path: Path, frames: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, ENV_FRAMES: frames, ENV_DIR: str(tmp_path)}
     return subprocess.run(
-        [sys.executable, "-c", GROWS], env=env, capture_output=True, text=True, timeout=60
+        [sys.executable, "-c", GROWS],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
 
 
