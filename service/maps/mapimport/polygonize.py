@@ -262,7 +262,7 @@ def fill_small_holes(free: BoolArray, max_cells: float) -> tuple[BoolArray, int,
     return free | fill, len(holes) - len(small), len(small), int(counts[small].sum())
 
 
-def _square_corners(contour: FloatArray, padded: FloatArray) -> FloatArray:
+def _square_corners(contour: FloatArray, padded: NDArray[np.uint8]) -> FloatArray:
     """Put back the cell corners that marching squares cuts, making the ring rectilinear.
 
     Contour vertices lie on cell edges: one coordinate is a cell centre (integer), the other
@@ -303,7 +303,8 @@ def trace_free_space(free: BoolArray, resolution: float) -> Polygon | MultiPolyg
     """
     if not free.any():
         raise EmptyMapError("the grid has no free space to trace")
-    padded = np.pad(free, 1).astype(np.float64)
+    # 0 and 1 in a byte a cell (find_contours makes its own float64 copy: not a second one)
+    padded = np.pad(free, 1).astype(np.uint8)
     contours = _find_contours(padded, 0.5, fully_connected="low")
     # Contour (row, col) in the padded array -> corners squared -> grid-frame metres.
     rings: list[FloatArray] = [
