@@ -103,6 +103,7 @@ def _cases() -> Iterator[Bad]:
     # missing, corrupt or foreign files
     yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
     yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])
+    yield Bad(["map", "show", "foreign.yaml"], 2, ["rlutf map import foreign.yaml --png"])
     yield Bad(["map", "import", "missing.yaml"], 1, ["missing.yaml"])
     yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
     yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
