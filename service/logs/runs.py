@@ -104,11 +104,14 @@ class LogRun:
         files: the files.
         tags: their ``rlutf.run`` tags (all ``None`` for the run of untagged files).
         start_ns: when the run started (untagged: its earliest ``log_time``), for ordering.
+        span: the earliest and latest ``log_time`` of its files' messages (``None``: none, or
+            not read).
     """
 
     files: tuple[Path, ...]
     tags: tuple[RunTag | None, ...]
     start_ns: int | None
+    span: tuple[int, int] | None = None
 
     @property
     def run_id(self) -> str | None:
@@ -163,8 +166,8 @@ def group_runs(
         RunConflict: two different files are the same file number of the same run.
     """
     tagged: dict[str, list[tuple[RunTag, Path]]] = {}
+    spans: dict[str | None, list[tuple[int, int]]] = {}  # by run id (None: untagged)
     untagged: list[Path] = []
-    untagged_start: int | None = None
     seen: set[Path] = set()
     for path in paths:
         key = Path(path).resolve()
@@ -182,17 +185,26 @@ def group_runs(
             continue
         if tag is None:
             untagged.append(Path(path))
-            if span is not None:
-                untagged_start = span[0] if untagged_start is None else min(untagged_start, span[0])
         else:
             tagged.setdefault(tag.run_id, []).append((tag, Path(path)))
-    runs = [_tagged_run(run_id, members) for run_id, members in tagged.items()]
+        if span is not None:
+            spans.setdefault(None if tag is None else tag.run_id, []).append(span)
+
+    def span_of(run_id: str | None) -> tuple[int, int] | None:
+        found = spans.get(run_id)
+        return (min(a for a, _ in found), max(b for _, b in found)) if found else None
+
+    runs = [_tagged_run(run_id, members, span_of(run_id)) for run_id, members in tagged.items()]
     if untagged:
-        runs.append(LogRun(tuple(untagged), (None,) * len(untagged), untagged_start))
+        span = span_of(None)
+        start = span[0] if span is not None else None
+        runs.append(LogRun(tuple(untagged), (None,) * len(untagged), start, span))
     return sorted(runs, key=lambda r: (r.start_ns is None, r.start_ns or 0, r.run_id or ""))
 
 
-def _tagged_run(run_id: str, members: Iterable[tuple[RunTag, Path]]) -> LogRun:
+def _tagged_run(
+    run_id: str, members: Iterable[tuple[RunTag, Path]], span: tuple[int, int] | None
+) -> LogRun:
     ordered = sorted(members, key=lambda m: (m[0].sequence, str(m[1])))
     for (a, path_a), (b, path_b) in itertools.pairwise(ordered):
         if a.sequence == b.sequence:
@@ -204,30 +216,22 @@ def _tagged_run(run_id: str, members: Iterable[tuple[RunTag, Path]]) -> LogRun:
         tuple(p for _, p in ordered),
         tuple(t for t, _ in ordered),
         min(t.started_ns for t, _ in ordered),
+        span,
     )
 
 
 def recordings(runs: Sequence[LogRun]) -> list[list[LogRun]]:
-    """Runs grouped by when their messages were logged: runs whose spans overlap (the
-    processes of one ``rlutf serve``, the instances of a fleet, recording side by side) are one
-    recording; a run that starts after every earlier one ended starts another. In time order.
-
-    Raises:
-        service.logs.mcapread.LogError: a file cannot be read.
-    """
-    spans: list[tuple[int, int, int, LogRun]] = []
-    for k, run in enumerate(runs):
-        ranges = []
-        for path in run.files:
-            with LogFile(path) as log:
-                if log.time_range is not None:
-                    ranges.append(log.time_range)
-        if ranges:
-            spans.append((min(a for a, _ in ranges), max(b for _, b in ranges), k, run))
-    spans.sort(key=lambda s: (s[0], s[2]))
+    """Runs (as :func:`group_runs` gives them) grouped by when their messages were logged: runs
+    whose spans overlap (the processes of one ``rlutf serve``, the instances of a fleet,
+    recording side by side) are one recording; a run that starts after every earlier one ended
+    starts another. In time order; runs with no message are left out."""
+    spans = sorted(
+        ((run.span, k, run) for k, run in enumerate(runs) if run.span is not None),
+        key=lambda s: (s[0][0], s[1]),
+    )
     groups: list[list[LogRun]] = []
     end = 0
-    for first, last, _, run in spans:
+    for (first, last), _, run in spans:
         if groups and first <= end:
             groups[-1].append(run)
             end = max(end, last)
