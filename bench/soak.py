@@ -219,6 +219,7 @@ def render(args: argparse.Namespace, into: list[Verdict]) -> str:
     warmup = args.warmup_minutes
     if warmup is None:
         warmup = min(5.0, round(args.minutes / 3, 2))
+    args.warmup = warmup  # the run's too (its tracemalloc snapshot)
     load = os.getloadavg()[0]
     run = run_soak(args)
     found = verdicts(run, args, warmup)

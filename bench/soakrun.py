@@ -250,7 +250,9 @@ class _HeapSnapshots:
         self.pids: dict[str, int] = {}
 
     def env(self) -> dict[str, str]:
-        return {"RLUTF_TRACEMALLOC": str(self.frames), "RLUTF_TRACEMALLOC_DIR": str(self.folder)}
+        from service.live.heapdumps import ENV_DIR, ENV_FRAMES
+
+        return {ENV_FRAMES: str(self.frames), ENV_DIR: str(self.folder)}
 
     def take(self, service_pid: int, timeout: float = 120.0) -> None:
         """Signal every process of the service, wait until each wrote its snapshot."""
@@ -371,7 +373,6 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     env = {"RLUTF_RECORD_MAX_SECONDS": str(args.rotate_seconds)}
     heap = _HeapSnapshots(tmp / "heap", args.tracemalloc) if args.tracemalloc else None
     env.update(heap.env() if heap is not None else {})
-    warmup = args.warmup_minutes if args.warmup_minutes is not None else min(5.0, args.minutes / 3)
     service_log = open(tmp / "service.log", "wb")  # noqa: SIM115 -- closed in finally
     flags = ("--processes", str(args.serve_processes)) if args.serve_processes else ()
     proc = start_service(
@@ -428,7 +429,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
                 raise RuntimeError("the load generator is stuck: the service does not read")
             samples.append(sampler.take(timeout))
             _progress(samples[-1])
-            if heap is not None and not heap.taken and samples[-1]["minute"] >= warmup:
+            if heap is not None and not heap.taken and samples[-1]["minute"] >= args.warmup:
                 heap.take(proc.pid)
             while due <= time.monotonic():
                 due += args.sample_s

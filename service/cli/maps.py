@@ -355,9 +355,9 @@ def cmd_show(args: argparse.Namespace) -> int:
                 if isinstance(err, json.JSONDecodeError)
                 else " (not UTF-8 text)"
             )
-            if path.suffix.lower() in (".yaml", ".yml", ".pgm", ".png"):
-                where += "; a map_server map is drawn as imported by `rlutf map import "
-                where += f"{path.with_suffix('.yaml')} --png {path.stem}.png`"
+            from service.maps.client import import_hint
+
+            where += import_hint(path, f"--png {path.stem}.png")
             raise CliError(
                 f"{path}: not a map JSON file{where}; give a Map JSON (`rlutf map get` and "
                 "`rlutf map import` write one) or the id of a stored map",

@@ -151,9 +151,9 @@ def put_request(
     if wait <= 0:
         session.put(key, encode(request), encoding=JSON)
         return Outcome("waiting", None)
-    ended: queue.Queue[Literal["done", "refused"]] = queue.Queue()
+    # "done", or "refused" with the refusing Event's code
+    ended: queue.Queue[tuple[Literal["done", "refused"], str | None]] = queue.Queue()
     last: list[PoseEstimate] = []
-    codes: list[str] = []
     # The Event and the pose of the update that relocalized the robot go out on different
     # paths, either first: after the Event, the outcome's pose is one received after it.
     relocalized, pose_after = threading.Event(), threading.Event()
@@ -171,10 +171,9 @@ def put_request(
         on_event(robot, ev)
         if ev.code == EventCode.RELOCALIZED and kind == "relocalize":
             relocalized.set()
-            ended.put("done")
+            ended.put(("done", None))
         elif (ev.code, ev.key) in failures:
-            codes.append(ev.code)
-            ended.put("refused")
+            ended.put(("refused", ev.code))
 
     def on_pose(sample: zenoh.Sample) -> None:
         try:
@@ -185,7 +184,7 @@ def put_request(
         if relocalized.is_set():
             pose_after.set()
         if kind == "initialpose" and pose.map_id == request.map_id:
-            ended.put("done")
+            ended.put(("done", None))
 
     subs = [
         session.declare_subscriber(keys.robot_events(robot), on_sample),
@@ -194,12 +193,12 @@ def put_request(
     try:
         session.put(key, encode(request), encoding=JSON)
         try:
-            result = ended.get(timeout=wait)
+            result, code = ended.get(timeout=wait)
         except queue.Empty:
             return Outcome("waiting", last[0] if last else None)
         if result == "done" and kind == "relocalize":
             pose_after.wait(POSE_AFTER_S)  # the robot's next scan gives it
-        return Outcome(result, last[0] if last else None, codes[0] if codes else None)
+        return Outcome(result, last[0] if last else None, code)
     finally:
         for s in subs:
             s.undeclare()

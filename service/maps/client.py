@@ -35,9 +35,9 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:
-        raise ValueError(f"{path}: not UTF-8 text, so no JSON{_import_hint(path)}") from err
+        raise ValueError(f"{path}: not UTF-8 text, so no JSON{import_hint(path)}") from err
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: malformed JSON: {err}{_import_hint(path)}") from err
+        raise ValueError(f"{path}: malformed JSON: {err}{import_hint(path)}") from err
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object")
     data = unwrap_geojson(path, data)
@@ -56,9 +56,14 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
     return payload
 
 
-def _import_hint(path: Path) -> str:
+def import_hint(path: Path, then: str = "--put") -> str:
+    """For a file that looks like a map_server map (its YAML or image), how to import it and
+    ``then`` (``--put``: into the store; ``--png X``: drawn); else ``""``."""
     if path.suffix.lower() in (".yaml", ".yml", ".pgm", ".png"):
-        return f"; a map_server map (YAML and image) is imported with rlutf map import {path} --put"
+        return (
+            f"; a map_server map (YAML and image) is imported with rlutf map import "
+            f"{path.with_suffix('.yaml')} {then}"
+        )
     return ""
 
 

@@ -156,21 +156,21 @@ class Polygonized:
 _BAND_ROWS = 256
 
 
-def _points(labels: NDArray[np.int64], n: int) -> NDArray[np.int64]:
-    """Per component 1..n, ``(row, col)`` of its cell nearest its centroid (the first in row
-    order of those as near)."""
+def _points(labels: NDArray[np.int64], counts: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Per component 1..n (``counts``: their cells), ``(row, col)`` of its cell nearest its
+    centroid (the first in row order of those as near); row 0 is unused."""
+    n = len(counts)
     rows, cols = labels.shape
     bands = [slice(r, min(rows, r + _BAND_ROWS)) for r in range(0, rows, _BAND_ROWS)]
-    col_of = np.arange(cols, dtype=np.float64)
-    size = np.zeros(n + 1)
     sum_r, sum_c = np.zeros(n + 1), np.zeros(n + 1)
     for band in bands:
-        lab = labels[band]
-        size += np.bincount(lab.ravel(), minlength=n + 1)
-        row_of = np.arange(band.start, band.stop, dtype=np.float64)[:, None]
-        sum_r += np.bincount(lab.ravel(), (row_of + 0 * col_of).ravel(), minlength=n + 1)
-        sum_c += np.bincount(lab.ravel(), (0 * row_of + col_of).ravel(), minlength=n + 1)
-    size[0] = 1.0
+        lab = labels[band].ravel()
+        shape = (band.stop - band.start, cols)
+        row_of = np.broadcast_to(np.arange(band.start, band.stop, dtype=np.float64)[:, None], shape)
+        col_of = np.broadcast_to(np.arange(cols, dtype=np.float64), shape)
+        sum_r += np.bincount(lab, row_of.ravel(), minlength=n + 1)
+        sum_c += np.bincount(lab, col_of.ravel(), minlength=n + 1)
+    size = np.concatenate([[1.0], counts])
     centre_r, centre_c = sum_r / size, sum_c / size
     best = np.full(n + 1, np.inf)
     where = np.zeros((n + 1, 2), dtype=np.int64)
@@ -196,7 +196,7 @@ def _select(
     order = np.argsort(-counts, kind="stable")
     rank = np.empty(len(order), dtype=np.int64)
     rank[order] = np.arange(len(order))
-    cells = _points(labels, len(counts))[1:][order]  # largest first
+    cells = _points(labels, counts)[1:][order]  # largest first
     points = [(float(xy[0]), float(xy[1])) for xy in grid.cell_centres(cells[:, 0], cells[:, 1])]
     chosen: set[int]
     if spec is None:
