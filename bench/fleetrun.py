@@ -300,11 +300,13 @@ def run_size(
     door: str = "json",
     serve_flags: tuple[str, ...] = (),
     threads: bool = False,
+    env: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """One fleet size against a fresh service subprocess.
 
     ``door`` and ``serve_flags`` let another front door be measured the same way
-    (:mod:`bench.ros2`). With ``threads``, the result's ``threads`` holds the service's CPU per
+    (:mod:`bench.ros2`); ``env`` adds variables to the service's environment
+    (:mod:`bench.ownedkeys`). With ``threads``, the result's ``threads`` holds the service's CPU per
     scan sent by thread (:mod:`bench.threads`), main process and workers apart (host and its
     other service processes apart with ``--processes``).
     """
@@ -313,7 +315,7 @@ def run_size(
     hosted = "--processes" in serve_flags
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-fleet-"))
-    proc = start_service(endpoint, tmp, record, workers, serve_flags)
+    proc = start_service(endpoint, tmp, record, workers, serve_flags, env=env)
     ctx = mp.get_context("spawn")
     out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     gen = ctx.Process(
