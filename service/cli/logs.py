@@ -172,6 +172,34 @@ def _fail(command: str, err: Exception) -> int:
     return EXIT_BAD_INPUT
 
 
+def _unfinished(
+    command: str, paths: Sequence[Path], files: Sequence[Path], what: str
+) -> tuple[int, int]:
+    """Name the unfinished logs (``.mcap.part``) of the folders among ``paths``, which the log
+    tools do not read, unless a copy recovered from one is among ``files`` (``rlutf log
+    recover`` names it as the log's final name); returns how many a crash left and how many are
+    being recorded."""
+    from service.logs.mcapread import left_unfinished, part_message
+    from service.logs.runs import unfinished_logs
+
+    given = {f.name for f in files}
+    crashed = recording = 0
+    for part in unfinished_logs(paths):
+        if part.name.removesuffix(".part") in given:
+            continue  # recovered, and the copy is read
+        left = left_unfinished(part)
+        crashed += left
+        recording += not left
+        more = (
+            f"; or recover every such log of the folder with rlutf log recover "
+            f"{part.parent}/ RECOVERED/ and give RECOVERED/ too"
+            if left
+            else ""
+        )
+        print(f"rlutf {command}: {what}: {part_message(part)}{more}", file=sys.stderr)
+    return crashed, recording
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     """``rlutf replay``: sort the inputs into runs, replay and audit each on its own; with no
     ``--out`` an audit only (the recomputed logs are written aside, then removed)."""
@@ -192,11 +220,15 @@ def _replay_runs(args: argparse.Namespace) -> int:
     from service.logs.runs import group_runs, log_files, run_outputs
 
     inputs, summary = list(args.inputs), None
+    crashed = recording = 0
     if not args.ros2:  # a rosbag2 is a folder of its own
         try:
             inputs = log_files(inputs)
         except LogError as err:
             return _fail("replay", err)
+        # A folder's unfinished logs are not read: one a crash left is a gap in the audit
+        # (exit 2, as an unreadable file), one being recorded is audited once it is finished.
+        crashed, recording = _unfinished("replay", args.inputs, inputs, "not audited")
     if args.ros2:
         from service.cli.ros2bags import bag_to_log
 
@@ -256,11 +288,11 @@ def _replay_runs(args: argparse.Namespace) -> int:
         if not args.kept:
             verdicts = [dataclasses.replace(v, out="not kept") for v in verdicts]
         render_verdicts(verdicts, console)
-    if len(verdicts) > 1 or unreadable:
-        console.print(verdict_line(verdicts, len(unreadable)))
+    if len(verdicts) > 1 or unreadable or crashed or recording:
+        console.print(verdict_line(verdicts, len(unreadable) + crashed, recording))
     if any(v.result == "FAILED" for v in verdicts):
         return EXIT_AUDIT_FAILED
-    if unreadable or any(v.result == UNREADABLE for v in verdicts):
+    if unreadable or crashed or any(v.result == UNREADABLE for v in verdicts):
         return EXIT_BAD_INPUT
     return EXIT_OK
 
@@ -367,6 +399,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     unreadable: list[tuple[Path, LogError]] = []
     try:
         files = log_files(args.files)
+        _unfinished("log info", args.files, files, "not described")
         if len(files) == 1:
             info = log_info(files[0])
         else:  # one unreadable file among several is named, the others described

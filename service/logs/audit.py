@@ -190,22 +190,28 @@ class RunVerdict:
     out: str
 
 
-def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int) -> str:
-    """The last line of an audit over several runs (or files)."""
+def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int, recording: int = 0) -> str:
+    """The last line of an audit over several runs (or files); ``recording``: unfinished logs
+    of the folders given that are being recorded now (not audited, not a fault)."""
     counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED", UNREADABLE)}
     empty = len(verdicts) - sum(counts.values())
+    later = f"; {recording} log(s) being recorded, not audited" if recording else ""
     if counts["FAILED"]:
-        return f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
+        return (
+            f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
+            + later
+        )
     if counts[UNREADABLE] or unreadable_files:
         return (
             f"audit: [bold red]incomplete[/bold red]: {counts[UNREADABLE]} run(s) and "
             f"{unreadable_files} file(s) could not be read; {counts['passed']} run(s) passed"
+            + later
         )
     if not counts["passed"]:
-        return f"audit: nothing to audit in {len(verdicts)} runs"
+        return f"audit: nothing to audit in {len(verdicts)} runs" + later
     also = f"; {empty} with nothing to audit" if empty else ""
     runs = "run" if counts["passed"] == 1 else "runs"
-    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also})"
+    return f"audit: [green]passed[/green] ({counts['passed']} {runs}{also}{later})"
 
 
 def run_verdict(run: LogRun, out: Path, robots: int, poses: int, result: str) -> RunVerdict:

@@ -60,6 +60,20 @@ class DamagedLog(LogError):
 RECENT_S = 60.0
 
 
+def _age(path: Path, now: float | None = None) -> float | None:
+    try:
+        return (time.time() if now is None else now) - path.stat().st_mtime
+    except OSError:
+        return None
+
+
+def left_unfinished(path: Path, now: float | None = None) -> bool:
+    """Whether a ``.mcap.part`` was left by a recorder that crashed or was killed (not written
+    for :data:`RECENT_S`), rather than being recorded now."""
+    age = _age(path, now)
+    return age is not None and age >= RECENT_S
+
+
 def part_message(path: Path, now: float | None = None) -> str:
     """What a ``.mcap.part`` file is and how to read it now.
 
@@ -67,10 +81,7 @@ def part_message(path: Path, now: float | None = None) -> str:
     finished (rotation or a stop); until then it has no summary, and its last chunk may be
     half-written. Its complete chunks (flushed at least every second) can be copied out.
     """
-    try:
-        age = (time.time() if now is None else now) - path.stat().st_mtime
-    except OSError:
-        age = None
+    age = _age(path, now)
     state = (
         f"is being recorded now (last written {age:.0f} s ago)"
         if age is not None and age < RECENT_S

@@ -270,6 +270,13 @@ def run_outputs(out: str | Path, runs: Sequence[LogRun]) -> list[Path]:
     return [path.with_name(f"{stem}-run{k}{suffix}") for k in range(1, len(runs) + 1)]
 
 
+def unfinished_logs(paths: Sequence[Path]) -> list[Path]:
+    """The unfinished logs (``*.mcap.part``) in the folders among ``paths``, in name order:
+    what :func:`log_files` leaves out of a folder (a log being recorded, or one a crash left)."""
+    found = (p for path in paths if Path(path).is_dir() for p in Path(path).iterdir())
+    return sorted(p for p in found if p.name.endswith(".mcap.part") and p.is_file())
+
+
 def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
     """The log files ``paths`` name: a file as it is, a folder as the files in it (not in its
     subfolders) whose names end in ``suffix``, in name order.

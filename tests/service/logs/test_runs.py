@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import shutil
 import tempfile
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -400,3 +402,39 @@ def test_a_log_folder_is_given_as_it_is(
     assert main(["log", "recover", str(crashed), str(tmp_path / "fixed")]) == 0
     (run,) = group_runs(logs_of(tmp_path / "fixed"))
     assert run.run_id == recorders[7].run_id and len(run.files) == len(recorders[7].files)
+
+
+def test_an_audit_of_a_folder_names_its_unfinished_logs(
+    folder: tuple[Path, list[McapRecorder]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A folder after a crash and a restart holds finished logs and the ``.part`` the crash
+    left: the audit of the folder must not pass as if it had read everything (it says
+    ``incomplete``, exit 2, and how to recover the file); once the copy recovered from it is
+    given too, the audit is whole. A ``.part`` being recorded now is named, not a fault."""
+    _, recorders = folder
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    shutil.copy(recorders[0].files[0], logs)
+    (part,) = [logs / (p.name + ".part") for p in recorders[1].files[:1]]
+    part.write_bytes(recorders[1].files[0].read_bytes()[:-200])
+    old = time.time() - 3600  # last written an hour ago: its recorder is gone
+    os.utime(part, (old, old))
+    assert main(["replay", str(logs), "--quiet"]) == 2
+    out, err = capsys.readouterr()
+    assert "audit: incomplete" in out and "1 file(s) could not be read; 1 run(s) passed" in out
+    assert f"not audited: {part}: this log was left unfinished" in err
+    assert f"rlutf log recover {logs}/ RECOVERED/" in err
+    assert main(["log", "info", str(logs)]) == 0
+    assert f"not described: {part}" in capsys.readouterr().err
+    fixed = tmp_path / "fixed"
+    assert main(["log", "recover", str(logs), str(fixed)]) == 0
+    capsys.readouterr()
+    assert main(["replay", str(logs), str(fixed), "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert "audit: passed (2 runs)" in out and "not audited" not in err
+    os.utime(part)  # written just now: being recorded
+    (fixed / part.name.removesuffix(".part")).unlink()
+    assert main(["replay", str(logs), "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert "audit: passed (1 run; 1 log(s) being recorded, not audited)" in out
+    assert f"not audited: {part}: this log is being recorded now" in err
