@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from service.cli.flags import EXIT_OK
 from service.cli.present import console as make_console
+from service.cli.present import unfinished
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -172,34 +173,6 @@ def _fail(command: str, err: Exception) -> int:
     return EXIT_BAD_INPUT
 
 
-def _unfinished(
-    command: str, paths: Sequence[Path], files: Sequence[Path], what: str
-) -> tuple[int, int]:
-    """Name the unfinished logs (``.mcap.part``) of the folders among ``paths``, which the log
-    tools do not read, unless a copy recovered from one is among ``files`` (``rlutf log
-    recover`` names it as the log's final name); returns how many a crash left and how many are
-    being recorded."""
-    from service.logs.mcapread import left_unfinished, part_message
-    from service.logs.runs import unfinished_logs
-
-    given = {f.name for f in files}
-    crashed = recording = 0
-    for part in unfinished_logs(paths):
-        if part.name.removesuffix(".part") in given:
-            continue  # recovered, and the copy is read
-        left = left_unfinished(part)
-        crashed += left
-        recording += not left
-        more = (
-            f"; or recover every such log of the folder with rlutf log recover "
-            f"{part.parent}/ RECOVERED/ and give RECOVERED/ too"
-            if left
-            else ""
-        )
-        print(f"rlutf {command}: {what}: {part_message(part)}{more}", file=sys.stderr)
-    return crashed, recording
-
-
 def cmd_replay(args: argparse.Namespace) -> int:
     """``rlutf replay``: sort the inputs into runs, replay and audit each on its own; with no
     ``--out`` an audit only (the recomputed logs are written aside, then removed)."""
@@ -228,7 +201,7 @@ def _replay_runs(args: argparse.Namespace) -> int:
             return _fail("replay", err)
         # A folder's unfinished logs are not read: one a crash left is a gap in the audit
         # (exit 2, as an unreadable file), one being recorded is audited once it is finished.
-        crashed, recording = _unfinished("replay", args.inputs, inputs, "not audited")
+        crashed, recording = unfinished("replay", args.inputs, inputs, "not audited")
     if args.ros2:
         from service.cli.ros2bags import bag_to_log
 
@@ -399,7 +372,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     unreadable: list[tuple[Path, LogError]] = []
     try:
         files = log_files(args.files)
-        _unfinished("log info", args.files, files, "not described")
+        unfinished("log info", args.files, files, "not described")
         if len(files) == 1:
             info = log_info(files[0])
         else:  # one unreadable file among several is named, the others described
@@ -495,6 +468,7 @@ def cmd_views(args: argparse.Namespace) -> int:
         logs = log_files(args.logs)
     except LogError as err:
         return _fail("log views", err)
+    unfinished("log views", args.logs, logs, "not copied")
     folder = any(p.is_dir() for p in args.logs) or str(args.out).endswith(("/", "\\"))
     outs = [out / p.name for p in logs] if len(logs) > 1 or out.is_dir() or folder else [out]
     clash = next((o for o in outs for p in logs if o.resolve() == p.resolve()), None)

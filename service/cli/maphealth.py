@@ -94,12 +94,15 @@ def _first(replies: Any) -> dict[str, Any] | None:
 def _from_logs(paths: list[Path], map_id: str) -> tuple[dict[str, Any], Any] | None:
     from contextlib import ExitStack
 
+    from service.cli.present import unfinished
     from service.logs.mcapread import LogFile, merged_messages
     from service.logs.runs import log_files
 
     health = world = None
     with ExitStack() as stack:
-        logs = [stack.enter_context(LogFile(p)) for p in log_files(paths)]
+        files = log_files(paths)
+        unfinished("map health", paths, files, "not read")
+        logs = [stack.enter_context(LogFile(p)) for p in files]
         for rec in merged_messages(logs, {"rlutf.MapHealth", "rlutf.Map"}):
             data = json.loads(rec.payload)
             if not isinstance(data, dict) or data.get("map_id") != map_id:

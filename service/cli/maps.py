@@ -320,10 +320,13 @@ def _run_scans(given: list[Path], map_id: str | None) -> Any:
     """The posed scans of the MCAP logs ``given`` (files or folders) recorded at one time: the
     runs of the processes of one ``rlutf serve`` (or of a fleet's instances) together, but not
     runs of two times (two starts of a service, maybe two buildings under one map id)."""
+    from service.cli.present import unfinished
     from service.logs.mcapmaps import scans_with_poses
     from service.logs.runs import group_runs, log_files, recordings
 
-    runs = group_runs(log_files(given))
+    files = log_files(given)
+    unfinished("map build", given, files, "not read")
+    runs = group_runs(files)
     groups = recordings(runs) or [runs]  # no message at all: said by scans_with_poses
     if len(groups) > 1:
         listed = "; ".join(

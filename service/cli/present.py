@@ -11,6 +11,7 @@ import os
 import sys
 import time
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from schemas import Event, Health, PoseEstimate
@@ -219,3 +220,31 @@ def pose_line(p: PoseEstimate) -> str:
         f"{p.robot_id} on {p.map_id}: {p.status} at x {p.x:.3f} m, y {p.y:.3f} m, "
         f"θ {degrees(p.theta)}°{spread}"
     )
+
+
+def unfinished(
+    command: str, paths: Sequence[Path], files: Sequence[Path], what: str
+) -> tuple[int, int]:
+    """Name the unfinished logs (``.mcap.part``) of the folders among ``paths``, which the log
+    tools do not read, unless a copy recovered from one is among ``files`` (``rlutf log
+    recover`` names it as the log's final name); returns how many a crash left and how many are
+    being recorded."""
+    from service.logs.mcapread import left_unfinished, part_message
+    from service.logs.runs import unfinished_logs
+
+    given = {f.name for f in files}
+    crashed = recording = 0
+    for part in unfinished_logs(paths):
+        if part.name.removesuffix(".part") in given:
+            continue  # recovered, and the copy is read
+        left = left_unfinished(part)
+        crashed += left
+        recording += not left
+        more = (
+            f"; or recover every such log of the folder with rlutf log recover "
+            f"{part.parent}/ RECOVERED/ and give RECOVERED/ too"
+            if left
+            else ""
+        )
+        print(f"rlutf {command}: {what}: {part_message(part)}{more}", file=sys.stderr)
+    return crashed, recording

@@ -426,6 +426,8 @@ def test_an_audit_of_a_folder_names_its_unfinished_logs(
     assert f"rlutf log recover {logs}/ RECOVERED/" in err
     assert main(["log", "info", str(logs)]) == 0
     assert f"not described: {part}" in capsys.readouterr().err
+    assert main(["log", "views", str(logs), "--out", f"{tmp_path}/views/"]) == 0
+    assert f"not copied: {part}" in capsys.readouterr().err
     fixed = tmp_path / "fixed"
     assert main(["log", "recover", str(logs), str(fixed)]) == 0
     capsys.readouterr()
