@@ -218,6 +218,12 @@ class EventCode:
     flood). The service then loads what the store holds; the message says what happened."""
     RECORDER_OVERFLOW: Final = "recorder_overflow"
     """The MCAP recorder's queue was full and messages were not logged."""
+    RECORDING_FAILED: Final = "recording_failed"
+    """The MCAP recorder could not write (a full disk, a folder gone): messages are not logged
+    until it can; it tries again every few seconds."""
+    RECORDING_RESUMED: Final = "recording_resumed"
+    """The MCAP recorder writes again after ``recording_failed``; the message says how long it
+    could not and how many messages were not logged meanwhile (also in the log)."""
     MAP_UPDATED: Final = "map_updated"
     """A newer map version replaced the one robots were localized on."""
     RELOCALIZING: Final = "relocalizing"

@@ -51,6 +51,8 @@ COUNTERS = {
     "rlutf_scans_skipped_total": "Scans not turned into a pose (too few returns, no map yet).",
     "rlutf_relocalizations_total": "Relocalizations started (Event relocalizing).",
     "rlutf_recorder_overflow_total": "Messages not recorded because the recorder queue was full.",
+    "rlutf_recorder_unrecorded_total": "Messages not recorded because the recorder could not "
+    "write (a full disk).",
 }
 GAUGES = {
     "rlutf_robots_held": "Robots with a latest pose held by this instance.",
@@ -153,6 +155,7 @@ class _ServiceCollector(Collector):
             "rlutf_scans_skipped_total": stats.skipped,
             "rlutf_relocalizations_total": stats.relocalizations,
             "rlutf_recorder_overflow_total": s.recorder.overflowed,
+            "rlutf_recorder_unrecorded_total": s.recorder.unrecorded,
         }
         for name, value in counts.items():
             family = CounterMetricFamily(

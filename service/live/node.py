@@ -232,9 +232,9 @@ class LocalizationService:
         if not self.dispatcher.processes:
             warm_up_aside(progress)  # compiled by a child on a first start
         self.recorder.set_config(s.effective())
-        if hasattr(self.recorder, "on_overflow"):
-            # Already in the log; published so operators see it live.
-            self.recorder.on_overflow = lambda ev: self._publish(self.keys.events, encode(ev))
+        if hasattr(self.recorder, "on_event"):
+            # In the log when it can be; published so operators see it live.
+            self.recorder.on_event = lambda ev: self._publish(self.keys.events, encode(ev))
         self.dispatcher.start(progress)
         if self._session is None:
             self._session = zenoh.open(zenoh_config(s))
@@ -460,6 +460,7 @@ class LocalizationService:
             "events_unsent": self.outbox.dropped,
             "recorder_overflow": self.recorder.overflowed,
             "recorder_queue": self.recorder.queued,
+            "recorder_unrecorded": self.recorder.unrecorded,
             "maps": sorted(self.maps_held())[:50],  # a summary; maps_count counts them all
             "maps_count": len(self.maps_held()),
             **self.ownership.figures(),

@@ -19,6 +19,12 @@ file is opened at the first message after start or rotation; each file starts wi
 ``rlutf.config`` metadata and the newest version of every map seen so far (with its original
 ``log_time``), so every file opens in Foxglove with its map.
 
+A write error (a full disk, the folder gone) never reaches the service: the file is left as it
+is, an Event ``recording_failed`` is published, messages are counted (:attr:`McapRecorder.
+unrecorded`) instead of logged, and a file is opened again every :data:`RETRY_S`; the first file
+written and flushed after that starts with an Event ``recording_resumed`` that says how many
+messages the gap holds, and the run's file numbers skip one there, so the log tools name the gap.
+
 Every file also holds the ``rlutf.run`` metadata (:mod:`service.logs.runs`): the recorder's run id
 (new for every recorder, that is every start of the service), the instance, when the recorder
 started and the file's sequence number within the run (0, 1, 2 ... as files rotate; the number
@@ -31,9 +37,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -42,6 +48,11 @@ from typing import IO, Any, NamedTuple, cast
 from schemas import Event, EventCode, encode
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, DEFAULT_ZSTD_LEVEL, LogWriter, Record
+from service.logs.recqueue import ConfigItem as _Config
+from service.logs.recqueue import Item as _Item
+from service.logs.recqueue import Message as _Message
+from service.logs.recqueue import Queue as _Queue
+from service.logs.recqueue import Stop as _Stop
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id
 
 log = logging.getLogger(__name__)
@@ -52,98 +63,11 @@ _MAP_SCHEMA = "rlutf.Map"
 #: message bytes (uncompressed; at most a sixteenth of the size limit), whichever comes first.
 _ROTATE_CHECK_S = 0.1
 _ROTATE_CHECK_BYTES = 64 * 1024
+#: After a write error, seconds before the recorder opens a file again (messages meanwhile are
+#: counted, not logged): a full disk is not tried, and a file left empty, once per message.
+RETRY_S = 5.0
 #: The writer thread takes the queued messages this often, seconds (see :class:`_Queue`).
 _POLL_S = 0.02
-#: A message of this many bytes or more is large (a scan of 360 beams is about 3 kB): the large
-#: messages waiting hold at most :data:`LARGE_QUEUED` bytes, since the queue's length alone would
-#: let 20,000 scans of 1 MB (the message limit) wait.
-LARGE = 16 * 1024
-#: Bytes of large messages that may wait (a map of the 64 MiB limit always fits when none waits).
-LARGE_QUEUED = 256 * 1024 * 1024
-
-
-_Message = tuple[str, str, bytes, int, int]
-"""A queued message: topic, schema name, payload, log time, publish time (a :class:`Record`'s
-fields; a plain tuple is cheaper to make on the callers' threads)."""
-
-
-class _Config(NamedTuple):
-    config: dict[str, Any]
-
-
-class _Stop(NamedTuple):
-    pass
-
-
-_Item = _Message | _Config | _Stop
-
-
-class _Queue:
-    """A bounded FIFO with one consumer, cheaper than :class:`queue.Queue` for many producers.
-
-    A put is an append under the GIL. ``queue.Queue`` takes its lock on every put and get, and
-    producers on the Zenoh callback threads then waited for the writer thread: measured at about
-    half the cost of recording a scan. Messages do not wake the consumer either: it takes what
-    has come every ``poll_s`` (and at once when the queue is a quarter full or a control item
-    comes), so it runs once per batch instead of once per message, which costs the service two
-    thread switches per message otherwise.
-    """
-
-    def __init__(self, maxsize: int, poll_s: float) -> None:
-        self._items: deque[_Item] = deque()
-        self._maxsize = maxsize
-        self._large = 0  # bytes of large messages queued
-        self._large_lock = threading.Lock()
-        self._soon = max(maxsize // 4, 1)
-        self._poll_s = poll_s
-        self._wake = threading.Event()
-
-    def put_nowait(self, item: _Item) -> bool:
-        """Append unless full (in messages, or in bytes of large messages); ``False`` when
-        full."""
-        items = self._items
-        if len(items) >= self._maxsize:
-            return False
-        size = len(cast(_Message, item)[2]) if type(item) is tuple else 0
-        if size >= LARGE:
-            with self._large_lock:
-                if self._large and self._large + size > LARGE_QUEUED:
-                    return False
-                self._large += size
-        items.append(item)
-        if len(items) >= self._soon and not self._wake.is_set():
-            self._wake.set()
-        return True
-
-    def put(self, item: _Item) -> None:
-        """Append, full or not, and wake the consumer (control items)."""
-        self._items.append(item)
-        self._wake.set()
-
-    def take(self, timeout: float) -> list[_Item]:
-        """Every queued item, oldest first, waiting at most ``min(timeout, poll_s)`` for one
-        when none is queued (then possibly none)."""
-        items = self._items
-        if not items:
-            self._wake.clear()
-            if not items:  # a put between the test and the clear has set nothing: look again
-                self._wake.wait(min(timeout, self._poll_s))
-        popleft = items.popleft
-        taken = [popleft() for _ in range(len(items))]
-        if self._large:
-            sizes = (len(cast(_Message, m)[2]) for m in taken if type(m) is tuple)
-            large = sum(n for n in sizes if n >= LARGE)
-            if large:
-                with self._large_lock:
-                    self._large -= large
-        return taken
-
-    def empty(self) -> bool:
-        """Nothing is queued."""
-        return not self._items
-
-    def __len__(self) -> int:
-        return len(self._items)
 
 
 class _OpenFile(NamedTuple):
@@ -212,9 +136,15 @@ class McapRecorder:
         """Finished files, oldest first."""
         self.errors = 0
         """Write errors (each also logged)."""
-        self.on_overflow: Callable[[Event], None] | None = None
-        """Called (on the writer thread) with each ``recorder_overflow`` Event once it is logged,
-        e.g. to publish it; it must not call :meth:`record` with it (it is logged already)."""
+        self.on_event: Callable[[Event], None] | None = None
+        """Called (on the writer thread) with each of the recorder's own Events
+        (``recorder_overflow``, ``recording_failed``, ``recording_resumed``), e.g. to publish
+        it; it must not call :meth:`record` with it (it is logged already, when it can be)."""
+        self._failing: tuple[float, int] | None = None  # since (monotonic), time_ns
+        self._retry_at = 0.0
+        self.unrecorded = 0
+        """Messages not logged because the recorder could not write (see :data:`RETRY_S`)."""
+        self._unrecorded_now = 0  # since the failure being reported
         self._thread = threading.Thread(target=self._run, name="rlutf-recorder", daemon=True)
         self._thread.start()
 
@@ -286,6 +216,8 @@ class McapRecorder:
                 if now >= next_flush:
                     self._flush()
                     next_flush = now + self.flush_interval_s
+                    if self._failing is not None and self._file is not None:
+                        self._resumed()  # a file was written and flushed again
                 if now >= next_rotate_check:
                     # Not after every message: the size check is a system call.
                     self._unchecked = 0
@@ -313,6 +245,12 @@ class McapRecorder:
                     message = cast(_Message, item)
                     topic, schema_name, payload, log_time_ns, _ = message
                     f = self._file
+                    if f is None and self._failing is not None and not self._retry():
+                        if schema_name == _MAP_SCHEMA:  # the next file still starts with it
+                            self._maps[topic] = Record(*message)
+                        self.unrecorded += 1
+                        self._unrecorded_now += 1
+                        continue
                     # Before latching: a new file starts with the maps seen before.
                     writer = f.writer if f is not None else self._writer(log_time_ns)
                     if schema_name == _MAP_SCHEMA:
@@ -336,9 +274,68 @@ class McapRecorder:
         return False
 
     def _failed(self) -> None:
+        """A write failed: the file is left as it is (an empty one removed), and no file is
+        opened for :data:`RETRY_S`; the first failure of a series is logged and reported."""
         self.errors += 1
-        log.exception("recording failed")
+        part = self._file.part if self._file is not None else None
         self._abandon()
+        if part is not None:
+            with contextlib.suppress(OSError):
+                if part.stat().st_size == 0:
+                    part.unlink()
+        self._retry_at = time.monotonic() + RETRY_S
+        if self._failing is not None:
+            log.debug("recording failed again", exc_info=True)
+            return
+        log.debug("recording failed", exc_info=True)  # the Event below says why, in one line
+        self._failing = (time.monotonic(), time.time_ns())
+        self._opened += 1  # a number for the stretch not logged: the log tools name it missing
+        self._unrecorded_now = 0
+        err = sys.exc_info()[1]
+        self._report(
+            "error",
+            EventCode.RECORDING_FAILED,
+            f"recording to {self.record_dir} failed ({err}): messages are not "
+            f"logged until it can write again (tried every {RETRY_S:g} s)",
+            logged=False,
+        )
+
+    def _retry(self) -> bool:
+        """Whether to open a file again after a failure."""
+        return time.monotonic() >= self._retry_at
+
+    def _resumed(self) -> None:
+        assert self._failing is not None
+        since, since_ns = self._failing
+        self._failing = None
+        lost, self._unrecorded_now = self._unrecorded_now, 0
+        self._report(
+            "warning",
+            EventCode.RECORDING_RESUMED,
+            f"recording resumed after {time.monotonic() - since:.1f} s: {lost} "
+            f"messages were not logged since {datetime.fromtimestamp(since_ns / 1e9, UTC)}",
+        )
+
+    def _about(self) -> str:
+        prefix = str((self._config or {}).get("prefix", "rlutf"))
+        return f"{prefix}/service/{self.instance}" if self.instance else ""
+
+    def _report(self, level: str, code: str, message: str, logged: bool = True) -> None:
+        """An Event of the recorder's own on ``{prefix}/events``: in the service's log, in the
+        MCAP log (``logged``), and handed to :attr:`on_event`."""
+        now = time.time_ns()
+        event = Event(stamp_ns=now, level=level, code=code, key=self._about(), message=message)
+        log.log(logging.ERROR if level == "error" else logging.WARNING, "%s: %s", code, message)
+        if logged:
+            prefix = str((self._config or {}).get("prefix", "rlutf"))
+            self._writer(now).write(
+                Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now)
+            )
+        if self.on_event is not None:
+            try:
+                self.on_event(event)
+            except Exception:
+                log.exception("publishing the recorder's Event failed")
 
     def _writer(self, first_ns: int) -> LogWriter:
         """The open file's writer; a new file if none is open, whose first own message is
@@ -371,24 +368,13 @@ class McapRecorder:
     def _report_overflow(self) -> None:
         with self._lock:
             lost, self._unreported = self._unreported, 0
-        prefix = str((self._config or {}).get("prefix", "rlutf"))
-        now = time.time_ns()
-        about = f"{prefix}/service/{self.instance}" if self.instance else ""
-        event = Event(
-            stamp_ns=now,
-            level="warning",
-            code=EventCode.RECORDER_OVERFLOW,
-            key=about,
-            message=f"{lost} messages were not recorded: the recorder queue "
+        self._report(
+            "warning",
+            EventCode.RECORDER_OVERFLOW,
+            f"{lost} messages were not recorded: the recorder queue "
             f"({self.queue_size} messages) was full",
+            logged=self._failing is None,
         )
-        log.warning("recorder queue full: %d messages not recorded", lost)
-        self._writer(now).write(Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now))
-        if self.on_overflow is not None:
-            try:
-                self.on_overflow(event)
-            except Exception:
-                log.exception("on_overflow failed")
 
     def _flush(self) -> None:
         f = self._file

@@ -28,6 +28,10 @@ class Recorder(Protocol):
     def queued(self) -> int:
         """Messages waiting in the queue to be written (for health and metrics)."""
 
+    @property
+    def unrecorded(self) -> int:
+        """Messages not recorded because the recorder could not write (a full disk)."""
+
     def close(self) -> None:
         """Write what is queued and finish the file."""
 
@@ -50,6 +54,11 @@ class NullRecorder:
 
     @property
     def queued(self) -> int:
+        """Always 0."""
+        return 0
+
+    @property
+    def unrecorded(self) -> int:
         """Always 0."""
         return 0
 

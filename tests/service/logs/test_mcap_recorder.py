@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from mcaplog_fixtures import read_all, simulated_inputs
 
 from schemas import SCHEMA_NAMES, Event, EventCode, decode
-from service.logs import mcaplog
+from service.logs import mcaplog, recqueue
 from service.logs.logtools import recover
 from service.logs.mcapfile import (
     CONFIG_KEY,
@@ -28,7 +28,7 @@ from service.logs.mcapfile import (
 )
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
-from service.logs.runs import run_tag
+from service.logs.runs import group_runs, run_tag
 
 CONFIG = {"prefix": "rlutf", "instance": "t1", "localizer": {"epsilon": 0.006}}
 REPO = Path(__file__).resolve().parents[3]
@@ -161,7 +161,7 @@ def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path, queue_size=5, foxglove=False)
     gate = _stall(rec)
     published: list[Event] = []
-    rec.on_overflow = published.append
+    rec.on_event = published.append
     rec.set_config(CONFIG)
     _held_by_writer(rec)
     t0 = time.perf_counter()
@@ -182,12 +182,12 @@ def test_large_messages_are_bounded_in_bytes_not_only_in_count(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # A flood of scans at the message limit (1 MB) must not fill a queue of 20,000 messages.
-    monkeypatch.setattr(mcaplog, "LARGE_QUEUED", 3 * mcaplog.LARGE)
+    monkeypatch.setattr(recqueue, "LARGE_QUEUED", 3 * recqueue.LARGE)
     rec = McapRecorder(tmp_path, queue_size=1000, foxglove=False)
     gate = _stall(rec)
     rec.set_config(CONFIG)
     _held_by_writer(rec)
-    big = b"{" + b" " * (mcaplog.LARGE - 2) + b"}"
+    big = b"{" + b" " * (recqueue.LARGE - 2) + b"}"
     for i in range(5):
         rec.record("rlutf/robots/r1/scan", "rlutf.LaserScan", big, i + 1, i)
     for i in range(5):  # small messages still go in
@@ -227,3 +227,58 @@ def test_null_recorder_has_nothing_queued() -> None:
     from service.logs.recording import NullRecorder
 
     assert NullRecorder().queued == 0
+
+
+def _until(what: Any, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def test_a_recorder_that_cannot_write_says_so_counts_what_it_drops_and_resumes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its folder gone (as a full disk, a real write error): one Event ``recording_failed``,
+    no file opened per message meanwhile, every message not logged counted; once it can write
+    again, recording resumes with an Event that says how many were not logged, in the log."""
+    monkeypatch.setattr(mcaplog, "RETRY_S", 0.3)
+    folder = tmp_path / "logs"
+    rec = McapRecorder(folder, instance="t1", max_seconds=0.2, flush_interval_s=0.05)
+    published: list[Event] = []
+    rec.on_event = published.append
+    rec.set_config(CONFIG)
+    sent = 0
+
+    def odometry(n: int, pause: float = 0.01) -> None:
+        nonlocal sent
+        for _ in range(n):
+            sent += 1
+            rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', sent, sent)
+            time.sleep(pause)
+
+    odometry(10)
+    _until(lambda: rec.files)  # one file finished by its age
+    saved = tmp_path / "saved"
+    folder.rename(saved)  # the open file's rename, then every open, fails
+    odometry(60)
+    _until(lambda: EventCode.RECORDING_FAILED in [e.code for e in published])
+    assert rec.unrecorded > 0
+    assert not folder.exists()  # nothing recreated it behind the operator's back
+    folder.mkdir()
+    _until(lambda: odometry(5) or EventCode.RECORDING_RESUMED in [e.code for e in published])
+    rec.close()
+    codes = [e.code for e in published]
+    assert codes == [EventCode.RECORDING_FAILED, EventCode.RECORDING_RESUMED], codes
+    assert rec.errors >= 2  # failed again on each retry while the folder was gone
+    failed, resumed = published
+    assert failed.level == "error" and str(folder) in failed.message
+    assert f"{rec.unrecorded} messages were not logged" in resumed.message
+    after = [f for f in rec.files if f.parent == folder and f.exists()]
+    logged = [decode(Event, r.payload) for f in after for r in read_all(f, ["rlutf.Event"])]
+    assert logged == [resumed]  # the gap is in the audit trail
+    assert sum(len(read_all(f, ["rlutf.Odometry"])) for f in after) > 0
+    assert not list(folder.glob("*.part"))  # no empty file left per retry
+    # The stretch not logged is a file of the run that the log tools name as missing.
+    (run,) = group_runs([*sorted(saved.glob("*.mcap")), *after])
+    assert run.missing
