@@ -215,7 +215,8 @@ class EventCode:
     """A newer scan replaced an unprocessed older one."""
     MAP_DROPPED: Final = "map_dropped"
     """A map put was not taken: too many map puts already waited to be checked or stored (a
-    flood). The service then loads what the store holds; the message says what happened."""
+    flood), or the store could not write it (a full disk). The service then loads what the
+    store holds; the message says what happened."""
     RECORDER_OVERFLOW: Final = "recorder_overflow"
     """The MCAP recorder's queue was full and messages were not logged."""
     RECORDING_FAILED: Final = "recording_failed"

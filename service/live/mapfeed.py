@@ -195,6 +195,10 @@ class MapFeed:
                 "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg
             ),
             forward=self.on_sample,
+            # Not held back behind a flood's map_dropped Events (a kind of its own).
+            on_unwritten=lambda key, msg: report(
+                "map_unwritten", "error", EventCode.MAP_DROPPED, key, msg
+            ),
         )
         self.store_busy = storage.busy
         return storage

@@ -11,7 +11,7 @@ from typing import Any
 
 import zenoh
 
-from schemas import Map, SchemaError, decode, encode, valid_id
+from schemas import Event, EventCode, Map, SchemaError, decode, encode, valid_id
 from service.keys import Keys
 from service.maps.book import (
     FILE_MAX_BYTES,
@@ -200,8 +200,22 @@ def put_map(
         if verdict == "conflict":
             print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
             return 1
-    session.put(key, payload, encoding=JSON)
-    return _confirm(session, key, msg, payload, timeout)
+    refused: list[Event] = []  # the store's Events about this put (it could not take it)
+
+    def on_event(sample: zenoh.Sample) -> None:
+        try:
+            ev = decode(Event, sample.payload.to_bytes())
+        except SchemaError:
+            return
+        if ev.key == key and ev.code in (EventCode.MAP_DROPPED, EventCode.INVALID_MAP):
+            refused.append(ev)
+
+    watch = session.declare_subscriber(Keys(prefix).events, on_event)
+    try:
+        session.put(key, payload, encoding=JSON)
+        return _confirm(session, key, msg, payload, timeout, refused)
+    finally:
+        watch.undeclare()
 
 
 def _same_content(held: Map, msg: Map) -> bool:
@@ -216,11 +230,23 @@ def _refused(key: str, version: int, held: int) -> str:
     )
 
 
-def _confirm(session: zenoh.Session, key: str, msg: Map, payload: bytes, timeout: float) -> int:
-    """Wait until the storage answers with the map put; report what it holds otherwise."""
+def _confirm(
+    session: zenoh.Session,
+    key: str,
+    msg: Map,
+    payload: bytes,
+    timeout: float,
+    refused: list[Event],
+) -> int:
+    """Wait until the storage answers with the map put, or says it did not take it (an Event
+    in ``refused``); report what it holds otherwise."""
     digest = content_digest(msg)
     deadline = time.monotonic() + timeout
     while True:
+        if refused:
+            ev = refused[0]
+            print(f"rlutf map put: the store did not take {key}: {ev.message}", file=sys.stderr)
+            return 1
         held = held_map(session, key, min(timeout, 2.0), unless=payload)
         if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
             print(f"put {key} (version {msg.version}, {len(payload)} bytes): stored")

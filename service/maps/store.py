@@ -149,11 +149,13 @@ class MapStorage:
         keys: key layout.
         store: the files.
         max_bytes: the maps' size limit, bytes.
-        on_error: reports a bad key or a map that could not be written: ``(key, message)``.
+        on_error: reports a bad key or a map that could not be removed: ``(key, message)``.
         limits: extent and vertex limits of a map.
         checker: validates puts (the service's, so that a put is validated once).
         on_drop: reports a put not stored because too many already waited (default:
             ``on_error``).
+        on_unwritten: reports a put the store could not write (a full disk; default:
+            ``on_drop``).
         forward: called with every sample on ``{prefix}/maps/*`` this storage did not drop:
             the service beside it follows the maps so, and never loads a put its store dropped.
     """
@@ -169,6 +171,7 @@ class MapStorage:
         checker: MapChecker | None = None,
         on_drop: Callable[[str, str], None] | None = None,
         forward: Callable[[zenoh.Sample], None] | None = None,
+        on_unwritten: Callable[[str, str], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -177,6 +180,7 @@ class MapStorage:
         self.checker = checker or MapChecker(max_bytes, limits)
         self.on_error = on_error or (lambda key, msg: None)
         self.on_drop = on_drop or self.on_error
+        self.on_unwritten = on_unwritten or self.on_drop
         self._pending = 0  # puts queued or being stored
         self._queued_bytes = 0
         self._queue_lock = threading.Lock()  # not _lock, which a file write holds
@@ -281,8 +285,12 @@ class MapStorage:
                 return
             try:
                 self.store.put(map_id, payload)
-            except OSError as err:
-                self.on_error(key, f"could not store map {map_id}: {err}")
+            except OSError as err:  # a full disk: the put is not taken, as under a flood
+                self.on_unwritten(
+                    key,
+                    f"map {map_id} not stored: the store could not write it ({err}); put it "
+                    "again once it can",
+                )
                 return
             self._versions[map_id] = (version, digest)
 

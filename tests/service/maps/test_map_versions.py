@@ -220,3 +220,29 @@ def test_map_put_that_a_busy_store_drops_fails_and_says_why(
     assert code == 1
     err = capsys.readouterr().err
     assert "version 9 was not confirmed" in err and "map_dropped" in err
+
+
+def test_map_put_that_the_store_cannot_write_fails_and_says_why(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A store that cannot write (a full disk; here its folder replaced by a file, a real
+    write error) does not take the put: an Event map_dropped that names the OS error, which
+    ``rlutf map put`` prints and exits 1 on, instead of waiting and saying no storage
+    answered."""
+    bench.put_map(version=1)
+    assert Collector().wait_for(lambda: (s := _stored(bench)) is not None and s.version == 1)
+    aside = bench.store.with_name("store-aside")
+    bench.store.rename(aside)
+    bench.store.write_text("not a folder")
+    try:
+        path = tmp_path / "m1.json"
+        path.write_bytes(_payload(1, MOVED))
+        started = time.monotonic()
+        assert _put_cli(bench, path, "--version", "2") == 1
+        err = capsys.readouterr().err
+        assert time.monotonic() - started < 3.0  # said at once, not at the timeout
+        assert "the store did not take rlutf/maps/m1" in err, err
+        assert "could not write it" in err and "no storage answered" not in err, err
+    finally:
+        bench.store.unlink()
+        aside.rename(bench.store)
