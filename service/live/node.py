@@ -2,8 +2,7 @@
 
 Wiring only: callbacks decode, validate, record and hand inputs to the :class:`Dispatcher`;
 finished batches are published and recorded; maps are fetched and followed on a thread of their
-own (:mod:`service.live.mapfeed`). The computation is :class:`service.engine.FleetEngine`, the
-same code replay runs.
+own (:mod:`service.live.mapfeed`). The computation is :class:`service.engine.FleetEngine`.
 
 Scale-out: instances sharing a prefix split the fleet by rendezvous hashing over their
 liveliness tokens (:mod:`service.cluster.membership`); each localizes, records, counts and
@@ -11,8 +10,8 @@ answers pose queries for the robots it owns only, and seeds a robot it takes ove
 robot's last published pose (:mod:`service.cluster.ownership`); they share map health evidence.
 
 ROS 2 robots (``settings.ros2.enabled``) come in through :class:`service.ros2.frontdoor.
-Ros2FrontDoor` on the same session: their inputs, once validated, take the JSON inputs' path
-from ownership on (recorded as the JSON messages), and their poses also go out as ROS messages.
+Ros2FrontDoor` on the same session: once validated, their inputs take the JSON inputs' path
+(recorded as JSON), and their poses also go out as ROS messages.
 """
 
 from __future__ import annotations
@@ -114,12 +113,12 @@ class LocalizationService:
         self._own_session = session is None
         self._session = session
         self._poses: dict[str, bytes] = {}
-        self.robot_view = RobotView(settings.instance, self._poses, self.clock, settings.prefix)
+        view = RobotView(settings.instance, self._poses, self.clock, settings.prefix)
+        self.robot_view = view
         self._declared: list[Any] = []
         self.outbox = Outbox()  # Events go out from its thread, never from a callback's
-        self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox)
+        self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox, view.told)
         self._publish = self.out.publish
-        self._event = self.out.event
         self._robot_event = self.out.robot_event
         self._global_event = self.out.global_event
         self._on_drop = self.out.on_drop

@@ -49,12 +49,20 @@ class Announcer:
         recorder: where Events are recorded.
         clock: the service's receive clock, ns.
         outbox: the thread Events go out from.
+        on_robot_event: told of each robot Event sent (robot, code, stamp).
     """
 
     def __init__(
-        self, keys: Keys, recorder: Recorder, clock: Callable[[], int], outbox: Outbox
+        self,
+        keys: Keys,
+        recorder: Recorder,
+        clock: Callable[[], int],
+        outbox: Outbox,
+        on_robot_event: Callable[[str, str, int], None] | None = None,
     ) -> None:
         self.keys = keys
+        #: Told of each robot Event sent: robot, code, stamp (the per-robot view's reasons).
+        self.on_robot_event = on_robot_event
         self.recorder = recorder
         self.clock = clock
         self.outbox = outbox
@@ -169,7 +177,10 @@ class Announcer:
     def robot_event(
         self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
     ) -> None:
-        self.event(self.keys.robot_events(robot), level, code, about, message, now)
+        stamp = now if now is not None else self.clock()
+        if self.on_robot_event is not None:  # first: the view holds it once the Event is out
+            self.on_robot_event(robot, code, stamp)
+        self.event(self.keys.robot_events(robot), level, code, about, message, stamp)
 
     def global_event(
         self, level: str, code: str, about: str, message: str, now: int | None = None

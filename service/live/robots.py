@@ -171,6 +171,13 @@ class RobotView:
                 self._remember(robot, at_ns, reason)
                 return
 
+    def told(self, robot: str, code: str, at_ns: int) -> None:
+        """A robot Event ``code`` went out at ``at_ns`` from outside an update (a map no
+        storage has, for an InitialPose): a reason the robot waits, as :meth:`event` finds."""
+        reason = _WAITING.get(f'"code":"{code}"'.encode())
+        if reason is not None:
+            self._remember(robot, at_ns, reason)
+
     def initialized(self, robot: str, at_ns: int) -> None:
         """An InitialPose of ``robot`` was taken in at ``at_ns``: until its first pose the robot
         is listed as waiting for a scan (:data:`NO_SCAN_YET`), so that a robot given a pose

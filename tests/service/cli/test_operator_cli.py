@@ -147,6 +147,9 @@ def test_initialpose_on_a_missing_map_is_refused(
         assert code == 1
         assert json.loads(out.splitlines()[0])["code"] == "map_not_found"
         assert "rlutf map list" in err
+        # before any scan: listed as waiting for the map, not as placed and waiting for a scan
+        code, out, _ = _cli(capsys, "robots", "-e", bench.endpoint, "--json")
+        assert [(r["robot_id"], r["reason"]) for r in json.loads(out)] == [("r1", "map_not_found")]
         # its scans wait for that map: listed as waiting for it, not for an initial pose
         robot = bench.robot("r1", 1)
         robot.odom(0)
