@@ -135,7 +135,7 @@ class McapRecorder:
         self.files: list[Path] = []
         """Finished files, oldest first."""
         self.errors = 0
-        """Write errors (each also logged)."""
+        """Write errors (the first of a series is an Event ``recording_failed``)."""
         self.on_event: Callable[[Event], None] | None = None
         """Called (on the writer thread) with each of the recorder's own Events
         (``recorder_overflow``, ``recording_failed``, ``recording_resumed``), e.g. to publish
