@@ -223,8 +223,9 @@ class EventCode:
     """The MCAP recorder could not write (a full disk, a folder gone): messages are not logged
     until it can; it tries again every few seconds."""
     RECORDING_RESUMED: Final = "recording_resumed"
-    """The MCAP recorder writes again after ``recording_failed``; the message says how long it
-    could not and how many messages were not logged meanwhile (also in the log)."""
+    """The MCAP recorder writes again after ``recording_failed``; stamped when the gap began,
+    the message says how long it could not write and how many messages were not logged
+    meanwhile (also in the log, where replay audits the poses before the gap only)."""
     MAP_UPDATED: Final = "map_updated"
     """A newer map version replaced the one robots were localized on."""
     RELOCALIZING: Final = "relocalizing"

@@ -308,7 +308,7 @@ def _report(
 ) -> Any:
     """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
     final summary."""
-    from service.logs.audit import all_passed, audit, render, run_verdict, version_note
+    from service.logs.audit import all_passed, audit, gap_note, render, run_verdict, version_note
 
     k, n = place
     heading = "Audit" if n == 1 else f"Audit of run {k}"
@@ -336,8 +336,10 @@ def _report(
             console.print(f"wrote {path}")
     tol_m = args.tolerance
     tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
-    audits = audit(result.recorded, result.recomputed)
+    audits = audit(result.recorded, result.recomputed, result.gap_ns)
     poses = sum(len(v) for v in result.recorded.values())
+    if (gap := gap_note(audits, result.gap_ns)) is not None:
+        console.print(f"[yellow]{gap}[/yellow]")
 
     if not audits:
         console.print("no recorded poses in the input: nothing to audit")

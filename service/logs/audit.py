@@ -7,7 +7,11 @@ how many payloads are byte-identical, and the poses present on one side only:
 * ``missing``: recorded but not recomputed: always a failure;
 * ``extra``: recomputed but not recorded, before the robot's last recorded pose: a failure;
 * ``unverified``: recomputed after the robot's last recorded pose: the log ends before them
-  (a recovered crash log loses its last second), reported but not a failure unless ``strict``.
+  (a recovered crash log loses its last second), reported but not a failure unless ``strict``;
+* ``after_gap``: recorded poses stamped after a recording gap began (Event
+  ``recording_resumed``: the recorder could not write, a full disk): the log lacks the gap's
+  inputs, so the replay cannot recompute them as they were; reported, not compared, and not a
+  failure unless ``strict``.
 
 A robot fails when a deviation exceeds its tolerance, a status differs, or poses are missing or
 extra. Where the log holds no poses at all there is nothing to audit.
@@ -49,6 +53,7 @@ class RobotAudit:
     rms_translation: float
     max_heading: float
     rms_heading: float
+    after_gap: int = 0
 
     def passed(self, tolerance_m: float, tolerance_rad: float, strict: bool = False) -> bool:
         """Whether the robot's recorded poses are reproduced within the tolerances."""
@@ -58,13 +63,21 @@ class RobotAudit:
             and self.missing == 0
             and self.extra == 0
             and self.status_differs == 0
-            and (not strict or self.unverified == 0)
+            and (not strict or self.unverified == self.after_gap == 0)
         )
 
 
 def _audit_robot(
-    robot: str, recorded: Sequence[PoseRecord], recomputed: Sequence[PoseRecord]
+    robot: str,
+    recorded: Sequence[PoseRecord],
+    recomputed: Sequence[PoseRecord],
+    gap_ns: int | None = None,
 ) -> RobotAudit:
+    after_gap = 0
+    if gap_ns is not None:  # neither side is compared from the gap on
+        after_gap = sum(p.stamp_ns >= gap_ns for p in recorded)
+        recorded = [p for p in recorded if p.stamp_ns < gap_ns]
+        recomputed = [p for p in recomputed if p.stamp_ns < gap_ns]
     by_stamp: dict[int, list[PoseRecord]] = defaultdict(list)
     for p in recomputed:
         by_stamp[p.stamp_ns].append(p)
@@ -100,17 +113,33 @@ def _audit_robot(
         rms_translation=rms(dt),
         max_heading=max(dh, default=0.0),
         rms_heading=rms(dh),
+        after_gap=after_gap,
     )
 
 
 def audit(
-    recorded: Mapping[str, Sequence[PoseRecord]], recomputed: Mapping[str, Sequence[PoseRecord]]
+    recorded: Mapping[str, Sequence[PoseRecord]],
+    recomputed: Mapping[str, Sequence[PoseRecord]],
+    gap_ns: int | None = None,
 ) -> list[RobotAudit]:
-    """Compare per robot; empty when ``recorded`` holds no poses (nothing to audit)."""
+    """Compare per robot, up to ``gap_ns`` (a recording gap's start) if given; empty when
+    ``recorded`` holds no poses (nothing to audit)."""
     if not any(recorded.values()):
         return []
     robots = sorted(set(recorded) | set(recomputed))
-    return [_audit_robot(r, recorded.get(r, ()), recomputed.get(r, ())) for r in robots]
+    return [_audit_robot(r, recorded.get(r, ()), recomputed.get(r, ()), gap_ns) for r in robots]
+
+
+def gap_note(audits: Sequence[RobotAudit], gap_ns: int | None) -> str | None:
+    """What an audit up to a recording gap left out, if anything."""
+    left = sum(a.after_gap for a in audits)
+    if not left or gap_ns is None:
+        return None
+    began = datetime.fromtimestamp(gap_ns / 1e9, UTC).isoformat(timespec="milliseconds")
+    return (
+        f"{left} recorded poses after a recording gap (from {began}, Event recording_resumed) "
+        "not audited: the log lacks the gap's inputs"
+    )
 
 
 def all_passed(

@@ -314,22 +314,26 @@ class McapRecorder:
             EventCode.RECORDING_RESUMED,
             f"recording resumed after {time.monotonic() - since:.1f} s: {lost} "
             f"messages were not logged since {datetime.fromtimestamp(since_ns / 1e9, UTC)}",
+            stamp=since_ns,  # the gap began then: replay audits the poses before it
         )
 
     def _about(self) -> str:
         prefix = str((self._config or {}).get("prefix", "rlutf"))
         return f"{prefix}/service/{self.instance}" if self.instance else ""
 
-    def _report(self, level: str, code: str, message: str, logged: bool = True) -> None:
-        """An Event of the recorder's own on ``{prefix}/events``: in the service's log, in the
-        MCAP log (``logged``), and handed to :attr:`on_event`."""
+    def _report(
+        self, level: str, code: str, message: str, logged: bool = True, stamp: int | None = None
+    ) -> None:
+        """An Event of the recorder's own on ``{prefix}/events`` (stamped ``stamp``, default
+        now): in the service's log, in the MCAP log (``logged``), handed to :attr:`on_event`."""
         now = time.time_ns()
-        event = Event(stamp_ns=now, level=level, code=code, key=self._about(), message=message)
+        stamp = now if stamp is None else stamp
+        event = Event(stamp_ns=stamp, level=level, code=code, key=self._about(), message=message)
         log.log(logging.ERROR if level == "error" else logging.WARNING, "%s: %s", code, message)
         if logged:
             prefix = str((self._config or {}).get("prefix", "rlutf"))
             self._writer(now).write(
-                Record(f"{prefix}/events", "rlutf.Event", encode(event), now, now)
+                Record(f"{prefix}/events", "rlutf.Event", encode(event), now, stamp)
             )
         if self.on_event is not None:
             try:

@@ -137,6 +137,9 @@ class ReplayResult:
     rejected: int = 0
     unreadable_poses: int = 0
     out: Path | None = None
+    gap_ns: int | None = None
+    """When the first recording gap began (Event ``recording_resumed``): the log lacks inputs
+    from then on, so poses after it cannot be recomputed as they were."""
 
 
 class MixedRuns(LogError):
@@ -175,17 +178,23 @@ def pose_record(payload: bytes) -> PoseRecord:
 
 
 def _dropped_scans(
-    logs: Sequence[LogFile], evictions: list[tuple[int, str]] | None = None
+    logs: Sequence[LogFile],
+    evictions: list[tuple[int, str]] | None = None,
+    gaps: list[int] | None = None,
 ) -> tuple[Counter[tuple[str, int]], list[Record]]:
     """The scans the live service dropped (per robot and stamp) and the events saying so.
 
     Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
-    ``(log_time_ns, robot)``, in log order, and their records to the events returned.
+    ``(log_time_ns, robot)``, in log order, and their records to the events returned; the
+    start of each recording gap (Event ``recording_resumed``, stamped when the gap began) to
+    ``gaps``.
     """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
     for rec in merged_messages(logs, {EVENT_SCHEMA}):
         where = robot_topic(rec.topic)
+        if where is None and gaps is not None and b'"code":"recording_resumed"' in rec.payload:
+            gaps.append(rec.publish_time_ns)
         if where is None or where.leaf != "events":
             continue
         try:
@@ -390,7 +399,9 @@ def replay(
             )
         result = ReplayResult(config)
         evictions: list[tuple[int, str]] = []
-        drops, drop_records = _dropped_scans(logs, evictions)
+        gaps: list[int] = []
+        drops, drop_records = _dropped_scans(logs, evictions, gaps)
+        result.gap_ns = min(gaps, default=None)
         if on_total is not None:
             on_total(sum(lf.count(REPLAYED) for lf in logs))
         part = out.with_name(out.name + ".part") if out is not None else None

@@ -274,6 +274,7 @@ def test_a_recorder_that_cannot_write_says_so_counts_what_it_drops_and_resumes(
     failed, resumed = published
     assert failed.level == "error" and str(folder) in failed.message
     assert f"{rec.unrecorded} messages were not logged" in resumed.message
+    assert resumed.stamp_ns <= failed.stamp_ns  # stamped when the gap began, for replay
     after = [f for f in rec.files if f.parent == folder and f.exists()]
     logged = [decode(Event, r.payload) for f in after for r in read_all(f, ["rlutf.Event"])]
     assert logged == [resumed]  # the gap is in the audit trail

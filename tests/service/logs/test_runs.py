@@ -440,3 +440,46 @@ def test_an_audit_of_a_folder_names_its_unfinished_logs(
     out, err = capsys.readouterr()
     assert "audit: passed (1 run; 1 log(s) being recorded, not audited)" in out
     assert f"not audited: {part}: this log is being recorded now" in err
+
+
+def test_an_audit_stops_at_a_recording_gap_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A log with a recording gap (the recorder could not write: the gap's inputs are not in
+    it, ``recording_resumed`` says when it began) audits every pose before the gap and names
+    those after it, not audited; without that Event the same log fails (a false alarm)."""
+    from schemas import Event, EventCode, encode
+
+    inputs = simulated_inputs(seed=4, steps=30, beams=90)
+    computed = replay([write_log(tmp_path / "all.mcap", inputs)])
+    scans = sorted(r.log_time_ns for r in inputs if r.schema_name == "rlutf.LaserScan")
+    began, resumed = scans[len(scans) // 2], scans[len(scans) // 2 + 8]  # 4 steps of 2 robots
+    received = {
+        (r.topic.split("/")[2], r.publish_time_ns): r.log_time_ns
+        for r in inputs
+        if r.schema_name == "rlutf.LaserScan"
+    }
+    poses = [
+        Record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", p.payload, at, p.stamp_ns)
+        for robot, records in computed.recomputed.items()
+        for p in records
+        if not began <= (at := received[(robot, p.stamp_ns)]) < resumed  # lost in the gap
+    ]
+    kept = [r for r in inputs if not began <= r.log_time_ns < resumed]
+    stamp = min(s for (_, s), at in received.items() if at >= began)  # the gap's first scan
+    event = Event(
+        stamp_ns=stamp,
+        level="warning",
+        code=EventCode.RECORDING_RESUMED,
+        key="rlutf/service/demo",
+        message="recording resumed after 0.4 s: 24 messages were not logged",
+    )
+    note = Record("rlutf/events", "rlutf.Event", encode(event), resumed, stamp)
+    rows = sorted([*kept, *poses], key=lambda r: r.log_time_ns)
+    with_gap = write_log(tmp_path / "gap.mcap", sorted([*rows, note], key=lambda r: r.log_time_ns))
+    assert main(["replay", str(with_gap), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "recorded poses after a recording gap" in out and "not audited" in out
+    assert "audit: passed" in out
+    silent = write_log(tmp_path / "silent.mcap", rows)  # the same gap, no Event
+    assert main(["replay", str(silent), "--quiet"]) == 1
