@@ -399,6 +399,8 @@ class McapRecorder:
         f = self._file
         if f is None:
             return
+        if self._failing is not None:  # opened again after a failure, not flushed yet
+            self._resumed()  # the gap is marked in the file before it is finished
         self._file = None
         try:
             f.writer.finish()

@@ -283,3 +283,36 @@ def test_a_recorder_that_cannot_write_says_so_counts_what_it_drops_and_resumes(
     # The stretch not logged is a file of the run that the log tools name as missing.
     (run,) = group_runs([*sorted(saved.glob("*.mcap")), *after])
     assert run.missing
+
+
+def test_a_gap_that_ends_just_before_the_stop_is_marked_in_the_last_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Recording resumed but no flush yet when the service stops: the file finished at the stop
+    still starts the resumed stretch with ``recording_resumed`` (else replay would compare the
+    poses after the gap and fail)."""
+    monkeypatch.setattr(mcaplog, "RETRY_S", 0.2)
+    folder = tmp_path / "logs"
+    rec = McapRecorder(folder, instance="t1", flush_interval_s=60.0)  # no flush but at the stop
+    published: list[Event] = []
+    rec.on_event = published.append
+    rec.set_config(CONFIG)
+    rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', 1, 1)
+    _until(lambda: rec.current_path is not None)
+    folder.rename(tmp_path / "gone")  # the open file can no longer be renamed when finished
+    rec.max_seconds = 0.0  # finish it at the next rotation check
+    _until(lambda: bool(published))  # recording_failed
+    rec.max_seconds = 3600.0
+    folder.mkdir()
+    time.sleep(0.3)  # past the retry delay
+    rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', 3, 3)
+    _until(lambda: rec.current_path is not None)
+    rec.close()
+    assert [e.code for e in published] == [
+        EventCode.RECORDING_FAILED,
+        EventCode.RECORDING_RESUMED,
+    ]
+    (last,) = [f for f in rec.files if f.parent == folder]
+    logged = [decode(Event, r.payload).code for r in read_all(last, ["rlutf.Event"])]
+    assert logged == [EventCode.RECORDING_RESUMED]
+    assert len(read_all(last, ["rlutf.Odometry"])) == 1
