@@ -174,9 +174,8 @@ class RobotView:
     def told(self, robot: str, code: str, at_ns: int) -> None:
         """A robot Event ``code`` went out at ``at_ns`` from outside an update (a map no
         storage has, for an InitialPose): a reason the robot waits, as :meth:`event` finds."""
-        reason = _WAITING.get(f'"code":"{code}"'.encode())
-        if reason is not None:
-            self._remember(robot, at_ns, reason)
+        if code in _WAITING.values():  # the reasons are the codes
+            self._remember(robot, at_ns, code)
 
     def initialized(self, robot: str, at_ns: int) -> None:
         """An InitialPose of ``robot`` was taken in at ``at_ns``: until its first pose the robot

@@ -317,9 +317,11 @@ class McapRecorder:
             stamp=since_ns,  # the gap began then: replay audits the poses before it
         )
 
+    def _prefix(self) -> str:
+        return str((self._config or {}).get("prefix", "rlutf"))
+
     def _about(self) -> str:
-        prefix = str((self._config or {}).get("prefix", "rlutf"))
-        return f"{prefix}/service/{self.instance}" if self.instance else ""
+        return f"{self._prefix()}/service/{self.instance}" if self.instance else ""
 
     def _report(
         self, level: str, code: str, message: str, logged: bool = True, stamp: int | None = None
@@ -331,9 +333,8 @@ class McapRecorder:
         event = Event(stamp_ns=stamp, level=level, code=code, key=self._about(), message=message)
         log.log(logging.ERROR if level == "error" else logging.WARNING, "%s: %s", code, message)
         if logged:
-            prefix = str((self._config or {}).get("prefix", "rlutf"))
             self._writer(now).write(
-                Record(f"{prefix}/events", "rlutf.Event", encode(event), now, stamp)
+                Record(f"{self._prefix()}/events", "rlutf.Event", encode(event), now, stamp)
             )
         if self.on_event is not None:
             try:
