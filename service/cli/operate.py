@@ -43,6 +43,12 @@ def register(sub: Any) -> None:
         help="pose in map coordinates, e.g. --pose -1.5,2.0,0.3 (metres, radians)",
     )
     init.add_argument("--degrees", action="store_true", help="THETA is in degrees")
+    init.add_argument(
+        "--force",
+        action="store_true",
+        help=f"put the pose even if it lies more than {OFF_MAP_M:g} m outside the stored map's "
+        "free space (by default refused: a pose there is a typo, a unit or a map mix-up)",
+    )
     init.set_defaults(func=cmd_initialpose)
 
     events = sub.add_parser(
@@ -65,6 +71,38 @@ def register(sub: Any) -> None:
     events.set_defaults(func=cmd_events)
 
 
+#: A pose farther than this outside the stored map's free space is refused, metres. Nearer, the
+#: robot's first scan corrects it (a click into a wall, a rough guess by a door).
+OFF_MAP_M = 1.0
+
+
+def off_map(payload: bytes, x: float, y: float) -> str | None:
+    """Why ``(x, y)`` cannot be on the stored map ``payload`` (a Map message): farther than
+    :data:`OFF_MAP_M` outside its free space; ``None`` when it may be (or the payload is not a
+    map this check can read: the service then says what is wrong with it)."""
+    import shapely
+    from shapely.geometry import shape
+
+    from schemas import Map, SchemaError, decode
+
+    try:
+        world = decode(Map, payload, max_bytes=len(payload))
+        free = shape(world.geometry.model_dump())
+    except (SchemaError, ValueError, TypeError, AttributeError):
+        return None
+    point = shapely.Point(x, y)
+    away = float(free.distance(point))
+    if free.is_empty or away <= OFF_MAP_M:
+        return None
+    x0, y0, x1, y1 = free.bounds
+    return (
+        f"({x:g}, {y:g}) is {away:.1f} m outside the free space of map {world.map_id!r} "
+        f"(version {world.version}: x {x0:.1f} to {x1:.1f} m, y {y0:.1f} to {y1:.1f} m); is the "
+        "pose in that map's coordinates, in metres? `rlutf map show "
+        f"{world.map_id} --out map.png` draws it; --force puts the pose anyway"
+    )
+
+
 def _pose(text: str) -> tuple[float, float, float]:
     try:
         x, y, theta = (float(p) for p in text.split(","))
@@ -81,6 +119,7 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
     """``rlutf initialpose ROBOT --map ID --pose X,Y,THETA``."""
     from schemas import InitialPose, encode
     from service.cli.present import pose_line
+    from service.keys import Keys
     from service.live.queries import put_request
 
     check_ids("initialpose", robot=args.robot, map=args.map)
@@ -91,6 +130,13 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
     settings, session = client(args)
     with session:
         require_service(session, settings.prefix, settings.connect)
+        if not args.force:
+            key = Keys(settings.prefix).map(args.map)
+            for reply in session.get(key, timeout=min(args.wait, 5.0) or 5.0):
+                why = None if reply.ok is None else off_map(reply.ok.payload.to_bytes(), x, y)
+                if why is not None:
+                    print(f"rlutf initialpose: refused: {why}", file=sys.stderr)
+                    return EXIT_FAILURE
         outcome = put_request(
             session, settings.prefix, args.robot, request, args.wait, show_event(args.json)
         )

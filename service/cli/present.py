@@ -14,7 +14,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from schemas import Event, Health, PoseEstimate
+from schemas import Event, EventCode, Health, PoseEstimate
 from service.live.robots import NO_SCAN_YET, RobotState, WaitingRobot, one_sigma
 
 if TYPE_CHECKING:
@@ -43,6 +43,15 @@ NO_SCAN_HINT = (
     "no scan yet: the robot has an initial pose and has sent no scan since; its next scan "
     "gives its first pose (is it sending scans? `rlutf events ROBOT`)"
 )
+NO_MAP_HINT = (
+    "no map: the robot's map is in no storage (its initial pose or scans wait for it); "
+    "`rlutf map list` shows the stored maps, `rlutf map put FILE --id ID` stores one"
+)
+#: How each waiting reason reads in the status column, and its hint.
+_WAITS = {
+    NO_SCAN_YET: ("no scan yet", NO_SCAN_HINT),
+    EventCode.MAP_NOT_FOUND: ("no map", NO_MAP_HINT),
+}
 
 
 def table(header: Sequence[str], rows: Iterable[Sequence[str]], right: set[int]) -> str:
@@ -124,17 +133,18 @@ def robots_table(
     ]
     waits = list(waiting)
     rows += [
-        [w.robot_id, "-", _waiting_status(w), "-", "-", "-", "-", "-", age(w.age_s), "-", w.owner]
+        [w.robot_id, w.map_id or "-", _wait(w)[0], *["-"] * 5, age(w.age_s), "-", w.owner]
         for w in waits
     ]
     text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
-    hints = [WAITING_HINT] if any(w.reason != NO_SCAN_YET for w in waits) else []
-    hints += [NO_SCAN_HINT] if any(w.reason == NO_SCAN_YET for w in waits) else []
+    shown = {_wait(w)[1] for w in waits}
+    hints = [h for h in (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT) if h in shown]
     return "\n\n".join([text, *hints])
 
 
-def _waiting_status(w: WaitingRobot) -> str:
-    return "no scan yet" if w.reason == NO_SCAN_YET else "waiting"
+def _wait(w: WaitingRobot) -> tuple[str, str]:
+    """A waiting robot's status as shown, and the hint that explains it."""
+    return _WAITS.get(w.reason, ("waiting", WAITING_HINT))
 
 
 def poses_table(poses: Iterable[PoseEstimate], now_ns: int | None = None) -> str:

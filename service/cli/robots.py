@@ -76,7 +76,7 @@ def cmd_robots(args: argparse.Namespace) -> int:
         rows += [
             {
                 "robot_id": w.robot_id,
-                "map_id": None,
+                "map_id": w.map_id,
                 "status": "waiting",
                 "reason": w.reason,
                 "age_s": w.age_s,

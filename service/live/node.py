@@ -368,7 +368,7 @@ class LocalizationService:
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
         elif kind == "initialpose":
-            self.robot_view.initialized(robot, at)
+            self.robot_view.initialized(robot, at, getattr(msg, "map_id", None))
 
     def _record_seed(self, robot: str, entry: Entry) -> None:
         """Record an input made to re-seed a robot whose worker died (dispatcher lock held)."""

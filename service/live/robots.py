@@ -86,6 +86,9 @@ class WaitingRobot(BaseModel):
     )
     age_s: float = Field(description="Seconds since the latest such Event (instance's clock).")
     owner: str = Field(description="The instance holding the robot.")
+    map_id: str | None = Field(
+        None, description="The map of the robot's latest initial pose, if it was given one."
+    )
 
 
 class RobotsAnswer(BaseModel):
@@ -152,7 +155,8 @@ class RobotView:
         self._poses = poses
         self._clock = clock
         self._published: dict[str, _Published] = {}
-        self._waiting: dict[str, tuple[int, str]] = {}  # robot -> (when, event code)
+        # robot -> (when, event code, the map of its initial pose)
+        self._waiting: dict[str, tuple[int, str, str | None]] = {}
         self._lock = threading.Lock()  # for the waiting robots only (not the hot path)
 
     # ------------------------------------------------------------------ hot path
@@ -177,18 +181,22 @@ class RobotView:
         if code in _WAITING.values():  # the reasons are the codes
             self._remember(robot, at_ns, code)
 
-    def initialized(self, robot: str, at_ns: int) -> None:
+    def initialized(self, robot: str, at_ns: int, map_id: str | None = None) -> None:
         """An InitialPose of ``robot`` was taken in at ``at_ns``: until its first pose the robot
         is listed as waiting for a scan (:data:`NO_SCAN_YET`), so that a robot given a pose
         before it sends scans is not missing from the view (a refusal's Event, such as
-        ``map_not_found``, then gives the reason instead)."""
+        ``map_not_found``, then gives the reason instead). ``map_id``: the pose's map, shown
+        while the robot waits."""
         if robot not in self._poses:
-            self._remember(robot, at_ns, NO_SCAN_YET)
+            self._remember(robot, at_ns, NO_SCAN_YET, map_id)
 
-    def _remember(self, robot: str, at_ns: int, reason: str) -> None:
+    def _remember(self, robot: str, at_ns: int, reason: str, map_id: str | None = None) -> None:
         with self._lock:
-            self._waiting.pop(robot, None)  # re-inserted last: the freshest at the end
-            self._waiting[robot] = (at_ns, reason)
+            # Re-inserted last (the freshest at the end), keeping the initial pose's map.
+            old = self._waiting.pop(robot, None)
+            if map_id is None and old is not None:
+                map_id = old[2]
+            self._waiting[robot] = (at_ns, reason, map_id)
             while len(self._waiting) > MAX_WAITING:
                 del self._waiting[next(iter(self._waiting))]
 
@@ -248,9 +256,13 @@ class RobotView:
         now = self._clock()
         return [
             WaitingRobot(
-                robot_id=robot, reason=reason, age_s=max(now - at, 0) / 1e9, owner=self.instance
+                robot_id=robot,
+                reason=reason,
+                age_s=max(now - at, 0) / 1e9,
+                owner=self.instance,
+                map_id=map_id,
             )
-            for robot, (at, reason) in sorted(self._waiting.items())
+            for robot, (at, reason, map_id) in sorted(self._waiting.items())
             if robot not in self._poses
         ]
 

@@ -121,11 +121,35 @@ def test_a_refused_initial_pose_is_told_what_to_mend(
     with running_bench(tmp_path) as bench:
         bench.put_map()
         argv = ["initialpose", "r1", "--map", "m1", "--pose", "1e9,2,0", "-e", bench.endpoint]
-        code, out, err = _cli(capsys, *argv)
+        code, out, err = _cli(capsys, *argv, "--force")  # past the command's own check
         assert code == 1
         assert "invalid_message" in out and "InitialPose.x" in out
         assert "the field it names is out of what the service accepts" in err
         assert "map list" not in err
+
+
+def test_an_initial_pose_far_off_the_stored_map_is_refused_before_it_is_put(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A typo (1000 for 10.00) or a pose on another map's coordinates used to be put and said
+    # "no pose within 5 s"; the robot then searched the whole map from its first scan.
+    with running_bench(tmp_path) as bench:
+        bench.put_map()
+        time.sleep(0.3)  # stored
+        e = bench.endpoint
+        argv = ["initialpose", "r1", "--map", "m1", "--pose", "1000,1000,0", "-e", e]
+        code, out, err = _cli(capsys, *argv)
+        assert code == 1 and out == ""
+        assert "outside the free space of map 'm1'" in err and "--force" in err
+        code, out, _ = _cli(capsys, "robots", "-e", e, "--json")
+        assert json.loads(out) == []  # nothing was put
+        # near the map (a click into a wall): put as before
+        x0, y0 = bench.world.bounds[:2]
+        near = f"{x0 - 0.5},{y0 + 1.0},0"
+        code, _, err = _cli(capsys, "initialpose", "r1", "--map", "m1", "--pose", near, "-e", e)
+        assert code == 0 and "initial pose put" in err
+        code, _, err = _cli(capsys, *argv, "--force", "--wait", "0")
+        assert code == 0, err
 
 
 def test_initialpose_on_a_missing_map_is_refused(

@@ -112,6 +112,21 @@ def test_a_robot_with_an_initial_pose_and_no_scan_reads_no_scan_yet() -> None:
     assert "rlutf initialpose" in first and second.startswith("no scan yet:")
 
 
+def test_a_robot_whose_map_is_missing_reads_no_map_with_its_map_and_what_to_do() -> None:
+    # An initial pose on a map no storage has: the robot sent no scan, so the hint for robots
+    # that send scans without a pose would be wrong; the map it waits for is shown.
+    missing = WaitingRobot(
+        robot_id="r4", reason="map_not_found", age_s=1.0, owner="a", map_id="dpeot"
+    )
+    placed = WaitingRobot(robot_id="r5", reason="no_scan_yet", age_s=3.0, owner="a", map_id="m")
+    text, first, second = robots_table([], [placed, missing]).split("\n\n")
+    rows = [line.split() for line in text.splitlines()[1:]]
+    assert [r[:3] for r in rows] == [["r5", "m", "no"], ["r4", "dpeot", "no"]]
+    assert rows[1][3] == "map"
+    assert first.startswith("no map:") and "rlutf map list" in first
+    assert "sends scans" not in first + second and second.startswith("no scan yet:")
+
+
 def test_a_table_without_waiting_robots_has_no_hint() -> None:
     assert "initialpose" not in robots_table([_state("r1", 0.1, "a")])
 

@@ -189,17 +189,19 @@ def test_a_robot_given_an_initial_pose_waits_for_its_first_scan_in_the_view() ->
     now = [10**18]
     poses: dict[str, bytes] = {"r1": b"{}"}
     view = RobotView("a", poses, lambda: now[0])
-    view.initialized("r1", now[0])  # re-initialized while tracking: it has a pose
-    view.initialized("r2", now[0])
+    view.initialized("r1", now[0], "m1")  # re-initialized while tracking: it has a pose
+    view.initialized("r2", now[0], "m1")
     now[0] += 1_500_000_000
-    view.initialized("r3", now[0])
+    view.initialized("r3", now[0], "typo")
     view.event("r3", _event("map_not_found"), now[0])  # refused: the Event says why
-    assert [(w.robot_id, w.reason, w.age_s) for w in view.waiting()] == [
-        ("r2", "no_scan_yet", 1.5),
-        ("r3", "map_not_found", 0.0),
+    view.told("r4", "map_not_found", now[0])  # a robot's own scans wait for a map: none named
+    assert [(w.robot_id, w.reason, w.age_s, w.map_id) for w in view.waiting()] == [
+        ("r2", "no_scan_yet", 1.5, "m1"),
+        ("r3", "map_not_found", 0.0, "typo"),  # the map it waits for, from its initial pose
+        ("r4", "map_not_found", 0.0, None),
     ]
     poses["r2"] = b"{}"
-    assert [w.robot_id for w in view.waiting()] == ["r3"]
+    assert [w.robot_id for w in view.waiting()] == ["r3", "r4"]
 
 
 def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
@@ -216,10 +218,11 @@ def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
             break
         time.sleep(0.05)
     (w,) = answer["waiting"]
-    assert (w["robot_id"], w["reason"], w["owner"]) == (
+    assert (w["robot_id"], w["reason"], w["owner"], w["map_id"]) == (
         "r7",
         "no_scan_yet",
         bench.service.settings.instance,
+        "m1",
     )
     assert answer["robots"] == []
     for _ in range(60):  # its scans: a pose, and no longer waiting
