@@ -261,8 +261,13 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
     from service.cli.present import console
-    from service.sim.demo import run_demo
+    from service.sim.demo import demo_spec, run_demo
+    from service.sim.fleet import memory_problem
 
+    problem = memory_problem(demo_spec(args))
+    if problem is not None:
+        print(f"rlutf demo: {problem} (--robots, --duration, --beams)", file=sys.stderr)
+        return EXIT_USAGE
     if args.store is not None:
         usable_folder(args.store, "--store")
     if not args.no_record:

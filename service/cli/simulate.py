@@ -121,7 +121,10 @@ def _check(args: argparse.Namespace) -> str | None:
         return f"--map {args.map!r} is not a map id ([A-Za-z0-9_-], 1 to 64 characters)"
     if args.ros2 and args.relocalize_every:
         return "--relocalize-every: ROS 2 robots have no Relocalize topic; drop --ros2"
-    return None
+    from service.sim.fleet import memory_problem
+
+    problem = memory_problem(_spec(args))
+    return None if problem is None else f"{problem} (--robots, --path-seconds, --beams)"
 
 
 def _spec(args: argparse.Namespace) -> Any:
@@ -210,6 +213,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     import zenoh
 
+    from service.cli.progress import drawing_bar
     from service.config import Settings
     from service.keys import Keys
     from service.live.sessions import zenoh_config
@@ -260,7 +264,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             flush=True,
         )
         drawing = time.monotonic()
-        plan = plan_fleet(spec, world)
+        with drawing_bar(spec.robots) as advance:
+            plan = plan_fleet(spec, world, on_robot=advance)
         if args.ros2:
             wire: Any = CdrWire(plan, args.ros_domain_id, "humble" if args.humble else "jazzy")
         else:

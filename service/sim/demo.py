@@ -25,6 +25,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
+from service.cli.progress import drawing_bar
 from service.config import Settings
 from service.keys import Keys
 from service.live.host import Host
@@ -130,7 +131,9 @@ def run_demo(args: argparse.Namespace, console: Console | None = None) -> int:
     console = console or Console(stderr=False)
     port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    plan = plan_fleet(demo_spec(args))
+    spec = demo_spec(args)
+    with drawing_bar(spec.robots) as advance:
+        plan = plan_fleet(spec, on_robot=advance)
     with tempfile.TemporaryDirectory(prefix="rlutf-demo-") as tmp:
         store = args.store or Path(tmp) / "store"
         layout = {"workers": args.workers} if args.workers is not None else {}

@@ -16,7 +16,7 @@ from typing import Any
 import zenoh
 
 from service.keys import Keys
-from service.sim.plan import FleetPlan
+from service.sim.plan import FleetPlan, FleetSpec, plan_bytes
 from service.sim.wire import RobotWire, map_payload
 
 JSON = zenoh.Encoding.APPLICATION_JSON
@@ -164,3 +164,30 @@ def drive(
             calls += 1
             behind = time.monotonic() - due
     return calls, step, behind
+
+
+def available_memory() -> int | None:
+    """The memory the system can give without swapping (``MemAvailable``), bytes; ``None``
+    where that cannot be read (not Linux)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def memory_problem(spec: FleetSpec, available: int | None = None) -> str | None:
+    """Why the plan of ``spec`` should not be drawn: it would take more than half the memory
+    available (``available``: default :func:`available_memory`); ``None`` if it fits."""
+    free = available_memory() if available is None else available
+    need = plan_bytes(spec)
+    if free is None or need <= free // 2:
+        return None
+    return (
+        f"{spec.robots} robots with {spec.poses} poses of {spec.beams}-beam scans each would "
+        f"take about {need / 1e9:.1f} GB for their precomputed scans, and {free / 1e9:.1f} GB "
+        "is available: simulate fewer robots, for less time, or with fewer beams"
+    )

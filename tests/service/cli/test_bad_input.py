@@ -71,6 +71,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["demo", "--port", "70000"], 2, ["--port", "at most 65535"])
     yield Bad(["demo", "--duration", "nan"], 2, ["--duration", "finite"])
     yield Bad(["demo", "--beams", "9000"], 2, ["--beams", "at most 8192"])  # the wire's limit
+    # a fleet whose precomputed scans would not fit in memory: refused before any is drawn
+    yield Bad(["demo", "--robots", "100000"], 2, ["100000 robots", "GB", "--robots"])
+    yield Bad(["simulate", "--robots", "100000", "-e", NOWHERE], 2, ["GB", "--path-seconds"])
     yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
     yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
     yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])

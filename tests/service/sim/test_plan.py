@@ -9,7 +9,7 @@ import pytest
 
 from rlutf.motion import relative, wrap_angle
 from rlutf.sim import OdometryModel
-from service.sim.plan import FleetSpec, Schedule, plan_fleet
+from service.sim.plan import FleetSpec, Schedule, plan_bytes, plan_fleet
 
 NO_DRIFT = OdometryModel(trans_noise=0.0, rot_noise=0.0, rot_per_metre=0.0, heading_bias=0.0)
 SPEC = FleetSpec(robots=2, poses=30, beams=90, seed=4)
@@ -29,6 +29,30 @@ def test_the_same_spec_gives_the_same_plan_bit_for_bit(plan) -> None:  # type: i
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
         for sa, sb in zip(a.scans, b.scans, strict=True):
             np.testing.assert_array_equal(sa.ranges, sb.ranges)
+
+
+def test_the_drawing_reports_each_robot_and_changes_nothing(plan) -> None:  # type: ignore[no-untyped-def]
+    seen: list[int] = []
+    again = plan_fleet(SPEC, on_robot=lambda: seen.append(1))
+    assert len(seen) == SPEC.robots
+    np.testing.assert_array_equal(again.robots[1].truth, plan.robots[1].truth)
+
+
+def test_a_fleet_too_large_for_the_memory_is_named_before_it_is_drawn() -> None:
+    from service.sim.fleet import memory_problem
+
+    spec = FleetSpec(robots=1000, poses=201, beams=360)
+    need = plan_bytes(spec)
+    assert memory_problem(spec, available=2 * need) is None
+    problem = memory_problem(spec, available=need)  # over half of what is available
+    assert problem is not None
+    assert "1000 robots with 201 poses of 360-beam scans" in problem
+    assert f"{need / 1e9:.1f} GB" in problem
+    # the estimate holds the plan and its JSON payloads: a drawn fleet takes less
+    small = FleetSpec(robots=4, poses=50, beams=360, seed=1)
+    drawn = plan_fleet(small)
+    scan_bytes = sum(s.ranges.nbytes for r in drawn.robots for s in r.scans)
+    assert scan_bytes < plan_bytes(small) < 4 * scan_bytes
 
 
 def test_the_way_out_does_not_depend_on_the_way_back() -> None:
