@@ -1,5 +1,4 @@
-"""What a command says while it waits: the service's start (the localizer's kernels), and a
-simulated fleet being drawn.
+"""What a command says while the service starts: the wait for the localizer's kernels.
 
 The first start after an install compiles the localizer's kernels (about 30 s on 2 cores);
 later starts load them from numba's cache in about a second. The service tells its caller
@@ -44,19 +43,3 @@ def starting_status(command: str) -> Iterator[Callable[[str], None]]:
     finally:
         if status is not None:
             status.stop()
-
-
-@contextmanager
-def drawing_bar(robots: int) -> Iterator[Callable[[], None]]:
-    """A progress bar, on a terminal, while ``robots`` simulated robots are drawn: yields what to
-    call as each one is (nothing shown elsewhere: the command says when the drawing is done)."""
-    if not sys.stdout.isatty():
-        yield lambda: None
-        return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-    with Progress(
-        "drawing", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True
-    ) as bar:
-        task = bar.add_task("robots", total=robots)
-        yield lambda: bar.advance(task)

@@ -213,11 +213,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from service.cli.progress import drawing_bar
     from service.config import Settings
     from service.keys import Keys
     from service.live.sessions import zenoh_config
-    from service.sim.fleet import SimFleet, drive
+    from service.sim.fleet import SimFleet, drawing_bar, drive
     from service.sim.plan import plan_fleet
     from service.sim.score import Scoreboard
     from service.sim.wire import CdrWire, JsonWire

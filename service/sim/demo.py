@@ -25,14 +25,13 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from service.cli.progress import drawing_bar
 from service.config import Settings
 from service.keys import Keys
 from service.live.host import Host
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
 from service.logs.recording import make_recorder
-from service.sim.fleet import SimFleet, drive
+from service.sim.fleet import SimFleet, drawing_bar, drive
 from service.sim.plan import FleetSpec, plan_fleet
 from service.sim.score import RobotScore, Scoreboard
 from service.sim.wire import JsonWire

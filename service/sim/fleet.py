@@ -8,9 +8,11 @@ independent robots' scanners are.
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import zenoh
@@ -191,3 +193,19 @@ def memory_problem(spec: FleetSpec, available: int | None = None) -> str | None:
         f"take about {need / 1e9:.1f} GB for their precomputed scans, and {free / 1e9:.1f} GB "
         "is available: simulate fewer robots, for less time, or with fewer beams"
     )
+
+
+@contextmanager
+def drawing_bar(robots: int) -> Iterator[Callable[[], None]]:
+    """A progress bar, on a terminal, while ``robots`` simulated robots are drawn: yields what to
+    call as each one is (nothing shown elsewhere: the command says when the drawing is done)."""
+    if not sys.stdout.isatty():
+        yield lambda: None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    with Progress(
+        "drawing", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True
+    ) as bar:
+        task = bar.add_task("robots", total=robots)
+        yield lambda: bar.advance(task)
