@@ -48,6 +48,10 @@ __all__ = ["FleetEngine", "Outbound"]
 
 FloatArray = np.ndarray
 
+#: An odometry reading more than this before an InitialPose or Relocalize is not the odometry at
+#: it; with no reading nearer, the first one after it is, ns.
+ANCHOR_GAP_NS = 1_000_000_000
+
 
 @dataclass
 class _Robot:
@@ -228,6 +232,9 @@ class FleetEngine:
         """Take an InitialPose or Relocalize: applied now if its map is loaded, else it waits."""
         # Not trimmed: the robot may keep tracking from older odometry while the request waits.
         anchor = self._odometry_at(robot, msg.stamp_ns, trim=False)
+        stamps = robot.odom_stamps
+        if anchor is not None and stamps[-1] < msg.stamp_ns - ANCHOR_GAP_NS:
+            anchor = None  # all long before (a robot back after a restart): the next one is
         if isinstance(msg, InitialPose):
             pose = np.array([msg.x, msg.y, msg.theta], dtype=np.float64)
             robot.pending = Request(
@@ -342,10 +349,11 @@ class FleetEngine:
                 key,
                 f"map {robot.map_id!r} is not loaded yet; scan not processed",
             )
+        start = robot.start_stamp
         if robot.anchor is None:
             # No odometry at the initial pose: the first reading after it is taken as the
             # robot's odometry there (a robot that starts streaming after being placed).
-            i = bisect.bisect_left(robot.odom_stamps, robot.start_stamp)
+            i = bisect.bisect_left(robot.odom_stamps, start)
             if i < len(robot.odom_stamps) and robot.odom_stamps[i] <= msg.stamp_ns:
                 robot.anchor = robot.odom_poses[i]
         odom = self._odometry_at(robot, msg.stamp_ns)
@@ -353,8 +361,8 @@ class FleetEngine:
             motion = np.zeros(3)
         else:
             motion = relative(robot.anchor, odom)
-        if odom is not None:
-            robot.anchor = odom
+        if odom is not None and (robot.anchor is not None or robot.odom_stamps[-1] >= start):
+            robot.anchor = odom  # a reading from before the pose anchors nothing
         # Ranges no wall of the map can be at are no return: bounded work before any search.
         scan = usable_scan(msg, robot.localizer.map, self.limits)
         result = robot.localizer.update(motion, scan)

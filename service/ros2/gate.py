@@ -9,6 +9,13 @@ odometry at or after its stamp is in, or ``wait_ns`` has passed, or a newer scan
 robot that has sent no odometry is not held. Inputs are handed on in the order the engine must
 see them, each with the time it is handed on as its receive time, so the log (ordered by
 ``log_time``) replays in that same order.
+
+A robot's first scans wait for its first odometry too: after the service starts (a restart, a
+new front door) a robot's scans can come before its odometry and its initial pose, and a robot
+the service held before would be matched against its old odometry. A robot whose scan waited
+``wait_ns`` without any odometry (one that sends none) is not held again until it sends some. An
+initial pose stamped no later than a held scan goes on before it, as AMCL applies an initial
+pose while the scan waits in its tf filter.
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ class OdometryGate:
         self._lock = threading.Lock()
         self._latest: dict[str, int] = {}
         self._held: dict[str, _Held] = {}
+        self._without: set[str] = set()  # robots whose scan timed out with no odometry yet
 
     def put(self, robot: str, kind: InputKind, payload: bytes, message: Message) -> None:
         """One validated input of a robot."""
@@ -61,9 +69,14 @@ class OdometryGate:
                 if held is not None and held.scan.stamp_ns <= stamp:
                     self._release(robot)
                 return
-            self._release(robot)  # a newer scan or an initial pose comes after a held scan
+            held = self._held.get(robot)
+            if kind != "scan" and held is not None and message.stamp_ns <= held.scan.stamp_ns:
+                self._pass(robot, kind, payload, message)  # before the scan it precedes
+                return
+            self._release(robot)  # a newer scan, or a later initial pose, after a held scan
             latest = self._latest.get(robot)
-            if kind == "scan" and latest is not None and latest < message.stamp_ns:
+            waits = robot not in self._without if latest is None else latest < message.stamp_ns
+            if kind == "scan" and waits:
                 assert isinstance(message, LaserScan)
                 self._held[robot] = _Held(self.clock(), payload, message)
                 self.held_count += 1
@@ -78,6 +91,8 @@ class OdometryGate:
                 r for r, h in self._held.items() if all_ or now - h.since_ns >= self.wait_ns
             ]:
                 self.timed_out += 1
+                if robot not in self._latest:
+                    self._without.add(robot)  # sends no odometry: its scans go on as they come
                 self._release(robot)
 
     def _release(self, robot: str) -> None:

@@ -16,7 +16,7 @@ from sim_inputs import Run
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import Map as World
 from rlutf.sim import make_building
-from schemas import InitialPose, Relocalize
+from schemas import InitialPose, Odometry, Relocalize
 from service.engine import FleetEngine, Outbound
 from service.keys import Keys
 from service.relocalization import REQUEST_WAIT_NS
@@ -232,3 +232,36 @@ def test_long_updates_are_foreseen_for_scheduling() -> None:
     out = engine.handle("r1", elsewhere.scan(3), Run.received(3) + 1)
     assert _pose(out)["status"] == "lost"
     assert engine.expects_long_update("r1", ["odom", "scan"])
+
+
+def test_an_initial_pose_long_after_the_last_odometry_anchors_on_the_next_reading() -> None:
+    # A robot the service held before (its state restored after a restart, or a robot back
+    # after a while) has odometry readings from long ago; an operator's pose of now arrives
+    # before the robot's next reading (two sessions, or a ROS 2 subscription still being
+    # discovered). The old reading is not the odometry at the pose: taken as its anchor, the
+    # first scan's motion was the robot's whole odometry since then, and the robot was lost
+    # metres away. The first reading after the pose anchors it instead.
+    run = Run.make(WORLD, 3, STEPS)
+    engine = _engine()
+    old = Run.stamp(0) - 60 * 10**9
+    reading = Odometry(stamp_ns=old, x=40.0, y=-25.0, theta=2.0)  # another odometry frame
+    engine.handle("r1", reading, old + 1_000_000)
+    t = run.truth[0]
+    start = InitialPose(
+        stamp_ns=Run.stamp(0), map_id="m1", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    engine.handle("r1", start, Run.received(0))
+    for i in range(1, 6):  # the reading at the pose's stamp never came
+        pose = _pose(_step(engine, run, i))
+        assert pose["status"] != "lost"
+        assert _error(pose, run.truth[i]) < 0.05, i
+    # a first scan before any reading after the pose: no motion, and the next scans still
+    # anchor on the first reading after the pose, not on the old one
+    engine = _engine()
+    engine.handle("r1", reading, old + 1_000_000)
+    engine.handle("r1", start, Run.received(0))
+    pose = _pose(engine.handle("r1", run.scan(0), Run.received(0) + 2))
+    assert _error(pose, run.truth[0]) < 0.05
+    for i in range(1, 6):
+        pose = _pose(_step(engine, run, i))
+        assert _error(pose, run.truth[i]) < 0.05, i
