@@ -1,8 +1,8 @@
 """Maps from logs that match the log: the even scans build the map, the odd scans are tracked.
 
 Run: ``python -m bench.evenodd [--logs intel,aces] [--seeds 3] [--no-variants] [--write]``
-(one of ``--neighbours``, ``--coarse-to-fine``, ``--fitted-walls``, ``--settle``, ``--cost``
-instead: that section only).
+(one of ``--neighbours``, ``--coarse-to-fine``, ``--fitted-walls``, ``--settle``, ``--worst``,
+``--cost`` instead: that section only).
 
 The check an outside user makes of ``rlutf map build`` on a public CARMEN log: the even scans
 (0, 2, 4, ...) at their corrected poses build the map as ``rlutf map build`` does
@@ -60,6 +60,7 @@ from bench.evenodd_runs import (
     variants,
 )
 from bench.evenodd_settle import render_settle
+from bench.evenodd_worst import render_worst
 from bench.methods import Method
 from bench.report import replace_section
 from bench.wallfit import WallFit
@@ -77,6 +78,8 @@ COST_SECTION = "evenodd-cost"
 FITTED_SECTION = "evenodd-fitted"
 #: The section of ``--settle``.
 SETTLE_SECTION = "evenodd-settle"
+#: The section of ``--worst``.
+WORST_SECTION = "evenodd-worst"
 #: ICP settings of the ``--neighbours`` table (the best of :data:`ICP_SETTINGS` on both logs).
 NEIGHBOURS_ICP = "gate 2 m to 0.2 m, 50 steps"
 
@@ -405,6 +408,8 @@ def _command(args: argparse.Namespace) -> str:
         parts.append("--fitted-walls")
     elif args.settle:
         parts.append("--settle")
+    elif args.worst:
+        parts.append("--worst")
     elif not args.variants:
         parts.append("--no-variants")
     return " ".join([*parts, "--write"])
@@ -446,6 +451,12 @@ def main(argv: list[str] | None = None) -> int:
         "from tracking (its own section)",
     )
     p.add_argument(
+        "--worst",
+        action="store_true",
+        help="only the scans where RLuTF trails ICP the most, with what the map says about each "
+        "(its own section)",
+    )
+    p.add_argument(
         "--cost",
         action="store_true",
         help="only the time per update, with and without the coarse map (its own section; run "
@@ -464,6 +475,9 @@ def main(argv: list[str] | None = None) -> int:
     elif args.settle:
         logs = [s for s in args.logs.split(",") if s]
         text, section = render_settle(logs, _command(args), _stderr), SETTLE_SECTION
+    elif args.worst:
+        logs, seeds = args.logs.split(","), [ODOM5_SEED + i for i in range(args.seeds)]
+        text, section = render_worst(logs, seeds, _command(args), _stderr), WORST_SECTION
     else:
         text, section = render(args, _stderr), SECTION
     print(text)
