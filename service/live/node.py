@@ -254,10 +254,12 @@ class LocalizationService:
                 session.declare_subscriber(self.keys.maps, self.mapfeed.on_sample)
             )
         self.mapfeed.start(session)
+        view = self.robot_view
+        view.owns = self.ownership.owns
         self._declared += [
-            session.declare_queryable(self.keys.all_poses, self._on_pose_query, complete=False),
+            session.declare_queryable(self.keys.all_poses, view.on_pose_query, complete=False),
             session.declare_queryable(self.keys.health(s.instance), self._on_health_query),
-            session.declare_queryable(robots_key(s.prefix, s.instance), self.robot_view.on_query),
+            session.declare_queryable(robots_key(s.prefix, s.instance), view.on_query),
             session.declare_queryable(self.keys.all_maphealth, self.healthfeed.on_query),
             self.healthfeed.declare(session),  # the other instances' map health evidence
         ]
@@ -266,6 +268,7 @@ class LocalizationService:
             self._global_event("warning", EventCode.STATE_UNREADABLE, self.keys.events, problem)
         for r in restored:  # seed the robots at their first input (Ownership.restore)
             self.ownership.restore(r.pose, r.odometry, r.published_ns)
+            view.restore(r.pose, r.published_ns)  # shown until then
         for r in {r.pose.map_id: r for r in restored}.values():  # load their maps now
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
@@ -441,14 +444,6 @@ class LocalizationService:
                         self.stats.add(counter)
 
     # ------------------------------------------------------------------------ queries
-    def _on_pose_query(self, query: zenoh.Query) -> None:
-        with query:
-            ke = query.key_expr
-            for robot, payload in list(self._poses.items()):
-                key = self.keys.pose(robot)
-                if ke.intersects(zenoh.KeyExpr(key)):
-                    query.reply(key, payload, encoding=JSON)
-
     def health(self) -> bytes:
         """The current Health message, encoded."""
         extra: dict[str, Any] = {

@@ -32,7 +32,8 @@ from typing import NamedTuple
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import PoseEstimate, SchemaError, decode
+from schemas import PoseEstimate, SchemaError, decode, encode
+from service.keys import Keys
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +159,12 @@ class RobotView:
         # robot -> (when, event code, the map of its initial pose)
         self._waiting: dict[str, tuple[int, str, str | None]] = {}
         self._lock = threading.Lock()  # for the waiting robots only (not the hot path)
+        self._keys = Keys(prefix)
+        # The poses from before a restart (robot: pose, when it was published), shown and
+        # answered to pose queries for the robots owned here until each one's first pose.
+        self._restored: dict[str, tuple[PoseEstimate, int]] = {}
+        #: Whether this instance owns a robot (:meth:`Ownership.owns`).
+        self.owns: Callable[[str], bool] = lambda robot: True
 
     # ------------------------------------------------------------------ hot path
     def published(self, robot: str, at_ns: int, received_ns: int | None) -> None:
@@ -203,6 +210,7 @@ class RobotView:
     def forget(self, robot: str) -> None:
         """``robot`` is no longer held here (moved to another instance)."""
         self._published.pop(robot, None)
+        self._restored.pop(robot, None)
         with self._lock:
             self._waiting.pop(robot, None)
 
@@ -216,7 +224,8 @@ class RobotView:
         return sum(_LOST in payload for payload in list(self._poses.values()))
 
     def states(self) -> list[RobotState]:
-        """Every robot held, by robot id (its latest pose decoded now)."""
+        """Every robot held, by robot id (its latest pose decoded now), with those restored
+        after a restart that have sent nothing since (aged from the pose's publication)."""
         now = self._clock()
         out: list[RobotState] = []
         # sorted() copies the items in C, under the GIL: safe while poses are published.
@@ -227,29 +236,57 @@ class RobotView:
                 log.warning("robot view: undecodable pose of %s", robot, exc_info=True)
                 continue
             seen = self._published.get(robot)
-            sigma_xy, sigma_theta = one_sigma(pose.covariance)
             age = latency = None
             if seen is not None:
                 age = max(now - seen.at_ns, 0) / 1e9
                 latency = None if seen.latency_ns is None else seen.latency_ns / 1e6
-            out.append(
-                RobotState(
-                    robot_id=robot,
-                    map_id=pose.map_id,
-                    status=pose.status,
-                    x=pose.x,
-                    y=pose.y,
-                    theta=pose.theta,
-                    age_s=age,
-                    latency_ms=latency,
-                    owner=self.instance,
-                    localization_score=pose.localization_score,
-                    deviation_range=pose.deviation_range,
-                    sigma_xy_m=sigma_xy,
-                    sigma_theta_rad=sigma_theta,
-                )
-            )
-        return out
+            out.append(self._state(pose, age, latency))
+        out += [
+            self._state(pose, max(now - published, 0) / 1e9, None)
+            for pose, published in self._restored_here()
+        ]
+        return sorted(out, key=lambda s: s.robot_id)
+
+    def restore(self, pose: PoseEstimate, published_ns: int) -> None:
+        """A robot's pose from before a restart, published at ``published_ns``."""
+        self._restored[pose.robot_id] = (pose, published_ns)
+
+    def _restored_here(self) -> list[tuple[PoseEstimate, int]]:
+        return [
+            (pose, at)
+            for robot, (pose, at) in sorted(self._restored.items())
+            if robot not in self._poses and self.owns(robot)
+        ]
+
+    def _state(self, pose: PoseEstimate, age: float | None, latency: float | None) -> RobotState:
+        sigma_xy, sigma_theta = one_sigma(pose.covariance)
+        return RobotState(
+            robot_id=pose.robot_id,
+            map_id=pose.map_id,
+            status=pose.status,
+            x=pose.x,
+            y=pose.y,
+            theta=pose.theta,
+            age_s=age,
+            latency_ms=latency,
+            owner=self.instance,
+            localization_score=pose.localization_score,
+            deviation_range=pose.deviation_range,
+            sigma_xy_m=sigma_xy,
+            sigma_theta_rad=sigma_theta,
+        )
+
+    def on_pose_query(self, query: zenoh.Query) -> None:
+        """The pose queryable's callback (``{prefix}/robots/*/pose``): each robot's latest
+        pose held here, a restored one included."""
+        with query:
+            ke = query.key_expr
+            held = [(r, p) for r, p in list(self._poses.items())]
+            held += [(p.robot_id, encode(p)) for p, _ in self._restored_here()]
+            for robot, payload in held:
+                key = self._keys.pose(robot)
+                if ke.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, payload, encoding=JSON)
 
     def waiting(self) -> list[WaitingRobot]:
         """Robots whose scans get no pose, by robot id (those with a pose since left out)."""

@@ -131,6 +131,24 @@ def test_an_orderly_restart_resumes_every_robot(tmp_path: Path) -> None:
     service = start_service(store, port)
     client = zenoh.open(client_config(endpoint))
     try:
+        # Before any robot sends a thing, the service shows and answers what it holds of them
+        # (it listed none: an operator checking parked robots after a restart saw no robot).
+        last = {robot: entry["pose"] for robot, entry in doc["robots"].items()}
+        view: dict[str, Any] = {}
+        for _ in range(50):
+            (reply,) = [r.ok for r in client.get("rlutf/service/*/robots", timeout=2.0) if r.ok]
+            view = json.loads(reply.payload.to_bytes())
+            if len(view["robots"]) == 3:
+                break
+            time.sleep(0.1)
+        assert [(r["robot_id"], r["x"], r["y"]) for r in view["robots"]] == [
+            (r, last[r]["x"], last[r]["y"]) for r in ("r0", "r1", "r2")
+        ]
+        assert all(r["age_s"] > 0 and r["latency_ms"] is None for r in view["robots"])
+        answered = [json.loads(r.ok.payload.to_bytes()) for r in client.get("rlutf/robots/r1/pose")]
+        assert [(a["robot_id"], a["stamp_ns"]) for a in answered] == [
+            ("r1", last["r1"]["stamp_ns"])
+        ]
         _assert_every_robot_resumes(client, fleet, "orderly restart")
     finally:
         client.close()

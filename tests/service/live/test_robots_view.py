@@ -232,3 +232,34 @@ def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
             break
         time.sleep(0.05)
     assert [r["robot_id"] for r in answer["robots"]] == ["r7"] and answer["waiting"] == []
+
+
+def test_a_robot_restored_after_a_restart_is_shown_by_its_owner_until_its_first_pose() -> None:
+    from schemas import PoseEstimate
+
+    now = [10**18]
+    poses: dict[str, bytes] = {}
+    view = RobotView("a", poses, lambda: now[0])
+    view.owns = lambda robot: robot != "r3"  # r3 belongs to another instance now
+
+    def parked(robot: str, x: float) -> PoseEstimate:
+        return PoseEstimate(
+            stamp_ns=now[0] - 90 * 10**9, robot_id=robot, map_id="m1", x=x, y=2.0,
+            theta=0.1, status="tracking", discrepancy=0.01, iterations=0,
+        )  # fmt: skip
+
+    for robot, x in (("r1", 1.0), ("r2", 3.0), ("r3", 5.0)):
+        view.restore(parked(robot, x), now[0] - 60 * 10**9)  # published a minute ago
+    states = view.states()
+    assert [(s.robot_id, s.x, s.status, s.age_s, s.latency_ms) for s in states] == [
+        ("r1", 1.0, "tracking", 60.0, None),
+        ("r2", 3.0, "tracking", 60.0, None),
+    ]
+    poses["r1"] = encode(parked("r1", 1.5))  # r1's first pose since the restart
+    view.published("r1", now[0], now[0] - 2_000_000)
+    assert [(s.robot_id, s.x, s.age_s) for s in view.states()] == [
+        ("r1", 1.5, 0.0),
+        ("r2", 3.0, 60.0),
+    ]
+    view.forget("r2")  # handed to another instance
+    assert [s.robot_id for s in view.states()] == ["r1"]
