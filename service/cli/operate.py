@@ -132,7 +132,7 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
         require_service(session, settings.prefix, settings.connect)
         if not args.force:
             key = Keys(settings.prefix).map(args.map)
-            for reply in session.get(key, timeout=min(args.wait, 5.0) or 5.0):
+            for reply in session.get(key, timeout=5.0):  # the storage's answer: at once
                 why = None if reply.ok is None else off_map(reply.ok.payload.to_bytes(), x, y)
                 if why is not None:
                     print(f"rlutf initialpose: refused: {why}", file=sys.stderr)

@@ -160,9 +160,9 @@ class RobotView:
         self._waiting: dict[str, tuple[int, str, str | None]] = {}
         self._lock = threading.Lock()  # for the waiting robots only (not the hot path)
         self._keys = Keys(prefix)
-        # The poses from before a restart (robot: pose, when it was published), shown and
-        # answered to pose queries for the robots owned here until each one's first pose.
-        self._restored: dict[str, tuple[PoseEstimate, int]] = {}
+        # The poses from before a restart (robot: pose, its payload, when it was published),
+        # shown and answered to pose queries for the robots owned here until each one's first.
+        self._restored: dict[str, tuple[PoseEstimate, bytes, int]] = {}
         #: Whether this instance owns a robot (:meth:`Ownership.owns`).
         self.owns: Callable[[str], bool] = lambda robot: True
 
@@ -243,18 +243,18 @@ class RobotView:
             out.append(self._state(pose, age, latency))
         out += [
             self._state(pose, max(now - published, 0) / 1e9, None)
-            for pose, published in self._restored_here()
+            for pose, _, published in self._restored_here()
         ]
         return sorted(out, key=lambda s: s.robot_id)
 
     def restore(self, pose: PoseEstimate, published_ns: int) -> None:
         """A robot's pose from before a restart, published at ``published_ns``."""
-        self._restored[pose.robot_id] = (pose, published_ns)
+        self._restored[pose.robot_id] = (pose, encode(pose), published_ns)
 
-    def _restored_here(self) -> list[tuple[PoseEstimate, int]]:
+    def _restored_here(self) -> list[tuple[PoseEstimate, bytes, int]]:
         return [
-            (pose, at)
-            for robot, (pose, at) in sorted(self._restored.items())
+            entry
+            for robot, entry in sorted(self._restored.items())
             if robot not in self._poses and self.owns(robot)
         ]
 
@@ -281,8 +281,8 @@ class RobotView:
         pose held here, a restored one included."""
         with query:
             ke = query.key_expr
-            held = [(r, p) for r, p in list(self._poses.items())]
-            held += [(p.robot_id, encode(p)) for p, _ in self._restored_here()]
+            held = list(self._poses.items())
+            held += [(pose.robot_id, payload) for pose, payload, _ in self._restored_here()]
             for robot, payload in held:
                 key = self._keys.pose(robot)
                 if ke.intersects(zenoh.KeyExpr(key)):
