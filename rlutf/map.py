@@ -21,6 +21,7 @@ from shapely.geometry.polygon import orient
 from shapely.validation import explain_validity
 
 from rlutf.errors import MapError
+from rlutf.simplify import simplify_rings
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -393,7 +394,7 @@ def coarse_map(world: Map, tolerance: float) -> Map:
 
 
 def _simplified(world: Map, tolerance: float) -> Map:
-    geom = shapely.simplify(world.geometry, tolerance, preserve_topology=True)
+    geom = simplify_rings(world.geometry, tolerance)
     if not geom.is_valid:
         geom = shapely.make_valid(geom)
     parts = [g for g in shapely.get_parts(geom) if isinstance(g, Polygon) and not g.is_empty]

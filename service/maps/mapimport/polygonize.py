@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from shapely.geometry import MultiPolygon, Polygon
 from skimage import measure
 
+from rlutf.simplify import simplify_rings
 from service.maps.mapimport.errors import ComponentError, EmptyMapError, MapImportError
 from service.maps.mapimport.grid import BoolArray, FloatArray, OccupancyGrid
 
@@ -381,7 +382,7 @@ def polygonize(
     )
     local = trace_free_space(free, grid.resolution)
     if tolerance > 0:
-        local = polygonal(shapely.simplify(local, tolerance, preserve_topology=True))
+        local = polygonal(simplify_rings(local, tolerance))
     geom = polygonal(shapely.affinity.affine_transform(local, list(grid.affine)))
     geom = polygonal(shapely.orient_polygons(geom))
     return Polygonized(
