@@ -86,13 +86,25 @@ def make_building(
     return Map.from_shapely(shapely.set_precision(free, 1e-6))
 
 
+def _inner(world: Map, clearance: float) -> shapely.Geometry:
+    """The free space at least ``clearance`` metres from any wall, prepared; made once per map
+    and clearance (on a map with thousands of obstacles the buffer takes seconds, and every
+    robot, person and path drawn on it asks)."""
+
+    def make(w: Map) -> shapely.Geometry:
+        inner = w.geometry.buffer(-clearance)
+        shapely.prepare(inner)
+        return inner
+
+    return world.derived(f"sim-inner:{clearance!r}", make)
+
+
 def random_free_point(world: Map, rng: np.random.Generator, clearance: float = 0.5) -> FloatArray:
     """A uniformly drawn point of the free space at least ``clearance`` metres from any wall."""
-    inner = world.geometry.buffer(-clearance)
+    inner = _inner(world, clearance)
     if inner.is_empty:
         raise ValueError(f"no free space with clearance {clearance} m")
     minx, miny, maxx, maxy = inner.bounds
-    shapely.prepare(inner)
     for _ in range(10_000):
         p = rng.uniform((minx, miny), (maxx, maxy))
         if shapely.contains_xy(inner, float(p[0]), float(p[1])):
@@ -122,8 +134,7 @@ def make_trajectory(
         ``(steps, 3)`` poses; heading follows the direction of travel, turning at most
         ``2 rad/s``.
     """
-    inner = world.geometry.buffer(-clearance)
-    shapely.prepare(inner)
+    inner = _inner(world, clearance)
     pos = random_free_point(world, rng, clearance + 0.05)
     target = pos
     heading = rng.uniform(-math.pi, math.pi)

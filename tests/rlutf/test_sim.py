@@ -1,5 +1,8 @@
 import numpy as np
+import shapely
 
+from rlutf import sim
+from rlutf.map import Map
 from rlutf.motion import relative
 from rlutf.sim import (
     LidarModel,
@@ -66,3 +69,20 @@ def test_long_paths_keep_moving_with_their_clearance() -> None:
         assert moved[-steps // 4 :].sum() >= 0.5 * speed * dt * steps / 4
         inner = world.geometry.buffer(-clearance + 1e-6)
         assert shapely.contains_xy(inner, path[:, 0], path[:, 1]).all()
+
+
+def test_the_free_space_with_clearance_is_made_once_per_map() -> None:
+    # A site's map with thousands of obstacles takes seconds to buffer: every robot, person
+    # and path drawn on one map shares one, and draws what it drew before the sharing.
+    rng = np.random.default_rng(3)
+    world = make_building(rng)
+    again = Map.from_shapely(world.geometry)
+    first = make_trajectory(world, np.random.default_rng(5), 120)
+    assert sim._inner(world, 0.45) is sim._inner(world, 0.45)
+    assert sim._inner(world, 0.5) is not sim._inner(world, 0.45)
+    # the cached free space draws what a fresh one does
+    second = make_trajectory(world, np.random.default_rng(5), 120)
+    fresh = make_trajectory(again, np.random.default_rng(5), 120)
+    assert np.array_equal(first, second) and np.array_equal(first, fresh)
+    inner = world.geometry.buffer(-0.45)
+    assert shapely.equals_exact(sim._inner(world, 0.45), inner, 0.0)
