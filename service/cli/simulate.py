@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import math
 import sys
 import threading
@@ -27,10 +28,18 @@ InitialPose, unless --no-initial-pose (the robots then wait, as a robot nobody p
 relocalization of the first robot now and then; --bad-input-every makes the first robot send
 malformed or invalid scans now and then, which the service must refuse and count.
 
+The robots are named r000, r001, ... (--names PREFIX: PREFIX000, ...). A robot id names one
+robot to the service, so a second `rlutf simulate` beside a first (another map, say) needs
+other names: the command listens a second for scans or poses of robots of its names before it
+starts them, and refuses (exit 2) if something drives them already.
+
 Prints what it does, then a line every --report-every seconds; stops after --duration seconds
 or at Ctrl-C with a summary per robot. Exit code 1 when robots with an initial pose got no
 pose back at all (is the service running, on this prefix?).
 """
+
+#: Seconds the command listens for robots of its names driving already (scans, poses).
+LISTEN_S = 1.0
 
 
 def register(sub: Any) -> None:
@@ -59,6 +68,12 @@ def register(sub: Any) -> None:
         default=30.0,
         metavar="SECONDS",
         help="length of each robot's path before it turns back (default 30)",
+    )
+    p.add_argument(
+        "--names",
+        default="r",
+        metavar="PREFIX",
+        help="robot ids PREFIX000, PREFIX001, ... (default r: r000, r001, ...)",
     )
     p.add_argument("--map", default="sim", metavar="ID", help="map id (default: sim)")
     p.add_argument(
@@ -119,12 +134,75 @@ def _check(args: argparse.Namespace) -> str | None:
         return f"--beams must be 1 to {MAX_BEAMS}, got {args.beams}"
     if not valid_id(args.map):
         return f"--map {args.map!r} is not a map id ([A-Za-z0-9_-], 1 to 64 characters)"
+    last = _ids(args)[-1]
+    if not valid_id(last):
+        return f"--names {args.names!r} does not make robot ids ({last!r}: [A-Za-z0-9_-], 1 to 64)"
     if args.ros2 and args.relocalize_every:
         return "--relocalize-every: ROS 2 robots have no Relocalize topic; drop --ros2"
     from service.sim.fleet import memory_problem
 
     problem = memory_problem(_spec(args))
     return None if problem is None else f"{problem} (--robots, --path-seconds, --beams)"
+
+
+def _ids(args: argparse.Namespace) -> tuple[str, ...]:
+    return tuple(f"{args.names}{i:03d}" for i in range(max(args.robots, 1)))
+
+
+class _Drivers:
+    """Robot ids that something drives on the bus now: scans put on their keys, or poses
+    published for them, heard from when it is made until :meth:`taken` (at least
+    :data:`LISTEN_S`)."""
+
+    def __init__(self, session: Any, keys: Any) -> None:
+        self._keys = keys
+        self._seen: dict[str, str | None] = {}
+        self._lock = threading.Lock()
+        self._since = time.monotonic()
+        self._subs = [
+            session.declare_subscriber(keys.robot("*", "scan"), self._on_scan),
+            session.declare_subscriber(keys.all_poses, self._on_pose),
+        ]
+
+    def _robot(self, sample: Any) -> str | None:
+        with contextlib.suppress(ValueError):
+            parsed = self._keys.parse_robot_key(str(sample.key_expr))
+            return None if parsed is None else str(parsed[0])
+        return None
+
+    def _on_scan(self, sample: Any) -> None:
+        robot = self._robot(sample)
+        if robot is not None:
+            with self._lock:
+                self._seen.setdefault(robot, None)
+
+    def _on_pose(self, sample: Any) -> None:
+        robot = self._robot(sample)
+        if robot is None:
+            return
+        map_id = None
+        with contextlib.suppress(ValueError, AttributeError):
+            map_id = json.loads(sample.payload.to_bytes()).get("map_id")
+        with self._lock:
+            self._seen[robot] = map_id if isinstance(map_id, str) else self._seen.get(robot)
+
+    def taken(self, ids: tuple[str, ...]) -> str | None:
+        """Which of ``ids`` something drives, said as a refusal; ``None`` when none."""
+        time.sleep(max(0.0, self._since + LISTEN_S - time.monotonic()))
+        for sub in self._subs:
+            sub.undeclare()
+        with self._lock:
+            busy = {r: m for r, m in self._seen.items() if r in set(ids)}
+        if not busy:
+            return None
+        names = ", ".join(f"{r} (map {busy[r]})" if busy[r] else r for r in sorted(busy)[:5]) + (
+            f" and {len(busy) - 5} more" if len(busy) > 5 else ""
+        )
+        return (
+            f"robots {names} already drive on this bus: two robots of one id would be one "
+            "robot to the service, localized from both's inputs; name these robots apart "
+            "with --names PREFIX (e.g. --names b), or stop the others first"
+        )
 
 
 def _spec(args: argparse.Namespace) -> Any:
@@ -145,6 +223,7 @@ def _spec(args: argparse.Namespace) -> Any:
         beams=args.beams,
         seed=args.seed,
         map_id=args.map,
+        robot_ids=_ids(args),
         initial_poses=not args.no_initial_pose,
         relocalize=every(args.relocalize_every),
         bad_input=every(args.bad_input_every),
@@ -209,8 +288,6 @@ def _summary(board: Any) -> list[str]:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``rlutf simulate``."""
-    import json
-
     import zenoh
 
     from service.config import Settings
@@ -245,6 +322,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         return EXIT_FAILURE
     with operator:
+        drivers = _Drivers(operator, keys)
         world = None
         if args.stored_map:
             world = _stored_world(operator, keys.map(args.map), args.map)
@@ -270,6 +348,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         else:
             wire = JsonWire(plan, keys)
         print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
+        taken = drivers.taken(spec.ids)
+        if taken is not None:
+            print(f"rlutf simulate: {taken}", file=sys.stderr)
+            return EXIT_USAGE
         fleet = SimFleet(plan, wire, lambda: zenoh.open(zenoh_config(settings)), keys=keys)
         stop = threading.Event()
         events: Counter[str] = Counter()

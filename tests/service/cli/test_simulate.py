@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -62,12 +63,40 @@ def test_robots_drive_a_stored_map(tmp_path: Path, capsys: pytest.CaptureFixture
         assert "no valid map 'nothere' in the store" in capsys.readouterr().err
 
 
+def test_a_second_fleet_of_the_same_names_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Two simulations side by side (one per map, say) with the default names would be one set
+    # of robots to the service, each localized from both fleets' scans.
+    with running_bench(tmp_path) as bench:
+        poses = Collector()
+        sub = bench.client.declare_subscriber("rlutf/robots/*/pose", poses)
+        first = ["simulate", "-e", bench.endpoint, "--robots", "2", "--duration", "8"]
+        done: list[int] = []
+        thread = threading.Thread(target=lambda: done.append(main([*first, "--beams", "90"])))
+        thread.start()
+        assert poses.wait_for(lambda: poses.on("rlutf/robots/r001/pose"), timeout=30)
+        second = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "2"]
+        assert main([*second, "--beams", "90", "--map", "other"]) == 2
+        err = capsys.readouterr().err
+        assert "robots r000 (map sim) already drive on this bus" in err
+        assert "--names PREFIX" in err
+        assert main([*second, "--beams", "90", "--map", "other", "--names", "b"]) == 0
+        assert poses.on("rlutf/robots/b000/pose")[-1]["map_id"] == "other"
+        thread.join(30)
+        sub.undeclare()
+    assert done == [0]
+    # the first fleet's robots stayed on their map
+    assert {p["map_id"] for p in poses.on("rlutf/robots/r000/pose")} == {"sim"}
+
+
 @pytest.mark.parametrize(
     ("flags", "says"),
     [
         (["--rate", "0"], "--rate must be a number above 0, got 0.0"),
         (["--robots", "0"], "--robots must be at least 1"),
         (["--map", "a/b"], "--map 'a/b' is not a map id"),
+        (["--names", "a/"], "--names 'a/' does not make robot ids"),
         (["--ros2", "--relocalize-every", "2"], "ROS 2 robots have no Relocalize topic"),
     ],
 )
