@@ -1,4 +1,5 @@
-"""How many cores the service may use: what ``workers = -1`` ("one per core") counts.
+"""How many cores the service may use (what ``workers = -1``, "one per core", counts), and how
+much memory the machine can still give.
 
 ``os.cpu_count()`` is the machine's cores. In a container it is the node's: a pod limited to
 2 CPUs on a 64-core node would start 64 worker processes, each with its own copy of the
@@ -21,7 +22,9 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
+from typing import Any
 
 #: Where the cgroup file systems are mounted.
 CGROUP_ROOT = Path("/sys/fs/cgroup")
@@ -112,3 +115,56 @@ def _cores(quota: str, period: str) -> int | None:
     if q <= 0 or p <= 0:  # cgroup v1's -1: no quota
         return None
     return max(1, math.ceil(q / p))
+
+
+def available_memory() -> int | None:
+    """The memory the system can give without swapping (``MemAvailable``), bytes; ``None``
+    where that cannot be read (not Linux)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+#: Memory one more service or worker process needs at the least, bytes: its own heap and the
+#: localizer's kernels (75-120 MB private at 50-100 robots, BENCHMARKS.md "Memory per
+#: process"; the shared libraries are in memory once).
+PROCESS_BYTES = 100 * 2**20
+
+
+def layout_problem(
+    settings: Any,
+    cores: int | None = None,
+    free_memory: Callable[[], int | None] = available_memory,
+) -> tuple[str | None, str | None]:
+    """``(refusal, warning)`` about the processes ``settings`` start: refused when they would
+    need more than half the memory the machine has available (a typo such as ``--workers 200``
+    would start 200 processes and wake the OOM killer), warned of when they are more than twice
+    the usable cores (each localizes about as much as a core does: more add memory, not
+    throughput). ``cores`` and ``free_memory`` (``None``: not known): this machine's unless
+    given."""
+    cores = usable_cores() if cores is None else cores
+    processes = settings.service_processes(cores)
+    if processes > 0:
+        flag, count = "--processes", processes
+    else:
+        flag, count = "--workers", cores if settings.workers < 0 else settings.workers
+    free = free_memory()
+    need = (count + (flag == "--workers")) * PROCESS_BYTES  # the workers' own process too
+    if free is not None and need > free // 2:
+        return (
+            f"{flag} {count}: {count} processes need at least {need / 2**30:.1f} GB, more than "
+            f"half the {free / 2**30:.1f} GB this machine has available; each localizes about "
+            f"as much as one core, and {cores} are usable here: {flag} {cores} or fewer",
+            None,
+        )
+    if count > 2 * cores:
+        return None, (
+            f"{flag} {count} on {cores} usable cores: more processes than cores add memory "
+            f"(at least {PROCESS_BYTES // 2**20} MB each), not throughput"
+        )
+    return None, None

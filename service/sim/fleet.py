@@ -17,6 +17,7 @@ from typing import Any
 
 import zenoh
 
+from service.cores import available_memory
 from service.keys import Keys
 from service.sim.plan import FleetPlan, FleetSpec, plan_bytes
 from service.sim.wire import RobotWire, map_payload
@@ -166,19 +167,6 @@ def drive(
             calls += 1
             behind = time.monotonic() - due
     return calls, step, behind
-
-
-def available_memory() -> int | None:
-    """The memory the system can give without swapping (``MemAvailable``), bytes; ``None``
-    where that cannot be read (not Linux)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def memory_problem(spec: FleetSpec, available: int | None = None) -> str | None:

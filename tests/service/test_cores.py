@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.config import Settings
-from service.cores import cpu_quota, usable_cores
+from service.cores import cpu_quota, layout_problem, usable_cores
 from service.keys import Keys
 from service.live.dispatch import Dispatcher
 
@@ -102,3 +102,35 @@ def test_workers_minus_one_counts_usable_cores() -> None:
     assert s.workers == -1
     d = Dispatcher(Keys(), s.localizer, -1, 0, lambda *a: None, lambda *a: None)
     assert len(d.shards) == usable_cores()  # made, not started: no process yet
+
+
+GIB = 2**30
+
+
+def test_a_layout_past_half_the_free_memory_is_refused() -> None:
+    # A typo (`--workers 200`, robots meant) would start 200 processes and wake the OOM killer.
+    refusal, _ = layout_problem(Settings(workers=200), cores=2, free_memory=lambda: 8 * GIB)
+    assert refusal is not None
+    assert refusal.startswith("--workers 200: 200 processes need at least 19.6 GB")
+    assert "half the 8.0 GB" in refusal and "--workers 2 or fewer" in refusal
+    refusal, _ = layout_problem(Settings(processes=64), cores=2, free_memory=lambda: 4 * GIB)
+    assert refusal is not None and refusal.startswith("--processes 64:")
+
+
+def test_the_default_layout_is_neither_refused_nor_warned_of() -> None:
+    assert layout_problem(Settings(), cores=2, free_memory=lambda: 8 * GIB) == (None, None)
+    one = Settings(workers=0, processes=0)
+    assert layout_problem(one, cores=1, free_memory=lambda: GIB) == (None, None)
+
+
+def test_more_processes_than_twice_the_cores_are_warned_of() -> None:
+    refusal, warning = layout_problem(Settings(processes=8), cores=2, free_memory=lambda: 64 * GIB)
+    assert refusal is None and warning is not None
+    assert warning.startswith("--processes 8 on 2 usable cores: more processes than cores")
+    four = Settings(workers=4)
+    assert layout_problem(four, cores=2, free_memory=lambda: 64 * GIB) == (None, None)
+
+
+def test_unknown_free_memory_refuses_nothing() -> None:
+    refusal, warning = layout_problem(Settings(workers=200), cores=2, free_memory=lambda: None)
+    assert refusal is None and warning is not None

@@ -77,6 +77,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
     yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
     yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])
+    # a layout whose processes would not fit in memory (robots meant): refused before any starts
+    yield Bad(["serve", "--workers", "100000"], 2, ["--workers 100000", "GB", "usable here"])
+    yield Bad(["demo", "--workers", "100000"], 2, ["--workers 100000", "GB", "usable here"])
     yield Bad(
         ["serve", "--processes", "2", "--foxglove-port", "8765", "--no-record"],
         2,
