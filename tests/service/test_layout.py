@@ -46,7 +46,7 @@ ALLOWED: dict[str, set[str]] = {
         "guard",
     },
     # the simulated fleet is a client of the service, as the command line is
-    "sim": {"keys", "config", "maps", "logs", "live", "ros2", "guard"},
+    "sim": {"keys", "cores", "config", "maps", "logs", "live", "ros2", "guard"},
     "cli": {
         "cores",
         "kernelcache",
