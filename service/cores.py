@@ -1,5 +1,6 @@
 """How many cores the service may use (what ``workers = -1``, "one per core", counts), and how
-much memory the machine can still give.
+much memory it can still be given (:func:`available_memory`: the system's, capped by a
+container's memory limit as the cores are by its CPU quota).
 
 ``os.cpu_count()`` is the machine's cores. In a container it is the node's: a pod limited to
 2 CPUs on a 64-core node would start 64 worker processes, each with its own copy of the
@@ -32,6 +33,8 @@ CGROUP_ROOT = Path("/sys/fs/cgroup")
 PROC_CGROUP = Path("/proc/self/cgroup")
 #: Where a cgroup v1 hierarchy with the ``cpu`` controller may be mounted under the root.
 _V1_CPU_DIRS = ("cpu", "cpu,cpuacct", "cpuacct,cpu")
+#: cgroup v1's ``memory.limit_in_bytes`` at and above this (a page-rounded 2^63) is no limit.
+_V1_NO_LIMIT = 2**62
 
 
 def usable_cores(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP) -> int:
@@ -56,20 +59,7 @@ def cpu_quota(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP) -> int 
 
     A cgroup v2 quota is looked for first; cgroup v1 only where no ``cpu.max`` was found (a
     host with both mounts has its controllers in one of them)."""
-    try:
-        lines = proc_cgroup.read_text().splitlines()
-    except OSError:
-        return None
-    v2_path, v1_path = None, None
-    for line in lines:
-        parts = line.split(":", 2)
-        if len(parts) != 3:
-            continue
-        hierarchy, controllers, path = parts
-        if hierarchy == "0" and controllers == "":
-            v2_path = path
-        elif "cpu" in controllers.split(","):
-            v1_path = path
+    v2_path, v1_path = _cgroup_paths(proc_cgroup, "cpu")
     found_v2, quotas = False, []
     if v2_path is not None:
         for cgroup in _self_and_ancestors(root, v2_path):
@@ -117,17 +107,75 @@ def _cores(quota: str, period: str) -> int | None:
     return max(1, math.ceil(q / p))
 
 
-def available_memory() -> int | None:
-    """The memory the system can give without swapping (``MemAvailable``), bytes; ``None``
-    where that cannot be read (not Linux)."""
+#: The kernel's figure of the memory it can give without swapping.
+MEMINFO = Path("/proc/meminfo")
+
+
+def available_memory(
+    meminfo: Path = MEMINFO, root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP
+) -> int | None:
+    """The memory this process can still be given, bytes: the system's ``MemAvailable``,
+    capped by its cgroups' memory limits less what they use (a container's limit is far below
+    the node's free memory); ``None`` where neither can be read (not Linux)."""
+    free = None
     try:
-        with open("/proc/meminfo") as f:
+        with meminfo.open() as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    free = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        free = None
+    room = memory_room(root, proc_cgroup)
+    if room is None:
+        return free
+    return room if free is None else min(free, room)
+
+
+def memory_room(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_CGROUP) -> int | None:
+    """The least headroom (limit less usage, bytes) of this process's cgroup and those above it
+    that have a memory limit; ``None`` if none has. Cgroup v2 (``memory.max``,
+    ``memory.current``) first; v1 (``memory.limit_in_bytes``, ``memory.usage_in_bytes``, under
+    the ``memory`` mount) where v2 has no memory controller."""
+    v2_path, v1_path = _cgroup_paths(proc_cgroup, "memory")
+    rooms: list[int] = []
+    found_v2 = False
+    if v2_path is not None:
+        for cgroup in _self_and_ancestors(root, v2_path):
+            limit, used = _read(cgroup / "memory.max"), _read(cgroup / "memory.current")
+            if limit is None:
+                continue
+            found_v2 = True
+            if limit.isdigit() and used is not None and used.isdigit():
+                rooms.append(max(0, int(limit) - int(used)))
+    if not found_v2 and v1_path is not None:
+        for cgroup in _self_and_ancestors(root / "memory", v1_path):
+            limit = _read(cgroup / "memory.limit_in_bytes")
+            used = _read(cgroup / "memory.usage_in_bytes")
+            if limit is None or used is None or not (limit.isdigit() and used.isdigit()):
+                continue
+            if int(limit) < _V1_NO_LIMIT:
+                rooms.append(max(0, int(limit) - int(used)))
+    return min(rooms) if rooms else None
+
+
+def _cgroup_paths(proc_cgroup: Path, controller: str) -> tuple[str | None, str | None]:
+    """This process's cgroup v2 path and its v1 path for ``controller`` (``None``: none)."""
+    try:
+        lines = proc_cgroup.read_text().splitlines()
+    except OSError:
+        return None, None
+    v2_path, v1_path = None, None
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        hierarchy, controllers, path = parts
+        if hierarchy == "0" and controllers == "":
+            v2_path = path
+        elif controller in controllers.split(","):
+            v1_path = path
+    return v2_path, v1_path
 
 
 #: Memory one more service or worker process needs at the least, bytes: its own heap and the

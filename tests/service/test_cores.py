@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.config import Settings
-from service.cores import cpu_quota, layout_problem, usable_cores
+from service.cores import available_memory, cpu_quota, layout_problem, memory_room, usable_cores
 from service.keys import Keys
 from service.live.dispatch import Dispatcher
 
@@ -134,3 +134,33 @@ def test_more_processes_than_twice_the_cores_are_warned_of() -> None:
 def test_unknown_free_memory_refuses_nothing() -> None:
     refusal, warning = layout_problem(Settings(workers=200), cores=2, free_memory=lambda: None)
     assert refusal is None and warning is not None
+
+
+def test_a_containers_memory_limit_caps_the_free_memory(tmp_path: Path) -> None:
+    # A pod limited to 1 GiB on a node with 60 GiB free may start what fits in its limit.
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal: 99999999 kB\nMemAvailable: 62914560 kB\n")
+    files = {"pod/memory.max": str(GIB), "pod/memory.current": str(300 * 2**20)}
+    proc = _tree(tmp_path / "v2", files, "0::/pod\n")
+    assert memory_room(tmp_path / "v2", proc) == GIB - 300 * 2**20
+    assert available_memory(meminfo, tmp_path / "v2", proc) == GIB - 300 * 2**20
+    free = lambda: available_memory(meminfo, tmp_path / "v2", proc)  # noqa: E731
+    refusal, _ = layout_problem(Settings(workers=16), cores=16, free_memory=free)
+    assert refusal is not None and "half the 0.7 GB" in refusal
+
+
+def test_an_ancestor_and_cgroup_v1_limits_count_and_no_limit_is_none(tmp_path: Path) -> None:
+    v2 = {"a/memory.max": "max", "a/memory.current": "5", "a/b/memory.max": "max"}
+    v2 |= {"a/b/memory.current": "5", "memory.max": "2000", "memory.current": "1500"}
+    proc = _tree(tmp_path / "v2", v2, "0::/a/b\n")
+    assert memory_room(tmp_path / "v2", proc) == 500  # the root's limit holds below it
+    unlimited = {"x/memory.max": "max", "x/memory.current": "5"}
+    assert memory_room(tmp_path / "u", _tree(tmp_path / "u", unlimited, "0::/x\n")) is None
+    v1 = {"memory/k/memory.limit_in_bytes": "1000", "memory/k/memory.usage_in_bytes": "400"}
+    v1 |= {"memory/memory.limit_in_bytes": str(2**63 - 4096), "memory/memory.usage_in_bytes": "9"}
+    proc = _tree(tmp_path / "v1", v1, "4:memory:/k\n0::/\n")
+    assert memory_room(tmp_path / "v1", proc) == 600
+    # nothing readable: the system's figure alone
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemAvailable: 1024 kB\n")
+    assert available_memory(meminfo, tmp_path / "none", tmp_path / "missing") == 2**20
