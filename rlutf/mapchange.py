@@ -26,6 +26,7 @@ wall), as are through cells not on a wall.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,7 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon, box
 
+from rlutf._unionfind import group_roots
 from rlutf.map import Map
 
 FloatArray = NDArray[np.float64]
@@ -286,28 +288,21 @@ def _components(cells: IntArray, nx: int) -> list[IntArray]:
     """The 8-connected groups of ``cells`` (flat indices, sorted), each sorted, in order of
     their first cell."""
     index = {int(c): i for i, c in enumerate(cells)}
-    parent = list(range(len(cells)))
 
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
+    def touching() -> Iterator[tuple[int, int]]:
+        for i, c in enumerate(cells.tolist()):
+            cy, cx = divmod(c, nx)
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    if (dy, dx) <= (0, 0) or not 0 <= cx + dx < nx:
+                        continue
+                    j = index.get((cy + dy) * nx + cx + dx)
+                    if j is not None:
+                        yield i, j
 
-    for i, c in enumerate(cells.tolist()):
-        cy, cx = divmod(c, nx)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if (dy, dx) <= (0, 0) or not 0 <= cx + dx < nx:
-                    continue
-                j = index.get((cy + dy) * nx + cx + dx)
-                if j is not None:
-                    a, b = root(i), root(j)
-                    if a != b:
-                        parent[max(a, b)] = min(a, b)
     groups: dict[int, list[int]] = {}
-    for i in range(len(cells)):
-        groups.setdefault(root(i), []).append(i)
+    for i, r in enumerate(group_roots(len(cells), touching())):
+        groups.setdefault(r, []).append(i)
     return [cells[np.array(g)] for _, g in sorted(groups.items())]
 
 

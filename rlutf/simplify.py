@@ -26,6 +26,8 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry import MultiPolygon, Polygon
 
+from rlutf._unionfind import group_roots
+
 IntArray = NDArray[np.int64]
 
 #: Rings closer than this many tolerances are simplified together (twice would do; the margin
@@ -45,41 +47,45 @@ def simplify_rings(geom: Polygon | MultiPolygon, tolerance: float) -> Polygon | 
     """
     parts: list[Polygon] = list(shapely.get_parts(geom))
     rings = [r for p in parts for r in (p.exterior, *p.interiors)]
-    whole = shapely.simplify
-    if len(rings) < _FEW_RINGS or not tolerance > 0:
-        return whole(geom, tolerance, preserve_topology=True)
-    group = _groups(rings, _APART * tolerance)
-    if np.bincount(group).max() * 2 > len(rings):  # one group holds most: no gain in parts
-        return whole(geom, tolerance, preserve_topology=True)
-    shells = shapely.polygons(rings)  # each ring as a shell: the simplifier treats both alike
+    done = None
+    if len(rings) >= _FEW_RINGS and tolerance > 0:
+        done = _by_groups(rings, _groups(rings, _APART * tolerance), tolerance)
+    if done is None:
+        return shapely.simplify(geom, tolerance, preserve_topology=True)
+    out: list[Polygon] = []
+    k = 0
+    for p in parts:
+        n = 1 + len(p.interiors)
+        holes = [shapely.get_exterior_ring(h) for h in done[k + 1 : k + n]]
+        out.append(Polygon(shapely.get_exterior_ring(done[k]), holes))
+        k += n
+    return out[0] if isinstance(geom, Polygon) else MultiPolygon(out)
+
+
+def _by_groups(
+    rings: list[shapely.LinearRing], group: IntArray, tolerance: float
+) -> NDArray[np.object_] | None:
+    """Each ring simplified with the others of its group (as a shell: the simplifier treats
+    shells and holes alike), in the order of ``rings``; ``None`` where the whole geometry is
+    simplified instead: one group holds most rings (nothing to gain), or a ring was lost."""
+    sizes = np.bincount(group)
+    if sizes.max() * 2 > len(rings):
+        return None
+    shells = shapely.polygons(rings)
     done = np.empty(len(rings), dtype=object)
-    alone = np.flatnonzero(np.bincount(group)[group] == 1)
+    alone = np.flatnonzero(sizes[group] == 1)
     done[alone] = shapely.simplify(shells[alone], tolerance, preserve_topology=True)
     order = np.argsort(group, kind="stable")  # each group's rings in their order in geom
-    cuts = np.flatnonzero(np.diff(group[order])) + 1
-    for members in np.split(order, cuts):
+    for members in np.split(order, np.flatnonzero(np.diff(group[order])) + 1):
         if len(members) > 1:
             together = shapely.simplify(
                 shapely.multipolygons(shells[members]), tolerance, preserve_topology=True
             )
             simplified = shapely.get_parts(together)
-            if len(simplified) != len(members):  # a ring lost: not the case this is for
-                return whole(geom, tolerance, preserve_topology=True)
+            if len(simplified) != len(members):
+                return None
             done[members] = simplified
-    if shapely.is_empty(done).any():
-        return whole(geom, tolerance, preserve_topology=True)
-    out: list[Polygon] = []
-    k = 0
-    for p in parts:
-        n = 1 + len(p.interiors)
-        out.append(
-            Polygon(
-                shapely.get_exterior_ring(done[k]),
-                [shapely.get_exterior_ring(h) for h in done[k + 1 : k + n]],
-            )
-        )
-        k += n
-    return out[0] if isinstance(geom, Polygon) else MultiPolygon(out)
+    return None if shapely.is_empty(done).any() else done
 
 
 def _groups(rings: list[shapely.LinearRing], reach: float) -> IntArray:
@@ -109,16 +115,4 @@ def _groups(rings: list[shapely.LinearRing], reach: float) -> IntArray:
     ri, rj = ring[i], ring[j]
     other = ri < rj
     pairs = np.unique(np.stack([ri[other], rj[other]], axis=1), axis=0)
-    parent = np.arange(len(rings))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = int(parent[k])
-        return k
-
-    for x, y in pairs.tolist():
-        rx, ry = root(x), root(y)
-        if rx != ry:
-            parent[max(rx, ry)] = min(rx, ry)
-    return np.array([root(k) for k in range(len(rings))], dtype=np.int64)
+    return np.array(group_roots(len(rings), pairs.tolist()), dtype=np.int64)
