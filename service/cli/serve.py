@@ -145,15 +145,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     install_from_env()  # RLUTF_TRACEMALLOC: a diagnosis of what grows (service.live.heapdumps)
-    if args.host_pid is None:  # a host's processes: the host checked the layout
-        from service.cores import layout_problem
-
-        refusal, warning = layout_problem(settings)
-        if refusal is not None:
-            print(f"rlutf serve: {refusal}", file=sys.stderr)
-            return EXIT_USAGE
-        if warning is not None:
-            print(f"rlutf serve: warning: {warning}", file=sys.stderr)
+    # a host's processes: the host checked the layout
+    if args.host_pid is None and not _layout_fits("rlutf serve", settings):
+        return EXIT_USAGE
     processes = settings.service_processes()
     if processes > 0:
         if settings.foxglove_port is not None:
@@ -267,38 +261,39 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
     return EXIT_OK
 
 
-def _demo_layout(args: argparse.Namespace) -> tuple[str | None, str | None]:
-    """:func:`service.cores.layout_problem` of the demo's ``--workers`` and ``--processes``
-    (values the settings refuse are reported where the demo builds them)."""
-    from pydantic import ValidationError
-
-    from service.config import Settings
+def _layout_fits(command: str, settings: Any) -> bool:
+    """Whether the processes ``settings`` start fit this machine's memory
+    (:func:`service.cores.layout_problem`); says why not, or warns, on stderr."""
     from service.cores import layout_problem
 
-    layout = {"workers": args.workers, "processes": args.processes}
-    try:
-        settings = Settings(**{k: v for k, v in layout.items() if v is not None})
-    except ValidationError:
-        return None, None
-    return layout_problem(settings)
+    refusal, warning = layout_problem(settings)
+    if refusal is not None:
+        print(f"{command}: {refusal}", file=sys.stderr)
+        return False
+    if warning is not None:
+        print(f"{command}: warning: {warning}", file=sys.stderr)
+    return True
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
+    from pydantic import ValidationError
+
     from service.cli.present import console
-    from service.sim.demo import demo_spec, run_demo
+    from service.config import Settings
+    from service.sim.demo import demo_layout, demo_spec, run_demo
     from service.sim.fleet import memory_problem
 
     problem = memory_problem(demo_spec(args))
     if problem is not None:
         print(f"rlutf demo: {problem} (--robots, --duration, --beams)", file=sys.stderr)
         return EXIT_USAGE
-    refusal, warning = _demo_layout(args)
-    if refusal is not None:
-        print(f"rlutf demo: {refusal}", file=sys.stderr)
+    try:  # values the settings refuse are reported where the demo builds them
+        layout = Settings(**demo_layout(args))
+    except ValidationError:
+        layout = None
+    if layout is not None and not _layout_fits("rlutf demo", layout):
         return EXIT_USAGE
-    if warning is not None:
-        print(f"rlutf demo: warning: {warning}", file=sys.stderr)
     if args.store is not None:
         usable_folder(args.store, "--store")
     if not args.no_record:

@@ -18,6 +18,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -124,6 +125,12 @@ def demo_spec(args: argparse.Namespace) -> FleetSpec:
     )
 
 
+def demo_layout(args: argparse.Namespace) -> dict[str, Any]:
+    """The settings of the demo's ``--workers`` and ``--processes``, those given."""
+    flags = {"workers": args.workers, "processes": args.processes}
+    return {k: v for k, v in flags.items() if v is not None}
+
+
 def run_demo(args: argparse.Namespace, console: Console | None = None) -> int:
     """Run the demo on ``console`` (default: stdout's); returns the exit code (1 if no robot
     got a pose)."""
@@ -135,16 +142,13 @@ def run_demo(args: argparse.Namespace, console: Console | None = None) -> int:
         plan = plan_fleet(spec, on_robot=advance)
     with tempfile.TemporaryDirectory(prefix="rlutf-demo-") as tmp:
         store = args.store or Path(tmp) / "store"
-        layout = {"workers": args.workers} if args.workers is not None else {}
-        if args.processes is not None:
-            layout["processes"] = args.processes
         settings = Settings(
             listen=[endpoint],
             store_dir=store,
             record_dir=args.record,
             no_record=args.no_record,
             instance="demo",
-            **layout,
+            **demo_layout(args),
         )
         processes = settings.service_processes()
         console.print(
