@@ -150,12 +150,14 @@ def _ids(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 class _Drivers:
-    """Robot ids that something drives on the bus now: scans put on their keys, or poses
+    """Which of ``ids`` something drives on the bus now: scans put on their keys, or poses
     published for them, heard from when it is made until :meth:`taken` (at least
-    :data:`LISTEN_S`)."""
+    :data:`LISTEN_S`). Other robots' samples cost a key test; a pose is read for its map once
+    per robot of ``ids``."""
 
-    def __init__(self, session: Any, keys: Any) -> None:
+    def __init__(self, session: Any, keys: Any, ids: tuple[str, ...]) -> None:
         self._keys = keys
+        self._ids = frozenset(ids)
         self._seen: dict[str, str | None] = {}
         self._lock = threading.Lock()
         self._since = time.monotonic()
@@ -165,9 +167,11 @@ class _Drivers:
         ]
 
     def _robot(self, sample: Any) -> str | None:
+        """The robot of a sample's key if it is one of ``ids``."""
         with contextlib.suppress(ValueError):
             parsed = self._keys.parse_robot_key(str(sample.key_expr))
-            return None if parsed is None else str(parsed[0])
+            if parsed is not None and parsed[0] in self._ids:
+                return str(parsed[0])
         return None
 
     def _on_scan(self, sample: Any) -> None:
@@ -178,7 +182,7 @@ class _Drivers:
 
     def _on_pose(self, sample: Any) -> None:
         robot = self._robot(sample)
-        if robot is None:
+        if robot is None or self._seen.get(robot) is not None:
             return
         map_id = None
         with contextlib.suppress(ValueError, AttributeError):
@@ -186,13 +190,13 @@ class _Drivers:
         with self._lock:
             self._seen[robot] = map_id if isinstance(map_id, str) else self._seen.get(robot)
 
-    def taken(self, ids: tuple[str, ...]) -> str | None:
-        """Which of ``ids`` something drives, said as a refusal; ``None`` when none."""
+    def taken(self) -> str | None:
+        """Which of the ids something drives, said as a refusal; ``None`` when none."""
         time.sleep(max(0.0, self._since + LISTEN_S - time.monotonic()))
         for sub in self._subs:
             sub.undeclare()
         with self._lock:
-            busy = {r: m for r, m in self._seen.items() if r in set(ids)}
+            busy = dict(self._seen)
         if not busy:
             return None
         names = ", ".join(f"{r} (map {busy[r]})" if busy[r] else r for r in sorted(busy)[:5]) + (
@@ -322,7 +326,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         return EXIT_FAILURE
     with operator:
-        drivers = _Drivers(operator, keys)
+        drivers = _Drivers(operator, keys, _ids(args))
         world = None
         if args.stored_map:
             world = _stored_world(operator, keys.map(args.map), args.map)
@@ -348,7 +352,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         else:
             wire = JsonWire(plan, keys)
         print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
-        taken = drivers.taken(spec.ids)
+        taken = drivers.taken()
         if taken is not None:
             print(f"rlutf simulate: {taken}", file=sys.stderr)
             return EXIT_USAGE
