@@ -142,7 +142,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
         logging.getLogger("rlutf").log(level, "signal %d: stopping", signum)
         stop.set()
 
-    signal.signal(signal.SIGINT, on_signal)
+    # A host's process is stopped by its host (SIGTERM), which takes a terminal's Ctrl-C for all
+    # of them: a process that took the SIGINT sent to the whole group would stop on its own and
+    # be started again as if it had crashed (service.live.stopping).
+    signal.signal(signal.SIGINT, signal.SIG_IGN if args.host_pid is not None else on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     install_from_env()  # RLUTF_TRACEMALLOC: a diagnosis of what grows (service.live.heapdumps)
     # a host's processes: the host checked the layout
@@ -161,7 +164,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.host_pid is not None:
         follow_host(args.host_pid, stop)
     try:
-        service = LocalizationService(settings, recorder=make_recorder(settings))
+        service = LocalizationService(settings, recorder=make_recorder(settings), stop=stop)
         with starting_status("rlutf serve") as progress:
             service.start(progress)
         tune_gc()
@@ -237,7 +240,7 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
     def say(text: str) -> None:
         print(f"rlutf serve: {text}", file=sys.stderr, flush=True)
 
-    host = Host(settings)
+    host = Host(settings, stop=stop)
     try:
         with starting_status("rlutf serve") as progress:
             host.start(progress)

@@ -46,6 +46,7 @@ from service.live.shards import (
     Shard,
     ThreadShard,
 )
+from service.live.stopping import ended_with_the_service
 from service.live.worker import Entry, send
 from service.maps.book import LoadedMap
 
@@ -78,6 +79,8 @@ class Dispatcher:
             (:class:`~service.live.shards.LoopShard`, :mod:`service.live.loop`), not on
             threads of their own.
         nice: niceness the worker processes add to this one's (``os.nice``).
+        stop: set when the service is told to stop (its signal handler): a worker that the
+            same signal ended is not replaced (:mod:`service.live.stopping`).
     """
 
     def __init__(
@@ -97,8 +100,10 @@ class Dispatcher:
         loop: bool = False,
         nice: int = 0,
         poses: PoseOut | None = None,
+        stop: threading.Event | None = None,
     ) -> None:
         self.keys = keys
+        self.stop_requested = stop if stop is not None else threading.Event()
         self.nice = nice
         self.poses = poses
         self.limits = limits or Limits()
@@ -175,6 +180,8 @@ class Dispatcher:
         it never answered are reported dropped.
         """
         code = shard.process.exitcode if not shard.process.is_alive() else None
+        if self._ends_with_the_service(shard, code):
+            return
         sends: list[Shard] = []
         with self.lock:
             if self.stopping or shard.gone:
@@ -234,6 +241,29 @@ class Dispatcher:
             send = shard.wake()
         if send:
             shard.drain()
+
+    def _ends_with_the_service(self, shard: ProcessShard, code: int | None) -> bool:
+        """Whether a worker that ended with ``code`` ended with the service
+        (:mod:`service.live.stopping`): then it is neither replaced nor reported lost, and the
+        scans it never answered are reported dropped, as on a loss."""
+        if code is None:
+            shard.process.join(0.2)  # its pipe ended a moment before the process
+            code = shard.process.exitcode
+        if not ended_with_the_service(code, self.stop_requested):
+            return False
+        log.info("worker process %d ended (exit code %s) with the service", shard.index, code)
+        with self.lock:
+            shard.gone = True  # the service's stop waits for nothing more of it
+            for robot, box in self.boxes.items():
+                if box.shard is shard:  # what it never answered is dropped, as on a loss
+                    for e in shard.inflight.pop(robot, []) + list(box.entries):
+                        if e.kind == "scan":
+                            self.dropped += 1
+                            self.on_drop(robot, e.stamp_ns, e.received_ns)
+                    box.entries.clear()
+                    box.scan, box.busy, box.queued = None, False, False
+            shard.cond.notify_all()
+        return True
 
     def forget(self, robot: str) -> bool:
         """Drop an idle robot's mailbox and its state in the worker.

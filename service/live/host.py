@@ -50,6 +50,7 @@ from service.config import Settings
 from service.keys import Keys
 from service.live.heapdumps import TRACE
 from service.live.sessions import free_port
+from service.live.stopping import ended_with_the_service
 
 log = logging.getLogger(__name__)
 
@@ -132,9 +133,17 @@ class Host:
     Args:
         settings: the effective configuration (``settings.processes`` processes).
         python: the interpreter that runs the processes.
+        stop: set when the host is told to stop (its signal handler), before :meth:`close`:
+            a process that the same signal ended is not started again
+            (:mod:`service.live.stopping`).
     """
 
-    def __init__(self, settings: Settings, python: str = sys.executable) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        python: str = sys.executable,
+        stop: threading.Event | None = None,
+    ) -> None:
         if settings.processes < 1:
             raise ValueError(f"processes: {settings.processes}, a host needs at least 1")
         self.settings = settings
@@ -149,6 +158,7 @@ class Host:
         self.metrics: Any = None
         self._lock = threading.Lock()
         self._stopping = threading.Event()
+        self._stop_requested = stop if stop is not None else self._stopping
         self._supervisor: threading.Thread | None = None
         self.started = time.monotonic()
         self.ready = False
@@ -263,10 +273,12 @@ class Host:
             now = time.monotonic()
             for p in self.processes:
                 with self._lock:
-                    if self._stopping.is_set() or p.child is None:
-                        continue
-                    code = p.child.poll()
-                    if code is None:
+                    code = None if p.child is None else p.child.poll()
+                    first = code is not None and p.due == 0.0
+                if first and ended_with_the_service(code, self._stop_requested):
+                    continue  # stopped with the host (a whole process group signalled)
+                with self._lock:
+                    if self._stopping.is_set() or self._stop_requested.is_set() or code is None:
                         continue
                     if p.due == 0.0:
                         lived = now - p.started

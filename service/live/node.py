@@ -92,6 +92,8 @@ class LocalizationService:
         recorder: where to record; ``None`` records nothing.
         session: an open Zenoh session to use (tests); by default one is opened from the
             settings and closed with the service.
+        stop: set when the service is told to stop (the CLI's signal handler), before
+            :meth:`close` runs: a worker process the same signal ended is not replaced.
     """
 
     def __init__(
@@ -99,6 +101,7 @@ class LocalizationService:
         settings: Settings,
         recorder: Recorder | None = None,
         session: zenoh.Session | None = None,
+        stop: threading.Event | None = None,
     ) -> None:
         self.settings = settings
         self.keys = Keys(settings.prefix)
@@ -145,6 +148,7 @@ class LocalizationService:
             map_health=settings.map_health,
             loop=settings.intake == "loop",
             poses=self.out,
+            stop=stop,
         )
         self.inputs = Inputs(self._on_robot_sample, self.dispatcher.loop, settings.intake, self.out)
         self.mapfeed = MapFeed(

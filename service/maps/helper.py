@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -43,6 +44,8 @@ class HelperFailed(RuntimeError):
 def _serve(conn: Connection, handle: Callable[..., Any]) -> None:
     """The helper process: answer each call with ``("ok", result)`` or ``("raised", text)``
     until the pipe closes."""
+    # Ctrl-C is the service's (a terminal signals the whole process group): it closes the pipe.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     conn.send(("ready",))
     while True:
         try:
