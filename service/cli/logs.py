@@ -47,7 +47,9 @@ def register(sub: Any) -> None:
         "events, and compare them with the poses the run recorded. Scans the live service "
         "dropped under load (scan_dropped events) are dropped again. Prints a table per run "
         "and, for several runs, one line per run. Exit 1 when a recorded pose of any run "
-        "deviates beyond the tolerance, 2 when an input cannot be read.",
+        "deviates beyond the tolerance, 2 when an input cannot be read (a file with no "
+        "rlutf message in it, such as a rosbag2 recording given without --ros2, is named "
+        "with the command that reads it).",
     )
     replay.add_argument(
         "inputs",
@@ -218,7 +220,7 @@ def _replay_runs(args: argparse.Namespace) -> int:
     try:
         # One file that cannot be read stops a replay of one file; of several, it is named
         # and the other runs are audited (exit 2 at the end unless an audit failed).
-        runs = group_runs(inputs, unreadable if len(inputs) > 1 else None)
+        runs = group_runs(inputs, unreadable if len(inputs) > 1 else None, not args.ros2)
         for _path, bad in unreadable:
             _fail("replay", bad)
         if not runs:

@@ -10,7 +10,9 @@ their original ``log_time``, and those are the maps logged before ``opened_ns``.
 :func:`group_runs` sorts a list of files (a shell glob over a log folder matches several runs)
 into runs, each with its files in sequence order; files without ``rlutf.run`` (written by
 another tool) form one run of their own, in the order given. Replay and audit then treat each
-run on its own, so no robot's state or map is carried from one run into another.
+run on its own, so no robot's state or map is carried from one run into another. A file with
+none of rlutf's messages at all (a rosbag2 recording, say) is no run: replay names it
+(:func:`foreign`) rather than pass an audit that read nothing.
 """
 
 from __future__ import annotations
@@ -149,7 +151,9 @@ class LogRun:
 
 
 def group_runs(
-    paths: Sequence[Path], unreadable: list[tuple[Path, LogError]] | None = None
+    paths: Sequence[Path],
+    unreadable: list[tuple[Path, LogError]] | None = None,
+    rlutf_only: bool = False,
 ) -> list[LogRun]:
     """Sort files into runs (see the module docstring), ordered by start.
 
@@ -159,6 +163,9 @@ def group_runs(
         paths: the files.
         unreadable: if given, files that cannot be read are added to it with their error and
             left out, instead of raising.
+        rlutf_only: an MCAP file with none of rlutf's messages (:func:`foreign`: a rosbag2
+            recording, another tool's log) cannot be read either, instead of being a run with
+            nothing in it (a replay's audit of it passed, having read nothing).
 
     Raises:
         service.logs.mcapread.LogError: a file is missing, not MCAP, or damaged (unless
@@ -178,6 +185,9 @@ def group_runs(
             with LogFile(path) as log:
                 tag = run_tag(log)
                 span = log.time_range
+                why = foreign(log) if rlutf_only else None
+            if why is not None:
+                raise NotALog(why)
         except LogError as err:
             if unreadable is None:
                 raise
@@ -200,6 +210,30 @@ def group_runs(
         start = span[0] if span is not None else None
         runs.append(LogRun(tuple(untagged), (None,) * len(untagged), start, span))
     return sorted(runs, key=lambda r: (r.start_ns is None, r.start_ns or 0, r.run_id or ""))
+
+
+def foreign(log: LogFile) -> str | None:
+    """Why ``log`` is not an rlutf log, or ``None``: it has channels and none of them carries
+    one of rlutf's schemas (``rlutf.*``). A ROS 2 recording is named as one, with the
+    ``rlutf replay --ros2`` command that localizes a robot in it."""
+    channels = log.channels()
+    if not channels or any(c.schema_name.startswith("rlutf.") for c in channels):
+        return None
+    shown = ", ".join(f"{c.topic} ({c.schema_name or 'no schema'})" for c in channels[:4])
+    more = f" and {len(channels) - 4} more" if len(channels) > 4 else ""
+    if not any(c.message_encoding == "cdr" for c in channels):
+        return (
+            f"{log.path}: not an rlutf log: none of its channels carries an rlutf message "
+            f"({shown}{more})"
+        )
+    bag = log.path.parent if (log.path.parent / "metadata.yaml").is_file() else log.path
+    scan = next((c.topic for c in channels if c.schema_name.endswith("/LaserScan")), "TOPIC")
+    odom = next((c.topic for c in channels if c.schema_name.endswith("/Odometry")), "TOPIC")
+    return (
+        f"{log.path}: a ROS 2 recording ({shown}{more}), not an rlutf log: localize a robot "
+        f"in it with rlutf replay --ros2 {bag} --map ID --scan-topic {scan} --odom-topic {odom} "
+        "[--initial-pose X,Y,THETA]"
+    )
 
 
 def _tagged_run(
