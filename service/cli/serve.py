@@ -142,11 +142,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
         logging.getLogger("rlutf").log(level, "signal %d: stopping", signum)
         stop.set()
 
-    # A host's process is stopped by its host (SIGTERM), which takes a terminal's Ctrl-C for all
-    # of them: a process that took the SIGINT sent to the whole group would stop on its own and
-    # be started again as if it had crashed (service.live.stopping).
-    signal.signal(signal.SIGINT, signal.SIG_IGN if args.host_pid is not None else on_signal)
+    # A host's process is stopped by its host (SIGTERM), which takes a terminal's Ctrl-C (and its
+    # hang-up) for all of them: a process that took the SIGINT sent to the whole group would stop
+    # on its own and be started again as if it had crashed (service.live.stopping).
+    terminal = signal.SIG_IGN if args.host_pid is not None else on_signal
+    signal.signal(signal.SIGINT, terminal)
     signal.signal(signal.SIGTERM, on_signal)
+    # A closed terminal or a dropped ssh session (SIGHUP) killed the service on the spot, its
+    # log left unfinished (.mcap.part): it stops as on Ctrl-C. Under nohup it stays ignored.
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, terminal)
     install_from_env()  # RLUTF_TRACEMALLOC: a diagnosis of what grows (service.live.heapdumps)
     # a host's processes: the host checked the layout
     if args.host_pid is None and not _layout_fits("rlutf serve", settings):

@@ -18,9 +18,10 @@ from typing import Final
 #: Signals that stop a whole service (its children's exit codes are their negatives).
 STOP_SIGNALS: Final = frozenset((signal.SIGTERM, signal.SIGINT, signal.SIGHUP))
 #: Seconds a child that a stop signal ended (or that stopped cleanly, exit code 0) waits for
-#: the service's own stop before it is taken for lost: the same signal reaches the service a
-#: moment before or after it.
-STOP_GRACE_S: Final = 1.0
+#: the service's own stop before it is taken for lost: the same signal reaches the service at
+#: the same moment, and its main thread runs the handler within a second
+#: (``LocalizationService.wait``'s timed waits).
+STOP_GRACE_S: Final = 2.0
 
 
 def ended_with_the_service(code: int | None, stop: threading.Event) -> bool:

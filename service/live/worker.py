@@ -176,10 +176,11 @@ def worker_main(
     takes the CPU it needs first, and what is left over is dropped, counted, in the robots'
     mailboxes (``worker_nice``; ``BENCHMARKS.md``, "Overload").
     """
-    # Ctrl-C is the service's to handle: a terminal sends SIGINT to the whole process group,
-    # and a worker that took it would die in the middle of a batch while the service stops it
-    # in order (its pipe's "stop", after the batches in flight) anyway.
+    # Ctrl-C and a terminal's hang-up are the service's to handle: a terminal signals the whole
+    # process group, and a worker that took it would die in the middle of a batch while the
+    # service stops it in order (its pipe's "stop", after the batches in flight) anyway.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     if nice:
         os.nice(nice)
     compiled = warm_up()

@@ -44,8 +44,10 @@ class HelperFailed(RuntimeError):
 def _serve(conn: Connection, handle: Callable[..., Any]) -> None:
     """The helper process: answer each call with ``("ok", result)`` or ``("raised", text)``
     until the pipe closes."""
-    # Ctrl-C is the service's (a terminal signals the whole process group): it closes the pipe.
+    # Ctrl-C and a hang-up are the service's (a terminal signals the whole process group): it
+    # closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     conn.send(("ready",))
     while True:
         try:

@@ -34,7 +34,9 @@ def _serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str
         *(sys.executable, "-m", "service", "serve", "-l", f"tcp/127.0.0.1:{free_port()}"),
         *("--store", str(tmp_path / "store"), "--no-state", *flags),
     ]
-    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [*_AS_A_TERMINAL, *argv], stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     assert proc.stderr is not None
     said: list[str] = []
     try:
@@ -54,7 +56,20 @@ def _serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str
             proc.wait()
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+#: Runs the command after it with the signals' defaults of one typed in a terminal (a test run
+#: under ``nohup`` or from a background job hands its children SIGHUP or SIGINT ignored, and
+#: an ignored signal stays ignored across ``exec``).
+_AS_A_TERMINAL = (
+    sys.executable,
+    "-c",
+    "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); "
+    "signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])",
+)
+
+
+@pytest.mark.parametrize(
+    "signum", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP], ids=["SIGTERM", "SIGINT", "SIGHUP"]
+)
 def test_a_service_whose_process_group_is_signalled_stops_at_once_and_quietly(
     tmp_path: Path, signum: int
 ) -> None:
@@ -69,16 +84,20 @@ def test_a_service_whose_process_group_is_signalled_stops_at_once_and_quietly(
     assert took < 5.0, f"stopped after {took:.1f} s\n{text}"
     assert "worker_lost" not in text and "died" not in text, text
     assert "Traceback" not in text, text
+    logs = sorted(p.name for p in (tmp_path / "logs").iterdir()) if signum == signal.SIGHUP else []
+    assert not [name for name in logs if name.endswith(".part")], logs  # finished, not cut off
 
 
 def test_a_hosts_process_leaves_a_terminals_ctrl_c_to_its_host(tmp_path: Path) -> None:
     """Ctrl-C reaches every process of the group; a host's process that stopped on it was
     taken for crashed and started again (an error in the log of every interrupted
-    ``rlutf demo``). It stops when its host tells it to."""
+    ``rlutf demo``), and one that a hang-up killed left its log unfinished. It stops when its
+    host tells it to."""
     with _serving(tmp_path, "--no-record", "--processes", "2") as (proc, said):
         children = _processes_with(f"--host-pid\0{proc.pid}\0")
         assert len(children) == 1, children
         os.kill(children[0], signal.SIGINT)  # its share of a Ctrl-C
+        os.kill(children[0], signal.SIGHUP)  # and of a closed terminal
         time.sleep(2.0)
         os.kill(children[0], 0)  # still there (raises if it ended)
         proc.send_signal(signal.SIGTERM)
