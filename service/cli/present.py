@@ -212,6 +212,32 @@ def health_table(healths: Iterable[Health]) -> str:
     return table(header, rows, set(range(2, len(header))))
 
 
+#: Health figures that mean an instance is losing what it should keep: figure, what it says.
+_LOSSES = (
+    (
+        "recorder_unrecorded",
+        "messages not recorded: the log folder could not be written (a full disk? the "
+        "recording_failed Event says why)",
+    ),
+    ("recorder_overflow", "messages not recorded: the recorder's queue was full"),
+    ("state_write_errors", "pose-state writes failed: a restart may not resume its robots"),
+)
+
+
+def health_problems(healths: Iterable[Health]) -> list[str]:
+    """``rlutf health``: a line for each instance losing its log or its pose state (a host's
+    figures are its processes', named on their own lines)."""
+    lines = []
+    for h in healths:
+        if h.extra.get("host") is True:
+            continue
+        for figure, says in _LOSSES:
+            n = h.extra.get(figure)
+            if isinstance(n, int) and n > 0:
+                lines.append(f"{h.instance}: {n:,} {says}")
+    return lines
+
+
 def event_line(robot: str | None, ev: Event) -> str:
     """One Event as a line: local time, level, robot (``-``: service-wide, with the Event's key),
     code and message."""

@@ -211,7 +211,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
 
 def cmd_health(args: argparse.Namespace) -> int:
     """``rlutf health``: 0 if an instance answers."""
-    from service.cli.present import health_table
+    from service.cli.present import health_problems, health_table
     from service.live.queries import fetch_health
 
     settings, session = client(args)
@@ -229,6 +229,8 @@ def cmd_health(args: argparse.Namespace) -> int:
             print(encode(h).decode())
     else:
         print(health_table(healths))
+        for line in health_problems(healths):
+            print(f"warning: {line}")
     return EXIT_OK
 
 

@@ -236,8 +236,8 @@ class LocalizationService:
             warm_up_aside(progress)  # compiled by a child on a first start
         self.recorder.set_config(s.effective())
         if hasattr(self.recorder, "on_event"):
-            # In the log when it can be; published so operators see it live.
-            self.recorder.on_event = lambda ev: self._publish(self.keys.events, encode(ev))
+            # In the log when it can be; published and logged so operators see it live.
+            self.recorder.on_event = self.out.recorder_event
         self.dispatcher.start(progress)
         if self._session is None:
             self._session = zenoh.open(zenoh_config(s))

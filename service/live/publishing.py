@@ -164,15 +164,17 @@ class Announcer:
         stamp = now if now is not None else self.clock()
         ev = Event(stamp_ns=stamp, level=level, code=code, key=about, message=message)
         payload = encode(ev)
-        log.log(
-            logging.WARNING if level in ("warning", "error") else logging.INFO,
-            "%s %s: %s",
-            code,
-            printable(about),  # a client's key: a newline in it must not forge a log line
-            printable(message, 2000),
-        )
+        _log(ev)
         self.publish(key, payload)
         self.recorder.record(key, EVENT_SCHEMA, payload, self.clock(), stamp)
+
+    def recorder_event(self, ev: Event) -> None:
+        """One of the recorder's own Events (``recording_failed`` when the disk is full, say):
+        published and logged, not recorded (the recorder logged it already, when it could).
+        Published only, it never reached the service's own output: a full disk stopped the
+        audit log without a line in the journal."""
+        _log(ev)
+        self.publish(self.keys.events, encode(ev))
 
     def robot_event(
         self, robot: str, level: str, code: str, about: str, message: str, now: int | None = None
@@ -186,3 +188,14 @@ class Announcer:
         self, level: str, code: str, about: str, message: str, now: int | None = None
     ) -> None:
         self.event(self.keys.events, level, code, about, message, now)
+
+
+def _log(ev: Event) -> None:
+    """An Event in the service's own log: warnings and errors as warnings."""
+    log.log(
+        logging.WARNING if ev.level in ("warning", "error") else logging.INFO,
+        "%s %s: %s",
+        ev.code,
+        printable(ev.key),  # a client's key: a newline in it must not forge a log line
+        printable(ev.message, 2000),
+    )

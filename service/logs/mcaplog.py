@@ -327,11 +327,13 @@ class McapRecorder:
         self, level: str, code: str, message: str, logged: bool = True, stamp: int | None = None
     ) -> None:
         """An Event of the recorder's own on ``{prefix}/events`` (stamped ``stamp``, default
-        now): in the service's log, in the MCAP log (``logged``), handed to :attr:`on_event`."""
+        now): in the MCAP log (``logged``), handed to :attr:`on_event` (which logs it in the
+        service's log), else in the service's log here."""
         now = time.time_ns()
         stamp = now if stamp is None else stamp
         event = Event(stamp_ns=stamp, level=level, code=code, key=self._about(), message=message)
-        log.log(logging.ERROR if level == "error" else logging.WARNING, "%s: %s", code, message)
+        if self.on_event is None:
+            log.log(logging.ERROR if level == "error" else logging.WARNING, "%s: %s", code, message)
         if logged:
             self._writer(now).write(
                 Record(f"{self._prefix()}/events", "rlutf.Event", encode(event), now, stamp)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -210,23 +211,25 @@ def test_the_lost_wording_never_reads_as_a_contradiction() -> None:
     assert "under the 50 % needed" in _unfit(_lost(0.3, math.nan), 0.1, 0.5)
 
 
-def test_a_hosts_health_row_says_it_adds_its_processes_up() -> None:
+def _health(instance: str, received: int = 1, **extra: object) -> Any:
     from schemas import Health
 
-    def health(instance: str, received: int, **extra: object) -> Health:
-        return Health(
-            instance=instance,
-            stamp_ns=1,
-            uptime_s=5.0,
-            robots=1,
-            received=received,
-            rejected=0,
-            processed=received,
-            dropped=0,
-            ready=True,
-            extra=extra,
-        )
+    return Health(
+        instance=instance,
+        stamp_ns=1,
+        uptime_s=5.0,
+        robots=1,
+        received=received,
+        rejected=0,
+        processed=received,
+        dropped=0,
+        ready=True,
+        extra=extra,
+    )
 
+
+def test_a_hosts_health_row_says_it_adds_its_processes_up() -> None:
+    health = _health
     processes = [{"name": "h-p0"}, {"name": "h-p1"}]
     rows = health_table(
         [health("h", 30, host=True, processes=processes), health("h-p0", 10), health("h-p1", 20)]
@@ -234,3 +237,23 @@ def test_a_hosts_health_row_says_it_adds_its_processes_up() -> None:
     assert [r.split()[0] for r in rows] == ["h", "h-p0", "h-p1"]
     assert "(host: 2 processes added up)" in rows[0]
     assert "host" not in rows[1] + rows[2]
+
+
+def test_health_warns_of_an_instance_losing_its_log_or_its_pose_state() -> None:
+    from service.cli.present import health_problems
+
+    health = _health
+    fine = {"recorder_unrecorded": 0, "recorder_overflow": 0, "state_write_errors": 0}
+    lines = health_problems(
+        [
+            health("h", host=True, recorder_unrecorded=2000),  # its processes say it
+            health("h-p0", **{**fine, "recorder_unrecorded": 1652}),
+            health("h-p1", **{**fine, "state_write_errors": 3, "recorder_overflow": 7}),
+            health("other", **fine),
+            health("old"),  # an instance that reports none of these figures
+        ]
+    )
+    assert lines[0].startswith("h-p0: 1,652 messages not recorded: the log folder could not")
+    assert [line.split(":")[0] for line in lines] == ["h-p0", "h-p1", "h-p1"]
+    assert "recorder's queue was full" in lines[1] and "7" in lines[1]
+    assert "a restart may not resume its robots" in lines[2]

@@ -1,15 +1,19 @@
-"""Pose puts held by a thread go out together, in order, when it releases them (real Zenoh
-sessions on loopback: the service's router and a robot's client)."""
+"""Pose puts held by a thread go out together, in order, when it releases them, and the
+recorder's own Events go out and into the service's log (real Zenoh sessions on loopback: the
+service's router and a robot's client)."""
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
 
+from schemas import Event, EventCode, decode
 from service.keys import Keys
 from service.live.outbox import Outbox
 from service.live.publishing import Announcer
@@ -76,3 +80,37 @@ def test_held_poses_go_out_on_release_in_order_and_other_threads_are_not_held(
     time.sleep(0.02)
     assert announcer.release(older_than=0.01) == 1
     assert _received(sub, 0.5) == [b"still held"]
+
+
+def test_the_recorders_own_events_reach_the_services_log_and_the_bus(
+    bus: tuple[Announcer, zenoh.Session, zenoh.Session],
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A full disk stopped the audit log with an Event on the bus only: nothing in the
+    service's own output (its terminal, its journal). Now once in each."""
+    from service.logs import mcaplog
+
+    announcer, router, client = bus
+    announcer.outbox.start(router)  # Events go out through the outbox, as in the service
+    monkeypatch.setattr(mcaplog, "RETRY_S", 60.0)
+    folder = tmp_path / "logs"
+    rec = mcaplog.McapRecorder(folder, instance="t1", max_seconds=0.2, flush_interval_s=0.05)
+    rec.on_event = announcer.recorder_event  # as the service wires it
+    sub = client.declare_subscriber(Keys().events, zenoh.handlers.FifoChannel(100))
+    time.sleep(0.5)
+    caplog.set_level(logging.INFO)
+    folder.rename(tmp_path / "gone")  # the write error a full disk gives
+    for n in range(1, 60):
+        rec.record("rlutf/robots/r1/odom", "rlutf.Odometry", b'{"stamp_ns":0}', n, n)
+        time.sleep(0.01)
+        if rec.errors:
+            break
+    got = [decode(Event, p) for p in _received(sub, 1.0)]
+    rec.close()
+    announcer.outbox.close()
+    assert [e.code for e in got] == [EventCode.RECORDING_FAILED], got
+    lines = [r for r in caplog.records if "recording_failed" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].levelno == logging.WARNING, caplog.text
+    assert str(folder) in lines[0].getMessage()
