@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import io
 import math
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -218,8 +220,20 @@ def _decode(image: bytes, name: str) -> tuple[NDArray[Any], NDArray[Any] | None,
     """Colour channels ``(H, W, C)`` and alpha ``(H, W)`` (or None) as the image holds them,
     and the value of full scale (``[0, 1]`` after dividing by it)."""
     try:
-        img: Image.Image = Image.open(io.BytesIO(image))
-        img.load()
+        with warnings.catch_warnings():
+            # Pillow warns past MAX_IMAGE_PIXELS (89 M) and refuses past twice that: a site's
+            # map of 100 M cells (a 500 m square at 5 cm) is taken without a warning.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            img: Image.Image = Image.open(io.BytesIO(image))
+            img.load()
+    except Image.DecompressionBombError as err:
+        limit = 2 * (Image.MAX_IMAGE_PIXELS or 0)
+        found = re.search(r"\((\d+) pixels\)", str(err))
+        size = f"{int(found[1]):,} pixels" if found else str(err)
+        raise MapFileError(
+            f"{name}: the image has {size}, more than map import takes ({limit:,}): crop it, "
+            "or scale it down and raise the YAML's resolution to match"
+        ) from err
     except (UnidentifiedImageError, OSError, ValueError) as err:
         raise MapFileError(f"{name}: cannot decode the image: {err}") from err
     if img.mode == "P":

@@ -141,6 +141,29 @@ def test_unreadable_image_raises() -> None:
         grid_from_image(b"P5 not really an image", meta(), name="room.pgm")
 
 
+def test_an_image_whose_header_claims_billions_of_pixels_is_refused_at_once() -> None:
+    """A 20-byte PGM header saying 100,000 x 100,000: Pillow's guard stops it before any
+    allocation; the error says so in the words of map import, not as an unexpected
+    ``DecompressionBombError``."""
+    header = b"P5\n100000 100000\n255\n" + bytes(1000)
+    with pytest.raises(MapFileError, match=r"huge\.pgm: the image has 10,000,000,000 pixels"):
+        grid_from_image(header, meta(), name="huge.pgm")
+
+
+def test_a_site_map_over_pillows_warning_size_is_read_without_a_warning(
+    recwarn: pytest.WarningsRecorder, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Pillow warns of a possible decompression bomb past ``MAX_IMAGE_PIXELS`` (89 M pixels,
+    a 470 m square at 5 cm): such a site's map is a map, not a bomb. (The limit is lowered
+    here, so that a small image stands for a large one.)"""
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1_000)
+    grid = grid_from_image(pgm(np.full((30, 50), 254)), meta())  # 1,500 pixels: warned of
+    assert grid.free.shape == (30, 50) and bool(grid.free.all())
+    assert not [w for w in recwarn if "decompression" in str(w.message).lower()]
+    with pytest.raises(MapFileError, match=r"has 3,000 pixels, more than map import takes"):
+        grid_from_image(pgm(np.full((30, 100), 254)), meta())  # past twice the limit
+
+
 def write_map(folder: Path, pixels: np.ndarray, yaml_text: str = YAML) -> Path:
     (folder / "room.pgm").write_bytes(pgm(pixels))
     path = folder / "room.yaml"
