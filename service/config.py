@@ -33,6 +33,7 @@ from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from schemas import ID_PATTERN
 from service.guard import Limits
+from service.yamlfile import load_yaml
 
 ZenohMode = Literal["router", "peer", "client"]
 
@@ -433,7 +434,7 @@ def _check_file(path: Path, suffix: str) -> None:
         elif kind == "TOML":
             data = tomllib.loads(text)
         else:
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
     except (ValueError, yaml.YAMLError, OSError) as err:
         raise SettingsFileError(
             f"settings file {path}{_where(err)}: not valid {kind} ({_problem(err)}); fix the "

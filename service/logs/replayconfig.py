@@ -101,9 +101,9 @@ def read_settings_file(path: Path) -> dict[str, Any]:
         elif suffix == ".toml":
             data = tomllib.loads(text)
         elif suffix in (".yaml", ".yml"):
-            import yaml
+            from service.yamlfile import load_yaml
 
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
         else:
             raise ReplayConfigError(f"settings file {path}: use .json, .toml or .yaml")
     except (ValueError, ImportError) as err:

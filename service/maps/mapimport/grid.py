@@ -26,6 +26,7 @@ from __future__ import annotations
 import io
 import math
 import re
+import reprlib
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from PIL import Image, UnidentifiedImageError
 
 from service.maps.mapimport.errors import MapFileError, MapYamlError
+from service.yamlfile import YamlTooLarge, load_yaml
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -142,10 +144,22 @@ class OccupancyGrid:
         return self.to_world(np.column_stack([c + 0.5, r + 0.5]) * self.resolution)
 
 
+#: How a value of the YAML is shown in an error: a few items and levels. A document's aliases
+#: can nest a list in itself nine times over (YAML's "billion laughs", a few hundred bytes): its
+#: full repr took minutes and gigabytes.
+_BRIEF = reprlib.Repr()
+_BRIEF.maxlevel, _BRIEF.maxlist, _BRIEF.maxdict, _BRIEF.maxstring = 2, 4, 4, 60
+_BRIEF.maxother = 60
+
+
+def _brief(value: object) -> str:
+    return _BRIEF.repr(value)
+
+
 def _number(doc: dict[str, Any], key: str) -> float:
     value = doc[key]
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise MapYamlError(f"map YAML: '{key}' must be a finite number, got {value!r}")
+        raise MapYamlError(f"map YAML: '{key}' must be a finite number, got {_brief(value)}")
     return float(value)
 
 
@@ -163,8 +177,8 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
             value of the wrong type or out of range.
     """
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
+        doc = load_yaml(text)
+    except (yaml.YAMLError, YamlTooLarge) as err:
         raise MapYamlError(f"map YAML: cannot parse: {err}") from err
     if not isinstance(doc, dict):
         raise MapYamlError(f"map YAML: expected a mapping of keys, got {type(doc).__name__}")
@@ -174,7 +188,7 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
         raise MapYamlError(f"map YAML: missing required key(s) {names}")
     image = doc["image"]
     if not isinstance(image, str) or not image.strip():
-        raise MapYamlError(f"map YAML: 'image' must be a file name, got {image!r}")
+        raise MapYamlError(f"map YAML: 'image' must be a file name, got {_brief(image)}")
     resolution = _number(doc, "resolution")
     if resolution <= 0:
         raise MapYamlError(f"map YAML: 'resolution' must be positive, got {resolution}")
@@ -187,7 +201,7 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
             for v in origin
         )
     ):
-        raise MapYamlError(f"map YAML: 'origin' must be [x, y, yaw] numbers, got {origin!r}")
+        raise MapYamlError(f"map YAML: 'origin' must be [x, y, yaw] numbers, got {_brief(origin)}")
     occ, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
     for key, value in (("occupied_thresh", occ), ("free_thresh", free)):
         if not 0.0 <= value <= 1.0:
@@ -196,10 +210,12 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
         raise MapYamlError(f"map YAML: 'free_thresh' {free} is above 'occupied_thresh' {occ}")
     negate = doc.get("negate", 0)
     if negate not in (0, 1) or not isinstance(negate, int | bool):
-        raise MapYamlError(f"map YAML: 'negate' must be 0 or 1, got {negate!r}")
+        raise MapYamlError(f"map YAML: 'negate' must be 0 or 1, got {_brief(negate)}")
     mode = doc.get("mode", "trinary")
     if not isinstance(mode, str) or mode.strip().lower() not in MODES:
-        raise MapYamlError(f"map YAML: 'mode' must be one of {', '.join(MODES)}, got {mode!r}")
+        raise MapYamlError(
+            f"map YAML: 'mode' must be one of {', '.join(MODES)}, got {_brief(mode)}"
+        )
     return MapMetadata(
         image=image.strip(),
         resolution=resolution,

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import pytest
+from yaml_laughs import laughs
 
 from service.cli.main import main
 
@@ -49,6 +50,9 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "corrupt.mcap").write_bytes(b"garbage\x00\x01")
     (tmp_path / "foreign.txt").write_text("hello\n")
     (tmp_path / "foreign.yaml").write_text("image: x.pgm\nresolution: 0.05\n")
+    # a few hundred bytes whose aliases repeat a value 9 ** 10 times (tests/service/test_yamlfile)
+    (tmp_path / "laughs.yaml").write_text(laughs(then="localizer: *a9\n"))
+    (tmp_path / "laughs-map.yaml").write_text(laughs(then="image: x.pgm\norigin: *a9\n"))
     (tmp_path / "dangling").symlink_to(tmp_path / "gone")
     return tmp_path
 
@@ -112,6 +116,8 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "show", "foreign.yaml"], 2, ["rlutf map import foreign.yaml --png"])
     yield Bad(["map", "import", "missing.yaml"], 1, ["missing.yaml"])
     yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
+    yield Bad(["config", "--settings", "laughs.yaml"], 2, ["laughs.yaml", "100,000 values"])
+    yield Bad(["map", "import", "laughs-map.yaml"], 1, ["laughs-map.yaml", "100,000 values"])
     yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
     yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])
     yield Bad(["log", "info", "missing.mcap"], 2, ["missing.mcap"])
