@@ -336,7 +336,10 @@ class Settings(BaseSettings):
         if isinstance(value, str):
             text = value.strip()
             if text.startswith("["):
-                return json.loads(text)
+                try:
+                    return json.loads(text)
+                except RecursionError:  # pydantic reports a ValueError as the field's error
+                    raise ValueError("a list nested deeper than a list of endpoints") from None
             return [v.strip() for v in text.split(",") if v.strip()]
         return value
 
@@ -435,7 +438,7 @@ def _check_file(path: Path, suffix: str) -> None:
             data = tomllib.loads(text)
         else:
             data = load_yaml(text)
-    except (ValueError, yaml.YAMLError, OSError) as err:
+    except (ValueError, RecursionError, yaml.YAMLError, OSError) as err:
         raise SettingsFileError(
             f"settings file {path}{_where(err)}: not valid {kind} ({_problem(err)}); fix the "
             "file, or leave out --settings and RLUTF_SETTINGS"

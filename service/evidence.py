@@ -99,7 +99,7 @@ def decode_evidence(payload: bytes, max_bytes: int = 64 << 20) -> list[Handed]:
         raise ValueError("map evidence: no header line")
     try:
         doc = json.loads(head)
-    except ValueError as err:
+    except (ValueError, RecursionError) as err:  # nested past the parser's depth: not a header
         raise ValueError(f"map evidence: header is not JSON ({err})") from None
     maps = doc.get("maps") if isinstance(doc, dict) else None
     if not isinstance(maps, list) or len(maps) > MAX_MAPS:

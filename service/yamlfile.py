@@ -30,7 +30,10 @@ def load_yaml(text: str | bytes) -> Any:
         yaml.YAMLError: not YAML.
         YamlTooLarge: more values than :data:`MAX_VALUES`, aliases counted as what they repeat.
     """
-    doc = yaml.safe_load(text)
+    try:
+        doc = yaml.safe_load(text)
+    except RecursionError:
+        raise YamlTooLarge("the document nests deeper than the YAML reader can follow") from None
     left = MAX_VALUES
     stack = [doc]
     while stack:

@@ -352,11 +352,13 @@ def cmd_show(args: argparse.Namespace) -> int:
             data = json.loads(path.read_text(encoding="utf-8"))
         except OSError as err:
             raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:
             where = (
                 f" (line {err.lineno}, column {err.colno}: {err.msg})"
                 if isinstance(err, json.JSONDecodeError)
                 else " (not UTF-8 text)"
+                if isinstance(err, UnicodeDecodeError)
+                else " (nested deeper than a map can be)"
             )
             from service.maps.client import import_hint
 

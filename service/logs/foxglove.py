@@ -163,7 +163,7 @@ def _map_parts(payload: bytes) -> tuple[dict[str, Any], list[list[Any]]]:
     try:
         polygons, end = _rings_at(text, start)
         data = json.loads(text[:start] + "null" + text[end:])
-    except (ValueError, IndexError):
+    except (ValueError, IndexError, RecursionError):
         return _whole_map(text)
     if data.get("geometry", {}).get("type") == "Polygon" and len(polygons) == 1:
         return data, polygons
@@ -252,7 +252,7 @@ class FoxgloveConverter:
             return []
         try:
             return handler(self, record)
-        except (ValueError, TypeError, KeyError, IndexError, AttributeError):
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError, RecursionError):
             # Inputs are validated before they are logged; a log from elsewhere may hold
             # anything, and a view is not worth failing a recording for.
             log.debug("no foxglove view of %s", record.topic, exc_info=True)

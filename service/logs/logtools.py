@@ -111,7 +111,7 @@ def log_info(path: Path) -> LogInfo:
             where_map = map_topic(rec.topic)
             try:
                 version = json.loads(rec.payload).get("version")
-            except (ValueError, AttributeError):
+            except (ValueError, AttributeError, RecursionError):
                 version = None
             if where_map is not None and isinstance(version, int):
                 maps[where_map[1]].append(version)

@@ -199,7 +199,7 @@ def _dropped_scans(
             continue
         try:
             data = json.loads(rec.payload)
-        except ValueError:
+        except (ValueError, RecursionError):  # a log from elsewhere may hold anything
             continue
         if isinstance(data, dict) and data.get("code") == EventCode.SCAN_DROPPED:
             stamp = data.get("stamp_ns")

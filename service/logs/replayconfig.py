@@ -106,7 +106,7 @@ def read_settings_file(path: Path) -> dict[str, Any]:
             data = load_yaml(text)
         else:
             raise ReplayConfigError(f"settings file {path}: use .json, .toml or .yaml")
-    except (ValueError, ImportError) as err:
+    except (ValueError, RecursionError, ImportError) as err:
         if isinstance(err, ReplayConfigError):
             raise
         raise ReplayConfigError(f"settings file {path}: {err}") from err
@@ -121,7 +121,7 @@ def _assignment(text: str) -> dict[str, Any]:
         raise ReplayConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. localizer.epsilon=0.004")
     try:
         value: Any = json.loads(raw)
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError):
         value = raw
     out: dict[str, Any] = {}
     node = out

@@ -38,6 +38,8 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
         raise ValueError(f"{path}: not UTF-8 text, so no JSON{import_hint(path)}") from err
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: malformed JSON: {err}{import_hint(path)}") from err
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested deeper than a Map can be") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object")
     data = unwrap_geojson(path, data)

@@ -72,6 +72,7 @@ def _with(change: dict[str, object]) -> bytes:
         (_stream(bytes(2_000_000)), "not a zstd frame of at most 1000000 bytes"),  # unsized
         (_zst(b""), "no header"),
         (_zst(b"{not json\n"), "not JSON"),
+        (_zst(b"[" * 100_000 + b"]" * 100_000 + b"\n"), "not JSON"),  # past the parser's depth
         (_zst(b'{"maps": 3}\n'), "'maps' must be a list"),
         (_zst(b'{"maps": [' + b"{}," * 70 + b"{}]}\n"), "'maps' must be a list of at most"),
         (_zst(_raw(encode_evidence([_handed()]))[:-5]), "shorter than its header"),

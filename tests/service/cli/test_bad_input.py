@@ -53,6 +53,8 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     # a few hundred bytes whose aliases repeat a value 9 ** 10 times (tests/service/test_yamlfile)
     (tmp_path / "laughs.yaml").write_text(laughs(then="localizer: *a9\n"))
     (tmp_path / "laughs-map.yaml").write_text(laughs(then="image: x.pgm\norigin: *a9\n"))
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)  # past the parser's depth
+    (tmp_path / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000)
     (tmp_path / "dangling").symlink_to(tmp_path / "gone")
     return tmp_path
 
@@ -118,6 +120,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
     yield Bad(["config", "--settings", "laughs.yaml"], 2, ["laughs.yaml", "100,000 values"])
     yield Bad(["map", "import", "laughs-map.yaml"], 1, ["laughs-map.yaml", "100,000 values"])
+    yield Bad(["config", "--settings", "deep.json"], 2, ["deep.json", "not valid JSON"])
+    yield Bad(["config", "--settings", "deep.toml"], 2, ["deep.toml", "not valid TOML"])
+    yield Bad(["map", "show", "deep.json"], 2, ["deep.json", "nested deeper than a map"])
     yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
     yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])
     yield Bad(["log", "info", "missing.mcap"], 2, ["missing.mcap"])
