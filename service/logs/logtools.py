@@ -38,7 +38,7 @@ from service.logs.mcapread import (
     map_topic,
     robot_topic,
 )
-from service.logs.runs import LogRun, RunTag, group_runs, run_tag
+from service.logs.runs import LogRun, RunTag, foreign, group_runs, run_tag
 from service.logs.salvage import next_readable
 
 
@@ -57,6 +57,9 @@ class LogInfo:
     run: dict[str, str] | None = None
     carried_maps: int = 0
     writer: str | None = None
+    foreign: str | None = None
+    """Why the file is no rlutf log (:func:`service.logs.runs.foreign`: a rosbag2 recording,
+    another tool's MCAP), with the command that reads it; ``None`` for an rlutf log."""
 
     @property
     def messages(self) -> int:
@@ -127,6 +130,7 @@ def log_info(path: Path) -> LogInfo:
             tag.to_metadata() if tag is not None else None,
             carried,
             lf.library(),
+            foreign(lf),
         )
 
 
@@ -190,6 +194,8 @@ def render_info(info: LogInfo, console: Console) -> None:
     _render_robots(info.robots, console, "robots")
     for map_id, versions in sorted(info.maps.items()):
         console.print(f"map {map_id}: version(s) {', '.join(map(str, versions))}")
+    if info.foreign is not None:
+        console.print(f"[yellow]{info.foreign.split(': ', 1)[-1]}[/yellow]", soft_wrap=True)
 
 
 @dataclass

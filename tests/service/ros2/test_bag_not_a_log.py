@@ -48,6 +48,10 @@ def test_replay_of_a_rosbag_without_ros2_names_it_and_the_command_that_reads_it(
         assert "a ROS 2 recording" in err and "not an rlutf log" in err, err
         assert f"rlutf replay --ros2 {bag} --map ID" in err, err
         assert "--scan-topic /amr7/scan --odom-topic /amr7/odom" in err, err
+    # rlutf log info describes it (it is an MCAP file) and says the same
+    assert main(["log", "info", str(next(bag.glob("*.mcap")))]) == 0
+    out = capsys.readouterr().out
+    assert "/amr7/scan" in out and f"rlutf replay --ros2 {bag} --map ID" in out, out
 
 
 def test_another_tools_mcap_is_not_audited_as_an_empty_run(
