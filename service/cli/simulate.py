@@ -296,6 +296,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from service.config import Settings
     from service.keys import Keys
+    from service.live.queries import fetch_health
     from service.live.sessions import zenoh_config
     from service.sim.fleet import SimFleet, drawing_bar, drive
     from service.sim.plan import plan_fleet
@@ -352,6 +353,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         else:
             wire = JsonWire(plan, keys)
         print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
+        if not fetch_health(operator, settings.prefix, "*", 1.0):
+            print(  # on with it: the service may be starting, and takes the robots then
+                f"rlutf simulate: warning: no rlutf service answers on prefix "
+                f"{settings.prefix!r} at {where} (`rlutf health` asks the same); the robots "
+                "start anyway (is the service on another --prefix?)",
+                file=sys.stderr,
+                flush=True,
+            )
         taken = drivers.taken()
         if taken is not None:
             print(f"rlutf simulate: {taken}", file=sys.stderr)

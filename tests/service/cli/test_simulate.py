@@ -27,7 +27,8 @@ def test_simulated_robots_are_localized_and_their_bad_input_refused(
         assert main(args) == 0
         sub.undeclare()
         health = bench.service.health()
-        out = capsys.readouterr().out
+        out, err = capsys.readouterr()
+    assert "no rlutf service answers" not in err
     for robot in ("r000", "r001"):
         got = poses.on(f"rlutf/robots/{robot}/pose")
         assert len(got) >= 20, robot
@@ -105,6 +106,20 @@ def test_bad_flags_are_named(
 ) -> None:
     assert main(["simulate", *flags]) == 2
     assert says in capsys.readouterr().err
+
+
+def test_a_fleet_on_a_prefix_no_service_uses_is_warned_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The service on one prefix, the robots on another: they got no pose for the whole run,
+    and were told so only at its end."""
+    with running_bench(tmp_path) as bench:
+        args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "1"]
+        assert main([*args, "--beams", "90", "--prefix", "site2"]) == 1
+    err = capsys.readouterr().err
+    first, *_ = err.splitlines()
+    assert "no rlutf service answers on prefix 'site2'" in first, err
+    assert "no pose came back" in err
 
 
 def test_no_service_says_what_to_do(capsys: pytest.CaptureFixture[str]) -> None:
