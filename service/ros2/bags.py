@@ -14,6 +14,7 @@ Out: the poses of a replay as a rosbag2 MCAP (``amcl_pose`` and the ``map`` -> `
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections import Counter
 from collections.abc import Iterator, Mapping
@@ -94,13 +95,21 @@ class BagSummary:
     last_ns: int = 0
 
 
-def _reader(bag: Path) -> Any:
+@contextlib.contextmanager
+def _reader(bag: Path) -> Iterator[Any]:
+    """The bag open for reading; a bag rosbags cannot open (its ``metadata.yaml`` damaged, say)
+    is a :class:`BagError`, like one it cannot find."""
     from rosbags.highlevel import AnyReader
 
     try:
-        return AnyReader([bag], default_typestore=convert.typestore())
-    except Exception as err:  # rosbags raises its own errors per storage
+        reader = AnyReader([bag], default_typestore=convert.typestore())
+        reader.open()
+    except Exception as err:  # rosbags raises its own errors per storage, at either step
         raise BagError(f"{bag}: not a readable rosbag2 recording: {err}") from err
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 def bag_inputs(

@@ -17,6 +17,7 @@ from ros_client import TS, odom_msg, scan_msg
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from rlutf.sim import make_building
+from schemas import Map, encode
 from service.cli.main import main
 
 T0 = 1_732_300_000_000_000_000
@@ -68,3 +69,20 @@ def test_another_tools_mcap_is_not_audited_as_an_empty_run(
     assert main(["replay", str(path), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "not an rlutf log" in err and "/camera (foxglove.CompressedImage)" in err, err
+
+
+def test_a_bag_whose_metadata_rosbags_cannot_read_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rosbags reads a bag folder's ``metadata.yaml`` when it opens the bag, not when it is
+    made: its error came out as an 'unexpected error: AnyReaderError' to report."""
+    bag = _bag(tmp_path / "bag")
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2]\n")
+    site = tmp_path / "m1.json"
+    world = make_building(np.random.default_rng(5))
+    site.write_bytes(encode(Map(map_id="m1", version=1, geometry=world.to_geojson())))
+    argv = ["replay", "--ros2", str(bag), "--map", str(site), "--initial-pose=2,2,0"]
+    assert main([*argv, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{bag}: not a readable rosbag2 recording" in err, err
+    assert "unexpected error" not in err
