@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas import MAX_BEAMS
-from service.cli.errors import session_failure
+from service.cli.errors import CliError, session_failure
 from service.cli.flags import (
     EXIT_FAILURE,
     EXIT_OK,
@@ -131,6 +131,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
     if not settings.no_store:
         usable_folder(settings.store_dir, "--store")
+        _store_free(settings.store_dir)
     if not settings.no_record:
         usable_folder(settings.record_dir, "--record")
     stop = threading.Event()
@@ -234,6 +235,23 @@ def follow_host(host_pid: int, stop: threading.Event) -> None:
                 stop.set()
 
     threading.Thread(target=watch, name="rlutf-host-watch", daemon=True).start()
+
+
+def _store_free(folder: Path) -> None:
+    """Refuse a --store that another running service serves, before anything starts (the
+    service claims it for good when its store starts: service.maps.store.FileMapStore.claim).
+
+    Raises:
+        CliError: another process serves the folder.
+    """
+    from service.maps.store import FileMapStore, StoreInUse
+
+    store = FileMapStore(folder)
+    try:
+        store.claim()
+    except StoreInUse as err:
+        raise CliError(str(err), EXIT_FAILURE) from None
+    store.release()
 
 
 def serve_host(settings: Any, stop: threading.Event) -> int:

@@ -63,6 +63,14 @@ class MapStore(Protocol):
         """Every stored id."""
 
 
+#: The file in a store's folder that its serving process holds locked (``flock``), with its pid.
+CLAIM_FILE = ".rlutf-store.lock"
+
+
+class StoreInUse(RuntimeError):
+    """Another running process serves the store's folder."""
+
+
 class FileMapStore:
     """Maps as JSON files in one folder.
 
@@ -74,6 +82,49 @@ class FileMapStore:
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
+        self._claim: int | None = None
+
+    def claim(self) -> None:
+        """Serve this folder alone: hold its :data:`CLAIM_FILE` locked until :meth:`release`
+        (or this process ends, when the system lets the lock go by itself).
+
+        Two services on one folder (a second site or a test instance started from the same
+        working directory, each with the default ``--store store``) each checked map versions
+        against what they had read at their start, and each overwrote the other's files: a
+        site's map replaced by another site's of the same id at its next restart. Readers (the
+        CLI reading a map from a folder) do not claim it. A file system that refuses locks
+        (some network mounts) is served unclaimed.
+
+        Raises:
+            StoreInUse: another process holds the folder (the message names its pid).
+        """
+        import fcntl
+
+        path = self.root / CLAIM_FILE
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise StoreInUse(
+                f"the map store folder {self.root} is served by another running process (pid "
+                f"{holder}: another `rlutf serve`?); give this one a --store of its own, or "
+                "--no-store to use the first one's maps over Zenoh (-e/--connect its endpoint)"
+            ) from None
+        except OSError as err:
+            os.close(fd)
+            log.warning("map store %s: not locked (%s): serve it from one process only", path, err)
+            return
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._claim = fd
+
+    def release(self) -> None:
+        """Let the folder go (:meth:`claim`)."""
+        if self._claim is not None:
+            os.close(self._claim)
+            self._claim = None
 
     def _path(self, map_id: str) -> Path:
         if not valid_id(map_id):
@@ -188,6 +239,7 @@ class MapStorage:
         self._forwarded = zenoh.KeyExpr(keys.maps)
         self._versions: dict[str, Held] = {}
         self._lock = threading.Lock()
+        store.claim()  # the versions held below are this process's to keep
         for map_id, payload in store.items():
             try:
                 checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
@@ -312,3 +364,4 @@ class MapStorage:
         self._queryable.undeclare()
         self._tasks.put(None)
         self._thread.join(10.0)
+        self.store.release()
