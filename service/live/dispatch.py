@@ -246,6 +246,8 @@ class Dispatcher:
         """Whether a worker that ended with ``code`` ended with the service
         (:mod:`service.live.stopping`): then it is neither replaced nor reported lost, and the
         scans it never answered are reported dropped, as on a loss."""
+        if self.stopping:
+            return False  # the service stops it: worker_lost has nothing to do
         if code is None:
             shard.process.join(0.2)  # its pipe ended a moment before the process
             code = shard.process.exitcode

@@ -275,7 +275,9 @@ class Host:
                 with self._lock:
                     code = None if p.child is None else p.child.poll()
                     first = code is not None and p.due == 0.0
-                if first and ended_with_the_service(code, self._stop_requested):
+                if first and (
+                    self._stopping.is_set() or ended_with_the_service(code, self._stop_requested)
+                ):
                     continue  # stopped with the host (a whole process group signalled)
                 with self._lock:
                     if self._stopping.is_set() or self._stop_requested.is_set() or code is None:
