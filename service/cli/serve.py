@@ -131,7 +131,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
     if not settings.no_store:
         usable_folder(settings.store_dir, "--store")
-        _store_free(settings.store_dir)
+        _store_free(
+            settings.store_dir,
+            "give this one a --store of its own, or --no-store to use the first one's maps "
+            "over Zenoh (-e/--connect its endpoint)",
+        )
     if not settings.no_record:
         usable_folder(settings.record_dir, "--record")
     stop = threading.Event()
@@ -237,9 +241,10 @@ def follow_host(host_pid: int, stop: threading.Event) -> None:
     threading.Thread(target=watch, name="rlutf-host-watch", daemon=True).start()
 
 
-def _store_free(folder: Path) -> None:
+def _store_free(folder: Path, fix: str) -> None:
     """Refuse a --store that another running service serves, before anything starts (the
-    service claims it for good when its store starts: service.maps.store.FileMapStore.claim).
+    service claims it for good when its store starts: service.maps.store.FileMapStore.claim);
+    ``fix`` says what to do instead.
 
     Raises:
         CliError: another process serves the folder.
@@ -250,7 +255,7 @@ def _store_free(folder: Path) -> None:
     try:
         store.claim()
     except StoreInUse as err:
-        raise CliError(str(err), EXIT_FAILURE) from None
+        raise CliError(f"{err}; {fix}", EXIT_FAILURE) from None
     store.release()
 
 
@@ -322,6 +327,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.store is not None:
         usable_folder(args.store, "--store")
+        _store_free(args.store, "give the demo a --store of its own (or none: a temporary one)")
     if not args.no_record:
         usable_folder(args.record, "--record")
 

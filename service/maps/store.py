@@ -109,8 +109,7 @@ class FileMapStore:
             os.close(fd)
             raise StoreInUse(
                 f"the map store folder {self.root} is served by another running process (pid "
-                f"{holder}: another `rlutf serve`?); give this one a --store of its own, or "
-                "--no-store to use the first one's maps over Zenoh (-e/--connect its endpoint)"
+                f"{holder}: another `rlutf serve`?)"
             ) from None
         except OSError as err:
             os.close(fd)

@@ -38,8 +38,12 @@ def test_serve_refuses_a_store_another_service_serves_before_anything_starts(
     try:
         argv = ["serve", "--store", str(tmp_path / "store"), "--no-record", "--no-state"]
         assert main([*argv, "--workers", "0", "-l", "tcp/127.0.0.1:1"]) == 1
+        serve_err = capsys.readouterr().err
+        # the demo too (it said "unexpected error: StoreInUse" once its service started)
+        assert main(["demo", "--store", str(tmp_path / "store"), "--no-record"]) == 1
+        demo_err = capsys.readouterr().err
     finally:
         held.release()
-    err = capsys.readouterr().err
-    assert "is served by another running process" in err and "--no-store" in err, err
-    assert "Traceback" not in err
+    assert "is served by another running process" in serve_err and "--no-store" in serve_err
+    assert "give the demo a --store of its own" in demo_err, demo_err
+    assert "Traceback" not in serve_err + demo_err and "unexpected" not in demo_err
