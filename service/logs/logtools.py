@@ -195,7 +195,7 @@ def render_info(info: LogInfo, console: Console) -> None:
     for map_id, versions in sorted(info.maps.items()):
         console.print(f"map {map_id}: version(s) {', '.join(map(str, versions))}")
     if info.foreign is not None:
-        console.print(f"[yellow]{info.foreign.split(': ', 1)[-1]}[/yellow]", soft_wrap=True)
+        console.print(f"[yellow]{info.foreign}[/yellow]", soft_wrap=True)
 
 
 @dataclass

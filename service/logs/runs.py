@@ -187,7 +187,7 @@ def group_runs(
                 span = log.time_range
                 why = foreign(log) if rlutf_only else None
             if why is not None:
-                raise NotALog(why)
+                raise NotALog(f"{path}: {why}")
         except LogError as err:
             if unreadable is None:
                 raise
@@ -213,24 +213,22 @@ def group_runs(
 
 
 def foreign(log: LogFile) -> str | None:
-    """Why ``log`` is not an rlutf log, or ``None``: it has channels and none of them carries
-    one of rlutf's schemas (``rlutf.*``). A ROS 2 recording is named as one, with the
-    ``rlutf replay --ros2`` command that localizes a robot in it."""
+    """Why ``log`` is not an rlutf log (a sentence without the file's name), or ``None``: it
+    has channels and none of them carries one of rlutf's schemas (``rlutf.*``). A ROS 2
+    recording is named as one, with the ``rlutf replay --ros2`` command that localizes a robot
+    in it."""
     channels = log.channels()
     if not channels or any(c.schema_name.startswith("rlutf.") for c in channels):
         return None
     shown = ", ".join(f"{c.topic} ({c.schema_name or 'no schema'})" for c in channels[:4])
     more = f" and {len(channels) - 4} more" if len(channels) > 4 else ""
     if not any(c.message_encoding == "cdr" for c in channels):
-        return (
-            f"{log.path}: not an rlutf log: none of its channels carries an rlutf message "
-            f"({shown}{more})"
-        )
+        return f"not an rlutf log: none of its channels carries an rlutf message ({shown}{more})"
     bag = log.path.parent if (log.path.parent / "metadata.yaml").is_file() else log.path
     scan = next((c.topic for c in channels if c.schema_name.endswith("/LaserScan")), "TOPIC")
     odom = next((c.topic for c in channels if c.schema_name.endswith("/Odometry")), "TOPIC")
     return (
-        f"{log.path}: a ROS 2 recording ({shown}{more}), not an rlutf log: localize a robot "
+        f"a ROS 2 recording ({shown}{more}), not an rlutf log: localize a robot "
         f"in it with rlutf replay --ros2 {bag} --map ID --scan-topic {scan} --odom-topic {odom} "
         "[--initial-pose X,Y,THETA]"
     )
