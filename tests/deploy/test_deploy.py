@@ -23,6 +23,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -637,6 +638,26 @@ def test_zenoh_image_matches_the_python_binding() -> None:
         assert match, f"{image}: pin eclipse/zenoh to an exact release"
         assert (int(match[1]), int(match[2])) == major_minor, image
     assert len(set(images)) == 1, f"one zenoh release everywhere: {sorted(set(images))}"
+
+
+def test_rlutf_image_tags_name_the_package_version() -> None:
+    """Every ``rlutf:X.Y.Z`` tag the image and deployment files build, run or pull is the
+    package's version: an image tagged with an older version than the code it holds would
+    replay that version's logs with other code (an audit needs the code that wrote the log)."""
+    version = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["project"][
+        "version"
+    ]
+    files = [DOCKERFILE, DEPLOY / "README.md", *COMPOSE_FILES, *K8S.glob("*.yaml")]
+    tags: dict[str, set[str]] = {}
+    for path in files:
+        text = path.read_text(encoding="utf-8")
+        found = set(re.findall(r"rlutf:(\d+\.\d+\.\d+\S*)", text))
+        found |= set(re.findall(r"newTag:\s*(\S+)", text))
+        if found:
+            tags[path.relative_to(REPO).as_posix()] = found
+    assert "docker/Dockerfile" in tags and "deploy/k8s/kustomization.yaml" in tags
+    stale = {name: sorted(found) for name, found in tags.items() if found != {version}}
+    assert not stale, f"image tags other than the package's version {version}: {stale}"
 
 
 # ================================================================================= kubernetes
