@@ -40,11 +40,12 @@ def register(sub: Any) -> None:
         "replay",
         help="recompute the poses of a log and audit them",
         description="Sort the MCAP logs given into runs (metadata rlutf.run: the files one "
-        "start of a service or replay wrote, in sequence order; files without it form one run), "
-        "and for each run on its own: run the service's localization over its inputs (maps, "
-        "initial poses, odometry, scans; merged in log_time order) with the recorded "
-        "configuration, write its output log with the inputs and the recomputed poses and "
-        "events, and compare them with the poses the run recorded. Scans the live service "
+        "start of a service or replay wrote, in sequence order; files without it form one "
+        "run), and for each run on its own: run the service's localization over its inputs "
+        "(maps, initial poses, odometry, scans; merged in log_time order) with the recorded "
+        "configuration, write (with --out) its output log with the inputs and the recomputed "
+        "poses and events, and compare them with the poses the run recorded (matched as they "
+        "come: the memory it takes does not grow with the run). Scans the live service "
         "dropped under load (scan_dropped events) are dropped again. Prints a table per run "
         "and, for several runs, one line per run. Exit 1 when a recorded pose of any run "
         "deviates beyond the tolerance, 2 when an input cannot be read (a file with no "
@@ -85,9 +86,9 @@ def register(sub: Any) -> None:
         action="store_true",
         help="also fail on recomputed poses after the log's last recorded one",
     )
-    replay.add_argument(
-        "--plot", type=Path, metavar="DIR", help="write a trajectory PNG per robot into DIR"
-    )
+    plot = "write a trajectory PNG per robot into DIR (keeps every pose in memory: for a run "
+    plot += "of hours, not weeks; without it the audit takes the same memory however long the run)"
+    replay.add_argument("--plot", type=Path, metavar="DIR", help=plot)
     replay.add_argument(
         "--settings",
         type=Path,
@@ -244,7 +245,7 @@ def _replay_runs(args: argparse.Namespace) -> int:
                 )
             label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
             try:
-                result = _replay_one(args, run.files, out, label)
+                result = _replay_one(args, run.files, out if args.kept else None, label)
             except LogError as err:  # a damaged chunk: this run cannot be audited
                 if len(runs) == 1:
                     raise
@@ -272,13 +273,15 @@ def _replay_runs(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, label: str) -> Any:
+def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path | None, tag: str) -> Any:
+    """One run replayed (into ``out`` unless ``None``); its poses are kept only for ``--plot``
+    and ``--ros2-out``: the audit counts as it goes (``service.logs.posematch``)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from service.logs.replay import replay
 
     progress = Progress(
-        label,
+        tag,
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
@@ -296,6 +299,7 @@ def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path, labe
             foxglove=not args.no_foxglove,
             progress=lambda n: progress.advance(task, n),
             on_total=lambda total: progress.update(task, total=total),
+            keep=args.plot is not None or args.ros2_out is not None,
         )
 
 
@@ -310,13 +314,13 @@ def _report(
 ) -> Any:
     """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
     final summary."""
-    from service.logs.audit import all_passed, audit, gap_note, render, run_verdict, version_note
+    from service.logs import audit
 
     k, n = place
     heading = "Audit" if n == 1 else f"Audit of run {k}"
     if summary is not None:
         console.print(_bag_report(summary))
-    recomputed = sum(len(v) for v in result.recomputed.values())
+    recomputed = result.match.recomputed_total
     console.print(
         f"replayed {result.inputs} inputs ({result.dropped} scans dropped as live, "
         f"{result.rejected} rejected): {recomputed} poses -> "
@@ -326,10 +330,10 @@ def _report(
         from service.cli.ros2bags import write_out
 
         try:
-            n = write_out(args, result, summary)
+            written = write_out(args, result, summary)
         except Exception as err:  # rosbags' writer raises its own errors
             raise ValueError(f"{args.ros2_out}: {err}") from err
-        console.print(f"wrote {n} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
+        console.print(f"wrote {written} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
     if args.plot is not None:
         from service.logs.plots import plot_all
 
@@ -338,25 +342,24 @@ def _report(
             console.print(f"wrote {path}")
     tol_m = args.tolerance
     tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
-    audits = audit(result.recorded, result.recomputed, result.gap_ns)
-    poses = sum(len(v) for v in result.recorded.values())
-    if (gap := gap_note(audits, result.gap_ns)) is not None:
+    audits = audit.audit_match(result.match)
+    poses = result.match.recorded_total
+    if (gap := audit.gap_note(audits, result.gap_ns)) is not None:
         console.print(f"[yellow]{gap}[/yellow]")
-
     if not audits:
         console.print("no recorded poses in the input: nothing to audit")
-        return run_verdict(run, out, 0, poses, "nothing to audit")
-    render(audits, tol_m, tol_rad, console, args.strict, heading)
-    ok = all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
+        return audit.run_verdict(run, out, 0, poses, "nothing to audit")
+    audit.render(audits, tol_m, tol_rad, console, args.strict, heading)
+    ok = audit.all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
     if result.unreadable_poses:
         console.print(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
         )
     console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
-    note = None if ok else version_note(run.files)
+    note = None if ok else audit.version_note(run.files)
     if note is not None:
         console.print(f"[yellow]{note}[/yellow]")
-    return run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
+    return audit.run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
 
 
 def _bag_report(summary: Any) -> str:

@@ -20,7 +20,6 @@ extra. Where the log holds no poses at all there is nothing to audit.
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -29,8 +28,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from rlutf.motion import wrap_scalar
-from service.logs.replay import PoseRecord
+from service.logs.posematch import PoseMatch, PoseRecord, Tally
 from service.logs.runs import LogRun
 
 DEFAULT_TOLERANCE = 1e-9
@@ -67,54 +65,36 @@ class RobotAudit:
         )
 
 
-def _audit_robot(
-    robot: str,
-    recorded: Sequence[PoseRecord],
-    recomputed: Sequence[PoseRecord],
-    gap_ns: int | None = None,
-) -> RobotAudit:
-    after_gap = 0
-    if gap_ns is not None:  # neither side is compared from the gap on
-        after_gap = sum(p.stamp_ns >= gap_ns for p in recorded)
-        recorded = [p for p in recorded if p.stamp_ns < gap_ns]
-        recomputed = [p for p in recomputed if p.stamp_ns < gap_ns]
-    by_stamp: dict[int, list[PoseRecord]] = defaultdict(list)
-    for p in recomputed:
-        by_stamp[p.stamp_ns].append(p)
-    last = max((p.stamp_ns for p in recorded), default=None)
-    dt: list[float] = []
-    dh: list[float] = []
-    identical = missing = status = 0
-    for rec in recorded:
-        candidates = by_stamp.get(rec.stamp_ns)
-        if not candidates:
-            missing += 1
-            continue
-        new = candidates.pop(0)
-        dt.append(math.hypot(new.x - rec.x, new.y - rec.y))
-        dh.append(abs(wrap_scalar(new.theta - rec.theta)))
-        identical += new.payload == rec.payload
-        status += new.status != rec.status
-    left = [p for group in by_stamp.values() for p in group]
-    unverified = sum(1 for p in left if last is None or p.stamp_ns > last)
+def _robot_audit(robot: str, r: Tally) -> RobotAudit:
+    last = r.last_recorded
+    left = [p.stamp_ns for q in r.recomputed.values() for p in q]
+    unverified = sum(1 for stamp in left if last is None or stamp > last)
 
-    def rms(values: list[float]) -> float:
-        return math.sqrt(sum(v * v for v in values) / len(values)) if values else 0.0
+    def rms(total: float) -> float:
+        return math.sqrt(total / r.matched) if r.matched else 0.0
 
     return RobotAudit(
         robot=robot,
-        matched=len(dt),
-        identical=identical,
-        missing=missing,
+        matched=r.matched,
+        identical=r.identical,
+        missing=sum(len(q) for q in r.recorded.values()),
         extra=len(left) - unverified,
         unverified=unverified,
-        status_differs=status,
-        max_translation=max(dt, default=0.0),
-        rms_translation=rms(dt),
-        max_heading=max(dh, default=0.0),
-        rms_heading=rms(dh),
-        after_gap=after_gap,
+        status_differs=r.status_differs,
+        max_translation=r.max_translation,
+        rms_translation=rms(r.sum_translation_sq),
+        max_heading=r.max_heading,
+        rms_heading=rms(r.sum_heading_sq),
+        after_gap=r.after_gap,
     )
+
+
+def audit_match(match: PoseMatch) -> list[RobotAudit]:
+    """The audit of the poses fed to ``match`` (each robot's, sorted by robot); empty when no
+    recorded pose was fed (nothing to audit)."""
+    if not match.recorded_total:
+        return []
+    return [_robot_audit(robot, match.robots[robot]) for robot in sorted(match.robots)]
 
 
 def audit(
@@ -124,10 +104,14 @@ def audit(
 ) -> list[RobotAudit]:
     """Compare per robot, up to ``gap_ns`` (a recording gap's start) if given; empty when
     ``recorded`` holds no poses (nothing to audit)."""
-    if not any(recorded.values()):
-        return []
-    robots = sorted(set(recorded) | set(recomputed))
-    return [_audit_robot(r, recorded.get(r, ()), recomputed.get(r, ()), gap_ns) for r in robots]
+    match = PoseMatch(gap_ns)
+    for robot in sorted(set(recorded) | set(recomputed)):
+        match.tally(robot)  # a robot with no pose on either side is still reported
+        for rec in recorded.get(robot, ()):
+            match.recorded(rec)
+        for new in recomputed.get(robot, ()):
+            match.recomputed(new)
+    return audit_match(match)
 
 
 def gap_note(audits: Sequence[RobotAudit], gap_ns: int | None) -> str | None:

@@ -19,7 +19,8 @@ from matplotlib.patches import Rectangle
 
 from rlutf.motion import compose, relative
 from schemas import Map, SchemaError, decode
-from service.logs.replay import PoseRecord, ReplayResult
+from service.logs.posematch import PoseRecord
+from service.logs.replay import ReplayResult
 
 FloatArray = np.ndarray
 

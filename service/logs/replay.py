@@ -35,7 +35,6 @@ from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
 
 from schemas import (
     EventCode,
@@ -59,6 +58,7 @@ from service.logs.mcapread import (
     merged_messages,
     robot_topic,
 )
+from service.logs.posematch import PoseMatch, PoseRecord
 from service.logs.replayconfig import ReplayConfig, resolve
 from service.logs.runs import RUN_METADATA, RunTag, new_run_id, run_tag
 from service.maphealth import MapHealthEngine, ScanEvidence
@@ -89,31 +89,23 @@ Progress = Callable[[int], None]
 """Called with the number of messages just handled."""
 
 
-class PoseRecord(NamedTuple):
-    """One PoseEstimate, recorded or recomputed."""
-
-    robot: str
-    stamp_ns: int
-    map_id: str
-    x: float
-    y: float
-    theta: float
-    status: str
-    payload: bytes
-
-
 @dataclass
 class ReplayResult:
     """What a replay found and computed.
 
     Attributes:
         config: the configuration it ran with.
-        recorded: poses found in the inputs, per robot, in log order.
-        recomputed: poses computed by the replay, per robot, in order.
-        odometry: ``(stamp_ns, x, y, theta)`` per robot.
-        initial_poses: ``(stamp_ns, map_id, x, y, theta)`` per robot.
+        match: the recorded poses matched to the recomputed ones as the replay went
+            (:func:`service.logs.audit.audit_match` is the audit): counts, not poses.
+        keep: whether the poses and odometry are kept below (``replay(keep=...)``); a long
+            log's poses take more memory than a machine has (2 KB a pose), its match does not.
+        recorded: poses found in the inputs, per robot, in log order (kept only).
+        recomputed: poses computed by the replay, per robot, in order (kept only).
+        odometry: ``(stamp_ns, x, y, theta)`` per robot (kept only).
+        initial_poses: ``(stamp_ns, map_id, x, y, theta)`` per robot (kept only).
         maps: newest accepted Map payload per map id.
-        maphealth: the recomputed MapHealth payloads per map id, in order.
+        maphealth: the recomputed MapHealth payloads per map id, in order (the newest only
+            unless kept).
         inputs: input messages handled (maps included).
         dropped: scans skipped because they were dropped live.
         rejected: inputs rejected as invalid (the live service would not have recorded them).
@@ -122,6 +114,8 @@ class ReplayResult:
     """
 
     config: ReplayConfig
+    match: PoseMatch = field(default_factory=PoseMatch)
+    keep: bool = True
     recorded: dict[str, list[PoseRecord]] = field(default_factory=lambda: defaultdict(list))
     recomputed: dict[str, list[PoseRecord]] = field(default_factory=lambda: defaultdict(list))
     odometry: dict[str, list[tuple[int, float, float, float]]] = field(
@@ -260,7 +254,9 @@ class _Run:
             except SchemaError:
                 self.result.unreadable_poses += 1
                 return
-            self.result.recorded[pose.robot].append(pose)
+            self.result.match.recorded(pose)
+            if self.result.keep:
+                self.result.recorded[pose.robot].append(pose)
         elif rec.schema_name == MAP_SCHEMA:
             self._map(rec)
         else:
@@ -307,14 +303,19 @@ class _Run:
         self.result.inputs += 1
         self._write(rec)
         robot = where.robot
+        keep = self.result.keep
         if isinstance(msg, Odometry):
-            self.result.odometry[robot].append((msg.stamp_ns, msg.x, msg.y, msg.theta))
+            if keep:
+                self.result.odometry[robot].append((msg.stamp_ns, msg.x, msg.y, msg.theta))
         elif isinstance(msg, InitialPose):
-            self.result.initial_poses[robot].append(
-                (msg.stamp_ns, msg.map_id, msg.x, msg.y, msg.theta)
-            )
-        elif isinstance(msg, LaserScan) and self.drops[(robot, msg.stamp_ns)] > 0:
+            if keep:
+                self.result.initial_poses[robot].append(
+                    (msg.stamp_ns, msg.map_id, msg.x, msg.y, msg.theta)
+                )
+        elif isinstance(msg, LaserScan) and self.drops.get((robot, msg.stamp_ns), 0) > 0:
             self.drops[(robot, msg.stamp_ns)] -= 1
+            if not self.drops[(robot, msg.stamp_ns)]:
+                del self.drops[(robot, msg.stamp_ns)]
             self.result.dropped += 1
             return
         try:
@@ -330,7 +331,10 @@ class _Run:
             schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
             if out.kind == "pose":
-                self.result.recomputed[robot].append(pose_record(out.payload))
+                pose = pose_record(out.payload)
+                self.result.match.recomputed(pose)
+                if keep:
+                    self.result.recomputed[robot].append(pose)
         self._health(rec.log_time_ns)
 
     def _health(self, now_ns: int, force: bool = False) -> None:
@@ -342,7 +346,10 @@ class _Run:
             self.health.merge(self.evidence.take())
         for out in self.health.due(now_ns):
             self._write(Record(out.key, MAPHEALTH_SCHEMA, out.payload, now_ns, out.stamp_ns))
-            self.result.maphealth[out.map_id].append(out.payload)
+            if self.result.keep:
+                self.result.maphealth[out.map_id].append(out.payload)
+            else:
+                self.result.maphealth[out.map_id] = [out.payload]
 
     def finish_health(self, now_ns: int) -> None:
         """The evidence not handed on yet, and a MapHealth of it (the end of the inputs)."""
@@ -360,6 +367,7 @@ def replay(
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     progress: Progress | None = None,
     on_total: Callable[[int], None] | None = None,
+    keep: bool = True,
 ) -> ReplayResult:
     """Replay the inputs of one or more logs (merged in ``log_time`` order).
 
@@ -374,6 +382,9 @@ def replay(
         chunk_size: uncompressed chunk size of the output, bytes.
         progress: called as messages are handled.
         on_total: called once with the number of messages to handle.
+        keep: keep every pose and odometry reading in the result (plots, tests); without, the
+            result holds the audit's counts (``match``) and memory stays flat however long
+            the log.
 
     Raises:
         service.logs.mcapread.LogError: an input is missing, not MCAP, or damaged.
@@ -397,11 +408,12 @@ def replay(
                 settings_file=settings_file,
                 assignments=assignments,
             )
-        result = ReplayResult(config)
+        result = ReplayResult(config, keep=keep)
         evictions: list[tuple[int, str]] = []
         gaps: list[int] = []
         drops, drop_records = _dropped_scans(logs, evictions, gaps)
         result.gap_ns = min(gaps, default=None)
+        result.match = PoseMatch(result.gap_ns)
         if on_total is not None:
             on_total(sum(lf.count(REPLAYED) for lf in logs))
         part = out.with_name(out.name + ".part") if out is not None else None

@@ -13,6 +13,7 @@ import json
 import math
 import struct
 import time
+from collections.abc import Iterator
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -20,6 +21,7 @@ import numpy as np
 from rlutf.scan import Scan
 from schemas import InitialPose, LaserScan, Map, Relocalize, encode
 from service.keys import InputKind, Keys
+from service.logs.mcapfile import Record
 from service.sim.plan import ExtraKind, FleetPlan
 
 #: The ROS 2 message type of each input a ROS robot puts.
@@ -284,3 +286,34 @@ class CdrWire:
 
         self._sequence[robot] += 1
         return attachment.pack(self._sequence[robot], time.time_ns(), self._gids[robot])
+
+
+def fleet_records(wire: JsonWire, steps: int, t0_ns: int, step_ns: int) -> Iterator[Record]:
+    """The fleet's inputs as the service's log holds them, one at a time, in log order.
+
+    The plan's map 1 ms before ``t0_ns``, each robot's InitialPose at ``t0_ns`` (robots
+    placed without one have none), then at each step ``0..steps`` each robot's odometry and
+    (from step 1) its scan, stamped ``t0_ns + step * step_ns``. ``log_time`` is strictly
+    increasing: 1 ms after the stamp plus 10 us per robot, the scan 1 us after its odometry. A
+    plan of fewer poses than steps drives its way back and forth (:meth:`RobotPlan.index`), so
+    a long log needs no more plan than a short one.
+    """
+    keys = wire.keys
+    before = t0_ns - 1_000_000
+    map_id = wire.plan.spec.map_id
+    yield Record(keys.map(map_id), "rlutf.Map", map_payload(wire.plan), before, before)
+    robots = range(len(wire.plan.robots))
+    for k in robots:
+        start = wire.initial_pose(k, t0_ns)
+        if start is not None:
+            key = wire.key(k, "initialpose")
+            yield Record(key, "rlutf.InitialPose", start, t0_ns + 10_000 * k, t0_ns)
+    for i in range(steps + 1):
+        stamp = t0_ns + i * step_ns
+        for k in robots:
+            at = stamp + 1_000_000 + 10_000 * k
+            odom = wire.odometry(k, i, stamp)
+            yield Record(wire.key(k, "odom"), "rlutf.Odometry", odom, at, stamp)
+            if i > 0:
+                scan = wire.scan(k, i, stamp)
+                yield Record(wire.key(k, "scan"), "rlutf.LaserScan", scan, at + 1_000, stamp)

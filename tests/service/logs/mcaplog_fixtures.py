@@ -15,7 +15,7 @@ from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcapread import LogFile
 from service.sim.plan import FleetSpec, plan_fleet
-from service.sim.wire import JsonWire, map_payload
+from service.sim.wire import JsonWire, fleet_records
 
 T0 = 1_732_300_000_000_000_000
 STEP_NS = 100_000_000
@@ -56,25 +56,7 @@ def simulated_inputs(
             for r in plan.robots
         )
         plan = replace(plan, robots=robots)
-    keys = Keys(prefix)
-    wire = JsonWire(plan, keys)
-    before = T0 - 1_000_000
-    out = [Record(keys.map("m1"), "rlutf.Map", map_payload(plan), before, before)]
-    for k in range(len(robots)):
-        start = wire.initial_pose(k, T0) or b""
-        out.append(
-            Record(wire.key(k, "initialpose"), "rlutf.InitialPose", start, T0 + 10_000 * k, T0)
-        )
-    for i in range(steps + 1):
-        stamp = T0 + i * STEP_NS
-        for k in range(len(robots)):
-            at = stamp + 1_000_000 + 10_000 * k
-            odom = wire.odometry(k, i, stamp)
-            out.append(Record(wire.key(k, "odom"), "rlutf.Odometry", odom, at, stamp))
-            if i > 0:
-                scan = wire.scan(k, i, stamp)
-                out.append(Record(wire.key(k, "scan"), "rlutf.LaserScan", scan, at + 1_000, stamp))
-    return out
+    return list(fleet_records(JsonWire(plan, Keys(prefix)), steps, T0, STEP_NS))
 
 
 def write_log(

@@ -7,7 +7,7 @@ import math
 from rich.console import Console
 
 from service.logs.audit import all_passed, audit, render
-from service.logs.replay import PoseRecord
+from service.logs.posematch import PoseRecord
 
 
 def _pose(stamp: int, x: float = 0.0, theta: float = 0.0, status: str = "tracking") -> PoseRecord:

@@ -20,6 +20,7 @@ from service.cli.main import main
 from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
+from service.logs.audit import audit, audit_match
 from service.logs.mcapfile import Record
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
@@ -115,6 +116,19 @@ def test_replay_reproduces_live_poses_byte_for_byte(live: tuple[Path, int], tmp_
     assert again.recomputed == first.recomputed
 
 
+def test_replay_without_keeping_the_poses_audits_alike(live: tuple[Path, int]) -> None:
+    """``keep=False`` (what ``rlutf replay`` runs unless it plots): the audit's counts, no pose
+    held, the same verdict as the audit of the kept poses."""
+    log, _ = live
+    kept = replay([log])
+    lean = replay([log], keep=False)
+    assert not lean.recorded and not lean.recomputed and not lean.odometry
+    assert lean.match.waiting() == 0  # every recorded pose found its recomputed one
+    assert audit_match(lean.match) == audit(kept.recorded, kept.recomputed, kept.gap_ns)
+    assert lean.match.recorded_total == sum(len(v) for v in kept.recorded.values())
+    assert (lean.inputs, lean.dropped) == (kept.inputs, kept.dropped)
+
+
 def test_cli_audit_passes_and_a_nudged_pose_fails(
     live: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -138,6 +152,8 @@ def test_cli_audit_passes_and_a_nudged_pose_fails(
     code = main(["replay", str(tampered), "--out", str(tmp_path / "t.mcap"), "--quiet"])
     out = capsys.readouterr().out
     assert code == 1 and "FAIL" in out and "audit: FAILED" in out
+    assert main(["replay", str(tampered), "--quiet"]) == 1  # the audit alone: nothing written
+    assert "audit: FAILED" in capsys.readouterr().out
     # ... unless the tolerance allows it
     code = main(
         [

@@ -154,11 +154,15 @@ def test_a_bag_replays_to_the_poses_of_the_json_log_of_the_same_run(run: dict) -
             str(d / "from_bag.mcap"),
             "--ros2-out",
             str(d / "poses_bag"),
+            "--plot",
+            str(d / "plots"),
             "--quiet",
         ]
     )
     assert code == 0
     assert not (d / "from_bag.mcap.inputs.mcap").exists()
+    # One bag is one run: its plot goes into the folder itself, as for any one run.
+    assert [p.name for p in (d / "plots").iterdir()] == ["robot1.png"]
     from_json = replay([d / "json.mcap"], d / "from_json.mcap").recomputed["robot1"]
     from_bag = replay([d / "from_bag.mcap"]).recorded["robot1"]
     assert len(from_bag) == len(from_json) == STEPS
