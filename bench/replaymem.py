@@ -6,13 +6,14 @@ An audit replays a whole run, and a service runs for weeks: a day of 100 robots 
 million poses. For each length, the simulated fleet's inputs (:func:`service.sim.wire.
 fleet_records`, 360-beam scans at 10 Hz) are replayed once into a log that holds the inputs and
 their poses, as a live log does (a replay's output is a valid replay input: its poses are the
-recorded ones). That log is then audited in a fresh process, twice: ``rlutf replay LOG`` (the
-audit alone, as an auditor runs it: the recorded poses matched to the recomputed ones as they
-come, :mod:`service.logs.posematch`), and :func:`service.logs.replay.replay` keeping every pose
-in memory (``keep=True``: what ``rlutf replay`` held until it matched the poses as they come,
-and what ``--plot`` still holds). Peak resident memory is the process's ``ru_maxrss`` (the log is
-made in a process of its own, so that the one that starts the audits stays small); time is
-wall-clock.
+recorded ones). That log is then audited in a fresh process, three times: ``rlutf replay LOG
+--jobs 1`` (the audit alone: the recorded poses matched to the recomputed ones as they come,
+:mod:`service.logs.posematch`), the same split between two processes by robot (``--jobs 2``,
+:mod:`service.logs.split`; the peak is the largest process's), and
+:func:`service.logs.replay.replay` keeping every pose in memory (``keep=True``: what ``rlutf
+replay`` held until it matched the poses as they come, and what ``--plot`` still holds). Peak
+resident memory is the process's ``ru_maxrss`` (the log is made in a process of its own, so
+that the one that starts the audits stays small); time is wall-clock.
 """
 
 from __future__ import annotations
@@ -87,9 +88,12 @@ def make_log_apart(folder: Path, robots: int, steps: int) -> tuple[Path, int]:
 def measure(robots: int, steps: int, folder: Path) -> dict[str, float]:
     log, poses = make_log_apart(folder, robots, steps)
     rlutf = str(Path(sys.executable).with_name("rlutf"))
-    audit_mb, audit_s, code = peak([rlutf, "replay", str(log), "--quiet"])
+    audit_mb, audit_s, code = peak([rlutf, "replay", str(log), "--quiet", "--jobs", "1"])
     if code != 0:
         raise RuntimeError(f"rlutf replay {log}: exit {code}, the audit did not pass")
+    split_mb, split_s, code = peak([rlutf, "replay", str(log), "--quiet", "--jobs", "2"])
+    if code != 0:
+        raise RuntimeError(f"rlutf replay {log} --jobs 2: exit {code}, the audit did not pass")
     keep_mb, keep_s, code = peak([sys.executable, "-c", KEEP, str(log)])
     if code != 0:
         raise RuntimeError(f"replay(keep=True) of {log}: exit {code}")
@@ -101,6 +105,8 @@ def measure(robots: int, steps: int, folder: Path) -> dict[str, float]:
         "log_mb": size,
         "audit_mb": audit_mb,
         "audit_s": audit_s,
+        "split_mb": split_mb,
+        "split_s": split_s,
         "keep_mb": keep_mb,
         "keep_s": keep_s,
     }
@@ -117,17 +123,18 @@ def render(args: argparse.Namespace) -> str:
         f"Machine: {platform.machine()}, CPython {platform.python_version()}; {args.robots} "
         "simulated robots, 360-beam scans at 10 Hz, each log audited in a fresh process.",
         "",
-        "| steps | poses | log MB | `rlutf replay LOG`: peak MB | s | every pose kept "
-        "(`replay(keep=True)`): peak MB | s |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| steps | poses | log MB | `rlutf replay LOG --jobs 1`: peak MB | s | `--jobs 2`: peak "
+        "MB of a process | s | every pose kept (`replay(keep=True)`): peak MB | s |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     lines += [
         f"| {r['steps']:.0f} | {r['poses']:.0f} | {r['log_mb']:.1f} | {r['audit_mb']:.0f} | "
-        f"{r['audit_s']:.1f} | {r['keep_mb']:.0f} | {r['keep_s']:.1f} |"
+        f"{r['audit_s']:.1f} | {r['split_mb']:.0f} | {r['split_s']:.1f} | {r['keep_mb']:.0f} | "
+        f"{r['keep_s']:.1f} |"
         for r in rows
     ]
     poses = np.array([r["poses"] for r in rows])
-    for key, name in (("audit_mb", "`rlutf replay LOG`"), ("keep_mb", "every pose kept")):
+    for key, name in (("audit_mb", "`rlutf replay LOG --jobs 1`"), ("keep_mb", "every pose kept")):
         slope = float(np.polyfit(poses, np.array([r[key] for r in rows]), 1)[0]) * 1e6
         lines.append("")
         lines.append(

@@ -19,7 +19,6 @@ import argparse
 import dataclasses
 import json
 import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,7 +27,7 @@ from service.cli.present import console as make_console
 from service.cli.present import unfinished
 
 if TYPE_CHECKING:
-    from rich.console import Console
+    pass
 
 EXIT_AUDIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -85,6 +84,15 @@ def register(sub: Any) -> None:
         "--strict",
         action="store_true",
         help="also fail on recomputed poses after the log's last recorded one",
+    )
+    replay.add_argument(
+        "--jobs",
+        type=int,
+        default=0,
+        metavar="N",
+        help="processes an audit alone (no --out, --plot or --ros2-out) is split between, by "
+        "robot, each reading the whole run: the same verdict, in about 1/N of the time "
+        "(default 0: one per core this process may use; 1: one process)",
     )
     plot = "write a trajectory PNG per robot into DIR (keeps every pose in memory: for a run "
     plot += "of hours, not weeks; without it the audit takes the same memory however long the run)"
@@ -190,6 +198,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _replay_runs(args: argparse.Namespace) -> int:
+    from service.cli.runaudit import replay_one, report
     from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
     from service.logs.mcapread import LogError
     from service.logs.replayconfig import ReplayConfigError
@@ -245,14 +254,14 @@ def _replay_runs(args: argparse.Namespace) -> int:
                 )
             label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
             try:
-                result = _replay_one(args, run.files, out if args.kept else None, label)
+                result = replay_one(args, run.files, out if args.kept else None, label)
             except LogError as err:  # a damaged chunk: this run cannot be audited
                 if len(runs) == 1:
                     raise
                 _fail("replay", err)
                 verdicts.append(run_verdict(run, out, 0, 0, UNREADABLE))
                 continue
-            verdicts.append(_report(args, console, result, summary, out, run, (k, len(runs))))
+            verdicts.append(report(args, console, result, summary, out, run, (k, len(runs))))
     except (LogError, ReplayConfigError, ValueError) as err:
         return _fail("replay", err)
     except OSError as err:
@@ -271,103 +280,6 @@ def _replay_runs(args: argparse.Namespace) -> int:
     if unreadable or crashed or any(v.result == UNREADABLE for v in verdicts):
         return EXIT_BAD_INPUT
     return EXIT_OK
-
-
-def _replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path | None, tag: str) -> Any:
-    """One run replayed (into ``out`` unless ``None``); its poses are kept only for ``--plot``
-    and ``--ros2-out``: the audit counts as it goes (``service.logs.posematch``)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-    from service.logs.replay import replay
-
-    progress = Progress(
-        tag,
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=make_console(stderr=True),
-        disable=args.quiet,
-        transient=False,
-    )
-    task = progress.add_task("replay", total=None)
-    with progress:
-        return replay(
-            files,
-            out,
-            settings_file=args.settings,
-            assignments=args.assignments,
-            foxglove=not args.no_foxglove,
-            progress=lambda n: progress.advance(task, n),
-            on_total=lambda total: progress.update(task, total=total),
-            keep=args.plot is not None or args.ros2_out is not None,
-        )
-
-
-def _report(
-    args: argparse.Namespace,
-    console: Console,
-    result: Any,
-    summary: Any,
-    out: Path,
-    run: Any,
-    place: tuple[int, int],
-) -> Any:
-    """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
-    final summary."""
-    from service.logs import audit
-
-    k, n = place
-    heading = "Audit" if n == 1 else f"Audit of run {k}"
-    if summary is not None:
-        console.print(_bag_report(summary))
-    recomputed = result.match.recomputed_total
-    console.print(
-        f"replayed {result.inputs} inputs ({result.dropped} scans dropped as live, "
-        f"{result.rejected} rejected): {recomputed} poses -> "
-        f"{out if args.kept else 'not kept (--out keeps them)'}"
-    )
-    if summary is not None and args.ros2_out is not None:
-        from service.cli.ros2bags import write_out
-
-        try:
-            written = write_out(args, result, summary)
-        except Exception as err:  # rosbags' writer raises its own errors
-            raise ValueError(f"{args.ros2_out}: {err}") from err
-        console.print(f"wrote {written} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
-    if args.plot is not None:
-        from service.logs.plots import plot_all
-
-        folder = args.plot if n == 1 else args.plot / f"run{k}"
-        for path in plot_all(result, folder):
-            console.print(f"wrote {path}")
-    tol_m = args.tolerance
-    tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
-    audits = audit.audit_match(result.match)
-    poses = result.match.recorded_total
-    if (gap := audit.gap_note(audits, result.gap_ns)) is not None:
-        console.print(f"[yellow]{gap}[/yellow]")
-    if not audits:
-        console.print("no recorded poses in the input: nothing to audit")
-        return audit.run_verdict(run, out, 0, poses, "nothing to audit")
-    audit.render(audits, tol_m, tol_rad, console, args.strict, heading)
-    ok = audit.all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
-    if result.unreadable_poses:
-        console.print(
-            f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
-        )
-    console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
-    note = None if ok else audit.version_note(run.files)
-    if note is not None:
-        console.print(f"[yellow]{note}[/yellow]")
-    return audit.run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
-
-
-def _bag_report(summary: Any) -> str:
-    counts = ", ".join(f"{n} {k}" for k, n in sorted(summary.counts.items()))
-    text = f"bag: robot {summary.robot} ({summary.namespace}): {counts}"
-    for why, n in summary.rejected.most_common(5):
-        text += f"\n  rejected {n}: {why}"
-    return text
 
 
 def cmd_info(args: argparse.Namespace) -> int:

@@ -76,8 +76,7 @@ MAP_SCHEMA = "rlutf.Map"
 POSE_SCHEMA = "rlutf.PoseEstimate"
 EVENT_SCHEMA = "rlutf.Event"
 MAPHEALTH_SCHEMA = "rlutf.MapHealth"
-#: Replay hands the scans' map health evidence on once per this much log time, as the live
-#: workers do.
+#: Replay hands the scans' map health evidence on once per this much log time, as workers do.
 HEALTH_HANDOVER_NS = 1_000_000_000
 REPLAYED = frozenset({*INPUT_MODELS, MAP_SCHEMA, POSE_SCHEMA})
 REPLAY_METADATA = "rlutf.replay"
@@ -223,10 +222,17 @@ class _Run:
     """One pass over the inputs."""
 
     def __init__(
-        self, result: ReplayResult, drops: Counter[tuple[str, int]], writer: LogWriter | None
+        self,
+        result: ReplayResult,
+        drops: Counter[tuple[str, int]],
+        writer: LogWriter | None,
+        owns: Callable[[str], bool] | None = None,
+        count_shared: bool = True,
     ) -> None:
         cfg = result.config
         self.result = result
+        self.owns = owns
+        self.count_shared = count_shared
         self.drops = drops
         self.writer = writer
         self.evidence = ScanEvidence()
@@ -252,7 +258,9 @@ class _Run:
             try:
                 pose = pose_record(rec.payload)
             except SchemaError:
-                self.result.unreadable_poses += 1
+                self.result.unreadable_poses += self.count_shared
+                return
+            if self.owns is not None and not self.owns(pose.robot):
                 return
             self.result.match.recorded(pose)
             if self.result.keep:
@@ -272,12 +280,13 @@ class _Run:
         if where is None or seen in self.maps_seen:
             return  # rotated files each start with the maps recorded before them
         self.maps_seen.add(seen)
-        self.result.inputs += 1
+        self.result.inputs += self.count_shared
         try:
             loaded = self.book.offer(where[1], rec.payload, rec.log_time_ns)
         except MapRejected as err:
-            self.result.rejected += 1
-            log.warning("map on %s rejected: %s", rec.topic, err)
+            self.result.rejected += self.count_shared
+            if self.count_shared:
+                log.warning("map on %s rejected: %s", rec.topic, err)
             return
         self._write(rec)
         if loaded is not None:
@@ -291,7 +300,7 @@ class _Run:
 
     def _input(self, rec: Record) -> None:
         where = robot_topic(rec.topic)
-        if where is None:
+        if where is None or (self.owns is not None and not self.owns(where.robot)):
             return
         model = INPUT_MODELS[rec.schema_name]
         try:
@@ -356,6 +365,39 @@ class _Run:
         self._health(now_ns + self.health.interval_ns, force=True)
 
 
+def run_config(
+    inputs: Sequence[Path], settings_file: Path | None = None, assignments: Sequence[str] = ()
+) -> ReplayConfig:
+    """The configuration :func:`replay` runs the inputs with (the recorded one, with
+    ``settings_file`` and ``assignments`` over it).
+
+    Raises:
+        service.logs.mcapread.LogError: an input is missing, not MCAP, or damaged.
+        service.logs.replayconfig.ReplayConfigError: the configuration is invalid.
+    """
+    with ExitStack() as stack:
+        logs = [stack.enter_context(LogFile(p)) for p in inputs]
+        return _config(logs, settings_file, assignments)
+
+
+def _config(
+    logs: Sequence[LogFile], settings_file: Path | None, assignments: Sequence[str]
+) -> ReplayConfig:
+    try:
+        recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
+    except UnreadableConfig as err:
+        if settings_file is None and not assignments:
+            raise
+        log.warning("%s; replaying on the defaults, --settings and --set", err)
+        recorded = None
+    return resolve(
+        recorded,
+        prefix_hint=_prefix_hint(logs),
+        settings_file=settings_file,
+        assignments=assignments,
+    )
+
+
 def replay(
     inputs: Sequence[Path],
     out: Path | None = None,
@@ -368,6 +410,8 @@ def replay(
     progress: Progress | None = None,
     on_total: Callable[[int], None] | None = None,
     keep: bool = True,
+    owns: Callable[[str], bool] | None = None,
+    count_shared: bool = True,
 ) -> ReplayResult:
     """Replay the inputs of one or more logs (merged in ``log_time`` order).
 
@@ -385,6 +429,11 @@ def replay(
         keep: keep every pose and odometry reading in the result (plots, tests); without, the
             result holds the audit's counts (``match``) and memory stays flat however long
             the log.
+        owns: replay only the robots for which it is true (their inputs and recorded poses;
+            every map): robots are localized apart, so an audit may be split between processes
+            by robot (:mod:`service.logs.split`). Default: every robot.
+        count_shared: count what belongs to no robot (maps, unreadable poses) in the result;
+            false in all but one of the processes an audit is split between.
 
     Raises:
         service.logs.mcapread.LogError: an input is missing, not MCAP, or damaged.
@@ -395,19 +444,7 @@ def replay(
         logs = [stack.enter_context(LogFile(p)) for p in inputs]
         source_run = _source_run(logs)
         if config is None:
-            try:
-                recorded = next((c for c in (lf.config() for lf in logs) if c is not None), None)
-            except UnreadableConfig as err:
-                if settings_file is None and not assignments:
-                    raise
-                log.warning("%s; replaying on the defaults, --settings and --set", err)
-                recorded = None
-            config = resolve(
-                recorded,
-                prefix_hint=_prefix_hint(logs),
-                settings_file=settings_file,
-                assignments=assignments,
-            )
+            config = _config(logs, settings_file, assignments)
         result = ReplayResult(config, keep=keep)
         evictions: list[tuple[int, str]] = []
         gaps: list[int] = []
@@ -440,7 +477,7 @@ def replay(
                     },
                 )
                 writer.write_all(drop_records)
-            run = _Run(result, drops, writer)
+            run = _Run(result, drops, writer, owns, count_shared)
             run.evictions = sorted(evictions)
             last_ns = 0
             for rec in merged_messages(logs, REPLAYED):

@@ -24,7 +24,8 @@ from service.logs.audit import audit, audit_match
 from service.logs.mcapfile import Record
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
-from service.logs.replay import replay
+from service.logs.replay import replay, run_config
+from service.logs.split import replay_split
 
 pytestmark = pytest.mark.integration
 
@@ -127,6 +128,14 @@ def test_replay_without_keeping_the_poses_audits_alike(live: tuple[Path, int]) -
     assert audit_match(lean.match) == audit(kept.recorded, kept.recomputed, kept.gap_ns)
     assert lean.match.recorded_total == sum(len(v) for v in kept.recorded.values())
     assert (lean.inputs, lean.dropped) == (kept.inputs, kept.dropped)
+    # Split between two processes by robot (r1 and r2 apart): the same audit, drops included.
+    split = replay_split([log], run_config([log]), 2, min_messages=0)
+    assert audit_match(split.match) == audit_match(lean.match)
+    assert (split.inputs, split.dropped, split.rejected) == (
+        lean.inputs,
+        lean.dropped,
+        lean.rejected,
+    )
 
 
 def test_cli_audit_passes_and_a_nudged_pose_fails(
