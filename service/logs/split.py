@@ -117,7 +117,7 @@ def replay_split(
     if len(shares) == 1:
         return replay(files, config=config, keep=False, progress=progress, on_total=on_total)
     if on_total is not None:
-        on_total(total * len(shares))
+        on_total(total)  # each share reads every message: shown, the slowest share's
     ctx = mp.get_context("spawn")
     counters = ctx.Array("q", len(shares), lock=False)
     with ProcessPoolExecutor(len(shares), ctx, initializer=_start, initargs=(counters,)) as pool:
@@ -137,11 +137,11 @@ def _follow(
     while not all(f.done() for f in futures):
         time.sleep(0.2)
         if progress is not None:
-            now = sum(counters)
+            now = min(counters)
             progress(now - shown)
             shown = now
     if progress is not None:
-        progress(sum(counters) - shown)
+        progress(min(counters) - shown)
 
 
 def merge(results: Sequence[ReplayResult]) -> ReplayResult:

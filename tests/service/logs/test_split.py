@@ -13,7 +13,7 @@ from service.logs import split as split_module
 from service.logs.audit import audit_match
 from service.logs.mcapfile import Record
 from service.logs.mcapread import LogFile
-from service.logs.replay import replay, run_config
+from service.logs.replay import REPLAYED, replay, run_config
 from service.logs.split import deal, replay_split
 
 ROBOTS = ("r1", "r2", "r3")
@@ -62,6 +62,17 @@ def test_a_split_audit_is_the_audit_of_one_process(
     )  # fmt: skip
     robots = [a.robot for a in audit_match(split.match)]
     assert robots == sorted({*ROBOTS, *([change["robot_id"]] if "robot_id" in change else [])})
+
+
+def test_the_progress_of_a_split_audit_counts_the_runs_messages_once(log: Path) -> None:
+    totals: list[int] = []
+    done: list[int] = []
+    replay_split(
+        [log], run_config([log]), 2, progress=done.append, on_total=totals.append, min_messages=0
+    )
+    with LogFile(log) as lf:
+        messages = lf.count(REPLAYED)
+    assert totals == [messages] and sum(done) == messages
 
 
 def test_a_short_run_is_not_split(log: Path) -> None:
