@@ -91,8 +91,9 @@ def register(sub: Any) -> None:
         default=0,
         metavar="N",
         help="processes an audit alone (no --out, --plot or --ros2-out) is split between, by "
-        "robot, each reading the whole run: the same verdict, in about 1/N of the time "
-        "(default 0: one per core this process may use; 1: one process)",
+        "robot, each reading the whole run: the same verdict, in about 1/N of the time, at a "
+        "lower priority (nice 10: a live service on the host keeps its cores); default 0: one "
+        "per core this process may use; 1: one process",
     )
     plot = "write a trajectory PNG per robot into DIR (keeps every pose in memory: for a run "
     plot += "of hours, not weeks; without it the audit takes the same memory however long the run)"

@@ -10,7 +10,8 @@ topic or the pose's robot, before any update), and matches them as one process w
 apart, so the audit is the one a single process gives. Robots are dealt out by their messages,
 the largest first, to the least loaded share; a robot that no channel names (a pose whose
 ``robot_id`` is not its topic's) is the first share's, which also counts what belongs to no
-robot (maps, unreadable poses).
+robot (maps, unreadable poses). The processes run at a lower priority (:data:`NICE`), so an
+audit beside a live service takes only the cores the service leaves.
 
 Only an audit is split: an output log, plots and a ROS 2 bag need every robot in one process
 (``rlutf replay`` splits only without ``--out``, ``--plot`` and ``--ros2-out``).
@@ -19,6 +20,7 @@ Only an audit is split: an output log, plots and a ROS 2 bag need every robot in
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -61,8 +63,15 @@ def deal(logs: Sequence[Path], jobs: int) -> list[set[str]]:
 _SHARED: dict[str, Any] = {}  # in a pool's process: what its initializer was given
 
 
+#: Niceness the processes of a split audit add: an audit is batch work, and a live service on
+#: the same host (an operator auditing its log folder) keeps the cores it needs.
+NICE = 10
+
+
 def _start(counters: Any) -> None:
     _SHARED["counters"] = counters
+    if hasattr(os, "nice"):
+        os.nice(NICE)
 
 
 def _share(

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -92,3 +95,11 @@ def test_the_cli_splits_an_audit_and_fails_a_moved_pose(
     assert main(["replay", str(moved), "--quiet", "--jobs", "2"]) == 1
     out = capsys.readouterr().out
     assert "audit: FAILED" in out and "FAIL" in out
+
+
+def test_the_processes_of_a_split_audit_run_at_a_lower_priority() -> None:
+    """An operator auditing beside a live service: the audit takes the CPU the service leaves."""
+    ctx = mp.get_context("spawn")
+    counters = ctx.Array("q", 1, lock=False)
+    with ProcessPoolExecutor(1, ctx, initializer=split_module._start, initargs=(counters,)) as pool:
+        assert pool.submit(os.nice, 0).result() == min(19, os.nice(0) + split_module.NICE)
