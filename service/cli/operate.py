@@ -18,6 +18,7 @@ from service.cli.query import (
     request_flags,
     require_service,
     show_event,
+    show_other,
 )
 
 
@@ -181,7 +182,13 @@ def cmd_events(args: argparse.Namespace) -> int:
             )
         try:
             follow_events(
-                session, settings.prefix, args.robot, show_event(args.json), stop, args.seconds
+                session,
+                settings.prefix,
+                args.robot,
+                show_event(args.json),
+                stop,
+                args.seconds,
+                show_other(),
             )
         except KeyboardInterrupt:
             stop.set()

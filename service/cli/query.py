@@ -153,6 +153,30 @@ def show_event(as_json: bool) -> Any:
     return show
 
 
+#: Seconds between two lines about payloads on the Event keys that are not Events.
+OTHER_EVERY_S = 5.0
+
+
+def show_other(clock: Any = None) -> Any:
+    """A callback that says on stderr, at most once every :data:`OTHER_EVERY_S`, that something
+    that is not an Event was put on an Event key (another tool, a broken client): silently
+    skipped, an operator watching would not know it is there."""
+    now = clock or time.monotonic
+    last = [-math.inf]
+    skipped = [0]
+
+    def show(key: str, size: int, why: str) -> None:
+        if now() - last[0] < OTHER_EVERY_S:
+            skipped[0] += 1
+            return
+        more = f" (and {skipped[0]} more since the last such line)" if skipped[0] else ""
+        brief = why if len(why) <= 160 else why[:157] + "..."
+        print(f"rlutf events: {key}: not an Event ({size} bytes: {brief}){more}", file=sys.stderr)
+        last[0], skipped[0] = now(), 0
+
+    return show
+
+
 def require_service(session: Any, prefix: str, endpoints: list[str]) -> None:
     """Refuse to go on when no instance of the service is live.
 

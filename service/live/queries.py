@@ -96,15 +96,20 @@ def follow_events(
     on_event: EventCallback,
     stop: threading.Event,
     seconds: float | None = None,
+    on_other: Callable[[str, int, str], None] | None = None,
 ) -> None:
     """Hand every Event of ``robot`` (``None``: every robot's and the service-wide ones) to
-    ``on_event`` as it arrives, until ``stop`` is set or ``seconds`` have passed."""
+    ``on_event`` as it arrives, until ``stop`` is set or ``seconds`` have passed; anything else
+    put on those keys to ``on_other`` (key, bytes, why it is no Event), if given."""
     keys = Keys(prefix)
 
     def on_sample(sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
         try:
-            ev = decode(Event, sample.payload.to_bytes())
-        except SchemaError:
+            ev = decode(Event, payload)
+        except SchemaError as err:
+            if on_other is not None:
+                on_other(str(sample.key_expr), len(payload), str(err))
             return
         on_event(robot_of(prefix, str(sample.key_expr)), ev)
 

@@ -274,11 +274,14 @@ def test_events_without_a_robot_include_the_service_wide_ones(
     robot = bench.robot("r5", 2)
     while follow.is_alive():  # until the command ends, whenever it subscribed
         bench.client.put("rlutf/maps/broken", b'{"map_id": "broken", "version": 1}')
+        bench.client.put("rlutf/robots/r5/events", b"[[[not an event")  # another tool's
         robot.advance()  # a scan with no initial pose: r5's not_initialized
         time.sleep(0.1)
     follow.join()
-    code, out, _ = seen[0]
+    code, out, err = seen[0]
     assert code == 0
+    # Said once on stderr (at most a line every 5 s), never mixed into the Events' JSON lines.
+    assert err.count("rlutf/robots/r5/events: not an Event (15 bytes") == 1, err
     events = [json.loads(line) for line in out.splitlines()]
     codes = {(e["code"], e["key"]) for e in events}
     assert ("invalid_map", "rlutf/maps/broken") in codes

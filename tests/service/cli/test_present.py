@@ -257,3 +257,20 @@ def test_health_warns_of_an_instance_losing_its_log_or_its_pose_state() -> None:
     assert [line.split(":")[0] for line in lines] == ["h-p0", "h-p1", "h-p1"]
     assert "recorder's queue was full" in lines[1] and "7" in lines[1]
     assert "a restart may not resume its robots" in lines[2]
+
+
+def test_payloads_that_are_not_events_are_said_at_most_every_few_seconds(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from service.cli.query import OTHER_EVERY_S, show_other
+
+    t = [100.0]
+    show = show_other(lambda: t[0])
+    for _ in range(3):
+        show("rlutf/events", 7, "invalid JSON")
+    t[0] += OTHER_EVERY_S
+    show("rlutf/robots/r1/events", 9, "x" * 400)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "rlutf events: rlutf/events: not an Event (7 bytes: invalid JSON)"
+    assert lines[1].endswith("...) (and 2 more since the last such line)") and len(lines) == 2
+    assert len(lines[1]) < 280
