@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -99,6 +100,46 @@ def process_settings(
     return data
 
 
+#: The start of the name of a host's folder of settings files, ``rlutf-host-{pid}-XXXXXXXX`` in
+#: the temporary folder.
+FOLDER_PREFIX = "rlutf-host-"
+
+
+def settings_folder() -> tempfile.TemporaryDirectory[str]:
+    """A new folder for the processes' settings files, named with this host's pid, once the
+    folders of hosts that are gone are removed: a host ended by a signal it cannot handle
+    (``kill -9``, the OOM killer) leaves its folder behind, one per crash of a supervised unit."""
+    sweep_folders()
+    return tempfile.TemporaryDirectory(prefix=f"{FOLDER_PREFIX}{os.getpid()}-")
+
+
+def sweep_folders(root: Path | None = None) -> list[Path]:
+    """Remove this user's settings folders in ``root`` (default: the temporary folder) whose
+    host is no longer running; returns them."""
+    root = Path(tempfile.gettempdir()) if root is None else root
+    removed = []
+    for path in root.glob(f"{FOLDER_PREFIX}*-*"):
+        pid = path.name[len(FOLDER_PREFIX) :].split("-", 1)[0]
+        try:
+            mine = not hasattr(os, "getuid") or path.stat().st_uid == os.getuid()
+        except OSError:
+            continue
+        if pid.isdigit() and mine and path.is_dir() and not _running(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's: running
+        return True
+    return True
+
+
 class _Process:
     """One of the host's processes: its command, the running child, its restarts."""
 
@@ -152,7 +193,7 @@ class Host:
         self._session: zenoh.Session | None = None
         self.service: Any = None  # process 0, a LocalizationService in this process
         self._declared: list[Any] = []
-        self._folder = tempfile.TemporaryDirectory(prefix="rlutf-host-")
+        self._folder = settings_folder()
         self.processes: list[_Process] = []
         self.metrics_ports: list[int] = []
         self.metrics: Any = None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -25,7 +26,13 @@ from service_harness import WORLD
 
 from schemas import Map, encode
 from service.cluster.membership import assign
-from service.live.host import merged_extra, process_name
+from service.live.host import (
+    FOLDER_PREFIX,
+    merged_extra,
+    process_name,
+    settings_folder,
+    sweep_folders,
+)
 from service.live.robots import fetch_robots, merge_robots
 from service.live.sessions import client_config, free_port
 from service.logs.replay import replay
@@ -195,3 +202,23 @@ def test_the_host_adds_its_processes_figures_up() -> None:
         ]
     )
     assert merged == {"lost": 3, "compute_ms": {"p99": 5.0}}
+
+
+def test_settings_folders_of_hosts_that_are_gone_are_removed(tmp_path: Path) -> None:
+    """A host killed by SIGKILL leaves its folder of settings files; the next host removes it,
+    and nothing of a host that runs or of another program."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # its pid is no longer running (reused only after a wrap of the pid space)
+    dead = tmp_path / f"{FOLDER_PREFIX}{gone.pid}-abcd1234"
+    live = tmp_path / f"{FOLDER_PREFIX}{os.getpid()}-abcd1234"
+    older = tmp_path / f"{FOLDER_PREFIX}abcd1234"  # named before the pid was in the name
+    other = tmp_path / "rlutf-host-notes-1"
+    for folder in (dead, live, older, other):
+        folder.mkdir()
+        (folder / "process-1.json").write_text("{}")
+    assert sweep_folders(tmp_path) == [dead]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        p.name for p in (live, older, other)
+    )
+    with settings_folder() as made:
+        assert Path(made).name.startswith(f"{FOLDER_PREFIX}{os.getpid()}-")
