@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from schemas import (
-    EventCode,
     InitialPose,
     LaserScan,
     Odometry,
@@ -48,6 +47,7 @@ from schemas import (
 )
 from service.engine import FleetEngine
 from service.keys import Keys
+from service.logs.dropped import EVENT_SCHEMA, dropped_scans
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
 from service.logs.mcapread import (
@@ -74,7 +74,6 @@ INPUT_MODELS: dict[str, type[LaserScan | Odometry | InitialPose | Relocalize]] =
 }
 MAP_SCHEMA = "rlutf.Map"
 POSE_SCHEMA = "rlutf.PoseEstimate"
-EVENT_SCHEMA = "rlutf.Event"
 MAPHEALTH_SCHEMA = "rlutf.MapHealth"
 #: Replay hands the scans' map health evidence on once per this much log time, as workers do.
 HEALTH_HANDOVER_NS = 1_000_000_000
@@ -168,45 +167,6 @@ def pose_record(payload: bytes) -> PoseRecord:
     """
     p = decode(PoseEstimate, payload)
     return PoseRecord(p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload)
-
-
-def _dropped_scans(
-    logs: Sequence[LogFile],
-    evictions: list[tuple[int, str]] | None = None,
-    gaps: list[int] | None = None,
-) -> tuple[Counter[tuple[str, int]], list[Record]]:
-    """The scans the live service dropped (per robot and stamp) and the events saying so.
-
-    Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
-    ``(log_time_ns, robot)``, in log order, and their records to the events returned; the
-    start of each recording gap (Event ``recording_resumed``, stamped when the gap began) to
-    ``gaps``.
-    """
-    drops: Counter[tuple[str, int]] = Counter()
-    records = []
-    for rec in merged_messages(logs, {EVENT_SCHEMA}):
-        where = robot_topic(rec.topic)
-        if where is None and gaps is not None and b'"code":"recording_resumed"' in rec.payload:
-            gaps.append(rec.publish_time_ns)
-        if where is None or where.leaf != "events":
-            continue
-        try:
-            data = json.loads(rec.payload)
-        except (ValueError, RecursionError):  # a log from elsewhere may hold anything
-            continue
-        if isinstance(data, dict) and data.get("code") == EventCode.SCAN_DROPPED:
-            stamp = data.get("stamp_ns")
-            if isinstance(stamp, int):
-                drops[(where.robot, stamp)] += 1
-                records.append(rec)
-        elif (
-            isinstance(data, dict)
-            and data.get("code") == EventCode.ROBOT_EVICTED
-            and evictions is not None
-        ):
-            evictions.append((rec.log_time_ns, where.robot))
-            records.append(rec)
-    return drops, records
 
 
 def _prefix_hint(logs: Sequence[LogFile]) -> str | None:
@@ -448,7 +408,7 @@ def replay(
         result = ReplayResult(config, keep=keep)
         evictions: list[tuple[int, str]] = []
         gaps: list[int] = []
-        drops, drop_records = _dropped_scans(logs, evictions, gaps)
+        drops, drop_records = dropped_scans(logs, evictions, gaps, out is not None, owns)
         result.gap_ns = min(gaps, default=None)
         result.match = PoseMatch(result.gap_ns)
         if on_total is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from service.config import Settings
 from service.live.node import LocalizationService
 from service.live.sessions import client_config, free_port
 from service.logs.audit import audit, audit_match
+from service.logs.dropped import dropped_scans
 from service.logs.mcapfile import Record
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
@@ -128,6 +130,13 @@ def test_replay_without_keeping_the_poses_audits_alike(live: tuple[Path, int]) -
     assert audit_match(lean.match) == audit(kept.recorded, kept.recomputed, kept.gap_ns)
     assert lean.match.recorded_total == sum(len(v) for v in kept.recorded.values())
     assert (lean.inputs, lean.dropped) == (kept.inputs, kept.dropped)
+    # An audit alone holds the dropped scans' keys, not their Events (written only with --out);
+    # a share of a split audit, only its robots'.
+    with LogFile(log) as lf:
+        drops, records = dropped_scans([lf], records_too=False)
+        assert sum(drops.values()) == lean.dropped and records == []
+        mine, _ = dropped_scans([lf], owns=lambda robot: robot == "r1")
+        assert mine == Counter({k: n for k, n in drops.items() if k[0] == "r1"})
     # Split between two processes by robot (r1 and r2 apart): the same audit, drops included.
     split = replay_split([log], run_config([log]), 2, min_messages=0)
     assert audit_match(split.match) == audit_match(lean.match)
