@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli.flags import EXIT_OK
+from service.cli.flags import EXIT_OK, number
 from service.cli.present import console as make_console
 from service.cli.present import unfinished
 
@@ -87,13 +87,13 @@ def register(sub: Any) -> None:
     )
     replay.add_argument(
         "--jobs",
-        type=int,
+        type=number(int, minimum=0),
         default=0,
         metavar="N",
         help="processes an audit alone (no --out, --plot or --ros2-out) is split between, by "
         "robot, each reading the whole run: the same verdict, in about 1/N of the time, at a "
         "lower priority (nice 10: a live service on the host keeps its cores); default 0: one "
-        "per core this process may use; 1: one process",
+        "per core this process may use, which is also the most; 1: one process",
     )
     plot = "write a trajectory PNG per robot into DIR (keeps every pose in memory: for a run "
     plot += "of hours, not weeks; without it the audit takes the same memory however long the run)"

@@ -57,10 +57,12 @@ def replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path | None
 
 
 def jobs(args: argparse.Namespace) -> int:
-    """The processes ``--jobs`` asks for (0: one per core this process may use)."""
+    """The processes ``--jobs`` asks for (0: one per core this process may use, also the most:
+    more would only share the cores, each with the memory of an audit)."""
     from service.cores import usable_cores
 
-    return int(args.jobs) if args.jobs > 0 else usable_cores()
+    cores = usable_cores()
+    return min(int(args.jobs), cores) if args.jobs > 0 else cores
 
 
 def report(

@@ -94,6 +94,7 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["pose", "--timeout", "0"], 2, ["--timeout", "more than 0"])
     yield Bad(["robots", "--timeout", "soon"], 2, ["--timeout", "not a number"])
     yield Bad(["events", "--seconds", "-1"], 2, ["--seconds"])
+    yield Bad(["replay", "corrupt.json", "--jobs", "-1"], 2, ["--jobs", "at least 0"])
     yield Bad(["relocalize", "r1", "--map", "m", "--wait", "-1"], 2, ["--wait"])
     yield Bad(["initialpose", "r1", "--map", "m", "--pose", "1,2"], 2, ["--pose", "X,Y,THETA"])
     yield Bad(["initialpose", "r1", "--map", "m", "--pose", "nan,1,2"], 2, ["--pose", "finite"])

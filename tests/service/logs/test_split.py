@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import multiprocessing as mp
 import os
@@ -103,3 +104,12 @@ def test_the_processes_of_a_split_audit_run_at_a_lower_priority() -> None:
     counters = ctx.Array("q", 1, lock=False)
     with ProcessPoolExecutor(1, ctx, initializer=split_module._start, initargs=(counters,)) as pool:
         assert pool.submit(os.nice, 0).result() == min(19, os.nice(0) + split_module.NICE)
+
+
+def test_jobs_are_at_most_the_cores() -> None:
+    from service.cli.runaudit import jobs
+    from service.cores import usable_cores
+
+    cores = usable_cores()
+    assert jobs(argparse.Namespace(jobs=0)) == cores == jobs(argparse.Namespace(jobs=10_000))
+    assert jobs(argparse.Namespace(jobs=1)) == 1
