@@ -14,7 +14,9 @@ if TYPE_CHECKING:
     from rich.console import Console
 
 
-def replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path | None, tag: str) -> Any:
+def replay_one(
+    args: argparse.Namespace, files: Sequence[Path], out: Path | None, label: str
+) -> Any:
     """One run replayed (into ``out`` unless ``None``); its poses are kept only for ``--plot``
     and ``--ros2-out``: the audit counts as it goes (``service.logs.posematch``). An audit alone
     (no ``--out``, ``--plot`` or ``--ros2-out``) is split between ``--jobs`` processes by robot
@@ -26,7 +28,7 @@ def replay_one(args: argparse.Namespace, files: Sequence[Path], out: Path | None
 
     keep = args.plot is not None or args.ros2_out is not None
     progress = Progress(
-        tag,
+        label,
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
