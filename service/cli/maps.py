@@ -317,7 +317,8 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def _run_scans(given: list[Path], map_id: str | None) -> Any:
-    """The posed scans of the MCAP logs ``given`` (files or folders) recorded at one time: the
+    """What reads the posed scans of the MCAP logs ``given`` (files or folders) recorded at one
+    time (:func:`service.maps.mapimport.build_grid` reads them twice rather than hold them): the
     runs of the processes of one ``rlutf serve`` (or of a fleet's instances) together, but not
     runs of two times (two starts of a service, maybe two buildings under one map id)."""
     from service.cli.present import unfinished
@@ -338,7 +339,8 @@ def _run_scans(given: list[Path], map_id: str | None) -> Any:
             "map is built from one of them (the runs of one start of rlutf serve, one per "
             "process, are one recording)"
         )
-    return scans_with_poses([f for run in groups[0] for f in run.files], map_id)
+    files = [f for run in groups[0] for f in run.files]
+    return lambda: scans_with_poses(files, map_id)  # read twice: the extent, then the cells
 
 
 def cmd_show(args: argparse.Namespace) -> int:

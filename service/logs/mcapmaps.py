@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -20,6 +21,8 @@ from service.logs.mcapread import LogFile, robot_topic
 
 ScanAtPose = tuple[np.ndarray, np.ndarray, np.ndarray, float]
 
+_T = TypeVar("_T")
+_U = TypeVar("_U")
 _SCAN = SCHEMA_NAMES[LaserScan]
 _POSE = SCHEMA_NAMES[PoseEstimate]
 
@@ -41,41 +44,105 @@ def scans_with_poses(
         service.logs.mcapread.LogError: a file is not a readable MCAP log.
     """
     files = [paths] if isinstance(paths, Path) else list(paths)
-    scans: dict[tuple[str, int], LaserScan] = {}
-    poses: dict[tuple[str, int], PoseEstimate] = {}
+    named = ", ".join(map(str, files[:3])) + (
+        f" and {len(files) - 3} more" if len(files) > 3 else ""
+    )
+    # A scan waits for its pose (recorded a moment after it), a pose for its scan, at most
+    # WAIT_NS of log time: held as they come, not the whole log (a recording of hours).
+    scans: dict[tuple[str, int], tuple[int, _Scan]] = {}
+    poses: dict[tuple[str, int], tuple[int, PoseEstimate]] = {}
+    maps: list[str] = []
     for path in files:
         with LogFile(path) as log:
             for rec in log.messages({_SCAN, _POSE}):
                 topic = robot_topic(rec.topic)
                 if topic is None:
                     continue
+                _forget(scans, rec.log_time_ns - WAIT_NS)
+                _forget(poses, rec.log_time_ns - WAIT_NS)
                 try:
                     if rec.schema_name == _SCAN:
-                        scan = decode(LaserScan, rec.payload)
-                        scans[(topic.robot, scan.stamp_ns)] = scan
+                        scan = _Scan.of(decode(LaserScan, rec.payload))
+                        key = (topic.robot, scan.stamp_ns)
+                        found = _meet(poses, scans, key, rec.log_time_ns, scan)
+                        if found is None:
+                            continue
+                        pose = found
                     else:
                         pose = decode(PoseEstimate, rec.payload)
-                        if pose.status != "lost" and map_id in (None, pose.map_id):
-                            poses[(pose.robot_id, pose.stamp_ns)] = pose
+                        if pose.status == "lost" or map_id not in (None, pose.map_id):
+                            continue
+                        key = (pose.robot_id, pose.stamp_ns)
+                        held = _meet(scans, poses, key, rec.log_time_ns, pose)
+                        if held is None:
+                            continue
+                        scan = held
                 except SchemaError:
                     continue
-    paired = sorted(set(scans) & set(poses), key=lambda k: (k[1], k[0]))
-    named = ", ".join(map(str, files[:3])) + (
-        f" and {len(files) - 3} more" if len(files) > 3 else ""
-    )
-    if not paired:
+                if pose.map_id not in maps:
+                    maps.append(pose.map_id)
+                    if len(maps) > 1:
+                        raise ValueError(
+                            f"{named}: the robots were localized on {len(maps)} maps "
+                            f"({', '.join(sorted(maps))}): a map is built from the scans of "
+                            "one; choose it with --from-map ID"
+                        )
+                yield scan.at(pose)
+    if not maps:
         on = "" if map_id is None else f" on map {map_id!r}"
         raise ValueError(f"{named}: no scan has a pose{on} (is this a log with poses?)")
-    maps = sorted({poses[k].map_id for k in paired})
-    if len(maps) > 1:
-        raise ValueError(
-            f"{named}: the robots were localized on {len(maps)} maps ({', '.join(maps)}): a "
-            "map is built from the scans of one; choose it with --from-map ID"
-        )
-    for key in paired:
-        scan, pose = scans[key], poses[key]
-        off = scan.sensor_offset
-        sensor = compose([pose.x, pose.y, pose.theta], [off.x, off.y, off.theta])
-        ranges = np.array([math.nan if r is None else r for r in scan.ranges])
-        angles = scan.angle_min + scan.angle_increment * np.arange(len(ranges))
-        yield sensor, ranges, angles, scan.range_max
+
+
+#: Log time a scan waits for its pose (or a pose for its scan), ns: a live service publishes a
+#: pose within milliseconds of its scan, within seconds under load; one that never comes (the
+#: scan dropped, the pose lost) must not hold the scan for the rest of the log.
+WAIT_NS = 30_000_000_000
+
+
+def _meet(
+    others: dict[tuple[str, int], tuple[int, _T]],
+    mine: dict[tuple[str, int], tuple[int, _U]],
+    key: tuple[str, int],
+    at_ns: int,
+    item: _U,
+) -> _T | None:
+    """The other half waiting under ``key``, taken out; else ``item`` waits in ``mine``."""
+    found = others.pop(key, None)
+    if found is None:
+        mine[key] = (at_ns, item)
+        return None
+    return found[1]
+
+
+def _forget(waiting: dict[tuple[str, int], tuple[int, Any]], before_ns: int) -> None:
+    """Drop what has waited since before ``before_ns`` (the oldest come first)."""
+    while waiting:
+        key, (since, _) = next(iter(waiting.items()))
+        if since >= before_ns:
+            return
+        del waiting[key]
+
+
+class _Scan(NamedTuple):
+    """What a scan waiting for its pose keeps of its message: its ranges as an array."""
+
+    stamp_ns: int
+    ranges: np.ndarray
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    offset: tuple[float, float, float]
+
+    @classmethod
+    def of(cls, msg: LaserScan) -> _Scan:
+        ranges = np.array([math.nan if r is None else r for r in msg.ranges])
+        off = msg.sensor_offset
+        return cls(
+            msg.stamp_ns, ranges, msg.angle_min, msg.angle_increment, msg.range_max,
+            (off.x, off.y, off.theta),
+        )  # fmt: skip
+
+    def at(self, pose: PoseEstimate) -> ScanAtPose:
+        sensor = compose([pose.x, pose.y, pose.theta], list(self.offset))
+        angles = self.angle_min + self.angle_increment * np.arange(len(self.ranges))
+        return sensor, self.ranges, angles, self.range_max

@@ -11,7 +11,7 @@ from mcaplog_fixtures import WORLD, read_all, simulated_inputs, write_log
 
 from service.cli.main import main
 from service.logs.mcaplog import McapRecorder
-from service.logs.mcapmaps import scans_with_poses
+from service.logs.mcapmaps import WAIT_NS, scans_with_poses
 from service.logs.replay import replay
 from service.maps.mapimport import build_grid, grid_to_map
 
@@ -131,3 +131,16 @@ def test_the_runs_of_one_serves_processes_build_one_map(
     assert _built(tmp_path, capsys, str(logs)) == (0, whole)
     code, one = _built(tmp_path, capsys, str(next(logs.glob("*host-p0*"))))
     assert code == 0 and one != whole  # one process's robots alone: less of the building
+
+
+def test_scans_wait_for_their_poses_a_bounded_time(replayed: Path, tmp_path: Path) -> None:
+    """Pairs are made as the log is read (a recording of hours is not held): a pose recorded
+    within WAIT_NS of its scan finds it, one recorded later does not (its scan was let go)."""
+    records = read_all(replayed)
+    all_pairs = len(list(scans_with_poses(replayed)))
+    k = next(i for i, r in enumerate(records) if r.schema_name == "rlutf.PoseEstimate")
+    for delay, expected in ((WAIT_NS // 2, all_pairs), (WAIT_NS + 10**9, all_pairs - 1)):
+        moved = list(records)
+        moved[k] = moved[k]._replace(log_time_ns=moved[k].log_time_ns + delay)
+        log = write_log(tmp_path / f"moved-{delay}.mcap", moved)
+        assert len(list(scans_with_poses(log))) == expected

@@ -7,6 +7,7 @@ import math
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -158,6 +159,25 @@ def test_build_grid_takes_any_iterable_of_tuples() -> None:
             build_grid(scans(), **bad)  # type: ignore[arg-type]
     with pytest.raises(MapImportError, match="scan 0"):
         build_grid([(np.zeros(2), np.ones(3), np.ones(3), 5.0)])
+
+
+def test_a_log_is_counted_in_chunks_read_twice_and_gives_the_same_grid() -> None:
+    """A long mapping run is built in the memory of a chunk of beams: the scans are read once
+    for the extent and once for the cells, and the counts add up to the grid of one chunk."""
+    log = read_carmen(CARMEN / "intel-corrected.log.gz")
+    scans = log.scans[:400]
+    whole = build_grid(scans, chunk_beams=10**9)
+    reads = []
+
+    def again() -> Iterator[Any]:
+        reads.append(1)
+        return iter(scans)
+
+    for chunked in (build_grid(scans, chunk_beams=1), build_grid(again, chunk_beams=5_000)):
+        assert chunked.origin == whole.origin and chunked.data.shape == whole.data.shape
+        assert (chunked.data == whole.data).all() and (chunked.free == whole.free).all()
+        assert (chunked.occupied == whole.occupied).all()
+    assert len(reads) == 2  # read again, not held
 
 
 @pytest.mark.parametrize(("name", "area"), [("intel", (450.0, 600.0)), ("aces", (700.0, 900.0))])
