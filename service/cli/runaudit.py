@@ -38,11 +38,12 @@ def replay_one(
     )
     task = progress.add_task("replay", total=None)
     with progress:
-        if out is None and not keep and jobs(args) > 1:
+        split = jobs(args) if out is None and not keep else 1
+        if split > 1:
             return replay_split(
                 files,
                 run_config(files, args.settings, args.assignments),
-                jobs(args),
+                split,
                 progress=lambda n: progress.advance(task, n),
                 on_total=lambda total: progress.update(task, total=total),
             )

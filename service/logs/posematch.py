@@ -134,6 +134,19 @@ class PoseMatch:
         else:
             r.compare(rec, pose)
 
+    def merge(self, other: PoseMatch) -> None:
+        """Take in the counts of ``other``, a match of other robots (an audit split by robot).
+
+        Raises:
+            ValueError: the two matched a robot both.
+        """
+        shared = self.robots.keys() & other.robots.keys()
+        if shared:
+            raise ValueError(f"both matches hold robots {sorted(shared)}")
+        self.robots.update(other.robots)
+        self.recorded_total += other.recorded_total
+        self.recomputed_total += other.recomputed_total
+
     def waiting(self) -> int:
         """Poses held for their other half (the memory the matching takes)."""
         return sum(

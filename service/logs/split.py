@@ -159,9 +159,7 @@ def merge(results: Sequence[ReplayResult]) -> ReplayResult:
     match = PoseMatch(first.gap_ns)
     merged = ReplayResult(first.config, match=match, keep=False, gap_ns=first.gap_ns)
     for r in results:
-        match.robots.update(r.match.robots)
-        match.recorded_total += r.match.recorded_total
-        match.recomputed_total += r.match.recomputed_total
+        match.merge(r.match)
         merged.inputs += r.inputs
         merged.dropped += r.dropped
         merged.rejected += r.rejected

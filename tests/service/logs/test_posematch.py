@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -90,3 +91,15 @@ def test_poses_without_their_other_half_are_judged_at_the_end() -> None:
     assert (a.matched, a.missing, a.extra, a.unverified) == (0, 1, 1, 1)
     assert not a.passed(1.0, 1.0)
     assert audit_match(PoseMatch()) == []  # nothing recorded: nothing to audit
+
+
+def test_matches_of_other_robots_merge_and_of_the_same_robot_do_not() -> None:
+    one, two = PoseMatch(), PoseMatch()
+    one.recorded(_pose("r1", 1))
+    one.recomputed(_pose("r1", 1))
+    two.recorded(_pose("r2", 1))
+    one.merge(two)
+    assert [a.robot for a in audit_match(one)] == ["r1", "r2"]
+    assert (one.recorded_total, one.recomputed_total) == (2, 1)
+    with pytest.raises(ValueError, match="r1"):
+        one.merge(one)
