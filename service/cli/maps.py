@@ -293,11 +293,11 @@ def cmd_build(args: argparse.Namespace) -> int:
             from service.ros2.bags import BagError
             from service.ros2.bags import scans_with_poses as bag_scans
 
-            try:
-                posed = list(bag_scans(log, args.scan_topic, args.pose_topic))
+            topics = (args.scan_topic, args.pose_topic)
+            try:  # the scans read twice (the extent, then the cells) rather than held
+                grid = build_grid(lambda: bag_scans(log, *topics), resolution=args.resolution)
             except BagError as err:
                 raise ValueError(str(err)) from err
-            grid = build_grid(posed, resolution=args.resolution)
         elif mcap:
             grid = build_grid(_run_scans(args.log, args.from_map), resolution=args.resolution)
         else:

@@ -14,6 +14,7 @@ Out: the poses of a replay as a rosbag2 MCAP (``amcl_pose`` and the ``map`` -> `
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import logging
 from collections import Counter
@@ -110,6 +111,14 @@ def _reader(bag: Path) -> Iterator[Any]:
         yield reader
     finally:
         reader.close()
+
+
+def _on_topic(reader: Any, topic: str) -> Iterator[tuple[Any, int, Any]]:
+    """The messages of one topic of an open bag (none when the bag lacks it: rosbags reads
+    every topic when given no connection)."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    if conns:
+        yield from reader.messages(connections=conns)
 
 
 def bag_inputs(
@@ -300,40 +309,46 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
     stamp, interpolated between the two around it; scans outside the poses' span, or with no
     pose within half a second, are left out. The sensor is taken at the base.
 
+    The bag is read twice: its poses first (a few numbers each, held), then its scans, each
+    given as it is read, so a mapping run of hours is never held (a decoded scan is about 3 KB);
+    :func:`service.maps.mapimport.build_grid` asks for the scans twice, so a map build reads
+    the bag four times.
+
     Raises:
         BagError: the bag is unreadable or has no scan with a pose.
     """
     trail = OdometryTrail(kept=1 << 62)
     pose_stamps: list[int] = []
-    scans: list[LaserScan] = []
     with _reader(bag) as reader:
-        conns = [c for c in reader.connections if c.topic in (scan_topic, pose_topic)]
-        for conn, _t, raw in reader.messages(connections=conns):
+        for conn, _t, raw in _on_topic(reader, pose_topic):
             try:
-                if conn.topic == scan_topic:
-                    scans.append(convert.laser_scan(bytes(raw)))
-                else:
-                    m = convert.deserialize(bytes(raw), conn.msgtype)
-                    p = m.pose.pose
-                    stamp = convert.stamp_ns(m.header)
-                    trail.add(stamp, (p.position.x, p.position.y, convert.yaw(p.orientation)))
-                    pose_stamps.append(stamp)
+                m = convert.deserialize(bytes(raw), conn.msgtype)
+                p = m.pose.pose
+                stamp = convert.stamp_ns(m.header)
+                trail.add(stamp, (p.position.x, p.position.y, convert.yaw(p.orientation)))
+                pose_stamps.append(stamp)
             except (SchemaError, AttributeError):
                 continue
     pose_stamps.sort()
     found = 0
-    for scan in scans:
-        i = int(np.searchsorted(pose_stamps, scan.stamp_ns))
-        near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
-        if not near or min(abs(s - scan.stamp_ns) for s in near) > 500_000_000:
-            continue
-        if scan.stamp_ns < pose_stamps[0] or scan.stamp_ns > pose_stamps[-1]:
-            continue
-        pose = trail.at(scan.stamp_ns)
-        assert pose is not None
-        ranges = np.array([np.nan if r is None else r for r in scan.ranges])
-        angles = scan.angle_min + scan.angle_increment * np.arange(len(ranges))
-        found += 1
-        yield pose, ranges, angles, scan.range_max
+    if pose_stamps:
+        with _reader(bag) as reader:
+            for _conn, _t, raw in _on_topic(reader, scan_topic):
+                try:
+                    scan = convert.laser_scan(bytes(raw))
+                except (SchemaError, AttributeError):
+                    continue
+                i = bisect.bisect_left(pose_stamps, scan.stamp_ns)  # a list: no array a scan
+                near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
+                if not near or min(abs(s - scan.stamp_ns) for s in near) > 500_000_000:
+                    continue
+                if scan.stamp_ns < pose_stamps[0] or scan.stamp_ns > pose_stamps[-1]:
+                    continue
+                pose = trail.at(scan.stamp_ns)
+                assert pose is not None
+                ranges = np.array([np.nan if r is None else r for r in scan.ranges])
+                angles = scan.angle_min + scan.angle_increment * np.arange(len(ranges))
+                found += 1
+                yield pose, ranges, angles, scan.range_max
     if not found:
         raise BagError(f"{bag}: no scan on {scan_topic} has a pose on {pose_topic}")

@@ -19,6 +19,9 @@ from service.cli.main import main
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.replay import replay
+from service.maps.mapimport import build_grid
+from service.ros2 import convert
+from service.ros2.bags import BagError, scans_with_poses
 
 T0 = 1_732_300_000_000_000_000
 WORLD = make_building(np.random.default_rng(21))
@@ -233,6 +236,67 @@ def test_map_build_from_a_bag_with_poses(run: dict, tmp_path: Path) -> None:
     built = json.loads(out.read_text())
     assert built["map_id"] == "built" and built["geometry"]["type"] in ("Polygon", "MultiPolygon")
     del d
+
+
+def _write_posed(path: Path, scans: list, poses: dict[int, np.ndarray]) -> None:
+    """Scans ``0..STEPS-1`` and, for the steps in ``poses``, a pose at the scan's stamp."""
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        sc = w.add_connection("/robot1/scan", "sensor_msgs/msg/LaserScan", typestore=TS)
+        pc = w.add_connection(
+            "/robot1/amcl_pose", "geometry_msgs/msg/PoseWithCovarianceStamped", typestore=TS
+        )
+        for i in range(STEPS):
+            t_scan = _stamps(i)[1]
+            w.write(sc, t_scan, TS.serialize_cdr(scans[i], "sensor_msgs/msg/LaserScan"))
+            if i in poses:
+                m = initialpose_msg(poses[i], t_scan)
+                w.write(
+                    pc, t_scan, TS.serialize_cdr(m, "geometry_msgs/msg/PoseWithCovarianceStamped")
+                )
+
+
+def test_a_bags_scans_take_the_pose_at_their_stamp_and_are_read_as_they_come(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Scans outside the poses' span, or over half a second from any pose, are left out; the
+    others take the pose interpolated at their stamp. The scans are given as the bag is read
+    (poses first), so ``build_grid`` can read them twice instead of holding them."""
+    truth, _odom, scans = _run(seed=6)
+    posed = {i: truth[i] for i in [*range(10, 15), *range(26, 30)]}  # scans 100 ms apart
+    _write_posed(tmp_path / "bag", scans, posed)
+    got = list(scans_with_poses(tmp_path / "bag", "/robot1/scan", "/robot1/amcl_pose"))
+    # 10-14 posed; 15-19 within 0.5 s of 14; 20 is 0.6 s from 14 and from 26; 21-25 within
+    # 0.5 s of 26; 26-29 posed; before 10 and after 29: outside the span.
+    kept = [*range(10, 20), *range(21, 30)]
+    assert len(got) == len(kept)
+    for i, (pose, ranges, angles, range_max) in zip(kept, got, strict=True):
+        expected = interpolate(truth[14], truth[26], (i - 14) / 12) if 14 < i < 26 else truth[i]
+        assert np.allclose(pose, expected, atol=1e-9), i
+        assert len(ranges) == len(angles) == len(scans[i].ranges)
+        assert range_max == pytest.approx(scans[i].range_max)
+    # Given as they are read: the first posed scan (the 11th of the bag) before the others.
+    converted: list[int] = []
+    real = convert.laser_scan
+
+    def counted(raw: bytes) -> object:
+        converted.append(1)
+        return real(raw)
+
+    monkeypatch.setattr(convert, "laser_scan", counted)
+    first = scans_with_poses(tmp_path / "bag", "/robot1/scan", "/robot1/amcl_pose")
+    assert np.array_equal(next(first)[0], got[0][0])
+    assert len(converted) == 11
+    first.close()
+    monkeypatch.undo()
+    # The scans read anew each time give the grid the scans held give.
+    read = build_grid(
+        lambda: scans_with_poses(tmp_path / "bag", "/robot1/scan", "/robot1/amcl_pose")
+    )
+    held = build_grid(got)
+    assert np.array_equal(read.data, held.data) and read.origin == held.origin
+    # A bag without the pose topic has no posed scan (and is not read whole for it).
+    with pytest.raises(BagError, match="no scan on /robot1/scan has a pose on /nope"):
+        list(scans_with_poses(tmp_path / "bag", "/robot1/scan", "/nope"))
 
 
 def test_the_laser_pose_comes_from_the_bags_tf_static(run: dict, tmp_path: Path) -> None:
