@@ -118,7 +118,28 @@ def _on_topic(reader: Any, topic: str) -> Iterator[tuple[Any, int, Any]]:
     every topic when given no connection)."""
     conns = [c for c in reader.connections if c.topic == topic]
     if conns:
-        yield from reader.messages(connections=conns)
+        yield from _messages(reader, conns)
+
+
+def _messages(reader: Any, conns: list[Any]) -> Iterator[tuple[Any, int, Any]]:
+    """``reader.messages(connections=conns)``, where whatever the reader raises (a damaged bag
+    makes rosbags raise anything from ``OverflowError`` to ``struct.error``) is a
+    :class:`BagError` that says how far the bag was read."""
+    read = 0
+    messages = iter(reader.messages(connections=conns))
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except Exception as err:  # rosbags' errors on damaged data are not one type
+            bag = ", ".join(str(p) for p in reader.paths)
+            raise BagError(
+                f"{bag}: damaged: {type(err).__name__}: {str(err)[:200]}, after {read} messages "
+                "of the topics read (an MCAP bag: `mcap recover` writes its readable part)"
+            ) from err
+        read += 1
+        yield item
 
 
 def bag_inputs(
@@ -171,7 +192,7 @@ def bag_inputs(
         if config is not None:
             writer.write_config(config)
         started = False
-        for conn, t_ns, raw in reader.messages(connections=conns):
+        for conn, t_ns, raw in _messages(reader, conns):
             kind = wanted[conn.topic]
             if not started:
                 started = True

@@ -299,6 +299,33 @@ def test_a_bags_scans_take_the_pose_at_their_stamp_and_are_read_as_they_come(
         list(scans_with_poses(tmp_path / "bag", "/robot1/scan", "/nope"))
 
 
+def test_a_damaged_bag_is_one_line_that_says_so(
+    run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rosbags raises whatever the damage makes it raise (here an ``OverflowError`` from a
+    record length read from zeros): a BagError naming the bag, not "unexpected error"."""
+    truth, odom, scans = _run(seed=4)
+    _write_bag(tmp_path / "posed", odom, scans, with_poses=truth)
+    (data,) = (tmp_path / "posed").glob("*.mcap")
+    raw = bytearray(data.read_bytes())
+    middle = len(raw) // 2
+    raw[middle : middle + 2000] = bytes(2000)
+    data.write_bytes(bytes(raw))
+    topics = ["--scan-topic", "/robot1/scan", "--pose-topic", "/robot1/amcl_pose"]
+    out = ["--out", str(tmp_path / "built.json")]
+    assert main(["map", "build", str(tmp_path / "posed"), "--ros2", *topics, *out]) == 1
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'posed'}: damaged: " in err and "mcap recover" in err, err
+    assert "unexpected error" not in err and len(err.strip().splitlines()) == 1, err
+    x, y, th = (float(v) for v in truth[0])
+    args = ["replay", str(tmp_path / "posed"), "--ros2", "--map", str(run["dir"] / "m1.json")]
+    args += ["--scan-topic", "/robot1/scan", "--odom-topic", "/robot1/odom"]
+    args += [f"--initial-pose={x!r},{y!r},{th!r}", "--quiet"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert ": damaged: " in err and "unexpected error" not in err, err
+
+
 def test_the_laser_pose_comes_from_the_bags_tf_static(run: dict, tmp_path: Path) -> None:
     truth, odom = run["truth"], run["odom"]
     laser = np.array([0.3, -0.05, -0.2])
