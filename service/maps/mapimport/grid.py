@@ -250,7 +250,12 @@ def _decode(image: bytes, name: str) -> tuple[NDArray[Any], NDArray[Any] | None,
             f"{name}: the image has {size}, more than map import takes ({limit:,}): crop it, "
             "or scale it down and raise the YAML's resolution to match"
         ) from err
-    except (UnidentifiedImageError, OSError, ValueError) as err:
+    except UnidentifiedImageError as err:  # its message names a BytesIO object, not the file
+        raise MapFileError(
+            f"{name}: not an image map import reads (PGM, PNG, BMP, TIFF, ...: what map_server "
+            "writes)"
+        ) from err
+    except (OSError, ValueError) as err:
         raise MapFileError(f"{name}: cannot decode the image: {err}") from err
     if img.mode == "P":
         img = img.convert("RGBA" if "transparency" in img.info else "RGB")
@@ -335,6 +340,16 @@ def grid_from_image(image: bytes, meta: MapMetadata, *, name: str = "image") -> 
     )
 
 
+#: How the images a map_server map names start (PNG, TIFF, JPEG, GIF; PGM and PPM below): given
+#: in place of the YAML, one is said to be an image rather than "cannot parse" as YAML.
+_IMAGE_MAGIC = (b"\x89PNG\r\n", b"II*\x00", b"MM\x00*", b"\xff\xd8\xff", b"GIF87a", b"GIF89a")
+
+
+def _an_image(data: bytes) -> bool:
+    """Whether ``data`` starts as an image a map_server YAML would name."""
+    return data.startswith(_IMAGE_MAGIC) or re.match(rb"P[2356]\s", data) is not None
+
+
 def load_grid(yaml_path: str | Path) -> OccupancyGrid:
     """Load a map_server map from its YAML file and the image it names.
 
@@ -347,6 +362,11 @@ def load_grid(yaml_path: str | Path) -> OccupancyGrid:
         text = path.read_bytes()
     except OSError as err:
         raise MapFileError(f"map YAML '{path}': cannot read: {err.strerror or err}") from err
+    if _an_image(text):
+        raise MapYamlError(
+            f"{path}: an image, not the map's YAML: give the YAML file that names it in its "
+            "'image' key (map_server and map_saver write the two side by side)"
+        )
     try:
         meta = parse_map_yaml(text)
     except MapYamlError as err:

@@ -139,6 +139,9 @@ def test_raw_mode_uses_values_as_percent() -> None:
 def test_unreadable_image_raises() -> None:
     with pytest.raises(MapFileError, match=r"room\.pgm: cannot decode the image"):
         grid_from_image(b"P5 not really an image", meta(), name="room.pgm")
+    with pytest.raises(MapFileError, match=r"room\.pgm: not an image map import reads") as err:
+        grid_from_image(b"no image format starts so", meta(), name="room.pgm")
+    assert "BytesIO" not in str(err.value)  # Pillow's own message names no file
 
 
 def test_an_image_whose_header_claims_billions_of_pixels_is_refused_at_once() -> None:
@@ -190,11 +193,22 @@ def test_load_grid_errors_name_the_file(tmp_path: Path) -> None:
         load_grid(tmp_path / "lonely.yaml")
     path = write_map(tmp_path, np.full((2, 2), 254))
     (tmp_path / "room.pgm").write_bytes(b"garbage")
-    with pytest.raises(MapFileError, match="cannot decode"):
+    with pytest.raises(MapFileError, match=r"room\.pgm: not an image map import reads"):
         load_grid(path)
     path.write_text(YAML.replace("resolution: 0.1\n", ""))
     with pytest.raises(MapYamlError, match=r"room.yaml: .*missing required key\(s\) 'resolution'"):
         load_grid(path)
+
+
+def test_an_image_given_for_the_yaml_is_said_to_be_one(tmp_path: Path) -> None:
+    path = write_map(tmp_path, np.full((2, 2), 254))
+    image = tmp_path / "room.pgm"
+    for given in (image, tmp_path / "room.png"):
+        if given.suffix == ".png":
+            given.write_bytes(png(np.full((2, 2), 254), "L"))
+        with pytest.raises(MapYamlError, match=rf"{given.name}: an image, not the map's YAML"):
+            load_grid(given)
+    assert load_grid(path).data.shape == (2, 2)  # the YAML itself still loads
 
 
 def test_save_and_load_round_trip(tmp_path: Path) -> None:
