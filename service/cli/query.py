@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import threading
 import time
 from typing import Any
 
@@ -164,15 +165,17 @@ def show_other(clock: Any = None) -> Any:
     now = clock or time.monotonic
     last = [-math.inf]
     skipped = [0]
+    lock = threading.Lock()  # Zenoh calls it from its threads: one line per period, not two
 
     def show(key: str, size: int, why: str) -> None:
-        if now() - last[0] < OTHER_EVERY_S:
-            skipped[0] += 1
-            return
-        more = f" (and {skipped[0]} more since the last such line)" if skipped[0] else ""
+        with lock:
+            if now() - last[0] < OTHER_EVERY_S:
+                skipped[0] += 1
+                return
+            more = f" (and {skipped[0]} more since the last such line)" if skipped[0] else ""
+            last[0], skipped[0] = now(), 0
         brief = why if len(why) <= 160 else why[:157] + "..."
         print(f"rlutf events: {key}: not an Event ({size} bytes: {brief}){more}", file=sys.stderr)
-        last[0], skipped[0] = now(), 0
 
     return show
 

@@ -274,3 +274,32 @@ def test_payloads_that_are_not_events_are_said_at_most_every_few_seconds(
     assert lines[0] == "rlutf events: rlutf/events: not an Event (7 bytes: invalid JSON)"
     assert lines[1].endswith("...) (and 2 more since the last such line)") and len(lines) == 2
     assert len(lines[1]) < 280
+
+
+def test_payloads_that_are_not_events_from_several_threads_are_one_line_a_period(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Zenoh calls the callback from several threads: one line a period, every other counted."""
+    import threading
+
+    from service.cli.query import OTHER_EVERY_S, show_other
+
+    t = [100.0]
+    show = show_other(lambda: t[0])
+    start = threading.Barrier(8)
+
+    def burst() -> None:
+        start.wait()
+        for _ in range(500):
+            show("rlutf/events", 7, "invalid JSON")
+
+    threads = [threading.Thread(target=burst) for _ in range(8)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    t[0] += OTHER_EVERY_S
+    show("rlutf/events", 7, "invalid JSON")
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2, lines
+    assert lines[1].endswith("(and 3999 more since the last such line)"), lines
