@@ -353,7 +353,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         else:
             wire = JsonWire(plan, keys)
         print(f"drawn and encoded in {time.monotonic() - drawing:.1f} s", flush=True)
-        if not fetch_health(operator, settings.prefix, "*", 1.0):
+        answered = fetch_health(operator, settings.prefix, "*", 1.0)
+        if not answered:
             print(  # on with it: the service may be starting, and takes the robots then
                 f"rlutf simulate: warning: no rlutf service answers on prefix "
                 f"{settings.prefix!r} at {where} (`rlutf health` asks the same); the robots "
@@ -370,11 +371,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         events: Counter[str] = Counter()
         bad = [0]
         try:
-            if not args.stored_map:
-                fleet.put_map()
+            told = "the stored one"
+            if not args.stored_map and not answered:
+                fleet.put_map()  # no service to wait for: put, unconfirmed
+                told = "put, unconfirmed (no service answered)"
+            elif not args.stored_map:
+                put = fleet.store_map()
+                if not put.stored:
+                    print(f"rlutf simulate: {put.said}", file=sys.stderr)
+                    return EXIT_FAILURE
+                told = f"version {put.version} " + ("put" if put.new else "(held already)")
             walls = len(plan.world.segments)
             print(
-                f"map {args.map}: {'the stored one' if args.stored_map else 'put'}, "
+                f"map {args.map}: {told}, "
                 f"{walls} walls, {plan.world.geometry.area:.0f} m2; {spec.robots} robots at "
                 f"{spec.rate_hz:g} Hz joining {where}; initial poses: "
                 f"{'none (the robots wait for one)' if args.no_initial_pose else 'the true start'}"

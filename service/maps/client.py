@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -182,14 +183,46 @@ def put_map(
     except ValueError as err:
         print(f"rlutf map put: {err}", file=sys.stderr)
         return 1
+    put = put_payload(session, prefix, payload, NEXT if version == NEXT else None, timeout)
+    if put.stored:
+        print(put.said)
+        return 0
+    print(f"rlutf map put: {put.said}", file=sys.stderr)
+    return 1
+
+
+@dataclass(frozen=True)
+class Put:
+    """What became of a map put: whether the store holds it, as which version, whether this put
+    stored it (rather than finding it held already), and the line that says so (the reason,
+    when the store does not hold it)."""
+
+    stored: bool
+    version: int | None
+    said: str
+    new: bool = False
+
+
+def put_payload(
+    session: zenoh.Session,
+    prefix: str,
+    payload: bytes,
+    version: str | None = NEXT,
+    timeout: float = 5.0,
+) -> Put:
+    """Put a valid Map payload into the store and wait for its answer (:func:`put_map`).
+
+    ``version``: :data:`NEXT` puts it as the held version plus one, unless the store holds the
+    same walls already; ``None`` as the payload's own version.
+    """
     msg = decode(Map, payload, max_bytes=len(payload))
     key = Keys(prefix).map(msg.map_id)
     found = held_map(session, key, timeout)
     held = found if isinstance(found, Map) else None
     if version == NEXT:
         if held is not None and _same_content(held, msg):
-            print(f"unchanged: {key} already holds this map as version {held.version}")
-            return 0
+            said = f"unchanged: {key} already holds this map as version {held.version}"
+            return Put(True, held.version, said)
         msg = msg.model_copy(update={"version": held.version + 1 if held is not None else 1})
         payload = encode(msg)
     if held is not None:
@@ -197,11 +230,10 @@ def put_map(
             (held.version, content_digest(held)), msg.version, content_digest(msg)
         )
         if verdict == "echo":
-            print(f"unchanged: {key} already holds version {msg.version} with this content")
-            return 0
+            said = f"unchanged: {key} already holds version {msg.version} with this content"
+            return Put(True, msg.version, said)
         if verdict == "conflict":
-            print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
-            return 1
+            return Put(False, held.version, _refused(key, msg.version, held.version))
     refused: list[Event] = []  # the store's Events about this put (it could not take it)
 
     def on_event(sample: zenoh.Sample) -> None:
@@ -239,43 +271,39 @@ def _confirm(
     payload: bytes,
     timeout: float,
     refused: list[Event],
-) -> int:
+) -> Put:
     """Wait until the storage answers with the map put, or says it did not take it (an Event
     in ``refused``); report what it holds otherwise."""
     digest = content_digest(msg)
     deadline = time.monotonic() + timeout
     while True:
         if refused:
-            ev = refused[0]
-            print(f"rlutf map put: the store did not take {key}: {ev.message}", file=sys.stderr)
-            return 1
+            return Put(False, None, f"the store did not take {key}: {refused[0].message}")
         held = held_map(session, key, min(timeout, 2.0), unless=payload)
         if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
-            print(f"put {key} (version {msg.version}, {len(payload)} bytes): stored")
-            return 0
+            said = f"put {key} (version {msg.version}, {len(payload)} bytes): stored"
+            return Put(True, msg.version, said, new=True)
         assert not isinstance(held, bytes)
         if held is not None and held.version >= msg.version:
-            print(f"rlutf map put: {_refused(key, msg.version, held.version)}", file=sys.stderr)
-            return 1
+            return Put(False, held.version, _refused(key, msg.version, held.version))
         if time.monotonic() >= deadline:
             break
         time.sleep(0.1)
     if held is None:
-        print(
-            f"rlutf map put: no storage answered for {key} within {timeout:g} s: the map was "
-            "put but nothing holds it (start `rlutf serve`, which hosts the store, or "
-            "zenohd with a storage on the maps' keys)",
-            file=sys.stderr,
+        return Put(
+            False,
+            None,
+            f"no storage answered for {key} within {timeout:g} s: the map was put but nothing "
+            "holds it (start `rlutf serve`, which hosts the store, or zenohd with a storage on "
+            "the maps' keys)",
         )
-    else:
-        print(
-            f"rlutf map put: the storage still holds version {held.version} of {key} after "
-            f"{timeout:g} s; version {msg.version} was not confirmed (a store busy with other "
-            "map puts drops more with an Event map_dropped: `rlutf events`; put it again, or "
-            "give it longer with --timeout)",
-            file=sys.stderr,
-        )
-    return 1
+    return Put(
+        False,
+        held.version,
+        f"the storage still holds version {held.version} of {key} after {timeout:g} s; version "
+        f"{msg.version} was not confirmed (a store busy with other map puts drops more with an "
+        "Event map_dropped: `rlutf events`; put it again, or give it longer with --timeout)",
+    )
 
 
 def get_map(

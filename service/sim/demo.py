@@ -169,9 +169,13 @@ def run_demo(args: argparse.Namespace, console: Console | None = None) -> int:
                 plan, JsonWire(plan), lambda: zenoh.open(client_config(endpoint)), args.robots
             )
             try:
-                fleet.put_map()
+                put = fleet.store_map()
+                if not put.stored:  # the demo's own store: it takes it, unless it cannot write
+                    console.print(f"rlutf demo: {put.said}")
+                    return 1
                 console.print(
-                    f"operator: put map {MAP_ID} ({len(plan.world.segments)} walls); "
+                    f"operator: put map {MAP_ID} version {put.version} "
+                    f"({len(plan.world.segments)} walls); "
                     f"{args.robots} robots at {args.rate:g} Hz, {args.beams} beams, "
                     f"{args.duration:g} s"
                 )

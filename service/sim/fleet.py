@@ -13,7 +13,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -21,6 +21,9 @@ from service.cores import available_memory
 from service.keys import Keys
 from service.sim.plan import FleetPlan, FleetSpec, plan_bytes
 from service.sim.wire import RobotWire, map_payload
+
+if TYPE_CHECKING:
+    from service.maps.client import Put
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 #: Robots per client session by default (1 to 8 sessions).
@@ -66,6 +69,15 @@ class SimFleet:
         payload = map_payload(self.plan)
         self.operator.put(self.keys.map(self.plan.spec.map_id), payload, encoding=JSON)
         return payload
+
+    def store_map(self, timeout: float = 5.0) -> Put:
+        """Put the plan's map into the store as the next version, unless the store holds these
+        walls already, and wait for its answer. Put as version 1 regardless, another ``--seed``'s
+        building held under the same id would stay (the same version with other walls changes
+        nothing) and every robot would be lost on it."""
+        from service.maps.client import NEXT, put_payload
+
+        return put_payload(self.operator, self.keys.prefix, map_payload(self.plan), NEXT, timeout)
 
     def start(self, t0_ns: int) -> None:
         """Each robot's step 0, stamped ``t0_ns``: its first odometry, then its InitialPose (if

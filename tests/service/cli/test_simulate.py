@@ -91,6 +91,26 @@ def test_a_second_fleet_of_the_same_names_is_refused(
     assert {p["map_id"] for p in poses.on("rlutf/robots/r000/pose")} == {"sim"}
 
 
+def test_another_seed_puts_its_building_as_the_next_version(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each --seed draws another building under the map id ``sim``: put as version 1 again, the
+    store kept the first (the same version with other walls changes nothing) and every robot of
+    the second run was lost on it, while simulate said "put"."""
+    with running_bench(tmp_path) as bench:
+        args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "2"]
+        args += ["--beams", "90"]
+        assert main([*args, "--seed", "1"]) == 0
+        assert "map sim: version 1 put" in capsys.readouterr().out
+        assert main([*args, "--seed", "2"]) == 0
+        out = capsys.readouterr().out
+        assert "map sim: version 2 put" in out and "1 of 1 robots localized" in out, out
+        row = next(line for line in out.splitlines() if line.startswith("r000"))
+        assert float(row.split()[2]) < 5.0, out  # RMSE cm: on the walls its scans see
+        assert main([*args, "--seed", "2"]) == 0
+        assert "map sim: version 2 (held already)" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(
     ("flags", "says"),
     [
