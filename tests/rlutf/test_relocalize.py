@@ -51,6 +51,16 @@ def test_branch_and_bound_equals_brute_force_on_the_grid() -> None:
     assert int(base[w[ok], c[ok]].astype(np.int64).sum()) == best and where is not None
 
 
+def test_top_nodes_are_taken_from_the_highest_bound_down_in_index_order_among_equals() -> None:
+    """The counting sort of the top nodes gives the order a stable sort of the negated bounds
+    gives (which nodes are explored first decides which of equal leaves is kept)."""
+    rng = np.random.default_rng(4)
+    for count, high in ((0, 5), (1, 5), (300, 3), (5000, 30_600)):
+        bounds = rng.integers(0, high + 1, count + 9).astype(np.int32)  # past count: not read
+        expected = np.argsort(-bounds[:count], kind="stable")
+        assert np.array_equal(_bnb._by_bound(bounds, count), expected), count
+
+
 @pytest.mark.parametrize("seed", [2, 3])
 def test_one_scan_finds_the_robot_anywhere(seed: int) -> None:
     rng = np.random.default_rng(seed)
