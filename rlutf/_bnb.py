@@ -36,12 +36,32 @@ def pyramid(base: np.ndarray, depth: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _bound(level: np.ndarray, cx: np.ndarray, cy: np.ndarray, i: int, j: int, span: int) -> int:
+def _bound(
+    level: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    i: int,
+    j: int,
+    span: int,
+    extent: np.ndarray,
+) -> int:
     """Sum over the points of the level's value at their window ``[col, col + span)``. A window
     that starts left of or below the grid but reaches into it is read at the grid's edge: that
-    window's maximum covers the part inside, so the bound stays an upper bound."""
+    window's maximum covers the part inside, so the bound stays an upper bound. ``extent``:
+    the points' smallest and largest column and row offsets, ``(min cx, max cx, min cy, max
+    cy)``: a node whose every point falls inside the grid (most, on a large map) is summed
+    without the edge checks."""
     height, width = level.shape
     total = 0
+    if (
+        i + extent[0] >= 0
+        and i + extent[1] < width
+        and j + extent[2] >= 0
+        and j + extent[3] < height
+    ):
+        for p in range(len(cx)):  # every point inside the grid: no edge to mind
+            total += level[j + cy[p], i + cx[p]]
+        return total
     for p in range(len(cx)):
         col = i + cx[p]
         row = j + cy[p]
@@ -124,6 +144,12 @@ def search(
     n_rows = (height + stride - 1) // stride
     # Every top node of every rotation, bounded: each kept as its index in (rotation, column,
     # row) order and its bound, 12 bytes (a large site's map has millions of them).
+    extents = np.empty((turns, 4), dtype=np.int64)
+    for r in range(turns):
+        extents[r, 0] = cx[r].min()
+        extents[r, 1] = cx[r].max()
+        extents[r, 2] = cy[r].min()
+        extents[r, 3] = cy[r].max()
     count = 0
     per_turn = n_cols * n_rows
     nodes = np.empty(turns * per_turn, dtype=np.int64)
@@ -135,7 +161,7 @@ def search(
                 i, j = a * stride, b * stride
                 if valid[top, j, i] == 0 or not _in_region(i, j, stride, region):
                     continue
-                bounds[count] = _bound(levels[top], cx[r], cy[r], i, j, stride)
+                bounds[count] = _bound(levels[top], cx[r], cy[r], i, j, stride, extents[r])
                 nodes[count] = r * per_turn + a * n_rows + b
                 count += 1
     scored += count
@@ -219,7 +245,7 @@ def search(
                     continue
                 if not _in_region(ci, cj, s, region):
                     continue
-                cb = _bound(levels[k - 1], cx[r], cy[r], ci, cj, s)
+                cb = _bound(levels[k - 1], cx[r], cy[r], ci, cj, s, extents[r])
                 scored += 1
                 if cb <= threshold:
                     continue

@@ -51,6 +51,22 @@ def test_branch_and_bound_equals_brute_force_on_the_grid() -> None:
     assert int(base[w[ok], c[ok]].astype(np.int64).sum()) == best and where is not None
 
 
+def test_a_nodes_bound_is_the_same_inside_the_grid_and_at_its_edges() -> None:
+    """A node whose points all fall inside the grid is summed without edge checks; its bound is
+    the one the checked sum gives, and a node at an edge still reads the edge's windows."""
+    rng = np.random.default_rng(5)
+    level = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+    cx, cy = rng.integers(-10, 11, 30), rng.integers(-7, 8, 30)
+    extent = np.array([cx.min(), cx.max(), cy.min(), cy.max()])
+    wide = np.array([-(10**6), 10**6, -(10**6), 10**6])  # never inside: always the checked sum
+    for i, j in ((40, 30), (10, 7), (69, 52), (0, 0), (-4, 3), (75, 58)):
+        assert _bnb._bound(level, cx, cy, i, j, 4, extent) == _bnb._bound(
+            level, cx, cy, i, j, 4, wide
+        ), (i, j)
+    inside = int(level[30 + cy, 40 + cx].astype(np.int64).sum())
+    assert _bnb._bound(level, cx, cy, 40, 30, 4, extent) == inside
+
+
 def test_top_nodes_are_taken_from_the_highest_bound_down_in_index_order_among_equals() -> None:
     """The counting sort of the top nodes gives the order a stable sort of the negated bounds
     gives (which nodes are explored first decides which of equal leaves is kept)."""
