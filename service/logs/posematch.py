@@ -72,14 +72,18 @@ class Tally:
         self.sum_heading_sq += dh * dh
 
 
-def _pair(waiting: dict[int, deque[PoseRecord]], pose: PoseRecord) -> PoseRecord | None:
-    """The oldest pose of ``waiting`` with ``pose``'s stamp, taken out; ``None``: none."""
-    queue = waiting.get(pose.stamp_ns)
+def _pair(
+    others: dict[int, deque[PoseRecord]], mine: dict[int, deque[PoseRecord]], pose: PoseRecord
+) -> PoseRecord | None:
+    """The oldest pose of ``others`` with ``pose``'s stamp, taken out; with none, ``pose``
+    waits in ``mine`` for its other half and ``None`` is returned."""
+    queue = others.get(pose.stamp_ns)
     if not queue:
+        mine.setdefault(pose.stamp_ns, deque()).append(pose)
         return None
     other = queue.popleft()
     if not queue:
-        del waiting[pose.stamp_ns]
+        del others[pose.stamp_ns]
     return other
 
 
@@ -116,10 +120,8 @@ class PoseMatch:
             return
         if r.last_recorded is None or pose.stamp_ns > r.last_recorded:
             r.last_recorded = pose.stamp_ns
-        new = _pair(r.recomputed, pose)
-        if new is None:
-            r.recorded.setdefault(pose.stamp_ns, deque()).append(pose)
-        else:
+        new = _pair(r.recomputed, r.recorded, pose)
+        if new is not None:
             r.compare(pose, new)
 
     def recomputed(self, pose: PoseRecord) -> None:
@@ -128,10 +130,8 @@ class PoseMatch:
         r = self.tally(pose.robot)
         if self._after_gap(pose.stamp_ns):
             return
-        rec = _pair(r.recorded, pose)
-        if rec is None:
-            r.recomputed.setdefault(pose.stamp_ns, deque()).append(pose)
-        else:
+        rec = _pair(r.recorded, r.recomputed, pose)
+        if rec is not None:
             r.compare(rec, pose)
 
     def merge(self, other: PoseMatch) -> None:
