@@ -339,7 +339,6 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
         BagError: the bag is unreadable or has no scan with a pose.
     """
     trail = OdometryTrail(kept=1 << 62)
-    pose_stamps: list[int] = []
     with _reader(bag) as reader:
         for conn, _t, raw in _on_topic(reader, pose_topic):
             try:
@@ -347,10 +346,9 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
                 p = m.pose.pose
                 stamp = convert.stamp_ns(m.header)
                 trail.add(stamp, (p.position.x, p.position.y, convert.yaw(p.orientation)))
-                pose_stamps.append(stamp)
             except (SchemaError, AttributeError):
                 continue
-    pose_stamps.sort()
+    pose_stamps = trail.stamps  # in order
     found = 0
     if pose_stamps:
         with _reader(bag) as reader:
@@ -359,7 +357,7 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
                     scan = convert.laser_scan(bytes(raw))
                 except (SchemaError, AttributeError):
                     continue
-                i = bisect.bisect_left(pose_stamps, scan.stamp_ns)  # a list: no array a scan
+                i = bisect.bisect_left(pose_stamps, scan.stamp_ns)
                 near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
                 if not near or min(abs(s - scan.stamp_ns) for s in near) > 500_000_000:
                     continue

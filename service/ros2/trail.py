@@ -35,6 +35,11 @@ class OdometryTrail:
         if len(self._stamps) > self.kept:
             del self._stamps[: self.kept // 2], self._poses[: self.kept // 2]
 
+    @property
+    def stamps(self) -> Sequence[int]:
+        """The readings' stamps, in order (the trail's own list: not to be changed)."""
+        return self._stamps
+
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """The odometry pose at ``stamp_ns``; ``None`` with no reading."""
         s = self._stamps
