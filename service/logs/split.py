@@ -1,6 +1,6 @@
 """An audit split between processes by robot: the same verdict, in a fraction of the time.
 
-A replay of one run is one thread of Python: about 3,100 scans a second here, so a day of 100
+A replay of one run is one thread of Python: about 3,000 scans a second here, so a day of 100
 robots at 10 Hz takes eight hours. The robots of a run are localized apart (each robot's poses
 depend on its own inputs, the maps and the configuration, never on another robot's), so an
 audit can give each of ``jobs`` processes a share of the robots: each reads the whole run,
