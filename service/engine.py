@@ -316,39 +316,10 @@ class FleetEngine:
         return world
 
     def _scan(self, robot: _Robot, msg: LaserScan, received_ns: int) -> list[Outbound]:
-        key = self.keys.robot(robot.robot_id, "scan")
-        applied = self._apply(robot, received_ns)
-        skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
-        if robot.map_id is None and robot.pending is not None:
-            return skipped + self._event(
-                robot,
-                received_ns,
-                "warning",
-                EventCode.MAP_NOT_FOUND,
-                key,
-                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
-                "loaded (does a storage hold it? `rlutf map list`); scan not processed",
-            )
-        if robot.map_id is None:
-            return skipped + self._event(
-                robot,
-                received_ns,
-                "warning",
-                EventCode.NOT_INITIALIZED,
-                key,
-                "scan before an initial pose; publish an InitialPose first (`rlutf "
-                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)",
-            )
+        applied = self._apply(robot, received_ns) if robot.pending is not None else []
         world = self._world_for(robot, received_ns)
-        if world is None or robot.localizer is None:
-            return skipped + self._event(
-                robot,
-                received_ns,
-                "warning",
-                EventCode.MAP_NOT_FOUND,
-                key,
-                f"map {robot.map_id!r} is not loaded yet; scan not processed",
-            )
+        if world is None or robot.localizer is None or robot.map_id is None:
+            return self._not_processed(robot, msg, received_ns, applied)
         start = robot.start_stamp
         if robot.anchor is None:
             # No odometry at the initial pose: the first reading after it is taken as the
@@ -371,6 +342,8 @@ class FleetEngine:
                               msg.stamp_ns, result)  # fmt: skip
         episode = self._follow(robot, result)
         if not math.isfinite(result.discrepancy):
+            key = self.keys.robot(robot.robot_id, "scan")
+            skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
             return (
                 skipped
                 + self._events(robot, received_ns, key, episode)
@@ -383,9 +356,11 @@ class FleetEngine:
                     "scan has too few returns to compare; pose kept by odometry",
                 )
             )
-        pose_key = self.keys.pose(robot.robot_id)
-        out = [*applied, self._pose(robot, msg.stamp_ns, result, received_ns)]
-        out += self._events(robot, received_ns, pose_key, episode)
+        pose = self._pose(robot, msg.stamp_ns, result, received_ns)
+        pose_key = pose.key
+        out = [*applied, pose]
+        if episode:
+            out += self._events(robot, received_ns, pose_key, episode)
         if result.status == "lost" and not result.hypotheses:  # ambiguous: said once above
             out += self._event(
                 robot,
@@ -401,6 +376,28 @@ class FleetEngine:
                 ),
             )
         return out
+
+    def _not_processed(
+        self, robot: _Robot, msg: LaserScan, received_ns: int, applied: list[Outbound]
+    ) -> list[Outbound]:
+        """A scan the robot's state cannot take (no pose or no map yet): skipped, and why."""
+        key = self.keys.robot(robot.robot_id, "scan")
+        skipped = [*applied, Outbound("skipped", key, b"", msg.stamp_ns, robot.robot_id)]
+        code = EventCode.MAP_NOT_FOUND
+        if robot.map_id is None and robot.pending is not None:
+            why = (
+                f"the {robot.pending.kind} waits for map {robot.pending.map_id!r}, which is not "
+                "loaded (does a storage hold it? `rlutf map list`); scan not processed"
+            )
+        elif robot.map_id is None:
+            code = EventCode.NOT_INITIALIZED
+            why = (
+                "scan before an initial pose; publish an InitialPose first (`rlutf "
+                f"initialpose {robot.robot_id} --map ID --pose X,Y,THETA`)"
+            )
+        else:
+            why = f"map {robot.map_id!r} is not loaded yet; scan not processed"
+        return skipped + self._event(robot, received_ns, "warning", code, key, why)
 
     def _follow(self, robot: _Robot, result: LocalizeResult) -> list[EventSpec]:
         """The relocalization events of a result; an automatic relocalization starts here."""

@@ -46,6 +46,8 @@ _REACH_MARGIN_M: Final = 1.0
 #: The attribute of :class:`rlutf.localizer.Localizer` holding a relocalization under way, the
 #: one part of its state an update changes in place (the rest it reassigns).
 _RELOCALIZATION: Final = "_follower"
+#: The types of a robot's fields that a snapshot copies (an update changes them in place).
+_COPIED: Final = (list, dict)
 
 
 @dataclass(frozen=True)
@@ -100,10 +102,10 @@ def guarded(engine: Engine, robot: Any, message: Message, received_ns: int) -> l
     ``invalid_message``; an update that raises is undone (the robot's state is as before the
     input, :class:`Snapshot`) and gives an Event ``internal_error``.
     """
-    kind = kind_of(message)
-    key = engine.keys.robot(robot.robot_id, kind)
     problem = check_input(message, engine.limits)
     if problem is not None:
+        kind = kind_of(message)
+        key = engine.keys.robot(robot.robot_id, kind)
         return [
             Outbound("rejected", key, b"", message.stamp_ns, robot.robot_id),
             *engine._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
@@ -116,6 +118,8 @@ def guarded(engine: Engine, robot: Any, message: Message, received_ns: int) -> l
     except Exception as err:  # one robot's failure never reaches the others or the caller
         if saved is not None:
             saved.restore(robot)
+        kind = kind_of(message)
+        key = engine.keys.robot(robot.robot_id, kind)
         text = (
             f"{kind} {message.stamp_ns} not applied: {type(err).__name__}: {str(err)[:200]}"
             f"{where(err)}; the robot's state is as before it"
@@ -202,55 +206,38 @@ def _over(name: str, value: float, limit: float, setting: str, unit: str) -> str
 def check_input(message: Message, limits: Limits) -> str | None:
     """The first field of ``message`` over a limit, as an Event message; ``None`` if none is.
 
+    Every input of every robot passes here: the numbers are compared first, and a message is
+    written only for an input over a limit.
+
     Args:
         message: a validated input.
         limits: what the service accepts.
     """
-    kind = type(message).__name__
     lim = limits
     if isinstance(message, LaserScan):
         n = len(message.ranges)
-        if n > lim.max_beams:
-            return (
-                f"{kind}.ranges has {n} beams; at most {lim.max_beams} are accepted "
-                "(limits.max_beams)"
-            )
         inc = message.angle_increment
-        if abs(inc) < lim.min_angle_increment:
-            return (
-                f"{kind}.angle_increment {inc!r} is below the smallest usable |increment| "
-                f"{lim.min_angle_increment:g} rad (limits.min_angle_increment)"
-            )
-        sweep = abs(inc) * (n - 1)
-        if sweep > lim.max_sweep:
-            return (
-                f"{kind}.angle_increment {inc!r} times {n - 1} spans {sweep:g} rad; at most "
-                f"{lim.max_sweep:g} rad are accepted (limits.max_sweep)"
-            )
         off = message.sensor_offset
-        checks = [
-            _over(f"{kind}.angle_min", message.angle_min, lim.max_angle, "limits.max_angle", "rad"),
-            _over(
-                f"{kind}.sensor_offset.x",
-                off.x,
-                lim.max_sensor_offset,
-                "limits.max_sensor_offset",
-                "m",
-            ),
-            _over(
-                f"{kind}.sensor_offset.y",
-                off.y,
-                lim.max_sensor_offset,
-                "limits.max_sensor_offset",
-                "m",
-            ),
-            _over(
-                f"{kind}.sensor_offset.theta", off.theta, lim.max_angle, "limits.max_angle", "rad"
-            ),
-        ]
-        return next((c for c in checks if c is not None), None)
+        if (
+            n <= lim.max_beams
+            and abs(inc) >= lim.min_angle_increment
+            and abs(inc) * (n - 1) <= lim.max_sweep
+            and abs(message.angle_min) <= lim.max_angle
+            and abs(off.x) <= lim.max_sensor_offset
+            and abs(off.y) <= lim.max_sensor_offset
+            and abs(off.theta) <= lim.max_angle
+        ):
+            return None
+        return _scan_over(message, lim)
     if isinstance(message, Odometry | InitialPose):
         coordinate, angle = lim.max_coordinate, lim.max_angle
+        if (
+            abs(message.x) <= coordinate
+            and abs(message.y) <= coordinate
+            and abs(message.theta) <= angle
+        ):
+            return None
+        kind = type(message).__name__
         checks = [
             _over(f"{kind}.x", message.x, coordinate, "limits.max_coordinate", "m"),
             _over(f"{kind}.y", message.y, coordinate, "limits.max_coordinate", "m"),
@@ -260,9 +247,44 @@ def check_input(message: Message, limits: Limits) -> str | None:
     region = message.region
     if region is None:
         return None
+    kind = type(message).__name__
     checks = [
         _over(f"{kind}.region.{name}", value, lim.max_coordinate, "limits.max_coordinate", "m")
         for name, value in (("x", region.x), ("y", region.y), ("radius", region.radius))
+    ]
+    return next((c for c in checks if c is not None), None)
+
+
+def _scan_over(message: LaserScan, lim: Limits) -> str | None:
+    """The first field of a scan over a limit, as an Event message (:func:`check_input`)."""
+    kind = type(message).__name__
+    n = len(message.ranges)
+    if n > lim.max_beams:
+        return (
+            f"{kind}.ranges has {n} beams; at most {lim.max_beams} are accepted (limits.max_beams)"
+        )
+    inc = message.angle_increment
+    if abs(inc) < lim.min_angle_increment:
+        return (
+            f"{kind}.angle_increment {inc!r} is below the smallest usable |increment| "
+            f"{lim.min_angle_increment:g} rad (limits.min_angle_increment)"
+        )
+    sweep = abs(inc) * (n - 1)
+    if sweep > lim.max_sweep:
+        return (
+            f"{kind}.angle_increment {inc!r} times {n - 1} spans {sweep:g} rad; at most "
+            f"{lim.max_sweep:g} rad are accepted (limits.max_sweep)"
+        )
+    off = message.sensor_offset
+    checks = [
+        _over(f"{kind}.angle_min", message.angle_min, lim.max_angle, "limits.max_angle", "rad"),
+        _over(
+            f"{kind}.sensor_offset.x", off.x, lim.max_sensor_offset, "limits.max_sensor_offset", "m"
+        ),
+        _over(
+            f"{kind}.sensor_offset.y", off.y, lim.max_sensor_offset, "limits.max_sensor_offset", "m"
+        ),
+        _over(f"{kind}.sensor_offset.theta", off.theta, lim.max_angle, "limits.max_angle", "rad"),
     ]
     return next((c for c in checks if c is not None), None)
 
@@ -331,22 +353,28 @@ class Snapshot:
     """
 
     def __init__(self, robot: Any) -> None:
-        self.fields = {k: _copied(v) for k, v in vars(robot).items()}
-        self.episode = copy.copy(robot.episode)
+        fields = dict(vars(robot))
+        for name, value in fields.items():
+            if isinstance(value, _COPIED):
+                fields[name] = value.copy()
+        self.fields = fields
+        episode = robot.episode
+        self.episode = None if episode is None else copy.copy(episode)
         loc = robot.localizer
         self.localizer = loc
         self.loc_fields: dict[str, Any] = {}
         self.generators: dict[str, Any] = {}
         if loc is None:
             return
-        for name, value in vars(loc).items():
+        loc_fields = self.loc_fields = dict(vars(loc))
+        for name, value in loc_fields.items():
             if isinstance(value, np.random.Generator):
                 self.generators[name] = value.bit_generator.state
-                self.loc_fields[name] = value
-            elif name == _RELOCALIZATION and value is not None:  # changed in place: copied
-                self.loc_fields[name] = copy.deepcopy(value, {id(value.world): value.world})
-            else:
-                self.loc_fields[name] = value
+        following = loc_fields.get(_RELOCALIZATION)
+        if following is not None:  # changed in place: copied
+            loc_fields[_RELOCALIZATION] = copy.deepcopy(
+                following, {id(following.world): following.world}
+            )
 
     def restore(self, robot: Any) -> None:
         """Put the robot back as it was when the snapshot was taken."""
@@ -359,11 +387,3 @@ class Snapshot:
         vars(loc).update(self.loc_fields)
         for name, state in self.generators.items():
             getattr(loc, name).bit_generator.state = state
-
-
-def _copied(value: Any) -> Any:
-    if isinstance(value, list):
-        return list(value)
-    if isinstance(value, dict):
-        return dict(value)
-    return value

@@ -64,6 +64,7 @@ def _bad_inputs(run: Run, i: int) -> list[tuple[str, Any]]:
         ("angle_increment", _scan(run, i, angle_increment=1e300)),
         ("angle_min", _scan(run, i, angle_min=1e308)),
         ("sensor_offset.x", _scan(run, i, sensor_offset={"x": 1e308, "y": 0, "theta": 0})),
+        ("sensor_offset.y", _scan(run, i, sensor_offset={"x": 0, "y": -1e200, "theta": 0})),
         ("sensor_offset.theta", _scan(run, i, sensor_offset={"x": 0, "y": 0, "theta": -1e300})),
         ("ranges", _scan(run, i, ranges=[3.0] * 8000, angle_increment=2 * math.pi / 8000)),
         ("x", Odometry(stamp_ns=stamp, x=1e308, y=0.0, theta=0.0)),
