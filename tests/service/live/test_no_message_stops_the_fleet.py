@@ -17,6 +17,7 @@ from service_harness import JSON, Bench, Collector, SimRobot, running_bench, sim
 
 from schemas import PoseEstimate, encode
 from service.cluster.membership import owner_of
+from service.live import intake
 from service.logs.replay import replay
 
 pytestmark = pytest.mark.integration
@@ -223,9 +224,12 @@ def test_a_forged_pose_and_a_fake_instance_never_give_a_confident_wrong_pose(
             s.undeclare()
 
 
-def test_idle_robots_are_evicted_and_robot_ids_are_bounded(tmp_path: Path) -> None:
+def test_idle_robots_are_evicted_and_robot_ids_are_bounded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # (A first seen robot's pose is looked for on the bus first: a short timeout keeps the
     # 50 lookups short.)
+    monkeypatch.setattr(intake, "KEYS_SPLIT", 64)  # the keys the intake keeps split, bounded
     with running_bench(tmp_path, robot_idle_s=1.0, max_robots=50, handover_timeout_s=0.05) as bench:
         col = Collector()
         subs = [
@@ -241,6 +245,7 @@ def test_idle_robots_are_evicted_and_robot_ids_are_bounded(tmp_path: Path) -> No
             )
         assert col.wait_for(lambda: any(e["code"] == "robot_limit" for e in col.on("rlutf/events")))
         assert bench.service.robots_held() <= 50
+        assert 0 < len(bench.service.intake._split) <= 64
         assert col.wait_for(lambda: bench.service.robots_held() == 0, 30.0)
 
         def evictions() -> int:
