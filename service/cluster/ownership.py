@@ -38,10 +38,11 @@ import logging
 import queue
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
+from service.cluster.followed import FollowedPoses
 from service.cluster.membership import Membership
 from service.keys import MODELS, InputKind, Message
 
@@ -110,10 +111,7 @@ class Ownership:
         self._active: set[str] = set()
         self._held: dict[str, list[tuple[InputKind, bytes, Message]]] = {}
         self._last_in: dict[str, int] = {}
-        self._poses: dict[str, PoseEstimate] = {}
-        # This instance's own poses as its engine encoded them, stamp first, decoded only when
-        # a seed needs one (:meth:`_pose`). A robot is in _poses or _own, never in both.
-        self._own: dict[str, tuple[int, bytes]] = {}
+        self.followed = FollowedPoses(clock, self.lock)
         self._tails: dict[str, deque[_Odom]] = {}
         self._placed: dict[str, tuple[bytes, InitialPose]] = {}
         self._max_age_ns = resume_max_age_ns
@@ -126,11 +124,6 @@ class Ownership:
         self.held_dropped = 0
         self.resumed = 0
         self.resumed_relocalize = 0
-        self.poses_rejected = 0
-        #: Poses stamped further ahead of the clock are not followed (None: no bound).
-        self.max_ahead_ns: int | None = None
-        #: Robots whose poses and odometry are followed at most (others' are ignored).
-        self.max_robots: int | None = None
         membership.on_change = self.rebalance
 
     # ------------------------------------------------------------------------ lifecycle
@@ -148,98 +141,28 @@ class Ownership:
 
     # ------------------------------------------------------------------------ followers
     def follow_pose(self, robot: str, payload: bytes, max_bytes: int) -> str | None:
-        """Keep a pose put on the bus (by any instance) if it is the robot's newest.
-
-        Returns:
-            Why the pose was rejected when its stamp is too far ahead of the clock (a pose
-            is kept by stamp, so a forged far-future one would be every later seed), else
-            ``None``.
-        """
-        try:
-            pose = decode(PoseEstimate, payload, max_bytes=max_bytes)
-        except SchemaError:
-            return None
-        if pose.robot_id != robot:
-            return None
-        if not self._trusted(pose):
-            ahead = (pose.stamp_ns - self._clock()) / 1e9
-            return (
-                f"pose stamped {ahead:.3g} s ahead of the service's clock not followed: a seed "
-                "comes only from a pose stamped no later than now (max_stamp_ahead_s)"
-            )
-        self.remember(pose)
-        return None
+        """Keep a pose put on the bus (by any instance) if it is the robot's newest
+        (:meth:`service.cluster.followed.FollowedPoses.follow`: why it was not, if its stamp is
+        too far ahead of the clock)."""
+        return self.followed.follow(robot, payload, max_bytes)
 
     def follow_own_pose(self, robot: str, payload: bytes, stamp_ns: int) -> None:
-        """Keep a pose this instance published for ``robot`` if it is the robot's newest.
-
-        As :meth:`follow_pose`, without decoding it: ``payload`` is the PoseEstimate the
-        engine encoded, stamped ``stamp_ns``, and is decoded only if a seed needs it (the robot
-        comes back after a handover), not once per scan.
-        """
-        with self.lock:
-            if self.max_ahead_ns is not None and stamp_ns - self._clock() > self.max_ahead_ns:
-                self.poses_rejected += 1
-                return
-            own = self._own.get(robot)
-            held = self._poses.get(robot) if own is None else None
-            if own is None and held is None and self._full(self._poses, len(self._own)):
-                return
-            if (own is not None and stamp_ns < own[0]) or (
-                held is not None and stamp_ns < held.stamp_ns
-            ):
-                return
-            if held is not None:
-                del self._poses[robot]
-            self._own[robot] = (stamp_ns, payload)
-
-    def _pose(self, robot: str) -> PoseEstimate | None:
-        """The newest pose followed for ``robot`` (lock held); decodes an own one."""
-        own = self._own.pop(robot, None)
-        if own is None:
-            return self._poses.get(robot)
-        try:
-            pose = decode(PoseEstimate, own[1], max_bytes=len(own[1]))
-        except SchemaError:  # the engine's own encoding: only a bug gets here
-            log.exception("%s: its last pose is unreadable", robot)
-            return None
-        self._poses[robot] = pose
-        return pose
-
-    def _trusted(self, pose: PoseEstimate) -> bool:
-        if self.max_ahead_ns is None or pose.stamp_ns - self._clock() <= self.max_ahead_ns:
-            return True
-        self.poses_rejected += 1
-        return False
+        """Keep a pose this instance published for ``robot`` if it is the robot's newest
+        (encoded, stamped ``stamp_ns``; decoded only if a seed needs it)."""
+        self.followed.follow_own(robot, payload, stamp_ns)
 
     def remember(self, *poses: PoseEstimate) -> None:
         """Keep each robot's pose if it is the newest known (and not stamped in the future)."""
-        with self.lock:
-            for pose in poses:
-                robot = pose.robot_id
-                own = self._own.get(robot)
-                held = self._poses.get(robot)
-                if held is None and own is None and self._full(self._poses, len(self._own)):
-                    continue
-                if not self._trusted(pose):
-                    continue
-                newest = own[0] if own is not None else held.stamp_ns if held is not None else None
-                if newest is None or pose.stamp_ns >= newest:
-                    self._own.pop(robot, None)
-                    self._poses[robot] = pose
-
-    def _full(self, held: Mapping[str, object], more: int = 0) -> bool:
-        return self.max_robots is not None and len(held) + more >= self.max_robots
+        self.followed.remember(*poses)
 
     def forget(self, robot: str) -> None:
         """Drop everything held for ``robot`` (evicted: it sent nothing for long)."""
         with self.lock:
             self._active.discard(robot)
+            self.followed.forget(robot)
             for held in (
                 self._held,
                 self._last_in,
-                self._poses,
-                self._own,
                 self._tails,
                 self._placed,
                 self._restored,
@@ -257,7 +180,7 @@ class Ownership:
         robot = pose.robot_id
         with self.lock:
             self.remember(pose)
-            if self._poses.get(robot) is not pose:
+            if self.followed.poses.get(robot) is not pose:
                 return  # a newer pose is known already (followed on the bus)
             self._restored[robot] = (pose.stamp_ns, published_ns)
             tail = self._tails.setdefault(robot, deque(maxlen=TAIL_MAX))
@@ -267,7 +190,7 @@ class Ownership:
     def last_pose(self, robot: str) -> PoseEstimate | None:
         """The newest pose followed for ``robot``."""
         with self.lock:
-            return self._pose(robot)
+            return self.followed.newest(robot)
 
     def owns(self, robot: str) -> bool:
         """Whether this instance owns ``robot`` now (never before :attr:`ready`)."""
@@ -290,7 +213,7 @@ class Ownership:
             with self.lock:
                 tail = self._tails.get(robot)
                 if tail is None:
-                    if self._full(self._tails):
+                    if self.followed.full(self._tails):
                         return
                     tail = self._tails[robot] = deque(maxlen=TAIL_MAX)
                 tail.append(_Odom(now, bytes(payload), None, max_bytes))
@@ -349,8 +272,8 @@ class Ownership:
         if kind == "initialpose":  # the operator places it: nothing to seed
             self._placed.pop(robot, None)
             self._seed(robot, message.stamp_ns, None)
-        elif robot in self._poses or robot in self._own or robot in self._placed:
-            self._start_from(robot, self._pose(robot))
+        elif self.followed.holds(robot) or robot in self._placed:
+            self._start_from(robot, self.followed.newest(robot))
         else:
             self._held[robot] = [(kind, payload, message)]
             self._fetches.put(robot)
@@ -421,9 +344,9 @@ class Ownership:
             if held is None:
                 return  # released meanwhile
             self.fetched += found is not None
-            pose = self._pose(robot)
+            pose = self.followed.newest(robot)
             if found is not None and (pose is None or found.stamp_ns > pose.stamp_ns):
-                pose = self._poses[robot] = found
+                pose = self.followed.poses[robot] = found
             first_kind, _, first = held[0]
             if first_kind == "initialpose":
                 self._placed.pop(robot, None)
@@ -484,7 +407,7 @@ class Ownership:
                 "handover_held_dropped": self.held_dropped,
                 "resumed": self.resumed,
                 "resumed_relocalize": self.resumed_relocalize,
-                "poses_rejected": self.poses_rejected,
+                "poses_rejected": self.followed.rejected,
             }
 
 

@@ -194,8 +194,8 @@ class LocalizationService:
                 self.keys,
             )
         self.gate = Gate(self.clock, int(settings.max_stamp_ahead_s * 1e9), settings.max_robots)
-        self.ownership.max_ahead_ns = self.gate.max_ahead_ns
-        self.ownership.max_robots = settings.max_robots
+        self.ownership.followed.max_ahead_ns = self.gate.max_ahead_ns
+        self.ownership.followed.max_robots = settings.max_robots
         self.sweeper = Sweeper(
             self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
         )

@@ -274,8 +274,8 @@ def test_own_poses_are_kept_undecoded_and_seed_as_followed_ones_do() -> None:
 
 def test_own_poses_count_against_the_robot_bound_and_the_stamp_bound() -> None:
     own, _ = _ownership(Membership("a"))
-    own.max_robots = 2
-    own.max_ahead_ns = 1_000_000  # the test clock counts from 1,000
+    own.followed.max_robots = 2
+    own.followed.max_ahead_ns = 1_000_000  # the test clock counts from 1,000
     own.follow_own_pose("r1", encode(_pose("r1", 10)), 10)
     own.follow_pose("r2", encode(_pose("r2", 10)), LIMIT)
     own.follow_own_pose("r3", encode(_pose("r3", 10)), 10)  # two robots held already

@@ -1,0 +1,172 @@
+"""The newest pose of every robot, followed on the bus, for the seed of a robot handed over.
+
+Every instance follows every robot's pose puts (:class:`service.cluster.ownership.Ownership`
+seeds a robot it acquires from the robot's last pose). A pose is kept by its stamp: the newest
+stays, and one stamped further ahead of the service's clock than ``max_stamp_ahead_s`` is not
+followed (a forged far-future pose would otherwise be every later seed).
+
+Most poses are never used: a robot is handed over rarely, and its pose changes ten times a
+second. So a pose as this service encodes it (:func:`schemas.fastpose.encode_pose`: the stamp
+and the robot id first), this instance's own as the engine wrote it and every other instance's
+as it came, is kept as bytes and decoded only when a seed needs it; other encodings (another
+tool's PoseEstimate, fields in another order) are decoded when they arrive.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+from collections.abc import Callable, Mapping
+
+from schemas import PoseEstimate, SchemaError, decode
+
+log = logging.getLogger(__name__)
+
+#: The head of a PoseEstimate as this service encodes it (:func:`schemas.fastpose.encode_pose`):
+#: its stamp and robot id, read without decoding the rest.
+_POSE_HEAD = re.compile(rb'\{"stamp_ns":([0-9]{1,19}),"robot_id":"([A-Za-z0-9_-]{1,64})",')
+
+
+class FollowedPoses:
+    """The newest pose followed per robot (decoded, or kept as encoded until a seed needs it).
+
+    Args:
+        clock: the service's receive clock, ns.
+        lock: the lock its owner holds around it (every method takes it).
+    """
+
+    def __init__(self, clock: Callable[[], int], lock: threading.RLock) -> None:
+        self._clock = clock
+        self.lock = lock
+        self.poses: dict[str, PoseEstimate] = {}
+        # Poses kept as they were encoded: stamp, payload, whether this instance encoded it. A
+        # robot is in poses or in encoded, never in both.
+        self.encoded: dict[str, tuple[int, bytes, bool]] = {}
+        self.rejected = 0
+        #: Poses stamped further ahead of the clock are not followed (None: no bound).
+        self.max_ahead_ns: int | None = None
+        #: Robots whose poses are followed at most (others' are ignored).
+        self.max_robots: int | None = None
+
+    def follow(self, robot: str, payload: bytes, max_bytes: int) -> str | None:
+        """Keep a pose put on the bus (by any instance) if it is the robot's newest.
+
+        Returns:
+            Why the pose was rejected when its stamp is too far ahead of the clock, else
+            ``None`` (kept, older than the one held, or not a pose of ``robot``).
+        """
+        if len(payload) > max_bytes:
+            return None
+        head = _POSE_HEAD.match(payload)
+        if head is not None and head[2] == robot.encode():
+            stamp_ns = int(head[1])
+            if self._ahead(stamp_ns):
+                return _too_far_ahead(stamp_ns - self._clock())
+            self._keep_encoded(robot, stamp_ns, payload, mine=False)
+            return None
+        try:
+            pose = decode(PoseEstimate, payload, max_bytes=max_bytes)
+        except SchemaError:
+            return None
+        if pose.robot_id != robot:
+            return None
+        if self._ahead(pose.stamp_ns):
+            return _too_far_ahead(pose.stamp_ns - self._clock())
+        self.remember(pose)
+        return None
+
+    def follow_own(self, robot: str, payload: bytes, stamp_ns: int) -> None:
+        """Keep a pose this instance published for ``robot`` (``payload`` as the engine encoded
+        it, stamped ``stamp_ns``) if it is the robot's newest, without decoding it."""
+        if not self._ahead(stamp_ns):
+            self._keep_encoded(robot, stamp_ns, payload, mine=True)
+
+    def _ahead(self, stamp_ns: int) -> bool:
+        """Whether a pose so stamped is too far ahead of the clock (and counted if so)."""
+        if self.max_ahead_ns is None or stamp_ns - self._clock() <= self.max_ahead_ns:
+            return False
+        with self.lock:
+            self.rejected += 1
+        return True
+
+    def _keep_encoded(self, robot: str, stamp_ns: int, payload: bytes, mine: bool) -> None:
+        with self.lock:
+            kept = self.encoded.get(robot)
+            held = self.poses.get(robot) if kept is None else None
+            if kept is None and held is None and self.full(self.poses, len(self.encoded)):
+                return
+            if (kept is not None and stamp_ns < kept[0]) or (
+                held is not None and stamp_ns < held.stamp_ns
+            ):
+                return
+            if held is not None:
+                del self.poses[robot]
+            self.encoded[robot] = (stamp_ns, payload, mine)
+
+    def remember(self, *poses: PoseEstimate) -> None:
+        """Keep each robot's pose if it is the newest known (and not stamped in the future)."""
+        with self.lock:
+            for pose in poses:
+                robot = pose.robot_id
+                kept = self.encoded.get(robot)
+                held = self.poses.get(robot)
+                if held is None and kept is None and self.full(self.poses, len(self.encoded)):
+                    continue
+                if self._ahead(pose.stamp_ns):
+                    continue
+                newest = (
+                    kept[0] if kept is not None else held.stamp_ns if held is not None else None
+                )
+                if newest is None or pose.stamp_ns >= newest:
+                    self.encoded.pop(robot, None)
+                    self.poses[robot] = pose
+
+    def full(self, held: Mapping[str, object], more: int = 0) -> bool:
+        """Whether ``held`` (with ``more``) is at :attr:`max_robots`."""
+        return self.max_robots is not None and len(held) + more >= self.max_robots
+
+    def holds(self, robot: str) -> bool:
+        """Whether a pose of ``robot`` is held."""
+        return robot in self.poses or robot in self.encoded
+
+    def newest(self, robot: str) -> PoseEstimate | None:
+        """The newest pose followed for ``robot``, decoded (and kept so) if it was encoded.
+
+        A pose of another instance whose head was this service's and whose rest does not
+        decode (or names another stamp or robot) is no seed: ``None``, with a warning.
+        """
+        with self.lock:
+            kept = self.encoded.pop(robot, None)
+            if kept is None:
+                return self.poses.get(robot)
+            stamp_ns, payload, mine = kept
+            try:
+                pose = decode(PoseEstimate, payload, max_bytes=len(payload))
+            except SchemaError as err:
+                if mine:  # the engine's own encoding: only a bug gets here
+                    log.exception("%s: its last pose is unreadable", robot)
+                else:
+                    log.warning(
+                        "%s: the last pose followed on the bus is unreadable: %s", robot, err
+                    )
+                return None
+            if pose.robot_id != robot or pose.stamp_ns != stamp_ns:
+                log.warning("%s: the last pose followed on the bus contradicts its head", robot)
+                return None
+            self.poses[robot] = pose
+            return pose
+
+    def forget(self, robot: str) -> None:
+        """Drop the pose held for ``robot``."""
+        with self.lock:
+            self.poses.pop(robot, None)
+            self.encoded.pop(robot, None)
+
+
+def _too_far_ahead(ahead_ns: int) -> str:
+    """Why a pose stamped ``ahead_ns`` ahead of the clock is not followed."""
+    return (
+        f"pose stamped {ahead_ns / 1e9:.3g} s ahead of the service's clock not followed: a seed "
+        "comes only from a pose stamped no later than now (max_stamp_ahead_s)"
+    )
