@@ -209,6 +209,15 @@ class Settings(BaseSettings):
         "'loop', a Zenoh FIFO channel that one thread drains (with --workers 0 that thread "
         "also runs the robots' updates: no thread hand-off per input).",
     )
+    intake_wait_s: float = Field(
+        0.01,
+        ge=0.0001,
+        le=0.1,
+        description="With intake 'loop' (each process of the default layout): how long the "
+        "loop waits, once it has taken in and answered everything, before it looks again. "
+        "What comes meanwhile is answered in one round, back to back, which costs less CPU per "
+        "scan than answering each scan as it comes, at up to this much more latency.",
+    )
     processes: int = Field(
         -1,
         ge=-1,

@@ -13,9 +13,14 @@ ready batches for :data:`RUN_BUDGET_S` at most (one at least) before it drains i
 that under overload it is the mailboxes, which count what they drop, that absorb the excess,
 not the channel. The channel holds :data:`CAPACITY` samples, a fraction of a second of a fleet.
 
-When nothing arrived and nothing was ready, the thread sleeps a little, a little longer each
-time up to :data:`IDLE_WAITS`'s last (5 ms): a control message (a new map) from another thread
-is applied within that long.
+When nothing arrived and nothing was ready, the thread waits ``wait_s`` (the ``intake_wait_s``
+setting, 10 ms by default) before it looks again: what came meanwhile is taken in and answered
+in one round, back to back. Updates run so cost less CPU than updates run one at a time as
+their scans come (fewer wake-ups of the thread, and the localizer's code and data still in the
+caches from the update before: about a tenth of the service's CPU per scan at 200 robots,
+BENCHMARKS.md, "Inputs taken in rounds"), at up to ``wait_s`` more latency. Under load the loop
+does not wait at all. A control message (a new map) from another thread is applied within that
+long too.
 """
 
 from __future__ import annotations
@@ -50,8 +55,8 @@ BATCH = CAPACITY
 #: batches a round did is within the run-to-run spread so far: BENCHMARKS.md, "Fleet: processes
 #: behind one host").
 RUN_BUDGET_S = 0.02
-#: Sleeps of an idle loop, seconds, one after another (the last repeats).
-IDLE_WAITS = (0.0002, 0.0005, 0.001, 0.002, 0.005)
+#: Seconds an idle loop waits before it looks again (the ``intake_wait_s`` setting's default).
+WAIT_S = 0.01
 
 
 class InputLoop:
@@ -62,6 +67,7 @@ class InputLoop:
         shard: the shard whose batches this thread runs, if the robots run in this process.
         poses: where the poses of those batches go out: their puts are held and put together
             after each batch once the oldest is :data:`HOLD_S` old, and at the end of a round.
+        wait_s: how long the loop waits when it has taken in and answered everything.
     """
 
     def __init__(
@@ -69,10 +75,12 @@ class InputLoop:
         on_sample: Callable[[zenoh.Sample], None],
         shard: LoopShard | None,
         poses: PoseOut | None = None,
+        wait_s: float = WAIT_S,
     ) -> None:
         self._on_sample = on_sample
         self._shard = shard
         self._poses = poses
+        self._wait_s = wait_s
         self._sub: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -97,7 +105,6 @@ class InputLoop:
         return taken
 
     def _run(self) -> None:
-        idle = 0
         shard = self._shard
         poses = self._poses
         after: Callable[[], object] | None = None
@@ -110,11 +117,8 @@ class InputLoop:
             ran = shard.run_ready(until=until, after_batch=after) if shard is not None else 0
             if poses is not None:
                 poses.release()
-            if taken or ran:
-                idle = 0
-            else:
-                self._stop.wait(IDLE_WAITS[idle])
-                idle = min(idle + 1, len(IDLE_WAITS) - 1)
+            if not taken and not ran:
+                self._stop.wait(self._wait_s)
         while self._take():  # what arrived before the stop is taken in, not lost
             pass
         if poses is not None:
@@ -147,9 +151,10 @@ class Inputs:
         shard: LoopShard | None,
         intake: str = "callback",
         poses: PoseOut | None = None,
+        wait_s: float = WAIT_S,
     ) -> None:
         self._on_sample = on_sample
-        self.loop = InputLoop(on_sample, shard, poses) if intake == "loop" else None
+        self.loop = InputLoop(on_sample, shard, poses, wait_s) if intake == "loop" else None
         self._sub: Any = None
 
     def start(self, session: zenoh.Session, key: str) -> None:

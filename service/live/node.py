@@ -150,7 +150,8 @@ class LocalizationService:
             poses=self.out,
             stop=stop,
         )
-        self.inputs = Inputs(self._on_robot_sample, self.dispatcher.loop, settings.intake, self.out)
+        on_sample, wait_s = self._on_robot_sample, settings.intake_wait_s
+        self.inputs = Inputs(on_sample, self.dispatcher.loop, settings.intake, self.out, wait_s)
         self.mapfeed = MapFeed(
             self.keys,
             self.maps,
