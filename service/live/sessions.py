@@ -16,6 +16,10 @@ import zenoh
 
 from service.config import Settings
 
+#: Batches (64 kB each) a link's send queue holds per data priority (zenoh's maximum; its default
+#: is 2).
+TX_QUEUE_BATCHES = 16
+
 
 def session_config(
     mode: str,
@@ -27,11 +31,16 @@ def session_config(
 ) -> zenoh.Config:
     """A zenoh configuration: ``file`` if given, then these settings on top.
 
-    Without a file, zenoh's shared-memory transport is off: with it on, every session on this
-    host that puts a message over 3 kB makes a 16 MB shared pool that each session it reaches
-    maps, which is resident memory in both (20 simulated robots on one host took a router from
-    67 to 394 MB); over the network it does nothing. With a file, the file decides (zenoh's
-    default: on).
+    Without a file, each link's send queue holds :data:`TX_QUEUE_BATCHES` batches of data (zenoh's
+    default: 2), and zenoh's shared-memory transport is off. A router drops a robot's sample
+    (sent with congestion control ``drop``, as robots send scans) when the link to a subscriber
+    has been full for a millisecond; with 2 batches of 64 kB, a service process descheduled for
+    about 10 ms on a busy host lost a burst of scans that no part of the service ever saw
+    (BENCHMARKS.md, "Scans lost on the host's own links"). Queues are allocated as they fill.
+    With shared memory on, every session on this host that puts a message over 3 kB makes a 16 MB
+    shared pool that each session it reaches maps, which is resident memory in both (20
+    simulated robots on one host took a router from 67 to 394 MB); over the network it does
+    nothing. With a file, the file decides both (zenoh's defaults: 2 batches, shared memory on).
 
     Args:
         mode: ``router``, ``peer`` or ``client``.
@@ -43,6 +52,8 @@ def session_config(
     cfg = zenoh.Config.from_file(str(file)) if file else (zenoh.Config())
     if file is None:
         cfg.insert_json5("transport/shared_memory/enabled", "false")
+        for priority in ("data", "data_high"):  # robots' inputs; the service's poses
+            cfg.insert_json5(f"transport/link/tx/queue/size/{priority}", str(TX_QUEUE_BATCHES))
     cfg.insert_json5("mode", json.dumps(mode))
     if listen and mode != "client":
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))

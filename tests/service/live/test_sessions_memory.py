@@ -4,12 +4,14 @@ reaches; the service's processes and simulated robots share a host."""
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
 
-from service.live.sessions import client_config, free_port, session_config
+from service.live.sessions import TX_QUEUE_BATCHES, client_config, free_port, session_config
 
 pytestmark = pytest.mark.integration
 
@@ -59,3 +61,22 @@ def test_sessions_on_one_host_share_no_memory_pools() -> None:
 def test_with_zenohs_default_they_would() -> None:
     """The measure above can fail: zenoh's own default maps 16 MB a session."""
     assert _shared_after_puts(f"tcp/127.0.0.1:{free_port()}", zenoh_default=True) >= 16.0
+
+
+def test_links_queue_a_fleets_bursts_unless_a_file_says_otherwise(tmp_path: Path) -> None:
+    """A router drops a sample sent with congestion control "drop" once the link to a
+    subscriber has been full for a millisecond: each link holds 16 batches of data (zenoh's
+    default, 2, lost bursts of scans on a busy host: BENCHMARKS.md, "Scans lost on the host's
+    own links")."""
+    for config in (
+        session_config("router", listen=["tcp/127.0.0.1:0"]),
+        client_config("tcp/127.0.0.1:7447"),
+    ):
+        sizes = json.loads(config.get_json("transport/link/tx/queue/size"))
+        assert sizes["data"] == sizes["data_high"] == TX_QUEUE_BATCHES == 16
+    with zenoh.open(session_config("router", listen=[f"tcp/127.0.0.1:{free_port()}"])):
+        pass  # zenoh takes it
+    file = tmp_path / "zenoh.json5"
+    file.write_text("{ transport: { shared_memory: { enabled: false } } }")
+    sizes = json.loads(session_config("router", file=file).get_json("transport/link/tx/queue/size"))
+    assert sizes["data"] == 2  # the file decides
