@@ -33,6 +33,9 @@ from typing import Any
 ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 PREFIX = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
 
+#: Each link queues 16 batches of data (zenoh's maximum; its default is 2): a router drops a
+#: robot's scan once the link to a subscriber has been full for 1 ms (as deploy/zenoh/router.json5).
+LINK_TX = {"queue": {"size": {"data": 16, "data_high": 16}}}
 SERVICE = "rlutf-service"
 OPERATOR = "rlutf-operator"
 ROUTER = "zenoh-router"
@@ -186,10 +189,14 @@ def router_config(
                     "connect_private_key": f"{certs}/router.key",
                     "enable_mtls": True,
                 },
+                "tx": LINK_TX,
             }
         }
     else:
-        transport = {"auth": {"usrpwd": {"dictionary_file": users_file}}}
+        transport = {
+            "auth": {"usrpwd": {"dictionary_file": users_file}},
+            "link": {"tx": LINK_TX},
+        }
     return {
         "mode": "router",
         "listen": {"endpoints": listen},

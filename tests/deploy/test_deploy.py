@@ -483,6 +483,25 @@ def test_router_secure_is_the_generator_output() -> None:
     assert "python3 deploy/gen-acl.py r1 r2 r3 -o" in committed
 
 
+def test_every_zenoh_file_queues_a_fleets_bursts_on_each_link() -> None:
+    """Each link of the deployment's sessions queues 16 batches of data, as rlutf serve's own
+    sessions do without a file: zenoh's default, 2, let a router drop a burst of robots' scans
+    unseen by the service (BENCHMARKS.md, "Scans lost on the host's own links")."""
+    import zenoh
+
+    from service.live.sessions import TX_QUEUE_BATCHES
+
+    gen = load_gen_acl()
+    usrpwd = gen.router_config(["r1"], auth="usrpwd")
+    configs = [zenoh.Config.from_file(str(ZENOH_DIR / name)) for name in (
+        "router.json5", "router-secure.json5", "service-client.json5",
+        "service-client-secure.json5",
+    )] + [zenoh.Config.from_json5(json.dumps(usrpwd))]  # fmt: skip
+    for config in configs:
+        sizes = json.loads(config.get_json("transport/link/tx/queue/size"))
+        assert sizes["data"] == sizes["data_high"] == TX_QUEUE_BATCHES
+
+
 def test_gen_acl_rejects_bad_robot_ids(capsys: pytest.CaptureFixture[str]) -> None:
     gen = load_gen_acl()
     for bad in ("r*", "a/b", "x" * 65, ""):
