@@ -20,6 +20,8 @@ from schemas.codec import encode
 from schemas.messages import Hypothesis, PoseEstimate
 
 _ID = re.compile(ID_PATTERN)
+#: The head every payload of :func:`encode_pose` starts with: its stamp and robot id.
+_HEAD = re.compile(rb'\{"stamp_ns":([0-9]{1,19}),"robot_id":"(' + ID_PATTERN.encode() + rb')",')
 _STATUSES = frozenset(("tracking", "corrected", "lost"))
 _repr = float.__repr__
 
@@ -103,3 +105,13 @@ def encode_pose(
             deviation_range=deviation_range,
         )
     )
+
+
+def read_head(payload: bytes) -> tuple[int, str] | None:
+    """The stamp and robot id at the head of a PoseEstimate written as :func:`encode_pose` (and
+    :func:`schemas.encode`) writes it, without decoding the rest; ``None`` for any other text.
+
+    Only the head is read: the rest may still not be a PoseEstimate (decode it to know).
+    """
+    head = _HEAD.match(payload)
+    return None if head is None else (int(head[1]), head[2].decode())

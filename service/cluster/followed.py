@@ -15,17 +15,13 @@ tool's PoseEstimate, fields in another order) are decoded when they arrive.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 from collections.abc import Callable, Mapping
 
 from schemas import PoseEstimate, SchemaError, decode
+from schemas.fastpose import read_head
 
 log = logging.getLogger(__name__)
-
-#: The head of a PoseEstimate as this service encodes it (:func:`schemas.fastpose.encode_pose`):
-#: its stamp and robot id, read without decoding the rest.
-_POSE_HEAD = re.compile(rb'\{"stamp_ns":([0-9]{1,19}),"robot_id":"([A-Za-z0-9_-]{1,64})",')
 
 
 class FollowedPoses:
@@ -58,9 +54,9 @@ class FollowedPoses:
         """
         if len(payload) > max_bytes:
             return None
-        head = _POSE_HEAD.match(payload)
-        if head is not None and head[2] == robot.encode():
-            stamp_ns = int(head[1])
+        head = read_head(payload)
+        if head is not None and head[1] == robot:
+            stamp_ns = head[0]
             if self._ahead(stamp_ns):
                 return _too_far_ahead(stamp_ns - self._clock())
             self._keep_encoded(robot, stamp_ns, payload, mine=False)

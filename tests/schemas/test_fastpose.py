@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from schemas import Hypothesis, PoseEstimate, decode, encode
-from schemas.fastpose import encode_pose
+from schemas.fastpose import encode_pose, read_head
 
 floats = st.floats(allow_nan=False, allow_infinity=False, width=64)
 ids = st.from_regex(r"\A[A-Za-z0-9_-]{1,64}\Z")
@@ -123,3 +123,12 @@ def test_out_of_range_raises_as_the_model_does(change: dict[str, object]) -> Non
         encode_pose(*fields.values())  # type: ignore[arg-type]
     with pytest.raises(ValidationError):
         PoseEstimate.model_validate(fields)
+
+
+def test_the_head_of_an_encoded_pose_is_read_without_decoding_the_rest() -> None:
+    payload = encode_pose(1_234, "r-1_x", "m", 1.0, 2.0, 0.5, "tracking", 0.1, 3)
+    assert read_head(payload) == (1_234, "r-1_x")
+    assert payload == encode(decode(PoseEstimate, payload))  # the model writes the same head
+    assert read_head(payload[:20] + b"garbage") is None
+    assert read_head(b'{"robot_id":"r1","stamp_ns":1,') is None  # another order: decode it
+    assert read_head(b'{"stamp_ns":1,"robot_id":"bad id",') is None
