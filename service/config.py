@@ -135,10 +135,7 @@ class Settings(BaseSettings):
     """Every setting of the service, with its unit; see ``rlutf config``."""
 
     model_config = SettingsConfigDict(
-        env_prefix="RLUTF_",
-        env_nested_delimiter="__",
-        extra="forbid",
-        frozen=True,
+        env_prefix="RLUTF_", env_nested_delimiter="__", extra="forbid", frozen=True
     )
 
     # Zenoh, named like zenoh's own tools.
@@ -292,10 +289,8 @@ class Settings(BaseSettings):
     max_stamp_ahead_s: float = Field(
         60.0,
         gt=0,
-        description=(
-            "Inputs and followed poses stamped further ahead of the service's clock are "
-            "rejected (Event stamp_rejected): a far-future stamp would pin a robot's pose."
-        ),
+        description="Inputs and followed poses stamped further ahead of the service's clock are "
+        "rejected (Event stamp_rejected): a far-future stamp would pin a robot's pose.",
     )
     robot_idle_s: float = Field(
         3600.0,
@@ -327,6 +322,13 @@ class Settings(BaseSettings):
         ge=0,
         description="When other instances are live at start: seconds to follow the fleet's "
         "poses and odometry before declaring the liveliness token and taking robots over.",
+    )
+    join_grace_s: float = Field(
+        0.3,
+        ge=0,
+        le=10,
+        description="When other instances are live at start: seconds the robots taken over "
+        "wait, once the token is declared, for their previous owner's last answers.",
     )
     ros2: Ros2Settings = Field(
         default_factory=Ros2Settings, description="The ROS 2 front door (rmw_zenoh)."

@@ -30,6 +30,15 @@ Zenoh get on a thread of its own (a storage on the pose keys answers); the robot
 held meanwhile and released in order after the seed, with receive times taken at release so the
 recorded order is the order the engine saw. An input that starts with the operator's InitialPose
 needs no seed.
+
+**Exactly one answer per scan when an instance joins.** A joiner owns its robots as soon as it
+has declared its token, but their previous owner keeps localizing them until the token reaches
+it, and answers the scans it had taken by then: for that moment both would answer the same
+scans. So for :attr:`Ownership.grace_until` after the join, the robots a joiner acquires are
+held as for a fetch, and seeded when the grace is over from the newest pose then followed (the
+previous owner's answers included); a held scan stamped at or before that pose was answered
+there and is left out (counted in ``handover_answered_elsewhere``). The same holds for any
+acquisition: a scan no newer than the robot's newest pose is not localized again.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -104,6 +114,9 @@ class Ownership:
         self._admit = admit
         self._fetch: FetchPose = lambda robot: None
         self.ready = False
+        #: Until this time (``time.monotonic``), robots acquired wait for their previous
+        #: owner's last answers before their seed (set by a joining instance).
+        self.grace_until = 0.0
         self._clock = clock
         self._tail_ns = tail_ns
         self._on_release = on_release or (lambda robot: None)
@@ -122,6 +135,7 @@ class Ownership:
         self.seeded = 0
         self.fetched = 0
         self.held_dropped = 0
+        self.answered_elsewhere = 0
         self.resumed = 0
         self.resumed_relocalize = 0
         membership.on_change = self.rebalance
@@ -272,13 +286,20 @@ class Ownership:
         if kind == "initialpose":  # the operator places it: nothing to seed
             self._placed.pop(robot, None)
             self._seed(robot, message.stamp_ns, None)
-        elif self.followed.holds(robot) or robot in self._placed:
-            self._start_from(robot, self.followed.newest(robot))
-        else:
+        elif (self.followed.holds(robot) or robot in self._placed) and not self._in_grace():
+            pose = self.followed.newest(robot)
+            self._start_from(robot, pose)
+            if kind == "scan" and _answered(message, pose):
+                self.answered_elsewhere += 1
+                return
+        else:  # held while the pose is fetched, or until the grace is over (see the module)
             self._held[robot] = [(kind, payload, message)]
             self._fetches.put(robot)
             return
         self._pass(robot, kind, payload, message, received_ns)
+
+    def _in_grace(self) -> bool:
+        return self.grace_until > 0.0 and time.monotonic() < self.grace_until
 
     def _start_from(self, robot: str, pose: PoseEstimate | None) -> None:
         placed = self._placed.pop(robot, None)
@@ -331,8 +352,13 @@ class Ownership:
             robot = self._fetches.get()
             if robot is None:
                 return
+            wait = self.grace_until - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            with self.lock:
+                known = self.followed.holds(robot) or robot in self._placed
             try:
-                found = self._fetch(robot)
+                found = None if known else self._fetch(robot)
             except Exception:
                 log.exception("fetching the pose of %s failed", robot)
                 found = None
@@ -352,8 +378,16 @@ class Ownership:
                 self._placed.pop(robot, None)
                 self._seed(robot, first.stamp_ns, None)
             else:
+                # The odometry held goes with the tail, before the seed: the seed's stamp may
+                # be later than some of it (the previous owner answered scans meanwhile).
+                tail = self._tails.setdefault(robot, deque(maxlen=TAIL_MAX))
+                tail.extend(_Odom(m.stamp_ns, p, m) for _, p, m in held if isinstance(m, Odometry))
+                held = [h for h in held if not isinstance(h[2], Odometry)]
                 self._start_from(robot, pose)
             for kind, payload, message in held:
+                if kind == "scan" and _answered(message, pose):
+                    self.answered_elsewhere += 1
+                    continue
                 self._pass(robot, kind, payload, message, self._clock())
 
     # ------------------------------------------------------------------------ membership
@@ -405,10 +439,16 @@ class Ownership:
                 "handover_seeds": self.seeded,
                 "handover_fetched": self.fetched,
                 "handover_held_dropped": self.held_dropped,
+                "handover_answered_elsewhere": self.answered_elsewhere,
                 "resumed": self.resumed,
                 "resumed_relocalize": self.resumed_relocalize,
                 "poses_rejected": self.followed.rejected,
             }
+
+
+def _answered(scan: Message, pose: PoseEstimate | None) -> bool:
+    """Whether ``pose`` (the robot's newest, from any instance) answers ``scan`` already."""
+    return pose is not None and scan.stamp_ns <= pose.stamp_ns
 
 
 def _decoded(tail: Iterable[_Odom]) -> list[_Odom]:

@@ -127,7 +127,6 @@ class LocalizationService:
         self._on_drop = self.out.on_drop
         self.ready = False
         self.intake = Intake(self)
-        self._on_robot_sample = self.intake.on_robot_sample
         self._offer = self.intake.offer
         self._reject = self.intake.reject
         self._token: Any = None
@@ -150,7 +149,7 @@ class LocalizationService:
             poses=self.out,
             stop=stop,
         )
-        on_sample, wait_s = self._on_robot_sample, settings.intake_wait_s
+        on_sample, wait_s = self.intake.on_robot_sample, settings.intake_wait_s
         self.inputs = Inputs(on_sample, self.dispatcher.loop, settings.intake, self.out, wait_s)
         self.mapfeed = MapFeed(
             self.keys,
@@ -287,13 +286,14 @@ class LocalizationService:
             partial(fetch_last_pose, session, self.keys, timeout=timeout, max_bytes=limit)
         )
         self.membership.start(session, self.keys, timeout)
-        if len(self.membership.members) > 1:
+        if joining := len(self.membership.members) > 1:
             known = fetch_poses(session, self.keys, self.keys.all_poses, timeout, limit)
             self.ownership.remember(*known.values())
             for pose in {p.map_id: p for p in known.values()}.values():  # load the maps now
                 self.mapfeed.need(pose.map_id, pose.robot_id)
             time.sleep(s.join_warmup_s)
         self._token = session.liveliness().declare_token(self.keys.service(s.instance))
+        self.ownership.grace_until = time.monotonic() + s.join_grace_s if joining else 0.0
         self.ownership.ready = True
         self.sweeper.start()
         self.ready = True

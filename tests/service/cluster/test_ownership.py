@@ -8,7 +8,15 @@ import time
 import pytest
 from scaleout_harness import wait_until
 
-from schemas import Hypothesis, InitialPose, Odometry, PoseEstimate, Relocalize, encode
+from schemas import (
+    Hypothesis,
+    InitialPose,
+    LaserScan,
+    Odometry,
+    PoseEstimate,
+    Relocalize,
+    encode,
+)
 from service.cluster.membership import Membership, owner_of
 from service.cluster.ownership import Ownership
 from service.keys import InputKind, Message
@@ -207,8 +215,9 @@ def test_unknown_pose_is_fetched_while_inputs_wait() -> None:
     finally:
         own.close()
     assert asked == [robot]
-    assert [k for _, k, _, _ in admitted] == ["initialpose", "odom", "odom", "odom"]
-    assert [m.stamp_ns for _, _, m, _ in admitted[1:]] == [1_000, 1_001, 1_002]
+    # the odometry held goes before the seed, as a tail does (none is at or before its stamp)
+    assert [k for _, k, _, _ in admitted] == ["odom", "odom", "odom", "initialpose"]
+    assert [m.stamp_ns for _, _, m, _ in admitted] == [1_000, 1_001, 1_002, 500]
     assert own.figures()["handover_fetched"] == 1
 
 
@@ -226,6 +235,64 @@ def test_no_pose_anywhere_releases_inputs_unseeded_and_an_initial_pose_needs_no_
     assert asked == ["new"]
     assert [(r, k) for r, k, _, _ in admitted] == [("new", "odom"), ("placed", "initialpose")]
     assert own.figures()["handover_seeds"] == 0
+
+
+def _scan(stamp: int) -> tuple[bytes, LaserScan]:
+    msg = LaserScan(
+        stamp_ns=stamp, angle_min=0.0, angle_increment=0.1, range_min=0.1, range_max=10.0,
+        ranges=(1.0, 2.0),
+    )  # fmt: skip
+    return encode(msg), msg
+
+
+def test_a_joiner_waits_for_the_previous_owners_last_answers_and_answers_no_scan_twice() -> None:
+    """The joiner owns the robot at once, but its previous owner still answers the scans it took
+    before the token reached it: held through the grace, seeded from the newest pose then, the
+    scans that pose answers are not localized again."""
+    asked: list[str] = []
+    m = Membership("a")
+    m.update("b", alive=True)
+    robot = _robot_of("a", ["a", "b"])
+    own, admitted = _ownership(m, asked.append)
+    ms = 1_000_000
+    own.follow_pose(robot, encode(_pose(robot, 1_000 * ms)), LIMIT)  # b's answer before the join
+    own.grace_until = time.monotonic() + 0.3
+    try:
+        for kind, (payload, msg) in [
+            ("odom", _odom(1_050 * ms, x=1.0)),
+            ("scan", _scan(1_100 * ms)),
+            ("odom", _odom(1_150 * ms, x=2.0)),
+            ("scan", _scan(1_200 * ms)),
+        ]:
+            assert own.offer(robot, kind, payload, msg, 10)
+        assert admitted == [] and own.acquiring() == 1  # held through the grace
+        own.follow_pose(robot, encode(_pose(robot, 1_100 * ms)), LIMIT)  # b answered 1.1 s
+        assert wait_until(lambda: len(admitted) == 4, 3.0)
+    finally:
+        own.close()
+    assert asked == []  # its pose was followed: nothing to fetch
+    kinds = [(k, m_.stamp_ns // ms) for _, k, m_, _ in admitted]
+    # the odometry from the reading at or before the seed on, the seed at b's last answer, and
+    # only the scan b did not answer
+    assert kinds == [("odom", 1_050), ("odom", 1_150), ("initialpose", 1_100), ("scan", 1_200)]
+    assert own.figures()["handover_answered_elsewhere"] == 1
+
+
+def test_a_scan_no_newer_than_the_robots_last_pose_is_not_localized_again() -> None:
+    m = Membership("a")
+    m.update("b", alive=True)
+    robot = _robot_of("b", ["a", "b"])
+    own, admitted = _ownership(m)
+    own.follow_pose(robot, encode(_pose(robot, 2_000)), LIMIT)
+    m.update("b", alive=False)
+    for stamp in (2_000, 2_100):
+        payload, msg = _scan(stamp)
+        assert own.offer(robot, "scan", payload, msg, stamp)
+    assert [(k, m_.stamp_ns) for _, k, m_, _ in admitted] == [
+        ("initialpose", 2_000),
+        ("scan", 2_100),
+    ]
+    assert own.figures()["handover_answered_elsewhere"] == 1
 
 
 def test_a_joining_member_takes_its_robots_away() -> None:
