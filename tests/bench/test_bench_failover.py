@@ -36,6 +36,7 @@ def test_a_robot_that_lost_its_owner_counts_from_the_kill_to_its_next_pose() -> 
     f = figures({"ids": ["steady", "moved", "quick"], "stamped": stamped, "killed": killed})
     assert f["moved_count"] == 1 and f["within_2s"] == 1
     assert math.isclose(float(f["moved"][0]), 0.8)
+    assert math.isclose(f["across"], 0.9)  # "moved": its pose at 9.9 s to the one at 10.8 s
     assert f["later_count"] == 1 and math.isclose(float(f["later"][0]), 1.2)
     assert sorted(round(float(x), 3) for x in f["off_cm"]) == [3.0, 7.0]
     assert f["within_5cm"] == 1 and f["gaps"] == 2
@@ -47,6 +48,7 @@ def test_a_scan_answered_by_two_owners_is_counted_once_per_scan() -> None:
     f = figures({"ids": ["r0"], "stamped": stamped, "killed": 0})  # the kill before them all
     assert f["twice"] == 1
     assert f["moved_count"] == 0 and math.isnan(float(f["moved"][0]))
+    assert math.isnan(f["across"])  # no pose before the kill
     assert f["later_count"] == 1  # the second between its last two poses
 
 
