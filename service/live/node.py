@@ -55,7 +55,7 @@ from service.live.metrics import make_metrics
 from service.live.outbox import Outbox
 from service.live.publishing import EVENT_SCHEMA, Announcer
 from service.live.robots import RobotView, robots_key
-from service.live.sessions import zenoh_config
+from service.live.sessions import service_config
 from service.live.shards import Done
 from service.live.stats import Stats
 from service.live.warmaside import warm_up_aside
@@ -240,7 +240,7 @@ class LocalizationService:
             self.recorder.on_event = self.out.recorder_event
         self.dispatcher.start(progress)
         if self._session is None:
-            self._session = zenoh.open(zenoh_config(s))
+            self._session = zenoh.open(service_config(s))
         session = self._session
         self.outbox.start(session)
         self.out.attach(session)

@@ -8,6 +8,7 @@ the benchmarks open sessions the same way.
 from __future__ import annotations
 
 import json
+import logging
 import socket
 from collections.abc import Sequence
 from pathlib import Path
@@ -15,6 +16,8 @@ from pathlib import Path
 import zenoh
 
 from service.config import Settings
+
+log = logging.getLogger(__name__)
 
 #: Batches (64 kB each) a link's send queue holds per data priority (zenoh's maximum; its default
 #: is 2).
@@ -72,6 +75,41 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         multicast_scouting=settings.multicast_scouting,
         file=settings.zenoh_config,
     )
+
+
+def service_config(settings: Settings) -> zenoh.Config:
+    """The service's own zenoh configuration (:func:`zenoh_config`), with a warning when the
+    settings' zenoh file leaves a link's send queue for data shorter than
+    :data:`TX_QUEUE_BATCHES` batches: with such a file, a router under load drops robots' samples
+    where the service cannot count them (see :func:`session_config`)."""
+    cfg = zenoh_config(settings)
+    short = short_queues(cfg) if settings.zenoh_config is not None else []
+    if short:
+        log.warning(
+            "zenoh file %s: a link's send queue holds fewer batches than the %d the service "
+            "sets without a file (%s); a router drops a robot's sample, unseen by the service, "
+            "once a link's queue has been full for 1 ms (zenoh's default, 2 batches, is ~10 ms "
+            "of 200 robots' scans): set transport.link.tx.queue.size.data and .data_high to %d",
+            settings.zenoh_config,
+            TX_QUEUE_BATCHES,
+            ", ".join(short),
+            TX_QUEUE_BATCHES,
+        )
+    return cfg
+
+
+def short_queues(cfg: zenoh.Config) -> list[str]:
+    """The data priorities whose links' send queue holds fewer than :data:`TX_QUEUE_BATCHES`
+    batches in ``cfg``, as ``"data: 2"``."""
+    short = []
+    for priority in ("data", "data_high"):
+        try:
+            batches = int(json.loads(cfg.get_json(f"transport/link/tx/queue/size/{priority}")))
+        except (zenoh.ZError, ValueError, TypeError):
+            continue
+        if batches < TX_QUEUE_BATCHES:
+            short.append(f"{priority}: {batches}")
+    return short
 
 
 def client_config(endpoint: str) -> zenoh.Config:

@@ -80,3 +80,25 @@ def test_links_queue_a_fleets_bursts_unless_a_file_says_otherwise(tmp_path: Path
     file.write_text("{ transport: { shared_memory: { enabled: false } } }")
     sizes = json.loads(session_config("router", file=file).get_json("transport/link/tx/queue/size"))
     assert sizes["data"] == 2  # the file decides
+
+
+def test_the_service_warns_of_a_zenoh_file_with_short_send_queues(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from service.config import Settings
+    from service.live.sessions import service_config, short_queues
+
+    short = tmp_path / "short.json5"
+    short.write_text('{ mode: "router" }')  # zenoh's default queues: 2 batches
+    long = tmp_path / "long.json5"
+    long.write_text(
+        "{ transport: { link: { tx: { queue: { size: { data: 16, data_high: 16 } } } } } }"
+    )
+    caplog.set_level("WARNING", logger="service.live.sessions")
+    service_config(Settings(zenoh_config=long))
+    service_config(Settings())  # no file: the service's own 16
+    assert caplog.records == []
+    config = service_config(Settings(zenoh_config=short))
+    assert short_queues(config) == ["data: 2", "data_high: 2"]
+    [record] = caplog.records
+    assert str(short) in record.getMessage() and "data: 2, data_high: 2" in record.getMessage()
