@@ -27,9 +27,10 @@ Relocalize on the pose's map.
 
 With no pose in memory (every instance restarted, no durable state), the pose is fetched with a
 Zenoh get on a thread of its own (a storage on the pose keys answers); the robot's inputs are
-held meanwhile and released in order after the seed, with receive times taken at release so the
-recorded order is the order the engine saw. An input that starts with the operator's InitialPose
-needs no seed.
+held meanwhile (at most :data:`HOLD_MAX` per robot and :data:`HOLD_BYTES` over all robots, the
+rest dropped and counted) and released in order after the seed, with receive times taken at
+release so the recorded order is the order the engine saw. An input that starts with the
+operator's InitialPose needs no seed.
 
 **Exactly one answer per scan when an instance joins.** A joiner owns its robots as soon as it
 has declared its token, but their previous owner keeps localizing them until the token reaches
@@ -65,6 +66,8 @@ FetchPose = Callable[[str], PoseEstimate | None]
 
 #: Inputs held per robot while its pose is fetched; later ones are dropped and counted.
 HOLD_MAX = 256
+#: Bytes of inputs held over every robot at once; inputs past it are dropped and counted.
+HOLD_BYTES = 64 * 1024 * 1024
 #: Odometry readings kept per robot not owned, whatever their stamps.
 TAIL_MAX = 1024
 #: Robot ids Health lists at most (``owned_count`` counts them all).
@@ -123,6 +126,7 @@ class Ownership:
         self.lock = threading.RLock()
         self._active: set[str] = set()
         self._held: dict[str, list[tuple[InputKind, bytes, Message]]] = {}
+        self._held_bytes = 0
         self._last_in: dict[str, int] = {}
         self.followed = FollowedPoses(clock, self.lock)
         self._tails: dict[str, deque[_Odom]] = {}
@@ -174,8 +178,8 @@ class Ownership:
         with self.lock:
             self._active.discard(robot)
             self.followed.forget(robot)
+            self._unhold(robot)
             for held in (
-                self._held,
                 self._last_in,
                 self._tails,
                 self._placed,
@@ -262,7 +266,7 @@ class Ownership:
             if robot in self._active:
                 self._pass(robot, kind, payload, message, received_ns)
             elif robot in self._held:
-                if len(self._held[robot]) < HOLD_MAX:
+                if len(self._held[robot]) < HOLD_MAX and self._hold(payload):
                     self._held[robot].append((kind, payload, message))
                 else:
                     self.held_dropped += 1
@@ -292,14 +296,31 @@ class Ownership:
             if kind == "scan" and _answered(message, pose):
                 self.answered_elsewhere += 1
                 return
-        else:  # held while the pose is fetched, or until the grace is over (see the module)
+        elif self._hold(payload):  # while the pose is fetched, or the grace (see the module)
             self._held[robot] = [(kind, payload, message)]
             self._fetches.put(robot)
+            return
+        else:  # over the bytes held: not acquired yet (its next input tries again)
+            self.held_dropped += 1
             return
         self._pass(robot, kind, payload, message, received_ns)
 
     def _in_grace(self) -> bool:
         return self.grace_until > 0.0 and time.monotonic() < self.grace_until
+
+    def _hold(self, payload: bytes) -> bool:
+        """Count ``payload`` as held if the bytes held stay within :data:`HOLD_BYTES`."""
+        if self._held_bytes + len(payload) > HOLD_BYTES:
+            return False
+        self._held_bytes += len(payload)
+        return True
+
+    def _unhold(self, robot: str) -> list[tuple[InputKind, bytes, Message]] | None:
+        """The inputs held for ``robot``, no longer held."""
+        held = self._held.pop(robot, None)
+        if held is not None:
+            self._held_bytes -= sum(len(payload) for _, payload, _ in held)
+        return held
 
     def _start_from(self, robot: str, pose: PoseEstimate | None) -> None:
         placed = self._placed.pop(robot, None)
@@ -366,7 +387,7 @@ class Ownership:
 
     def _fetched(self, robot: str, found: PoseEstimate | None) -> None:
         with self.lock:
-            held = self._held.pop(robot, None)
+            held = self._unhold(robot)
             if held is None:
                 return  # released meanwhile
             self.fetched += found is not None
@@ -400,7 +421,7 @@ class Ownership:
 
     def _release(self, robot: str) -> None:
         self._active.discard(robot)
-        self.ignored_not_owner += len(self._held.pop(robot, ()))
+        self.ignored_not_owner += len(self._unhold(robot) or ())
         self._on_release(robot)
         log.info("%s: now owned by %s", robot, self.membership.owner(robot))
 

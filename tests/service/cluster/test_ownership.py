@@ -354,3 +354,28 @@ def test_own_poses_count_against_the_robot_bound_and_the_stamp_bound() -> None:
     assert own.last_pose("r1") == _pose("r1", 10) and own.figures()["poses_rejected"] == 1
     own.forget("r2")
     assert own.last_pose("r2") is None
+
+
+def test_inputs_held_for_a_seed_are_bounded_in_bytes_over_every_robot(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from service.cluster import ownership
+
+    payload, msg = _odom(1_000)
+    monkeypatch.setattr(ownership, "HOLD_BYTES", 3 * len(payload))
+    stay, late = [r for r in ROBOTS if owner_of(r, ["a", "b"]) == "a"][:2]
+    go = _robot_of("b", ["a", "b"])
+    m = Membership("a")
+    own, admitted = _ownership(m)  # no fetching thread: the held inputs stay held
+    for robot in (go, go, stay):  # three inputs held: the bytes held are full
+        assert own.offer(robot, "odom", payload, msg, 1)
+    assert own.offer(stay, "odom", payload, msg, 2)  # over: dropped, counted
+    assert own.offer(late, "odom", payload, msg, 3)  # over: not acquired yet, counted
+    assert own.acquiring() == 2 and not own.holds(late)
+    assert own.figures()["handover_held_dropped"] == 2
+    m.update("b", alive=True)  # go moves away: its two held inputs are freed
+    assert not own.holds(go)
+    assert own.offer(late, "odom", payload, msg, 4) and own.holds(late)
+    assert own.offer(stay, "odom", payload, msg, 5)
+    assert own.acquiring() == 2 and own.figures()["handover_held_dropped"] == 2
+    assert admitted == []
