@@ -290,7 +290,7 @@ class Ownership:
         if kind == "initialpose":  # the operator places it: nothing to seed
             self._placed.pop(robot, None)
             self._seed(robot, message.stamp_ns, None)
-        elif (self.followed.holds(robot) or robot in self._placed) and not self._in_grace():
+        elif self._has_seed(robot) and not self._in_grace():
             pose = self.followed.newest(robot)
             self._start_from(robot, pose)
             if kind == "scan" and _answered(message, pose):
@@ -306,7 +306,11 @@ class Ownership:
         self._pass(robot, kind, payload, message, received_ns)
 
     def _in_grace(self) -> bool:
-        return self.grace_until > 0.0 and time.monotonic() < self.grace_until
+        return time.monotonic() < self.grace_until
+
+    def _has_seed(self, robot: str) -> bool:
+        """Whether a pose or an operator's placement is known to seed ``robot`` from."""
+        return self.followed.holds(robot) or robot in self._placed
 
     def _hold(self, payload: bytes) -> bool:
         """Count ``payload`` as held if the bytes held stay within :data:`HOLD_BYTES`."""
@@ -377,7 +381,7 @@ class Ownership:
             if wait > 0:
                 time.sleep(wait)
             with self.lock:
-                known = self.followed.holds(robot) or robot in self._placed
+                known = self._has_seed(robot)
             try:
                 found = None if known else self._fetch(robot)
             except Exception:

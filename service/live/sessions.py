@@ -22,6 +22,8 @@ log = logging.getLogger(__name__)
 #: Batches (64 kB each) a link's send queue holds per data priority (zenoh's maximum; its default
 #: is 2).
 TX_QUEUE_BATCHES = 16
+#: Their priorities: robots' inputs (``data``) and the service's poses (``data_high``).
+TX_QUEUE_PRIORITIES = ("data", "data_high")
 
 
 def session_config(
@@ -55,7 +57,7 @@ def session_config(
     cfg = zenoh.Config.from_file(str(file)) if file else (zenoh.Config())
     if file is None:
         cfg.insert_json5("transport/shared_memory/enabled", "false")
-        for priority in ("data", "data_high"):  # robots' inputs; the service's poses
+        for priority in TX_QUEUE_PRIORITIES:
             cfg.insert_json5(f"transport/link/tx/queue/size/{priority}", str(TX_QUEUE_BATCHES))
     cfg.insert_json5("mode", json.dumps(mode))
     if listen and mode != "client":
@@ -102,7 +104,7 @@ def short_queues(cfg: zenoh.Config) -> list[str]:
     """The data priorities whose links' send queue holds fewer than :data:`TX_QUEUE_BATCHES`
     batches in ``cfg``, as ``"data: 2"``."""
     short = []
-    for priority in ("data", "data_high"):
+    for priority in TX_QUEUE_PRIORITIES:
         try:
             batches = int(json.loads(cfg.get_json(f"transport/link/tx/queue/size/{priority}")))
         except (zenoh.ZError, ValueError, TypeError):
