@@ -61,6 +61,25 @@ def slope_per_10min(minutes: Sequence[float], values: Sequence[float]) -> float:
     return float(slope * 10.0)
 
 
+def halves_per_10min(minutes: Sequence[float], values: Sequence[float]) -> tuple[float, float]:
+    """:func:`slope_per_10min` of the first and of the second half of the time the samples span.
+
+    A leak grows in both halves; a heap that settles (its high-water mark reached once the
+    run's rare bursts have all come) grows in the first and is flat in the second, which one
+    slope over the whole run does not tell apart.
+    """
+    t = [x for x in minutes if math.isfinite(x)]
+    if len(t) < 2:
+        return math.nan, math.nan
+    middle = (min(t) + max(t)) / 2.0
+    first = [(x, v) for x, v in zip(minutes, values, strict=True) if x <= middle]
+    second = [(x, v) for x, v in zip(minutes, values, strict=True) if x >= middle]
+    return (
+        slope_per_10min([x for x, _ in first], [v for _, v in first]),
+        slope_per_10min([x for x, _ in second], [v for _, v in second]),
+    )
+
+
 def after_warmup(
     minutes: Sequence[float], values: Sequence[float], warmup_minutes: float
 ) -> tuple[list[float], list[float]]:
@@ -81,10 +100,12 @@ def memory_verdict(
     ok = math.isfinite(slope) and slope <= target
     span = f"{len(t)} samples from minute {warmup_minutes:g}"
     rng = f"{min(v):.0f} to {max(v):.0f} MB" if v else "no samples"
+    early, late = halves_per_10min(t, v)
     return Verdict(
         "memory slope after warm-up",
         ok,
-        f"{slope:+.2f} MB per 10 min (target <= {target:g}); {span}, {rng}",
+        f"{slope:+.2f} MB per 10 min (target <= {target:g}; first half {early:+.2f}, second "
+        f"half {late:+.2f}); {span}, {rng}",
         hard=False,
     )
 

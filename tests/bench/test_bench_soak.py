@@ -12,6 +12,7 @@ from bench.soakplan import (
     LatencyHistogram,
     counted_verdict,
     exit_code,
+    halves_per_10min,
     logs_verdicts,
     memory_by_process,
     memory_verdict,
@@ -38,7 +39,18 @@ def test_memory_verdict_leaves_out_the_warm_up() -> None:
     leak = 450 + 0.2 * t  # 2 MB per 10 minutes
     verdict = memory_verdict(t, leak, warmup_minutes=5)
     assert not verdict.ok and "+2.00 MB per 10 min" in verdict.detail
+    assert "first half +2.00, second half +2.00" in verdict.detail  # a leak grows in both
     assert not verdict.hard
+
+
+def test_memory_verdict_tells_a_heap_that_settles_from_a_leak() -> None:
+    t = np.arange(0, 30, 1 / 6)
+    settles = 450 + 4 * (1 - np.exp(-(t - 5) / 3))  # 4 MB more, reached within ten minutes
+    verdict = memory_verdict(t, settles, warmup_minutes=5)
+    early, late = halves_per_10min(t[t >= 5], settles[t >= 5])
+    assert early > 1.0 and abs(late) < 0.2
+    assert f"first half {early:+.2f}, second half {late:+.2f}" in verdict.detail
+    assert all(math.isnan(x) for x in halves_per_10min([3.0], [1.0]))
 
 
 def test_memory_by_process_names_the_process_and_the_part_that_grows() -> None:
