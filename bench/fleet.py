@@ -42,6 +42,32 @@ def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
     return rows
 
 
+#: Zenoh's own threads, by role (:func:`bench.threads.thread_table`): its runtimes that
+#: receive, send, accept links, run its application tasks and its network tasks.
+ZENOH_ROLES = frozenset({"rx-*", "tx-*", "acc-*", "app-*", "net-*"})
+
+
+def share_floor(by_thread: dict[str, dict[str, float]], update_ms: float) -> str:
+    """What the share of the service's CPU outside the update would be with no Python around it.
+
+    ``update_ms``: the localizer's update per scan sent (worker compute p50 x poses / sent, as
+    the share's line takes it). Returns a sentence: the bus's threads, the service's other
+    threads beyond the update, and the share if those others cost nothing (the bus's over the
+    bus's and the update's).
+    """
+    bus = sum(ms for t in by_thread.values() for role, ms in t.items() if role in ZENOH_ROLES)
+    total = sum(ms for t in by_thread.values() for ms in t.values())
+    rest = total - bus - update_ms
+    floor = bus / (bus + update_ms) if bus + update_ms > 0 else float("nan")
+    return (
+        f"By thread, per scan sent: the update {update_ms:.3f} ms, Zenoh's threads "
+        f"({', '.join(sorted(ZENOH_ROLES))}) {bus:.3f} ms, everything else of the service's "
+        f"(the intake and the loop around the batches, the recorders, the KeyWatch, ...) "
+        f"{rest:.3f} ms. Were everything else nothing, the share outside the update "
+        f"would be {100.0 * floor:.0f} % (the bus's threads over theirs and the update's)."
+    )
+
+
 #: Issue 21's target at a fleet size: of the scans sent after each robot's first 2 s, at least
 #: this share answered, ...
 TARGET_ANSWERED = 0.99
@@ -83,6 +109,7 @@ def render(
     load = os.getloadavg()[0]
     need: list[tuple[float, int, float, float]] = []
     overhead: list[str] = []
+    floor = ""
     for n in sizes:
         serve = ("--processes", str(processes)) if processes else ()
         r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads)
@@ -90,6 +117,8 @@ def render(
         service_ms = (r["cpu_main"] + r["cpu_workers"]) * r["sent"]  # the service's CPU, ms
         share = 1.0 - r["compute_p50"] * r["processed"] / service_ms if service_ms > 0 else 1.0
         overhead.append(f"{n} robots {100.0 * share:.0f} %")
+        if r["threads"]:
+            floor = share_floor(r["threads"], r["compute_p50"] * r["processed"] / r["sent"])
         need.append(
             (
                 r["cpu_service_per_pose"] + r["cpu_generator"],
@@ -188,6 +217,8 @@ def render(
                     "| process | thread | CPU ms per scan |",
                     "| --- | --- | ---: |",
                     *thread_rows(by_thread),
+                    "",
+                    floor,
                 ]
                 if by_thread
                 else []

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from bench.fleet import verdicts
+from bench.fleet import share_floor, verdicts
 from bench.fleetrun import scans_recorded
 from service.logs.mcaplog import McapRecorder
 
@@ -47,3 +47,15 @@ def test_the_scans_a_service_recorded_are_counted_over_its_processes_files(
         rec.close()
     assert len(list(tmp_path.glob("*.mcap"))) == 2
     assert scans_recorded(tmp_path) == 3 * 5
+
+
+def test_the_share_floor_counts_zenohs_threads_against_the_update() -> None:
+    # Run 12's kind of table: the update 0.3 ms a scan, Zenoh's threads 0.1, the rest 0.2.
+    by_thread = {
+        "host": {"rlutf-inputs": 0.30, "rx-*": 0.04, "tx-*": 0.02, "rlutf-recorder": 0.02},
+        "processes": {"rlutf-inputs": 0.18, "rx-*": 0.03, "app-*": 0.01},
+    }
+    said = share_floor(by_thread, update_ms=0.30)
+    assert "Zenoh's threads (acc-*, app-*, net-*, rx-*, tx-*) 0.100 ms" in said
+    assert "everything else of the service's" in said and "0.200 ms" in said
+    assert said.endswith("would be 25 % (the bus's threads over theirs and the update's).")
