@@ -117,7 +117,7 @@ def render(
         service_ms = (r["cpu_main"] + r["cpu_workers"]) * r["sent"]  # the service's CPU, ms
         share = 1.0 - r["compute_p50"] * r["processed"] / service_ms if service_ms > 0 else 1.0
         overhead.append(f"{n} robots {100.0 * share:.0f} %")
-        if r["threads"]:
+        if r["threads"] and r["sent"]:
             floor = share_floor(r["threads"], r["compute_p50"] * r["processed"] / r["sent"])
         need.append(
             (
