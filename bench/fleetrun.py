@@ -223,11 +223,13 @@ def fleet_generator(
     go: Any,
     began: Any,
     ended: Any,
+    beams: int = 360,
 ) -> None:
     """Load generator (a separate process): plan, then publish and time each scan to its pose.
 
     ``door``: ``json`` (WIRE.md's robots) or ``ros2`` (ROS 2 robots on rmw_zenoh's keys, whose
-    pose is ``amcl_pose``). The fleet is :mod:`service.sim`'s, seed :data:`SEED`, map ``bench``.
+    pose is ``amcl_pose``). The fleet is :mod:`service.sim`'s, seed :data:`SEED`, map ``bench``,
+    ``beams`` beams a scan.
     """
     import zenoh
 
@@ -237,7 +239,9 @@ def fleet_generator(
     from service.sim.wire import CdrWire, JsonWire
 
     steps = int(duration * RATE_HZ) + 1
-    spec = FleetSpec(robots=robots, poses=steps, rate_hz=RATE_HZ, seed=SEED, map_id="bench")
+    spec = FleetSpec(
+        robots=robots, poses=steps, rate_hz=RATE_HZ, seed=SEED, map_id="bench", beams=beams
+    )
     plan = plan_fleet(spec)
     wire = JsonWire(plan) if door == "json" else CdrWire(plan)
     ids = [r.robot_id for r in plan.robots]
@@ -301,14 +305,16 @@ def run_size(
     serve_flags: tuple[str, ...] = (),
     threads: bool = False,
     env: dict[str, str] | None = None,
+    beams: int = 360,
 ) -> dict[str, Any]:
     """One fleet size against a fresh service subprocess.
 
     ``door`` and ``serve_flags`` let another front door be measured the same way
     (:mod:`bench.ros2`); ``env`` adds variables to the service's environment
-    (:mod:`bench.ownedkeys`). With ``threads``, the result's ``threads`` holds the service's CPU per
-    scan sent by thread (:mod:`bench.threads`), main process and workers apart (host and its
-    other service processes apart with ``--processes``).
+    (:mod:`bench.ownedkeys`); ``beams``: beams a scan (:mod:`bench.costfit`). With ``threads``,
+    the result's ``threads`` holds the service's CPU per scan sent by thread
+    (:mod:`bench.threads`), main process and workers apart (host and its other service processes
+    apart with ``--processes``).
     """
     from service.live.sessions import free_port
 
@@ -320,7 +326,7 @@ def run_size(
     out, ready, go, began, ended = ctx.Queue(), ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     gen = ctx.Process(
         target=fleet_generator,
-        args=(endpoint, robots, duration, door, out, ready, go, began, ended),
+        args=(endpoint, robots, duration, door, out, ready, go, began, ended, beams),
     )
     rss: list[float] = []
     pss: list[float] = []

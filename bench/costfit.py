@@ -1,0 +1,182 @@
+"""The service's CPU per scan against the localizer's update time: how much is not localization.
+
+Run: ``python -m bench.costfit [--robots 100] [--beams 90,180,360,720] [--duration 20]
+[--write]``.
+
+Issue 21 asks for the fit of the service's CPU per scan against the localizer's update time.
+The beams per scan change what an update costs and little else (one scan, one pose, two odometry
+readings a scan whatever its beams), so for each beam count this measures, one after the other
+and never at the same time:
+
+- the localizer alone: CPU ms per ``Localizer.update`` on decoded scans, one process, 20
+  simulated robots (:func:`bench.floor.localizer_ms`);
+- the service: ``rlutf serve`` (its default layout, recording on) against the load generator of
+  :mod:`bench.fleet`, the same number of robots at every beam count; CPU ms of all its processes
+  per pose published.
+
+A least-squares line through the points, ``service = fixed + slope x update``, splits a scan's
+cost into the part that grows with the localizer's work and the part that does not (``fixed``:
+the bus, decoding, recording, bookkeeping). Two readings of "not localization" at each beam
+count follow: the fixed part's share of the service's CPU, and everything beyond the localizer's
+own update (``1 - update / service``: the fixed part and what the service's setting adds to the
+update itself, other processes on the same cores included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+from dataclasses import dataclass
+
+from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
+from bench.report import section_main
+
+#: The section of ``BENCHMARKS.md``, one per fleet size: ``costfit-{robots}``.
+SECTION = "costfit"
+#: Robots and steps of the plan the localizer alone is timed on (as ``python -m bench.floor``).
+ALONE_ROBOTS = 20
+ALONE_STEPS = 300
+
+
+@dataclass(frozen=True)
+class Point:
+    """One beam count's measurements.
+
+    Attributes:
+        beams: beams a scan.
+        update_ms: CPU ms per ``Localizer.update``, the localizer alone.
+        service_ms: the service's CPU ms (all its processes) per pose published.
+        sent_ms: the same per scan sent.
+        answered: share of the scans sent after each robot's first 2 s that were answered.
+        p99_ms: their scan-to-pose latency's 99th percentile.
+    """
+
+    beams: int
+    update_ms: float
+    service_ms: float
+    sent_ms: float
+    answered: float
+    p99_ms: float
+
+
+def fit_line(xs: list[float], ys: list[float]) -> tuple[float, float]:
+    """``(intercept, slope)`` of the least-squares line ``y = intercept + slope x``.
+
+    Raises:
+        ValueError: fewer than two points, or every ``x`` the same.
+    """
+    n = len(xs)
+    if n != len(ys) or n < 2:
+        raise ValueError(f"a line needs two points or more, got {n}")
+    mx = sum(xs) / n
+    my = sum(ys) / n
+    sxx = sum((x - mx) ** 2 for x in xs)
+    if sxx == 0.0:
+        raise ValueError("every x is the same: no slope")
+    slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sxx
+    return my - slope * mx, slope
+
+
+def shares(point: Point, fixed: float) -> tuple[float, float]:
+    """At one point: the fixed part's share of the service's CPU per pose, and the share beyond
+    the localizer's own update."""
+    return fixed / point.service_ms, 1.0 - point.update_ms / point.service_ms
+
+
+def alone_ms(beams: int, robots: int = ALONE_ROBOTS, steps: int = ALONE_STEPS) -> float:
+    """CPU ms per ``Localizer.update`` of the localizer alone on ``beams``-beam scans
+    (``robots`` simulated robots, ``steps`` steps each, the first ones not timed)."""
+    from bench.floor import localizer_ms
+    from service.sim.plan import FleetSpec, plan_fleet
+
+    spec = FleetSpec(robots=robots, poses=steps + 1, seed=7, map_id="sim", beams=beams)
+    return localizer_ms(plan_fleet(spec), steps)
+
+
+def measure(beams: list[int], robots: int, duration: float) -> list[Point]:
+    """Every beam count's localizer alone first, then the service at each, one at a time."""
+    alone = {b: alone_ms(b) for b in beams}
+    workers, processes = serve_layout(None, None)
+    serve = ("--processes", str(processes)) if processes else ()
+    points = []
+    for b in beams:
+        r = run_size(robots, duration, True, workers, serve_flags=serve, beams=b)
+        points.append(
+            Point(
+                b,
+                alone[b],
+                r["cpu_service_per_pose"],
+                r["cpu_main"] + r["cpu_workers"],
+                r["answered_after"],
+                r["p99"],
+            )
+        )
+        print(f"{b} beams: {points[-1]}", flush=True)
+    return points
+
+
+def report(points: list[Point], robots: int, duration: float, load: float) -> str:
+    """The Markdown section for measured ``points``."""
+    fixed, slope = fit_line([p.update_ms for p in points], [p.service_ms for p in points])
+    beams = ",".join(str(p.beams) for p in points)
+    rows = []
+    for p in points:
+        fixed_share, beyond = shares(p, fixed)
+        rows.append(
+            f"| {p.beams} | {p.update_ms:.3f} | {p.service_ms:.3f} | {p.sent_ms:.3f} "
+            f"| {100.0 * p.answered:.1f} | {p.p99_ms:.1f} "
+            f"| {fixed + slope * p.update_ms:.3f} | {100.0 * fixed_share:.0f} % "
+            f"| {100.0 * beyond:.0f} % |"
+        )
+    return "\n".join(
+        [
+            f"Command: `python -m bench.costfit --robots {robots} --beams {beams} "
+            f"--duration {duration:g} --write`",
+            "",
+            f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
+            f"{platform.python_version()}. *Update*: CPU ms per `Localizer.update`, the localizer "
+            f"alone in one process ({ALONE_ROBOTS} simulated robots, {ALONE_STEPS} steps each, "
+            "`bench.floor.localizer_ms`), every beam count timed before the first service "
+            f"started. *Service*: `rlutf serve` (its default layout, recording on) and the load "
+            f"generator of `python -m bench.fleet` on the same cores, {robots} robots at 10 Hz, "
+            f"{duration:g} s per beam count; CPU ms of all the service's processes per pose "
+            "published and per scan sent; answered and p99 over the scans after each robot's "
+            f"first {WARMUP_STEPS / RATE_HZ:g} s. Load average when the run started: {load:.1f}.",
+            "",
+            "| beams | update ms | service ms per pose | per scan sent | answered % | p99 ms "
+            "| the line at this update | fixed part's share | beyond the update alone |",
+            "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+            *rows,
+            "",
+            f"Least-squares line, service CPU per pose against the update: **{fixed:.3f} ms + "
+            f"{slope:.2f} x the update**. The fixed part is what a scan costs the service "
+            "whatever its localization; a slope over 1 is the update costing more inside the "
+            "service than alone (the cores shared with the other processes and threads). "
+            "Issue 21's goal is under a third not localization.",
+        ]
+    )
+
+
+def render(args: argparse.Namespace) -> str:
+    beams = [int(b) for b in args.beams.split(",")]
+    load = os.getloadavg()[0]
+    points = measure(beams, args.robots, args.duration)
+    return report(points, args.robots, args.duration, load)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry."""
+    p = argparse.ArgumentParser(
+        prog="python -m bench.costfit",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robots", type=int, default=100, help="robots at every beam count")
+    p.add_argument("--beams", default="90,180,360,720", help="beams a scan, comma-separated")
+    p.add_argument("--duration", type=float, default=20.0, help="seconds per beam count")
+    return section_main(p, render, lambda a: f"{SECTION}-{a.robots}", argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

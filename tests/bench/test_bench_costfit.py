@@ -1,0 +1,59 @@
+"""The fit of the service's CPU per scan against the localizer's update (bench.costfit)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from bench.costfit import Point, alone_ms, fit_line, report, shares
+
+
+def test_the_line_through_exact_points_is_found() -> None:
+    fixed, slope = fit_line([0.1, 0.2, 0.4], [0.5 + 1.5 * x for x in (0.1, 0.2, 0.4)])
+    assert fixed == pytest.approx(0.5)
+    assert slope == pytest.approx(1.5)
+
+
+def test_the_line_through_noisy_points_is_the_least_squares_one() -> None:
+    xs, ys = [0.0, 1.0, 2.0, 3.0], [1.0, 2.0, 2.0, 4.0]
+    fixed, slope = fit_line(xs, ys)
+    # Normal equations by hand: slope = sxy / sxx = 4.5 / 5, intercept = 2.25 - 0.9 * 1.5.
+    assert slope == pytest.approx(0.9)
+    assert fixed == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize(("xs", "ys"), [([1.0], [2.0]), ([1.0, 1.0], [2.0, 3.0])])
+def test_no_line_from_one_point_or_one_update_time(xs: list[float], ys: list[float]) -> None:
+    with pytest.raises(ValueError):
+        fit_line(xs, ys)
+
+
+def test_the_shares_split_a_scans_cost_two_ways() -> None:
+    p = Point(beams=360, update_ms=0.2, service_ms=0.8, sent_ms=0.8, answered=1.0, p99_ms=20.0)
+    fixed_share, beyond = shares(p, fixed=0.4)
+    assert fixed_share == pytest.approx(0.5)
+    assert beyond == pytest.approx(0.75)  # everything but the localizer's own 0.2 ms
+
+
+def test_the_report_gives_the_line_and_each_beam_counts_shares() -> None:
+    points = [
+        Point(90, 0.1, 0.55, 0.56, 1.0, 12.0),
+        Point(360, 0.2, 0.70, 0.70, 0.995, 20.0),
+        Point(720, 0.4, 1.00, 1.01, 0.99, 30.0),
+    ]
+    text = report(points, robots=100, duration=20.0, load=0.1)
+    assert "python -m bench.costfit --robots 100 --beams 90,360,720 --duration 20 --write" in text
+    assert "**0.400 ms + 1.50 x the update**" in text
+    row = next(line for line in text.splitlines() if line.startswith("| 360 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[6] == "0.700"  # the line at 0.2 ms: 0.4 + 1.5 x 0.2
+    assert cells[7] == "57 %"  # 0.4 of 0.7
+    assert cells[8] == "71 %"  # 1 - 0.2 / 0.7
+
+
+def test_the_localizer_alone_costs_more_with_more_beams() -> None:
+    # Four times the beams: every cast and every term of the refinement four times as long.
+    few, many = alone_ms(180, robots=5, steps=160), alone_ms(720, robots=5, steps=160)
+    assert math.isfinite(few) and few > 0.0
+    assert many > few
