@@ -30,7 +30,7 @@ import platform
 from dataclasses import dataclass
 
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
-from bench.report import section_main
+from bench.report import positive_float, positive_ints, section_main
 
 #: The section of ``BENCHMARKS.md``, one per fleet size: ``costfit-{robots}``.
 SECTION = "costfit"
@@ -158,10 +158,30 @@ def report(points: list[Point], robots: int, duration: float, load: float) -> st
     )
 
 
+def robots(text: str) -> int:
+    """An argparse type: one fleet size, at least 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give one fleet size of 1 or more, e.g. 100")
+    return n
+
+
+def beam_counts(text: str) -> list[int]:
+    """An argparse type: beams a scan, two different counts or more."""
+    counts = positive_ints(text)
+    if len(set(counts)) < 2:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give two different beam counts or more (the fit is a line), e.g. 90,360"
+        )
+    return counts
+
+
 def render(args: argparse.Namespace) -> str:
-    beams = [int(b) for b in args.beams.split(",")]
     load = os.getloadavg()[0]
-    points = measure(beams, args.robots, args.duration)
+    points = measure(args.beams, args.robots, args.duration)
     return report(points, args.robots, args.duration, load)
 
 
@@ -172,9 +192,14 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--robots", type=int, default=100, help="robots at every beam count")
-    p.add_argument("--beams", default="90,180,360,720", help="beams a scan, comma-separated")
-    p.add_argument("--duration", type=float, default=20.0, help="seconds per beam count")
+    p.add_argument("--robots", type=robots, default=100, help="robots at every beam count")
+    p.add_argument(
+        "--beams",
+        type=beam_counts,
+        default="90,180,360,720",
+        help="beams a scan, comma-separated: two different counts or more (a line needs them)",
+    )
+    p.add_argument("--duration", type=positive_float, default=20.0, help="seconds per beam count")
     return section_main(p, render, lambda a: f"{SECTION}-{a.robots}", argv)
 
 

@@ -27,7 +27,7 @@ import platform
 from typing import Any
 
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
-from bench.report import section_main
+from bench.report import positive_float, positive_ints, section_main
 
 SECTION = "fleet"
 
@@ -234,8 +234,10 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--robots", default="25,50,100,150", help="fleet sizes, comma-separated")
-    p.add_argument("--duration", type=float, default=20.0, help="seconds per size")
+    p.add_argument(
+        "--robots", type=positive_ints, default="25,50,100,150", help="fleet sizes, comma-separated"
+    )
+    p.add_argument("--duration", type=positive_float, default=20.0, help="seconds per size")
     p.add_argument("--no-record", action="store_true", help="service without MCAP recording")
     p.add_argument(
         "--workers",
@@ -255,9 +257,13 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     def run(args: argparse.Namespace) -> str:
-        sizes = [int(s) for s in args.robots.split(",")]
         return render(
-            sizes, args.duration, not args.no_record, args.workers, args.threads, args.processes
+            args.robots,
+            args.duration,
+            not args.no_record,
+            args.workers,
+            args.threads,
+            args.processes,
         )
 
     def section(args: argparse.Namespace) -> str:

@@ -34,6 +34,38 @@ def replace_section(path: Path, name: str, body: str) -> None:
     path.write_text(text, encoding="utf-8")
 
 
+def positive_ints(text: str) -> list[int]:
+    """An argparse type: comma-separated whole numbers, each at least 1 (``"50,100"``).
+
+    Raises:
+        argparse.ArgumentTypeError: anything else, saying what was expected.
+    """
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give whole numbers separated by commas, e.g. 50,100"
+        ) from None
+    if any(v < 1 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: every number must be at least 1")
+    return values
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number over 0 (a duration, seconds).
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a number, e.g. 20") from None
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be over 0")
+    return value
+
+
 def section_main(
     parser: argparse.ArgumentParser,
     render: Callable[[argparse.Namespace], str],

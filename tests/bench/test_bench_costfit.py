@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from bench.costfit import Point, alone_ms, fit_line, report, shares
+from bench.costfit import Point, alone_ms, fit_line, main, report, shares
 
 
 def test_the_line_through_exact_points_is_found() -> None:
@@ -57,3 +57,23 @@ def test_the_localizer_alone_costs_more_with_more_beams() -> None:
     few, many = alone_ms(180, robots=5, steps=160), alone_ms(720, robots=5, steps=160)
     assert math.isfinite(few) and few > 0.0
     assert many > few
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--beams", "360"], "two different beam counts"),
+        (["--beams", "360,360"], "two different beam counts"),
+        (["--beams", "90,x"], "whole numbers"),
+        (["--beams", "0,90"], "at least 1"),
+        (["--robots", "5,6"], "one fleet size"),
+        (["--duration", "0"], "must be over 0"),
+    ],
+)
+def test_arguments_it_cannot_use_are_refused_before_anything_runs(
+    argv: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as ended:
+        main(argv)
+    assert ended.value.code == 2
+    assert says in capsys.readouterr().err

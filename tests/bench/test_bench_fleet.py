@@ -5,6 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
+
+from bench.fleet import main as fleet_main
 from bench.fleet import share_floor, verdicts
 from bench.fleetrun import scans_recorded
 from service.logs.mcaplog import McapRecorder
@@ -59,3 +62,20 @@ def test_the_share_floor_counts_zenohs_threads_against_the_update() -> None:
     assert "Zenoh's threads (acc-*, app-*, net-*, rx-*, tx-*) 0.100 ms" in said
     assert "everything else of the service's" in said and "0.200 ms" in said
     assert said.endswith("would be 25 % (the bus's threads over theirs and the update's).")
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--robots", "0"], "at least 1"),
+        (["--robots", "50,x"], "whole numbers"),
+        (["--duration", "nan"], "must be over 0"),
+    ],
+)
+def test_sizes_and_durations_it_cannot_run_are_refused_before_a_service_starts(
+    argv: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as ended:
+        fleet_main(argv)
+    assert ended.value.code == 2
+    assert says in capsys.readouterr().err
