@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import statistics
 from dataclasses import dataclass
 
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
@@ -94,30 +95,51 @@ def alone_ms(beams: int, robots: int = ALONE_ROBOTS, steps: int = ALONE_STEPS) -
     return localizer_ms(plan_fleet(spec), steps)
 
 
-def measure(beams: list[int], robots: int, duration: float) -> list[Point]:
-    """Every beam count's localizer alone first, then the service at each, one at a time."""
-    alone = {b: alone_ms(b) for b in beams}
+def median_point(runs: list[Point]) -> Point:
+    """One beam count's runs as one point: the median of each measurement."""
+    beams = {p.beams for p in runs}
+    if len(beams) != 1:
+        raise ValueError(f"runs of different beam counts: {sorted(beams)}")
+
+    def mid(values: list[float]) -> float:
+        return float(statistics.median(values))
+
+    return Point(
+        runs[0].beams,
+        mid([p.update_ms for p in runs]),
+        mid([p.service_ms for p in runs]),
+        mid([p.sent_ms for p in runs]),
+        mid([p.answered for p in runs]),
+        mid([p.p99_ms for p in runs]),
+    )
+
+
+def measure(beams: list[int], robots: int, duration: float, rounds: int = 1) -> list[Point]:
+    """Each round, every beam count's localizer alone first, then the service at each, one at a
+    time; each point the median of its rounds."""
     workers, processes = serve_layout(None, None)
     serve = ("--processes", str(processes)) if processes else ()
-    points = []
-    for b in beams:
-        r = run_size(robots, duration, True, workers, serve_flags=serve, beams=b)
-        points.append(
-            Point(
-                b,
-                alone[b],
-                r["cpu_service_per_pose"],
-                r["cpu_main"] + r["cpu_workers"],
-                r["answered_after"],
-                r["p99"],
+    runs: dict[int, list[Point]] = {b: [] for b in beams}
+    for k in range(rounds):
+        alone = {b: alone_ms(b) for b in beams}
+        for b in beams:
+            r = run_size(robots, duration, True, workers, serve_flags=serve, beams=b)
+            runs[b].append(
+                Point(
+                    b,
+                    alone[b],
+                    r["cpu_service_per_pose"],
+                    r["cpu_main"] + r["cpu_workers"],
+                    r["answered_after"],
+                    r["p99"],
+                )
             )
-        )
-        print(f"{b} beams: {points[-1]}", flush=True)
-    return points
+            print(f"round {k + 1}, {b} beams: {runs[b][-1]}", flush=True)
+    return [median_point(runs[b]) for b in beams]
 
 
-def report(points: list[Point], robots: int, duration: float, load: float) -> str:
-    """The Markdown section for measured ``points``."""
+def report(points: list[Point], robots: int, duration: float, load: float, rounds: int = 1) -> str:
+    """The Markdown section for measured ``points`` (each the median of ``rounds`` runs)."""
     fixed, slope = fit_line([p.update_ms for p in points], [p.service_ms for p in points])
     beams = ",".join(str(p.beams) for p in points)
     rows = []
@@ -132,17 +154,24 @@ def report(points: list[Point], robots: int, duration: float, load: float) -> st
     return "\n".join(
         [
             f"Command: `python -m bench.costfit --robots {robots} --beams {beams} "
-            f"--duration {duration:g} --write`",
+            f"--duration {duration:g}{f' --rounds {rounds}' if rounds > 1 else ''} --write`",
             "",
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
             f"{platform.python_version()}. *Update*: CPU ms per `Localizer.update`, the localizer "
             f"alone in one process ({ALONE_ROBOTS} simulated robots, {ALONE_STEPS} steps each, "
-            "`bench.floor.localizer_ms`), every beam count timed before the first service "
-            f"started. *Service*: `rlutf serve` (its default layout, recording on) and the load "
-            f"generator of `python -m bench.fleet` on the same cores, {robots} robots at 10 Hz, "
-            f"{duration:g} s per beam count; CPU ms of all the service's processes per pose "
-            "published and per scan sent; answered and p99 over the scans after each robot's "
-            f"first {WARMUP_STEPS / RATE_HZ:g} s. Load average when the run started: {load:.1f}.",
+            "`bench.floor.localizer_ms`), every beam count timed before the first service of "
+            "the round started. *Service*: `rlutf serve` (its default layout, recording on) and "
+            f"the load generator of `python -m bench.fleet` on the same cores, {robots} robots "
+            f"at 10 Hz, {duration:g} s per beam count; CPU ms of all the service's processes "
+            "per pose published and per scan sent; answered and p99 over the scans after each "
+            f"robot's first {WARMUP_STEPS / RATE_HZ:g} s."
+            + (
+                f" {rounds} rounds, the beam counts in turn in each (the localizer alone first); "
+                "each figure the median of its rounds."
+                if rounds > 1
+                else ""
+            )
+            + f" Load average when the run started: {load:.1f}.",
             "",
             "| beams | update ms | service ms per pose | per scan sent | answered % | p99 ms "
             "| the line at this update | fixed part's share | beyond the update alone |",
@@ -158,14 +187,14 @@ def report(points: list[Point], robots: int, duration: float, load: float) -> st
     )
 
 
-def robots(text: str) -> int:
-    """An argparse type: one fleet size, at least 1."""
+def one_or_more(text: str) -> int:
+    """An argparse type: one whole number, at least 1 (robots, rounds)."""
     try:
         n = int(text)
     except ValueError:
         n = 0
     if n < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: give one fleet size of 1 or more, e.g. 100")
+        raise argparse.ArgumentTypeError(f"{text!r}: give one whole number of 1 or more, e.g. 3")
     return n
 
 
@@ -181,8 +210,8 @@ def beam_counts(text: str) -> list[int]:
 
 def render(args: argparse.Namespace) -> str:
     load = os.getloadavg()[0]
-    points = measure(args.beams, args.robots, args.duration)
-    return report(points, args.robots, args.duration, load)
+    points = measure(args.beams, args.robots, args.duration, args.rounds)
+    return report(points, args.robots, args.duration, load, args.rounds)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -192,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--robots", type=robots, default=100, help="robots at every beam count")
+    p.add_argument("--robots", type=one_or_more, default=100, help="robots at every beam count")
     p.add_argument(
         "--beams",
         type=beam_counts,
@@ -200,6 +229,12 @@ def main(argv: list[str] | None = None) -> int:
         help="beams a scan, comma-separated: two different counts or more (a line needs them)",
     )
     p.add_argument("--duration", type=positive_float, default=20.0, help="seconds per beam count")
+    p.add_argument(
+        "--rounds",
+        type=one_or_more,
+        default=1,
+        help="runs of every beam count, the counts in turn (each figure the median)",
+    )
     return section_main(p, render, lambda a: f"{SECTION}-{a.robots}", argv)
 
 

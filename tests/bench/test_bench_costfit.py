@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from bench.costfit import Point, alone_ms, fit_line, main, report, shares
+from bench.costfit import Point, alone_ms, fit_line, main, median_point, report, shares
 
 
 def test_the_line_through_exact_points_is_found() -> None:
@@ -66,7 +66,8 @@ def test_the_localizer_alone_costs_more_with_more_beams() -> None:
         (["--beams", "360,360"], "two different beam counts"),
         (["--beams", "90,x"], "whole numbers"),
         (["--beams", "0,90"], "at least 1"),
-        (["--robots", "5,6"], "one fleet size"),
+        (["--robots", "5,6"], "one whole number"),
+        (["--rounds", "0"], "one whole number"),
         (["--duration", "0"], "must be over 0"),
     ],
 )
@@ -77,3 +78,23 @@ def test_arguments_it_cannot_use_are_refused_before_anything_runs(
         main(argv)
     assert ended.value.code == 2
     assert says in capsys.readouterr().err
+
+
+def test_a_beam_counts_rounds_are_one_point_of_medians() -> None:
+    runs = [
+        Point(360, 0.18, 0.70, 0.69, 1.0, 25.0),
+        Point(360, 0.17, 0.66, 0.66, 0.99, 40.0),
+        Point(360, 0.20, 0.64, 0.64, 1.0, 22.0),
+    ]
+    p = median_point(runs)
+    assert (p.beams, p.update_ms, p.service_ms, p.sent_ms) == (360, 0.18, 0.66, 0.66)
+    assert (p.answered, p.p99_ms) == (1.0, 25.0)
+    with pytest.raises(ValueError):
+        median_point([runs[0], Point(90, 0.1, 0.5, 0.5, 1.0, 10.0)])
+
+
+def test_the_command_names_its_rounds() -> None:
+    points = [Point(90, 0.1, 0.55, 0.56, 1.0, 12.0), Point(360, 0.2, 0.70, 0.70, 1.0, 20.0)]
+    text = report(points, robots=200, duration=20.0, load=0.1, rounds=3)
+    assert "--beams 90,360 --duration 20 --rounds 3 --write" in text
+    assert "3 rounds" in text
