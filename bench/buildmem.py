@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.replaymem import PLAN_POSES, make_log_apart, peak
-from bench.report import section_main
+from bench.report import ints_text, section_main
 
 SECTION = "buildmem"
 T0 = 1_732_300_000_000_000_000
@@ -124,7 +124,10 @@ def render(args: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.buildmem", description=__doc__)
     parser.add_argument(
-        "--scans", default="6000,24000", help="scans of each recording, comma-separated"
+        "--scans",
+        type=ints_text(1),
+        default="6000,24000",
+        help="scans of each recording, comma-separated",
     )
     return section_main(parser, render, SECTION, argv)
 

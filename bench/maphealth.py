@@ -36,7 +36,7 @@ import shapely
 from shapely.geometry import LineString, Polygon, box
 from shapely.geometry.base import BaseGeometry
 
-from bench.report import section_main
+from bench.report import ints_text, section_main
 from rlutf.localizer import Localizer
 from rlutf.map import Map
 from rlutf.mapchange import Change, ChangeGrid, find_changes
@@ -423,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     parser = argparse.ArgumentParser(prog="python -m bench.maphealth", description=__doc__)
-    parser.add_argument("--seeds", default="1,2,3")
+    parser.add_argument("--seeds", type=ints_text(0), default="1,2,3")
     parser.add_argument("--robots", type=int, default=4)
     parser.add_argument("--seconds", type=float, default=90.0)
     parser.add_argument("--png", type=Path, default=None, help="draw the first case's report")

@@ -32,7 +32,7 @@ from typing import Any
 
 from bench.fleetrun import fleet_generator, health, start_service, stop_service
 from bench.procstat import MEMORY_PARTS, descendants, process_memory_mb
-from bench.report import section_main
+from bench.report import ints_text, section_main
 
 SECTION = "memory"
 FIELDS = MEMORY_PARTS
@@ -197,7 +197,12 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--robots", default="50,100", help="fleet sizes, comma-separated (0: idle)")
+    p.add_argument(
+        "--robots",
+        type=ints_text(0),
+        default="50,100",
+        help="fleet sizes, comma-separated (0: idle)",
+    )
     p.add_argument("--duration", type=float, default=20.0, help="seconds of load per size")
     p.add_argument("--workers", type=int, default=0, help="service worker processes (default 0)")
     p.add_argument(

@@ -28,7 +28,7 @@ import numpy as np
 from bench.accuracy import has_data
 from bench.kidnap import kidnap_path
 from bench.reloccases import BUILDING_SIZES_KIDNAP
-from bench.report import section_main
+from bench.report import ints_text, section_main
 from bench.scenarios import FloatArray, Run, named_scenarios, simulate
 from rlutf.localizer import Localizer, LocalizeResult
 from rlutf.motion import relative
@@ -229,8 +229,12 @@ def main(argv: list[str] | None = None) -> int:
     """Command-line entry."""
     parser = argparse.ArgumentParser(prog="python -m bench.quality", description=__doc__)
     parser.add_argument("--steps", type=int, default=250, help="scans per simulated run")
-    parser.add_argument("--seeds", default="1,2", help="seeds of each scenario's runs")
-    parser.add_argument("--kidnaps", default="1,2,3,4,5,6", help="seeds of the kidnapped runs")
+    parser.add_argument(
+        "--seeds", type=ints_text(0), default="1,2", help="seeds of each scenario's runs"
+    )
+    parser.add_argument(
+        "--kidnaps", type=ints_text(0), default="1,2,3,4,5,6", help="seeds of the kidnapped runs"
+    )
     args_list = list(argv) if argv is not None else sys.argv[1:]
 
     def run(args: argparse.Namespace) -> str:

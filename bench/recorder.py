@@ -29,12 +29,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bench.report import ints_text
 from schemas.fastpose import encode_pose
 from service.keys import Keys
 from service.logs.mcaplog import McapRecorder
 from service.sim.plan import FleetSpec, plan_fleet
 from service.sim.wire import JsonWire
 
+#: zstd's fastest level (its negative levels trade ratio for speed).
+ZSTD_MIN_LEVEL = -131072
 SCAN = "rlutf.LaserScan"
 ODOM = "rlutf.Odometry"
 POSE = "rlutf.PoseEstimate"
@@ -192,8 +195,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", type=int, default=50, help="robots (topics) recorded")
     p.add_argument("--seconds", type=float, default=10.0, help="log time at 10 Hz per robot")
     p.add_argument("--rate", type=float, default=2000.0, help="scans fed per second")
-    p.add_argument("--levels", default="", help="zstd levels to compare, e.g. 1,3")
-    p.add_argument("--chunks", default="", help="chunk sizes to compare, KiB, e.g. 256,1024")
+    p.add_argument(
+        "--levels",
+        type=ints_text(ZSTD_MIN_LEVEL, empty=True),
+        default="",
+        help="zstd levels to compare, e.g. 1,3",
+    )
+    p.add_argument(
+        "--chunks",
+        type=ints_text(1, empty=True),
+        default="",
+        help="chunk sizes to compare, KiB, e.g. 256,1024",
+    )
     p.add_argument("--no-views", action="store_true", help="leave out the views variant")
     p.add_argument("--repeat", type=int, default=3, help="runs per variant (the median is shown)")
     args = p.parse_args(argv)

@@ -51,6 +51,29 @@ def positive_ints(text: str) -> list[int]:
     return values
 
 
+def ints_text(least: int, empty: bool = False) -> Callable[[str], str]:
+    """An argparse type for a benchmark that echoes its argument in its command line: the text
+    itself, once every comma-separated part is a whole number of at least ``least`` (empty parts
+    are skipped; ``empty``: no number at all is allowed too).
+    """
+
+    def check(text: str) -> str:
+        parts = [part for part in text.split(",") if part.strip()]
+        try:
+            values = [int(part) for part in parts]
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: give whole numbers separated by commas, e.g. 1,2"
+            ) from None
+        if not values and not empty:
+            raise argparse.ArgumentTypeError(f"{text!r}: give at least one number")
+        if any(v < least for v in values):
+            raise argparse.ArgumentTypeError(f"{text!r}: every number must be at least {least}")
+        return text
+
+    return check
+
+
 def positive_float(text: str) -> float:
     """An argparse type: a finite number over 0 (a duration, seconds).
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.report import section_main
+from bench.report import ints_text, positive_float, positive_ints, section_main
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -36,3 +36,22 @@ def test_write_replaces_only_its_section(tmp_path: Path, monkeypatch: pytest.Mon
     assert "<!-- begin example -->\nn = 3\n<!-- end example -->" in text
     assert "old" not in text
     assert other in text
+
+
+def test_lists_of_whole_numbers_are_checked_as_arguments() -> None:
+    assert positive_ints("50,100") == [50, 100]
+    assert ints_text(0)("0,2") == "0,2"  # echoed as given, in the command line
+    assert ints_text(1, empty=True)("") == ""
+    for bad in ("x", "50,", "0"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            positive_ints(bad)
+    for check, bad in ((ints_text(1), "0"), (ints_text(0), "1,b"), (ints_text(0), "")):
+        with pytest.raises(argparse.ArgumentTypeError):
+            check(bad)
+
+
+def test_a_duration_must_be_a_number_over_zero() -> None:
+    assert positive_float("2.5") == 2.5
+    for bad in ("0", "-1", "inf", "nan", "soon"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            positive_float(bad)
