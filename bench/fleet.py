@@ -26,10 +26,13 @@ import os
 import platform
 from typing import Any
 
+from bench.costfit import alone_ms
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
 from bench.report import positive_float, positive_ints, section_main
 
 SECTION = "fleet"
+#: Beams a scan of the load generator (:mod:`bench.fleetrun`'s fleet).
+BEAMS = 360
 
 
 def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
@@ -65,6 +68,23 @@ def share_floor(by_thread: dict[str, dict[str, float]], update_ms: float) -> str
         f"(the intake and the loop around the batches, the recorders, the KeyWatch, ...) "
         f"{rest:.3f} ms. Were everything else nothing, the share outside the update "
         f"would be {100.0 * floor:.0f} % (the bus's threads over theirs and the update's)."
+    )
+
+
+def speed_line(alone: list[tuple[int, float, float]]) -> str:
+    """The sentence on the localizer alone before each size: ``(robots, its update ms, the
+    service's CPU ms per scan sent)`` each. The localizer alone does the same work whatever the
+    hour, so it gives the machine's speed when the size ran, and the service's CPU over it reads
+    alike in a fast hour and a slow one."""
+    parts = [
+        f"{n} robots {update:.3f} ms (the service's CPU per scan sent {service / update:.1f} "
+        "times it)"
+        for n, update, service in alone
+    ]
+    return (
+        f"The localizer alone right before each size ({BEAMS}-beam scans, one process, "
+        "`bench.costfit.alone_ms`; the same work whatever the hour, so it gives the machine's "
+        "speed at the time): " + "; ".join(parts) + "."
     )
 
 
@@ -110,9 +130,12 @@ def render(
     need: list[tuple[float, int, float, float]] = []
     overhead: list[str] = []
     floor = ""
+    alone: list[tuple[int, float, float]] = []
     for n in sizes:
         serve = ("--processes", str(processes)) if processes else ()
-        r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads)
+        update = alone_ms(BEAMS)  # the machine's speed now: the same work in every hour
+        r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads, beams=BEAMS)
+        alone.append((n, update, r["cpu_main"] + r["cpu_workers"]))
         by_thread = r["threads"] or by_thread
         service_ms = (r["cpu_main"] + r["cpu_workers"]) * r["sent"]  # the service's CPU, ms
         share = 1.0 - r["compute_p50"] * r["processed"] / service_ms if service_ms > 0 else 1.0
@@ -165,7 +188,7 @@ def render(
             f"Machine: {platform.machine()}, {os.cpu_count()} cores, CPython "
             f"{platform.python_version()}. {who}"
             f"{'on' if record else 'off'}) and one load-generator process share the cores; "
-            f"{duration:g} s per size at 10 Hz per robot, 360-beam scans, 1 cm noise; latency "
+            f"{duration:g} s per size at 10 Hz per robot, {BEAMS}-beam scans, 1 cm noise; latency "
             f"from each robot's scan put to its pose received, over every scan after the "
             f"robot's first {WARMUP_STEPS / RATE_HZ:g} s (its first scan after the initial "
             "pose searches wide); drops, counts and CPU over the whole run. "
@@ -201,6 +224,8 @@ def render(
             "compute p50 x poses / service CPU; the goal is under a third): "
             + "; ".join(overhead)
             + ".",
+            "",
+            speed_line(alone),
             "",
             f"CPU budget: the cheapest measured cost per scan ({best[1]} robots) was "
             f"{best[2]:.2f} ms of service CPU per pose published plus {best[3]:.2f} ms of the "

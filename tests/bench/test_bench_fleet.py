@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 from bench.fleet import main as fleet_main
-from bench.fleet import share_floor, verdicts
+from bench.fleet import share_floor, speed_line, verdicts
 from bench.fleetrun import scans_recorded
 from service.logs.mcaplog import McapRecorder
 
@@ -79,3 +79,9 @@ def test_sizes_and_durations_it_cannot_run_are_refused_before_a_service_starts(
         fleet_main(argv)
     assert ended.value.code == 2
     assert says in capsys.readouterr().err
+
+
+def test_the_service_is_read_against_the_localizer_alone_timed_before_each_size() -> None:
+    line = speed_line([(100, 0.2, 0.7), (200, 0.25, 0.6)])
+    assert "100 robots 0.200 ms (the service's CPU per scan sent 3.5 times it)" in line
+    assert "200 robots 0.250 ms (the service's CPU per scan sent 2.4 times it)" in line
