@@ -22,6 +22,7 @@ second.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 from typing import Any
@@ -77,8 +78,8 @@ def speed_line(alone: list[tuple[int, float, float]]) -> str:
     hour, so it gives the machine's speed when the size ran, and the service's CPU over it reads
     alike in a fast hour and a slow one."""
     parts = [
-        f"{n} robots {update:.3f} ms (the service's CPU per scan sent {service / update:.1f} "
-        "times it)"
+        f"{n} robots {update:.3f} ms (the service's CPU per scan sent "
+        f"{service / update if update > 0 else math.nan:.1f} times it)"
         for n, update, service in alone
     ]
     return (

@@ -85,3 +85,4 @@ def test_the_service_is_read_against_the_localizer_alone_timed_before_each_size(
     line = speed_line([(100, 0.2, 0.7), (200, 0.25, 0.6)])
     assert "100 robots 0.200 ms (the service's CPU per scan sent 3.5 times it)" in line
     assert "200 robots 0.250 ms (the service's CPU per scan sent 2.4 times it)" in line
+    assert "nan times it" in speed_line([(10, 0.0, 0.5)])  # too short to time: no ratio
