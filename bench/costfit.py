@@ -30,7 +30,10 @@ import platform
 import statistics
 from dataclasses import dataclass
 
+import numpy as np
+
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
+from bench.floor import localizer_alone_ms
 from bench.report import positive_float, positive_ints, section_main
 
 #: The section of ``BENCHMARKS.md``, one per fleet size: ``costfit-{robots}``.
@@ -67,32 +70,16 @@ def fit_line(xs: list[float], ys: list[float]) -> tuple[float, float]:
     Raises:
         ValueError: fewer than two points, or every ``x`` the same.
     """
-    n = len(xs)
-    if n != len(ys) or n < 2:
-        raise ValueError(f"a line needs two points or more, got {n}")
-    mx = sum(xs) / n
-    my = sum(ys) / n
-    sxx = sum((x - mx) ** 2 for x in xs)
-    if sxx == 0.0:
-        raise ValueError("every x is the same: no slope")
-    slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sxx
-    return my - slope * mx, slope
+    if len(xs) != len(ys) or len(set(xs)) < 2:
+        raise ValueError(f"a line needs two different x or more, got {xs}")
+    slope, intercept = np.polyfit(np.asarray(xs), np.asarray(ys), 1)
+    return float(intercept), float(slope)
 
 
 def shares(point: Point, fixed: float) -> tuple[float, float]:
     """At one point: the fixed part's share of the service's CPU per pose, and the share beyond
     the localizer's own update."""
     return fixed / point.service_ms, 1.0 - point.update_ms / point.service_ms
-
-
-def alone_ms(beams: int, robots: int = ALONE_ROBOTS, steps: int = ALONE_STEPS) -> float:
-    """CPU ms per ``Localizer.update`` of the localizer alone on ``beams``-beam scans
-    (``robots`` simulated robots, ``steps`` steps each, the first ones not timed)."""
-    from bench.floor import localizer_ms
-    from service.sim.plan import FleetSpec, plan_fleet
-
-    spec = FleetSpec(robots=robots, poses=steps + 1, seed=7, map_id="sim", beams=beams)
-    return localizer_ms(plan_fleet(spec), steps)
 
 
 def median_point(runs: list[Point]) -> Point:
@@ -121,7 +108,7 @@ def measure(beams: list[int], robots: int, duration: float, rounds: int = 1) -> 
     serve = ("--processes", str(processes)) if processes else ()
     runs: dict[int, list[Point]] = {b: [] for b in beams}
     for k in range(rounds):
-        alone = {b: alone_ms(b) for b in beams}
+        alone = {b: localizer_alone_ms(b, ALONE_ROBOTS, ALONE_STEPS) for b in beams}
         for b in beams:
             r = run_size(robots, duration, True, workers, serve_flags=serve, beams=b)
             runs[b].append(

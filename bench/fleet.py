@@ -27,8 +27,8 @@ import os
 import platform
 from typing import Any
 
-from bench.costfit import alone_ms
 from bench.fleetrun import RATE_HZ, WARMUP_STEPS, run_size, serve_layout
+from bench.floor import localizer_alone_ms
 from bench.report import positive_float, positive_ints, section_main
 
 SECTION = "fleet"
@@ -84,8 +84,8 @@ def speed_line(alone: list[tuple[int, float, float]]) -> str:
     ]
     return (
         f"The localizer alone right before each size ({BEAMS}-beam scans, one process, "
-        "`bench.costfit.alone_ms`; the same work whatever the hour, so it gives the machine's "
-        "speed at the time): " + "; ".join(parts) + "."
+        "`bench.floor.localizer_alone_ms`; the same work whatever the hour, so it gives the "
+        "machine's speed at the time): " + "; ".join(parts) + "."
     )
 
 
@@ -134,7 +134,7 @@ def render(
     alone: list[tuple[int, float, float]] = []
     for n in sizes:
         serve = ("--processes", str(processes)) if processes else ()
-        update = alone_ms(BEAMS)  # the machine's speed now: the same work in every hour
+        update = localizer_alone_ms(BEAMS)  # the machine's speed now: the same work in every hour
         r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads, beams=BEAMS)
         alone.append((n, update, r["cpu_main"] + r["cpu_workers"]))
         by_thread = r["threads"] or by_thread

@@ -70,8 +70,12 @@ def _cpu(pid: int | None = None) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _plan(robots: int, steps: int, beams: int = 360) -> FleetPlan:
+    return plan_fleet(FleetSpec(robots=robots, poses=steps + 1, seed=7, map_id="sim", beams=beams))
+
+
 def _fleet(robots: int, steps: int) -> tuple[FleetPlan, JsonWire]:
-    plan = plan_fleet(FleetSpec(robots=robots, poses=steps + 1, seed=7, map_id="sim"))
+    plan = _plan(robots, steps)
     return plan, JsonWire(plan)
 
 
@@ -97,6 +101,14 @@ def localizer_ms(plan: FleetPlan, steps: int) -> float:
         return n
 
     return _measured(run, steps)
+
+
+def localizer_alone_ms(beams: int, robots: int = 20, steps: int = 300) -> float:
+    """CPU ms per ``Localizer.update`` of the localizer alone on ``beams``-beam scans
+    (:func:`localizer_ms` on ``robots`` simulated robots, ``steps`` steps each): the same work in
+    every hour, so a measure of the machine's speed beside a fleet run (``bench.fleet``) and the
+    update time the service's CPU is fitted against (``bench.costfit``)."""
+    return localizer_ms(_plan(robots, steps, beams), steps)
 
 
 def update_costs(

@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from bench.costfit import Point, alone_ms, fit_line, main, median_point, report, shares
+from bench.costfit import Point, fit_line, main, median_point, report, shares
+from bench.floor import localizer_alone_ms
 
 
 def test_the_line_through_exact_points_is_found() -> None:
@@ -54,7 +55,8 @@ def test_the_report_gives_the_line_and_each_beam_counts_shares() -> None:
 
 def test_the_localizer_alone_costs_more_with_more_beams() -> None:
     # Four times the beams: every cast and every term of the refinement four times as long.
-    few, many = alone_ms(180, robots=5, steps=160), alone_ms(720, robots=5, steps=160)
+    few = localizer_alone_ms(180, robots=5, steps=160)
+    many = localizer_alone_ms(720, robots=5, steps=160)
     assert math.isfinite(few) and few > 0.0
     assert many > few
 
