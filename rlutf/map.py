@@ -192,9 +192,11 @@ class MapLimits:
                 f"coordinates: {vertices} vertices, more than the limit of {self.max_vertices} "
                 "(setting max_map_vertices)"
             )
-        width, height = bounds[2] - bounds[0], bounds[3] - bounds[1]
-        if not math.isfinite(width * height):
+        if not all(map(math.isfinite, bounds)):
             return  # geometry_from_geojson names the non-finite coordinate
+        width, height = bounds[2] - bounds[0], bounds[3] - bounds[1]
+        # Finite coordinates may still span more than a float holds (1e308 and -1e308), or an
+        # area that overflows: infinite, and over any limit.
         if self.max_area is not None and width * height > self.max_area:
             raise MapError(
                 f"coordinates: the map spans {width:g} m x {height:g} m = {width * height:g} m2, "
@@ -270,6 +272,13 @@ class Map:
         coords = shapely.get_coordinates(geom)
         if not np.isfinite(coords).all():
             raise MapError("geometry: non-finite coordinate")
+        x0, y0, x1, y1 = geom.bounds
+        width, height = x1 - x0, y1 - y0
+        if not math.isfinite(width * height):  # finite coordinates, an extent that overflows
+            raise MapError(
+                f"geometry: the map spans {width:g} m x {height:g} m, more than a float holds "
+                "(are the coordinates in metres?)"
+            )
         if not geom.is_valid:
             raise MapError(f"geometry: invalid polygon: {explain_validity(geom)}")
         if geom.area <= 0.0:

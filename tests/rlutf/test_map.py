@@ -130,6 +130,23 @@ def test_limits_refuse_a_map_before_anything_is_built() -> None:
         Map.from_geojson(bad, limits=MapLimits(max_area=1.0))
 
 
+def test_finite_coordinates_whose_extent_overflows_are_refused() -> None:
+    # Every coordinate finite, the area (or the width itself) past what a float holds: once let
+    # through by the limit (its check skipped what was not finite) and then an OverflowError
+    # in the wall index, an internal error for every robot placed on the map.
+    from rlutf.map import MapLimits
+
+    for corners in (
+        [[0, 0], [1e308, 0], [0, 1e308], [0, 0]],
+        [[-1e308, 0], [1e308, 0], [0, 1], [-1e308, 0]],
+    ):
+        geometry = {"type": "Polygon", "coordinates": [corners]}
+        with pytest.raises(MapError, match=r"inf m2, more than the limit of 1e\+06 m2"):
+            Map.from_geojson(geometry, limits=MapLimits(max_area=1e6))
+        with pytest.raises(MapError, match="more than a float holds"):
+            Map.from_geojson(geometry)
+
+
 def test_the_wall_index_is_made_on_first_use() -> None:
     world = Map.from_geojson(
         {"type": "Polygon", "coordinates": [[[0, 0], [30, 0], [30, 20], [0, 20], [0, 0]]]}
