@@ -68,7 +68,7 @@ def register(sub: Any) -> None:
     )
     replay.add_argument(
         "--tolerance",
-        type=float,
+        type=number(float, minimum=0.0),
         default=1e-9,
         metavar="M",
         help="largest accepted deviation, metres (and radians unless "
@@ -76,7 +76,7 @@ def register(sub: Any) -> None:
     )
     replay.add_argument(
         "--heading-tolerance",
-        type=float,
+        type=number(float, minimum=0.0),
         metavar="RAD",
         help="largest accepted heading deviation, radians",
     )

@@ -94,6 +94,11 @@ def read_settings_file(path: Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ReplayConfigError(f"cannot read settings file {path}: {err.strerror}") from err
+    except UnicodeDecodeError as err:
+        raise ReplayConfigError(
+            f"settings file {path}: not UTF-8 text (byte {err.start}); give a JSON, TOML or "
+            "YAML file"
+        ) from err
     suffix = path.suffix.lower()
     try:
         if suffix == ".json":
@@ -132,6 +137,36 @@ def _assignment(text: str) -> dict[str, Any]:
     return out
 
 
+def _unknown(base: Mapping[str, Any], top: Mapping[str, Any], at: str = "") -> list[str]:
+    """Dotted keys of ``top`` that ``base`` does not have (the localizer's parameters are
+    checked apart, with the list of those it knows)."""
+    out = []
+    for key, value in top.items():
+        name = f"{at}{key}"
+        if name == "localizer":
+            continue
+        if key not in base:
+            out.append(name)
+        elif isinstance(value, Mapping) and isinstance(base[key], Mapping):
+            out += _unknown(base[key], value, f"{name}.")
+    return out
+
+
+def _refuse_unknown(base: Mapping[str, Any], top: Mapping[str, Any], where: str) -> None:
+    """Refuse a setting that is no setting of the service's: a misspelt one would otherwise
+    change nothing, and the audit would pass under settings the user did not get. (A setting of
+    the service's that a replay does not use, such as ``listen`` in the file ``rlutf serve``
+    reads, is let through.)"""
+    known = {**dict.fromkeys(Settings.model_fields), **base}
+    unknown = _unknown(known, top)
+    if unknown:
+        raise ReplayConfigError(
+            f"{where}: no setting of the service is named {', '.join(unknown)} "
+            f"(a replay uses: {', '.join(sorted(k for k in base if k != 'localizer'))}, "
+            "and localizer.PARAMETER)"
+        )
+
+
 def resolve(
     recorded: Mapping[str, Any] | None,
     *,
@@ -152,9 +187,13 @@ def resolve(
     """
     merged = _merge(default_settings(prefix_hint), recorded or {})
     if settings_file is not None:
-        _merge(merged, read_settings_file(settings_file))
+        given = read_settings_file(settings_file)
+        _refuse_unknown(merged, given, f"settings file {settings_file}")
+        _merge(merged, given)
     for text in assignments:
-        _merge(merged, _assignment(text))
+        given = _assignment(text)
+        _refuse_unknown(merged, given, f"--set {text!r}")
+        _merge(merged, given)
     loc = merged.get("localizer")
     if not isinstance(loc, dict):
         raise ReplayConfigError("localizer: expected a mapping of localizer parameters")

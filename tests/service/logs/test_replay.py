@@ -163,6 +163,25 @@ def test_config_from_log_and_overrides(tmp_path: Path) -> None:
         resolve(recorded, assignments=["nonsense"])
     with pytest.raises(ReplayConfigError, match="epsilon"):
         resolve(recorded, assignments=["localizer.epsilon=-1"])
+    # A misspelt setting changed nothing, and the audit passed under settings the user did not
+    # get: refused, from --set and from a file alike, nested ones too.
+    with pytest.raises(ReplayConfigError, match="no setting of the service is named max_map_ar"):
+        resolve(recorded, assignments=["max_map_areaa=5"])
+    with pytest.raises(ReplayConfigError, match=r"named limits\.max_rangee"):
+        resolve(recorded, assignments=["limits.max_rangee=5"])
+    typo = tmp_path / "typo.json"
+    typo.write_text('{"foo": 1}')
+    with pytest.raises(
+        ReplayConfigError, match=r"typo.json: no setting of the service is named foo"
+    ):
+        resolve(recorded, settings_file=typo)
+    # a setting of the service's that a replay does not use (as in the file serve reads) is let
+    # through, and a file that is not text is named
+    assert resolve(recorded, assignments=["listen=[]"]).settings["listen"] == []
+    junk = tmp_path / "junk.json"
+    junk.write_bytes(b"\xff\xfe\x00junk")
+    with pytest.raises(ReplayConfigError, match=r"junk\.json: not UTF-8 text"):
+        resolve(recorded, settings_file=junk)
 
 
 def test_invalid_inputs_are_rejected_not_fatal(tmp_path: Path) -> None:
@@ -214,6 +233,15 @@ def test_cli_replay_writes_plots(
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     assert main([*argv, "--set", "localizer.bogus=1"]) == 2
     assert "unknown parameter" in capsys.readouterr().err
+    # a tolerance that cannot be one is refused before any work, not a FAILED audit
+    for flag, value in (
+        ("--tolerance", "-1"),
+        ("--tolerance", "nan"),
+        ("--heading-tolerance", "-1"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            main(["replay", str(inputs_log), flag, value, "--quiet"])
+        assert exit_.value.code == 2 and flag in capsys.readouterr().err
     assert main(["replay", str(inputs_log), "--out", str(inputs_log), "--quiet"]) == 2
 
 
