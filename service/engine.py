@@ -39,7 +39,7 @@ from schemas import (
 )
 from schemas.fastpose import encode_pose
 from service.guard import Limits, Outbound, guarded, region_on, usable_scan
-from service.keys import Keys
+from service.keys import NO_RETURNS_MESSAGE, Keys
 from service.maphealth import NullEvidence, ScanEvidence
 from service.prepared import MapShelf, WorldSource
 from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
@@ -353,7 +353,7 @@ class FleetEngine:
                     "warning",
                     EventCode.LOST,
                     key,
-                    "scan has too few returns to compare; pose kept by odometry",
+                    NO_RETURNS_MESSAGE,
                 )
             )
         pose = self._pose(robot, msg.stamp_ns, result, received_ns)

@@ -18,6 +18,10 @@ MODELS: dict[str, type[Message]] = {
 }
 
 
+#: The Event ``lost`` of a scan with too few returns to compare: no pose goes out for it
+#: (:class:`service.engine.FleetEngine`), and the robots view says why (``no_returns``).
+NO_RETURNS_MESSAGE = "scan has too few returns to compare; pose kept by odometry"
+
 #: Leaves of a robot key the service itself puts (instances follow each other's poses).
 OUTPUT_LEAVES = ("pose", "events")
 

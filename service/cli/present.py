@@ -15,7 +15,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from schemas import Event, EventCode, Health, PoseEstimate
-from service.live.robots import NO_SCAN_YET, RobotState, WaitingRobot, one_sigma
+from service.keys import printable
+from service.live.robots import (
+    NO_RETURNS,
+    NO_SCAN_YET,
+    RobotState,
+    WaitingRobot,
+    one_sigma,
+)
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -43,6 +50,10 @@ NO_SCAN_HINT = (
     "no scan yet: the robot has an initial pose and has sent no scan since; its next scan "
     "gives its first pose (is it sending scans? `rlutf events ROBOT`)"
 )
+NO_RETURNS_HINT = (
+    "no returns: the robot's scans have too few returns to compare, so no pose goes out (a "
+    "blocked or failing lidar, or range limits that leave nothing? `rlutf events ROBOT`)"
+)
 NO_MAP_HINT = (
     "no map: the robot's map is in no storage (its initial pose or scans wait for it); "
     "`rlutf map list` shows the stored maps, `rlutf map put FILE --id ID` stores one"
@@ -50,6 +61,7 @@ NO_MAP_HINT = (
 #: How each waiting reason reads in the status column, and its hint.
 _WAITS = {
     NO_SCAN_YET: ("no scan yet", NO_SCAN_HINT),
+    NO_RETURNS: ("no returns", NO_RETURNS_HINT),
     EventCode.MAP_NOT_FOUND: ("no map", NO_MAP_HINT),
 }
 
@@ -240,12 +252,15 @@ def health_problems(healths: Iterable[Health]) -> list[str]:
 
 def event_line(robot: str | None, ev: Event) -> str:
     """One Event as a line: local time, level, robot (``-``: service-wide, with the Event's key),
-    code and message."""
+    code and message; control characters escaped (what comes off the bus, a key or an Event put
+    by any client, must not drive the operator's terminal: clear it, recolour it, hide a
+    line)."""
     clock = time.strftime("%H:%M:%S", time.localtime(ev.stamp_ns / 1e9))
     millis = ev.stamp_ns // 1_000_000 % 1000
     code = ev.code if robot else f"{ev.code} ({ev.key})"  # service-wide: which map or key
     text = ev.message if ev.message.startswith(f"{ev.code}:") else f"{code}: {ev.message}"
-    return f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {text}"
+    line = f"{clock}.{millis:03d}  {ev.level:<7}  {robot or '-'}  {text}"
+    return printable(line, limit=len(line))
 
 
 def pose_line(p: PoseEstimate) -> str:

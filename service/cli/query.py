@@ -116,7 +116,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
         whom = "no robot has a pose" if args.robot == "*" else f"no pose for {args.robot}"
         print(
             f"rlutf pose: {whom} (within {args.timeout:g} s); `rlutf robots` lists the robots "
-            "and those waiting for an initial pose",
+            "and those waiting for a pose, with why",
             file=sys.stderr,
         )
         return EXIT_FAILURE
@@ -174,8 +174,11 @@ def show_other(clock: Any = None) -> Any:
                 return
             more = f" (and {skipped[0]} more since the last such line)" if skipped[0] else ""
             last[0], skipped[0] = now(), 0
+        from service.keys import printable
+
         brief = why if len(why) <= 160 else why[:157] + "..."
-        print(f"rlutf events: {key}: not an Event ({size} bytes: {brief}){more}", file=sys.stderr)
+        line = f"rlutf events: {key}: not an Event ({size} bytes: {brief}){more}"
+        print(printable(line, limit=len(line)), file=sys.stderr)
 
     return show
 

@@ -41,7 +41,8 @@ def register(sub: Any) -> None:
         "--json",
         action="store_true",
         help="print one JSON array of robots instead of a table (each with 'silent'; waiting "
-        "robots have status 'waiting', a reason (not_initialized, map_not_found, no_scan_yet) "
+        "robots have status 'waiting', a reason (not_initialized, map_not_found, no_scan_yet, "
+        "no_returns) "
         "and no pose)",
     )
     zenoh_flags(robots, client=True)

@@ -6,8 +6,8 @@ own (:mod:`service.live.mapfeed`). The computation is :class:`service.engine.Fle
 
 Scale-out: instances sharing a prefix split the fleet by rendezvous hashing over their
 liveliness tokens (:mod:`service.cluster.membership`); each localizes, records, counts and
-answers pose queries for the robots it owns only, and seeds a robot it takes over from the
-robot's last published pose (:mod:`service.cluster.ownership`); they share map health evidence.
+answers pose queries for the robots it owns only, and seeds a robot it takes over from its last
+published pose (:mod:`service.cluster.ownership`); they share map health evidence.
 
 ROS 2 robots (``settings.ros2.enabled``) come in through :class:`service.ros2.frontdoor.
 Ros2FrontDoor` on the same session: once validated, their inputs take the JSON inputs' path
@@ -40,6 +40,7 @@ from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
+from service.guard import check_input
 from service.keys import InputKind, Keys, Message
 from service.live.admission import Gate, Sweeper
 from service.live.clock import ReceiveClock
@@ -90,8 +91,7 @@ class LocalizationService:
     Args:
         settings: effective configuration.
         recorder: where to record; ``None`` records nothing.
-        session: an open Zenoh session to use (tests); by default one is opened from the
-            settings and closed with the service.
+        session: an open Zenoh session to use (tests); by default one from the settings.
         stop: set when the service is told to stop (the CLI's signal handler), before
             :meth:`close` runs: a worker process the same signal ended is not replaced.
     """
@@ -375,8 +375,8 @@ class LocalizationService:
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
-        elif kind == "initialpose":
-            self.robot_view.initialized(robot, at, getattr(msg, "map_id", None))
+        elif kind == "initialpose" and check_input(msg, self.settings.limits) is None:
+            self.robot_view.initialized(robot, at, getattr(msg, "map_id", None))  # not if refused
 
     def _record_seed(self, robot: str, entry: Entry) -> None:
         """Record an input made to re-seed a robot whose worker died (dispatcher lock held)."""

@@ -33,7 +33,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import PoseEstimate, SchemaError, decode, encode
-from service.keys import Keys
+from service.keys import NO_RETURNS_MESSAGE, Keys
 
 log = logging.getLogger(__name__)
 
@@ -82,8 +82,9 @@ class WaitingRobot(BaseModel):
 
     robot_id: str = Field(description="Robot id.")
     reason: str = Field(
-        description="Why: the Event code not_initialized or map_not_found, or no_scan_yet (an "
-        "initial pose taken in, no scan since)."
+        description="Why: the Event code not_initialized or map_not_found, no_scan_yet (an "
+        "initial pose taken in, no scan since) or no_returns (its scans have too few returns "
+        "to give a pose)."
     )
     age_s: float = Field(description="Seconds since the latest such Event (instance's clock).")
     owner: str = Field(description="The instance holding the robot.")
@@ -126,6 +127,10 @@ _WAITING = {
 }
 #: The reason of a robot given an initial pose that has sent no scan since.
 NO_SCAN_YET = "no_scan_yet"
+#: The reason of a robot whose scans have too few returns to give a pose (a lidar blocked or
+#: failing, range limits that leave nothing): it sends scans, so "no scan yet" would mislead.
+NO_RETURNS = "no_returns"
+_NO_RETURNS = NO_RETURNS_MESSAGE.encode()  # in an Event's payload as JSON writes it
 #: Robots remembered as waiting, at most (the longest silent are forgotten first).
 MAX_WAITING = 1000
 
@@ -181,6 +186,8 @@ class RobotView:
             if code in payload:
                 self._remember(robot, at_ns, reason)
                 return
+        if _NO_RETURNS in payload and robot not in self._poses:
+            self._remember(robot, at_ns, NO_RETURNS)
 
     def told(self, robot: str, code: str, at_ns: int) -> None:
         """A robot Event ``code`` went out at ``at_ns`` from outside an update (a map no

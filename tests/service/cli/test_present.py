@@ -190,6 +190,28 @@ def test_an_event_is_one_line_with_its_robot() -> None:
     assert "  -  not_initialized (rlutf/robots/r1/scan): scan" in event_line(None, ev)
 
 
+def test_control_characters_from_the_bus_do_not_reach_the_terminal(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # Any client may put a key, and an Event on {prefix}/events, with escape sequences in them:
+    # printed raw they clear or recolour the operator's terminal.
+    ev = Event(
+        stamp_ns=1_732_300_000_123_456_789,
+        level="error",
+        code="invalid_key\x1b[31m",
+        key="rlutf/robots/\x1b[2J\x1b[31mEVIL/scan",
+        message="bad\x07 \x9b1m id é",
+    )
+    line = event_line(None, ev)
+    assert "\x1b" not in line and "\x07" not in line and "\x9b" not in line
+    assert "rlutf/robots/\\x1b[2J\\x1b[31mEVIL/scan" in line and "bad\\x07 \\x9b1m id é" in line
+    from service.cli.query import show_other
+
+    show_other()("rlutf/robots/\x1b[2J/events", 3, "junk\r")
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "\r" not in err and "\\x1b[2J" in err
+
+
 def _lost(fit: float, needed: float) -> LocalizeResult:
     return LocalizeResult(np.zeros(3), 0.5, 3, "lost", 10, fit=fit, fit_needed=needed)
 

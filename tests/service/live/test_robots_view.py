@@ -204,6 +204,27 @@ def test_a_robot_given_an_initial_pose_waits_for_its_first_scan_in_the_view() ->
     assert [w.robot_id for w in view.waiting()] == ["r3", "r4"]
 
 
+def test_a_robot_whose_scans_have_no_returns_is_not_listed_as_sending_none() -> None:
+    # A blocked lidar: every scan "lost: too few returns", no pose ever published. The view
+    # listed it as "no scan yet" (is it sending scans?), sending the operator to the network.
+    from service.keys import NO_RETURNS_MESSAGE
+
+    now = [10**18]
+    poses: dict[str, bytes] = {"r2": b"{}"}
+    view = RobotView("a", poses, lambda: now[0])
+    view.initialized("r1", now[0], "m1")
+    lost = encode(
+        Event(stamp_ns=now[0], level="warning", code="lost", key="rlutf/robots/r1/scan",
+              message=NO_RETURNS_MESSAGE)
+    )  # fmt: skip
+    now[0] += 10**9
+    view.event("r1", lost, now[0])
+    view.event("r2", lost, now[0])  # tracking until now: its pose ages in the view instead
+    assert [(w.robot_id, w.reason, w.map_id) for w in view.waiting()] == [
+        ("r1", "no_returns", "m1")
+    ]
+
+
 def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
     bench: Bench,
 ) -> None:
@@ -232,6 +253,23 @@ def test_an_initial_pose_before_any_scan_lists_the_robot_until_its_first_pose(
             break
         time.sleep(0.05)
     assert [r["robot_id"] for r in answer["robots"]] == ["r7"] and answer["waiting"] == []
+
+
+def test_an_initial_pose_the_engine_refuses_places_no_robot_in_the_view(bench: Bench) -> None:
+    # An InitialPose over a limit (a pose 1e308 m out) is refused with an Event: the view once
+    # listed the robot as placed ("no scan yet") all the same, and its next scan then got
+    # not_initialized.
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/robots/r8/events", col)
+    bench.put_map()
+    time.sleep(0.3)
+    bench.robot("r8", 5).initial_pose("m1", offset=(1e308, 0.0, 0.0))
+    assert col.wait_for(
+        lambda: any(e["code"] == "invalid_message" for e in col.on("rlutf/robots/r8/events"))
+    )
+    sub.undeclare()
+    (answer,) = ask(bench, "rlutf/service/*/robots")
+    assert answer["waiting"] == [] and answer["robots"] == []
 
 
 def test_a_robot_restored_after_a_restart_is_shown_by_its_owner_until_its_first_pose() -> None:
