@@ -205,7 +205,7 @@ def health_table(healths: Iterable[Health]) -> str:
         name = h.instance
         processes = h.extra.get("processes") if h.extra.get("host") is True else None
         if isinstance(processes, list):  # a host: its processes' rows follow, added up here
-            name = f"{name} (host: {len(processes)} processes added up)"
+            name = f"{name} (host: {len(processes)} processes added up; latency: the slowest)"
         rows.append(
             [
                 name,

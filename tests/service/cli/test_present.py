@@ -257,7 +257,7 @@ def test_a_hosts_health_row_says_it_adds_its_processes_up() -> None:
         [health("h", 30, host=True, processes=processes), health("h-p0", 10), health("h-p1", 20)]
     ).splitlines()[1:]
     assert [r.split()[0] for r in rows] == ["h", "h-p0", "h-p1"]
-    assert "(host: 2 processes added up)" in rows[0]
+    assert "(host: 2 processes added up; latency: the slowest)" in rows[0]
     assert "host" not in rows[1] + rows[2]
 
 
