@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli.flags import EXIT_OK, number
+from service.cli.flags import EXIT_OK, number, usable_folder, writable
 from service.cli.present import console as make_console
 from service.cli.present import unfinished
 
@@ -189,7 +189,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     """``rlutf replay``: sort the inputs into runs, replay and audit each on its own; with no
     ``--out`` an audit only (the recomputed logs are written aside, then removed)."""
     args.kept = args.out is not None
+    # Outputs that cannot be written are refused before a replay of hours, not after it.
+    if args.plot is not None:
+        usable_folder(args.plot, "--plot")
     if args.kept:
+        out = Path(args.out)
+        if out.is_dir() or str(args.out).endswith(("/", "\\")):
+            usable_folder(out, "--out")
+        else:
+            writable(out, "--out")
         return _replay_runs(args)
     import tempfile
 
@@ -328,8 +336,11 @@ def cmd_recover(args: argparse.Namespace) -> int:
     outs = [args.out]
     several = len(broken_logs) > 1 or any(p.is_dir() for p in args.broken)
     if several or args.out.is_dir():
-        args.out.mkdir(parents=True, exist_ok=True)
+        usable_folder(args.out, "OUT")
         outs = [args.out / p.name.removesuffix(".part") for p in broken_logs]
+    else:
+        writable(args.out, "OUT")
+    empty: list[Path] = []
     for broken, out in zip(broken_logs, outs, strict=True):
         try:
             report = recover(broken, out)
@@ -344,6 +355,15 @@ def cmd_recover(args: argparse.Namespace) -> int:
             state = "the input was read to its end"
         else:
             state = "the input was read to its end, nothing was missing"
+        if report.messages == 0:  # nothing salvaged: no empty log left to be taken for one
+            out.unlink(missing_ok=True)
+            empty.append(out)
+            print(
+                f"rlutf log recover: {broken}: no message could be recovered ({state}); "
+                "no output written",
+                file=sys.stderr,
+            )
+            continue
         print(
             f"recovered {report.messages} messages in {report.chunks} chunks, "
             f"{report.metadata} metadata records -> {out}; {state}"
@@ -366,6 +386,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
             print(
                 f"{broken}: dropped {report.duplicate_chunks} duplicated chunk(s)", file=sys.stderr
             )
+    outs = [out for out in outs if out not in empty]
     if len(outs) > 1:
         try:
             runs = group_runs(outs)
@@ -374,7 +395,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
         for k, run in enumerate(runs, 1):
             tags = ", ".join("-" if t is None else str(t.sequence) for t in run.tags)
             print(f"run {k}: {run.label}: file(s) {tags}: {' '.join(map(str, run.files))}")
-    return EXIT_OK
+    return EXIT_BAD_INPUT if empty else EXIT_OK
 
 
 def cmd_views(args: argparse.Namespace) -> int:

@@ -150,6 +150,20 @@ def test_recover_refuses_to_overwrite_its_input(
     assert code == 2 and "must not be the input" in err
 
 
+def test_recover_with_nothing_to_salvage_or_nowhere_to_write_says_so(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # "recovered 0 messages", exit 0 and an empty log left to be taken for a recovered run
+    tiny = tmp_path / "tiny.mcap.part"
+    tiny.write_bytes(log.read_bytes()[:8])
+    code, out, err = _run(["log", "recover", str(tiny), str(tmp_path / "t.mcap")], capsys)
+    assert code == 2 and "no message could be recovered" in err and not out
+    assert not (tmp_path / "t.mcap").exists()
+    # an output in a folder that does not exist is refused before any reading, with the fix
+    code, _, err = _run(["log", "recover", str(log), str(tmp_path / "no" / "r.mcap")], capsys)
+    assert code == 2 and "does not exist; create it" in err
+
+
 def _middle_chunk(log: Path) -> tuple[int, int]:
     with open(log, "rb") as f:
         summary = make_reader(f).get_summary()

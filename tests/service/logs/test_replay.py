@@ -233,6 +233,10 @@ def test_cli_replay_writes_plots(
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     assert main([*argv, "--set", "localizer.bogus=1"]) == 2
     assert "unknown parameter" in capsys.readouterr().err
+    # outputs that cannot be written are refused before the replay, not after it
+    for flag, where in (("--out", tmp_path / "no" / "o.mcap"), ("--plot", inputs_log)):
+        assert main(["replay", str(inputs_log), flag, str(where), "--quiet"]) == 2
+        assert flag in capsys.readouterr().err
     # a tolerance that cannot be one is refused before any work, not a FAILED audit
     for flag, value in (
         ("--tolerance", "-1"),
