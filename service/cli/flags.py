@@ -52,22 +52,33 @@ def number(
             raise argparse.ArgumentTypeError(
                 f"{text!r} is not {'a whole number' if kind is int else 'a number'}"
             ) from None
-        if not math.isfinite(value):
+        # an int has no infinity, and one past a float's range makes isfinite overflow
+        if isinstance(value, float) and not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"{text!r}: give a finite number")
         if above is not None and value <= above:
-            raise argparse.ArgumentTypeError(f"{text}: must be more than {above:g}")
+            raise argparse.ArgumentTypeError(f"{text}: must be more than {_bound(above)}")
         if minimum is not None and value < minimum:
-            raise argparse.ArgumentTypeError(f"{text}: must be at least {minimum:g}")
+            raise argparse.ArgumentTypeError(f"{text}: must be at least {_bound(minimum)}")
         if maximum is not None and value > maximum:
-            raise argparse.ArgumentTypeError(f"{text}: must be at most {maximum:g}")
+            raise argparse.ArgumentTypeError(f"{text}: must be at most {_bound(maximum)}")
         return value
 
     parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
     return parse
 
 
+def _bound(value: float) -> str:
+    """A bound as a person reads it: a whole number in full (``18446744073709551615``, not
+    ``1.84467e+19``), any other as ``:g``."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
 #: A TCP port (0: any free one).
 PORT = number(int, minimum=0, maximum=65535)
+
+#: The seed of a simulated fleet: numpy's generators take no negative one, and the ROS 2 wire
+#: carries it in 64 bits (service.sim.wire).
+SEED = number(int, minimum=0, maximum=2**64 - 1)
 
 
 def writable(path: Path, flag: str) -> None:

@@ -18,6 +18,7 @@ from service.cli.flags import (
     EXIT_OK,
     EXIT_USAGE,
     PORT,
+    SEED,
     load,
     number,
     ros2_flags,
@@ -80,7 +81,9 @@ def register(sub: Any) -> None:
         default=360,
         help=f"beams per scan (default 360, at most {MAX_BEAMS}: the wire's limit)",
     )
-    demo.add_argument("--seed", type=int, default=0, help="world and fleet seed")
+    demo.add_argument(
+        "--seed", type=SEED, default=0, help="world and fleet seed, 0 or more (default 0)"
+    )
     demo.add_argument(
         "--port", type=PORT, default=0, help="router port on 127.0.0.1 (default: a free one)"
     )

@@ -12,7 +12,7 @@ import time
 from collections import Counter
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, zenoh_flags
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, SEED, zenoh_flags
 
 DESCRIPTION = """\
 Simulated robots join a running `rlutf serve`: each drives its own path through a building
@@ -55,7 +55,12 @@ def register(sub: Any) -> None:
         "--rate", type=float, default=10.0, metavar="HZ", help="scans per second (default 10)"
     )
     p.add_argument("--beams", type=int, default=360, metavar="N", help="beams (default 360)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the building and the paths")
+    p.add_argument(
+        "--seed",
+        type=SEED,
+        default=0,
+        help="seed of the building and the paths, 0 or more (default 0)",
+    )
     p.add_argument(
         "--duration",
         type=float,

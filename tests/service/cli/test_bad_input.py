@@ -77,6 +77,12 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["demo", "--port", "70000"], 2, ["--port", "at most 65535"])
     yield Bad(["demo", "--duration", "nan"], 2, ["--duration", "finite"])
     yield Bad(["demo", "--beams", "9000"], 2, ["--beams", "at most 8192"])  # the wire's limit
+    # numpy's generators take no negative seed; the ROS 2 wire carries it in 64 bits
+    yield Bad(["demo", "--seed", "-1"], 2, ["--seed", "-1", "at least 0"])
+    yield Bad(["simulate", "--seed", "-1", "-e", NOWHERE], 2, ["--seed", "at least 0"])
+    yield Bad(["simulate", "--seed", str(2**64), "-e", NOWHERE], 2, ["--seed", str(2**64 - 1)])
+    # a whole number past a float's range: named, not an OverflowError
+    yield Bad(["serve", "--processes", "9" * 400], 2, ["--processes", "at most 64"])
     # a fleet whose precomputed scans would not fit in memory: refused before any is drawn
     yield Bad(["demo", "--robots", "100000"], 2, ["100000 robots", "GB", "--robots"])
     yield Bad(["simulate", "--robots", "100000", "-e", NOWHERE], 2, ["GB", "--path-seconds"])
