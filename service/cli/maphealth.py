@@ -15,7 +15,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, zenoh_flags
+from service.cli.flags import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    client,
+    timeout_flag,
+    zenoh_flags,
+)
 
 
 def register(msub: Any) -> None:
@@ -35,7 +42,7 @@ def register(msub: Any) -> None:
         nargs="+",
         help="read the last MapHealth recorded in these logs (MCAP files, or folders of them)",
     )
-    p.add_argument("--timeout", type=float, default=3.0)
+    timeout_flag(p, what="the service's MapHealth and map")
     zenoh_flags(p, client=True)
     p.set_defaults(func=cmd_health)
 
