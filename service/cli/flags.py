@@ -76,6 +76,9 @@ def _bound(value: float) -> str:
 #: A TCP port (0: any free one).
 PORT = number(int, minimum=0, maximum=65535)
 
+#: A ROS_DOMAIN_ID: 0 to 232, the range the setting ros2.domain_id takes (service.config).
+ROS_DOMAIN_ID = number(int, minimum=0, maximum=232)
+
 #: The seed of a simulated fleet: numpy's generators take no negative one, and the ROS 2 wire
 #: carries it in 64 bits (service.sim.wire).
 SEED = number(int, minimum=0, maximum=2**64 - 1)
@@ -249,7 +252,7 @@ def ros2_flags(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--ros-domain-id",
-        type=number(int, minimum=0, maximum=232),
+        type=ROS_DOMAIN_ID,
         metavar="N",
         help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
     )

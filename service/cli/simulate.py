@@ -12,7 +12,14 @@ import time
 from collections import Counter
 from typing import Any
 
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, SEED, zenoh_flags
+from service.cli.flags import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    ROS_DOMAIN_ID,
+    SEED,
+    zenoh_flags,
+)
 
 DESCRIPTION = """\
 Simulated robots join a running `rlutf serve`: each drives its own path through a building
@@ -110,7 +117,13 @@ def register(sub: Any) -> None:
     ros.add_argument(
         "--ros2", action="store_true", help="ROS 2 robots (CDR on rmw_zenoh's keys), not JSON"
     )
-    ros.add_argument("--ros-domain-id", type=int, default=0, metavar="N", help="default 0")
+    ros.add_argument(
+        "--ros-domain-id",
+        type=ROS_DOMAIN_ID,
+        default=0,
+        metavar="N",
+        help="ROS_DOMAIN_ID, 0 to 232, as the service's (default 0)",
+    )
     ros.add_argument(
         "--humble", action="store_true", help="Humble's keys (no type hash), not Jazzy's"
     )

@@ -81,6 +81,14 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["demo", "--seed", "-1"], 2, ["--seed", "-1", "at least 0"])
     yield Bad(["simulate", "--seed", "-1", "-e", NOWHERE], 2, ["--seed", "at least 0"])
     yield Bad(["simulate", "--seed", str(2**64), "-e", NOWHERE], 2, ["--seed", str(2**64 - 1)])
+    # the range serve takes (ROS 2's on Linux), refused alike by the robots that join it
+    yield Bad(["serve", "--ros-domain-id", "999"], 2, ["--ros-domain-id", "999", "at most 232"])
+    yield Bad(
+        ["simulate", "--ros2", "--ros-domain-id", "999", "-e", NOWHERE],
+        2,
+        ["--ros-domain-id", "999", "at most 232"],
+    )
+    yield Bad(["simulate", "--ros-domain-id", "-1", "-e", NOWHERE], 2, ["at least 0"])
     # a whole number past a float's range: named, not an OverflowError
     yield Bad(["serve", "--processes", "9" * 400], 2, ["--processes", "at most 64"])
     # a fleet whose precomputed scans would not fit in memory: refused before any is drawn
