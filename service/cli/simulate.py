@@ -167,6 +167,30 @@ def _ids(args: argparse.Namespace) -> tuple[str, ...]:
     return tuple(f"{args.names}{i:03d}" for i in range(max(args.robots, 1)))
 
 
+def _robot_of(keys: Any, ids: frozenset[str], sample: Any) -> str | None:
+    """The robot of a sample's key (``{prefix}/robots/{robot}/...``) if it is one of ``ids``."""
+    with contextlib.suppress(ValueError):
+        parsed = keys.parse_robot_key(str(sample.key_expr))
+        if parsed is not None and parsed[0] in ids:
+            return str(parsed[0])
+    return None
+
+
+def _event_counter(keys: Any, ids: tuple[str, ...], events: Counter[str]) -> Any:
+    """What counts, in ``events`` by code, the Events of the robots ``ids`` heard on
+    ``{prefix}/robots/*/events``: other robots' Events on the bus (another fleet, a broken
+    client) are not this fleet's, and cost a key test (one subscriber, not one per robot)."""
+    ours = frozenset(ids)
+
+    def on_event(sample: Any) -> None:
+        if _robot_of(keys, ours, sample) is None:
+            return
+        with contextlib.suppress(ValueError, AttributeError):
+            events[str(json.loads(sample.payload.to_bytes()).get("code"))] += 1
+
+    return on_event
+
+
 class _Drivers:
     """Which of ``ids`` something drives on the bus now: scans put on their keys, or poses
     published for them, heard from when it is made until :meth:`taken` (at least
@@ -186,11 +210,7 @@ class _Drivers:
 
     def _robot(self, sample: Any) -> str | None:
         """The robot of a sample's key if it is one of ``ids``."""
-        with contextlib.suppress(ValueError):
-            parsed = self._keys.parse_robot_key(str(sample.key_expr))
-            if parsed is not None and parsed[0] in self._ids:
-                return str(parsed[0])
-        return None
+        return _robot_of(self._keys, self._ids, sample)
 
     def _on_scan(self, sample: Any) -> None:
         robot = self._robot(sample)
@@ -422,15 +442,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             t0 = time.time_ns()
             board = Scoreboard(plan, t0)
 
-            def on_event(sample: Any) -> None:
-                with contextlib.suppress(ValueError, AttributeError):
-                    events[str(json.loads(sample.payload.to_bytes()).get("code"))] += 1
-
+            plan_ids = tuple(robot.robot_id for robot in plan.robots)
             subs = [
                 operator.declare_subscriber(
                     keys.all_poses, lambda s: board.on_pose(s.payload.to_bytes(), time.time_ns())
                 ),
-                operator.declare_subscriber(keys.robot("*", "events"), on_event),
+                operator.declare_subscriber(
+                    keys.robot("*", "events"), _event_counter(keys, plan_ids, events)
+                ),
             ]
             fleet.start(t0)
 

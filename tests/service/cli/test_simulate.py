@@ -51,6 +51,35 @@ def test_robots_without_an_initial_pose_wait(
     assert "not_initialized" in out  # the service's Events, as the robots see them
 
 
+def test_only_the_fleets_own_events_are_counted(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Another robot's Events on the bus (a broken client beside the fleet) were counted in the
+    progress lines as the fleet's: here its invalid_message beside the fleet's not_initialized."""
+    with running_bench(tmp_path) as bench:
+        theirs = Collector()
+        sub = bench.client.declare_subscriber("rlutf/robots/other1/events", theirs)
+        stop = threading.Event()
+
+        def broken_client() -> None:
+            while not stop.wait(0.2):
+                bench.client.put("rlutf/robots/other1/scan", b"not json")
+
+        thread = threading.Thread(target=broken_client)
+        thread.start()
+        try:
+            args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "3"]
+            assert main([*args, "--beams", "90", "--no-initial-pose", "--report-every", "1"]) == 0
+        finally:
+            stop.set()
+            thread.join()
+        sub.undeclare()
+    out = capsys.readouterr().out
+    assert any(e.get("code") == "invalid_message" for e in theirs.on("rlutf/robots/other1/events"))
+    assert "not_initialized" in out  # r000's own
+    assert "invalid_message" not in out, out
+
+
 def test_robots_drive_a_stored_map(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with running_bench(tmp_path) as bench:
         bench.put_map("m1")
