@@ -386,11 +386,46 @@ def zenoh_file_config(settings: Any) -> Any:
     try:
         return zenoh_config(settings)
     except zenoh.ZError as err:
+        endpoint = _bad_endpoint(settings)
+        if endpoint is not None:
+            raise CliError(endpoint, EXIT_USAGE) from err
+        if settings.zenoh_config is None:  # no file: the flags' (or settings') values
+            raise CliError(
+                f"zenoh refuses the configuration of the flags ({' '.join(zenoh_text(err).split())}"
+                "); check -m/--mode, -l/--listen and -e/--connect",
+                EXIT_USAGE,
+            ) from err
         raise CliError(
             f"zenoh config file {settings.zenoh_config}{_json5_problem(zenoh_text(err))}; fix "
             "it (JSON5, as zenohd reads it) or leave out -c/--config",
             EXIT_USAGE,
         ) from err
+
+
+#: Where each endpoint setting is listened on or connected to, and an endpoint of its kind.
+_ENDPOINT_FLAGS = (
+    ("listen", "-l/--listen", "tcp/0.0.0.0:7447"),
+    ("connect", "-e/--connect", "tcp/127.0.0.1:7447"),
+)
+
+
+def _bad_endpoint(settings: Any) -> str | None:
+    """The first endpoint of ``settings`` that zenoh does not take, said with its flag and the
+    form of one (``None``: every endpoint is one)."""
+    import json
+
+    import zenoh
+
+    for name, flag, example in _ENDPOINT_FLAGS:
+        for endpoint in getattr(settings, name):
+            try:
+                zenoh.Config().insert_json5(f"{name}/endpoints", json.dumps([endpoint]))
+            except zenoh.ZError:
+                return (
+                    f"{flag} {endpoint}: not a zenoh endpoint; give PROTOCOL/HOST:PORT, "
+                    f"e.g. {example}"
+                )
+    return None
 
 
 def _json5_problem(text: str) -> str:

@@ -12,12 +12,14 @@ import time
 from collections import Counter
 from typing import Any
 
+from service.cli.errors import zenoh_text
 from service.cli.flags import (
     EXIT_FAILURE,
     EXIT_OK,
     EXIT_USAGE,
     ROS_DOMAIN_ID,
     SEED,
+    zenoh_file_config,
     zenoh_flags,
 )
 
@@ -354,11 +356,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
     keys = Keys(settings.prefix)
     where = ", ".join(settings.connect)
+    config = zenoh_file_config(settings)  # an endpoint or -c/--config file zenoh refuses
     try:
-        operator = zenoh.open(zenoh_config(settings))
+        operator = zenoh.open(config)
     except zenoh.ZError as err:
         print(
-            f"rlutf simulate: cannot reach zenoh at {where} ({str(err).split('  at ')[0]}); "
+            f"rlutf simulate: cannot reach zenoh at {where} ({zenoh_text(err)}); "
             "is `rlutf serve` "
             "running? name its endpoint with -e/--connect",
             file=sys.stderr,

@@ -71,6 +71,12 @@ def _cases() -> Iterator[Bad]:
     # zenoh's own config file
     yield Bad(["pose", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2", "-c/--config"])
     yield Bad(["serve", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2"])
+    # not an endpoint, with no config file: the flag and the value, not "config file None"
+    endpoint = ["not a zenoh endpoint", "PROTOCOL/HOST:PORT"]
+    yield Bad(["serve", "-l", "bogus"], 2, ["-l/--listen bogus", *endpoint, "tcp/0.0.0.0:7447"])
+    yield Bad(["health", "-e", "bogus"], 2, ["-e/--connect bogus", *endpoint, "tcp/127.0.0.1"])
+    yield Bad(["simulate", "-e", "bogus"], 2, ["-e/--connect bogus", *endpoint])
+    yield Bad(["pose", "-c", "corrupt.json", "-e", "bogus"], 2, ["-e/--connect bogus"])
     # out-of-range numbers and malformed values, named by flag
     yield Bad(["demo", "--rate", "0"], 2, ["--rate", "more than 0"])
     yield Bad(["demo", "--robots", "0"], 2, ["--robots", "at least 1"])
