@@ -102,6 +102,10 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["simulate", "--robots", "100000", "-e", NOWHERE], 2, ["GB", "--path-seconds"])
     yield Bad(["serve", "--metrics-port", "-1"], 2, ["--metrics-port", "at least 0"])
     yield Bad(["serve", "--workers", "two"], 2, ["--workers", "whole number"])
+    # a metrics address that does not resolve, or is another host's: named before any start
+    for addr in ("999.1.1.1", "192.0.2.1"):
+        argv = ["serve", "--metrics-addr", addr, "--metrics-port", "0"]
+        yield Bad(argv, 2, [f"--metrics-addr {addr}", "not an address of this host"])
     yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])
     # a layout whose processes would not fit in memory (robots meant): refused before any starts
     yield Bad(["serve", "--workers", "100000"], 2, ["--workers 100000", "GB", "usable here"])
