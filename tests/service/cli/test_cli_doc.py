@@ -1,5 +1,6 @@
 """docs/cli.md names every command of ``rlutf`` (each subcommand and each action of ``map`` and
-``log``), so that a command added to the parser is not missing from the page."""
+``log``) and each command's own flags, so that a command or a flag added to the parser is not
+missing from the page."""
 
 from __future__ import annotations
 
@@ -13,14 +14,21 @@ from service.cli.main import _join_number_lists, build_parser
 PAGE = Path(__file__).resolve().parents[3] / "docs" / "cli.md"
 
 
-def _commands(parser: argparse.ArgumentParser, prefix: str = "rlutf") -> list[str]:
+def _parsers(
+    parser: argparse.ArgumentParser, prefix: str = "rlutf"
+) -> list[tuple[str, argparse.ArgumentParser]]:
+    """Every command of ``parser`` (``rlutf map put``, ...) with its own parser."""
     found = []
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for name, sub in action.choices.items():
-                inner = _commands(sub, f"{prefix} {name}")
-                found += inner or [f"{prefix} {name}"]
+                inner = _parsers(sub, f"{prefix} {name}")
+                found += inner or [(f"{prefix} {name}", sub)]
     return found
+
+
+def _commands(parser: argparse.ArgumentParser) -> list[str]:
+    return [name for name, _ in _parsers(parser)]
 
 
 def test_the_page_names_every_command() -> None:
@@ -29,6 +37,28 @@ def test_the_page_names_every_command() -> None:
     page = PAGE.read_text(encoding="utf-8")
     missing = [c for c in commands if f"| `{c}` |" not in page]
     assert not missing, f"commands missing from the table in docs/cli.md: {missing}"
+
+
+#: Flags the page gives once for every command (or every command on the bus), not per row.
+SHARED = {"-h", "--help", "--log-level", "--debug", "-m", "--mode", "-l", "--listen", "-e"}
+SHARED |= {"--connect", "-c", "--config", "--prefix"}
+
+
+def test_each_row_names_the_commands_own_flags() -> None:
+    """`rlutf config --help` had --processes and its row in the table did not."""
+    rows = {
+        line.split(" | ")[0].strip("| `"): line.split(" | ")[-1]
+        for line in PAGE.read_text(encoding="utf-8").splitlines()
+        if line.startswith("| `rlutf ")
+    }
+    missing = []
+    for name, sub in _parsers(build_parser()):
+        listed = set(re.findall(r"`(-{1,2}[\w-]+)", rows.get(name, "")))
+        for action in sub._actions:
+            own = [o for o in action.option_strings if o not in SHARED]
+            if own and action.help != argparse.SUPPRESS and not listed & set(own):
+                missing.append(f"{name}: {'/'.join(own)}")
+    assert not missing, "flags missing from the table in docs/cli.md:\n" + "\n".join(missing)
 
 
 ROOT = PAGE.parents[1]
