@@ -345,7 +345,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from service.sim.demo import demo_layout, demo_spec, run_demo
     from service.sim.fleet import memory_problem
 
-    problem = memory_problem(demo_spec(args))
+    problem = memory_problem(demo_spec(args, named=False))  # before a too big fleet's ids
     if problem is not None:
         print(f"rlutf demo: {problem} (--robots, --duration, --beams)", file=sys.stderr)
         return EXIT_USAGE

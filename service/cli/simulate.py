@@ -154,14 +154,14 @@ def _check(args: argparse.Namespace) -> str | None:
         return f"--beams must be 1 to {MAX_BEAMS}, got {args.beams}"
     if not valid_id(args.map):
         return f"--map {args.map!r} is not a map id ([A-Za-z0-9_-], 1 to 64 characters)"
-    last = _ids(args)[-1]
+    last = f"{args.names}{max(args.robots, 1) - 1:03d}"  # as _ids, without the others
     if not valid_id(last):
         return f"--names {args.names!r} does not make robot ids ({last!r}: [A-Za-z0-9_-], 1 to 64)"
     if args.ros2 and args.relocalize_every:
         return "--relocalize-every: ROS 2 robots have no Relocalize topic; drop --ros2"
     from service.sim.fleet import memory_problem
 
-    problem = memory_problem(_spec(args))
+    problem = memory_problem(_spec(args, named=False))  # before a too big fleet's ids
     return None if problem is None else f"{problem} (--robots, --path-seconds, --beams)"
 
 
@@ -249,7 +249,8 @@ class _Drivers:
         )
 
 
-def _spec(args: argparse.Namespace) -> Any:
+def _spec(args: argparse.Namespace, named: bool = True) -> Any:
+    """The fleet of the flags; ``named=False``: without the robots' ids, for sizing it."""
     from service.sim.plan import FleetSpec, Schedule
 
     rate = args.rate
@@ -267,7 +268,7 @@ def _spec(args: argparse.Namespace) -> Any:
         beams=args.beams,
         seed=args.seed,
         map_id=args.map,
-        robot_ids=_ids(args),
+        robot_ids=_ids(args) if named else (),
         initial_poses=not args.no_initial_pose,
         relocalize=every(args.relocalize_every),
         bad_input=every(args.bad_input_every),

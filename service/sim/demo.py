@@ -112,8 +112,9 @@ def summary_table(scores: list[RobotScore]) -> Table:
     return t
 
 
-def demo_spec(args: argparse.Namespace) -> FleetSpec:
-    """The fleet of ``rlutf demo``'s flags."""
+def demo_spec(args: argparse.Namespace, named: bool = True) -> FleetSpec:
+    """The fleet of ``rlutf demo``'s flags; ``named=False``: without the robots' ids, for
+    sizing it (``--robots 100000000`` made ids for 22 GB before it was found too big)."""
     return FleetSpec(
         robots=args.robots,
         poses=int(args.duration * args.rate) + 2,
@@ -121,7 +122,7 @@ def demo_spec(args: argparse.Namespace) -> FleetSpec:
         beams=args.beams,
         seed=args.seed,
         map_id=MAP_ID,
-        robot_ids=tuple(f"robot-{i + 1:02d}" for i in range(args.robots)),
+        robot_ids=tuple(f"robot-{i + 1:02d}" for i in range(args.robots)) if named else (),
     )
 
 

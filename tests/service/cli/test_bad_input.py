@@ -7,6 +7,7 @@ console script in a subprocess, as an operator would.
 
 from __future__ import annotations
 
+import resource
 import socket
 import subprocess
 import sys
@@ -262,6 +263,31 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert _run(["--version"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("rlutf ") and "v1.2" in out
+
+
+def _address_space(limit: int) -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["demo", "--robots", "100000000"], ["simulate", "--robots", "100000000", "-e", NOWHERE]],
+)
+def test_a_fleet_too_big_is_refused_before_its_robots_are_named(
+    files: Path, argv: list[str]
+) -> None:
+    """The fleet was sized after its robots' ids were made: 22 GB for 10**8 robots, until the
+    kernel's OOM killer ended it (here, a process held to 1.5 GB: a MemoryError)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "service", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        preexec_fn=lambda: _address_space(1_500_000_000),
+    )
+    assert done.returncode == 2, done.stderr
+    assert "100000000 robots" in done.stderr and "GB" in done.stderr
 
 
 @pytest.mark.parametrize(
