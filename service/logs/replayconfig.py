@@ -13,10 +13,10 @@ from __future__ import annotations
 import copy
 import json
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import TypeAdapter, ValidationError
 
@@ -59,6 +59,10 @@ class ReplayConfig:
     limits: Limits = field(default_factory=Limits)
     max_map_bytes: int = Settings.model_fields["max_map_bytes"].default
     map_limits: MapLimits = _DEFAULT_LIMITS
+
+
+#: A number a setting is read as.
+N = TypeVar("N", int, float)
 
 
 def _default(name: str) -> Any:
@@ -137,6 +141,29 @@ def _assignment(text: str) -> dict[str, Any]:
     return out
 
 
+def _scalar(merged: Mapping[str, Any], name: str, kind: Callable[[Any], N]) -> N:
+    """Setting ``name`` as a number of ``kind``, or an error naming it and the value."""
+    value = merged.get(name)
+    try:
+        return kind(value)
+    except (TypeError, ValueError, OverflowError) as err:
+        what = "a whole number" if kind is int else "a number"
+        raise ReplayConfigError(
+            f"invalid configuration: {name}: expected {what}, got {value!r}"
+        ) from err
+
+
+def _problems(err: ValidationError, part: str) -> str:
+    """A pydantic error in one line: each field, what is wrong, the value given (without
+    pydantic's own layout and links)."""
+    out = []
+    for e in err.errors(include_url=False)[:5]:
+        loc = part + ".".join(str(p) for p in e["loc"])
+        got = repr(e.get("input"))
+        out.append(f"{loc}: {e['msg']} (got {got[:60] + '...' if len(got) > 60 else got})")
+    return "; ".join(out)
+
+
 def _unknown(base: Mapping[str, Any], top: Mapping[str, Any], at: str = "") -> list[str]:
     """Dotted keys of ``top`` that ``base`` does not have (the localizer's parameters are
     checked apart, with the list of those it knows)."""
@@ -204,15 +231,19 @@ def resolve(
             f"localizer: unknown parameter(s) {', '.join(unknown)} "
             f"(known: {', '.join(sorted(known))})"
         )
+    part = "localizer."
     try:
         localizer = TypeAdapter(LocalizerConfig).validate_python(loc)
-        interval = float(merged["event_interval_s"])
-        max_bytes = int(merged["max_payload_bytes"])
+        part = "limits."
         limits = Limits.model_validate(merged.get("limits") or {})
-        max_map_bytes = int(merged["max_map_bytes"])
-        map_limits = MapLimits(float(merged["max_map_area"]), int(merged["max_map_vertices"]))
-    except (ValidationError, TypeError, ValueError) as err:
-        raise ReplayConfigError(f"invalid configuration: {err}") from err
+    except ValidationError as err:
+        raise ReplayConfigError(f"invalid configuration: {_problems(err, part)}") from err
+    interval = _scalar(merged, "event_interval_s", float)
+    max_bytes = _scalar(merged, "max_payload_bytes", int)
+    max_map_bytes = _scalar(merged, "max_map_bytes", int)
+    map_limits = MapLimits(
+        _scalar(merged, "max_map_area", float), _scalar(merged, "max_map_vertices", int)
+    )
     prefix = merged.get("prefix")
     if not isinstance(prefix, str) or not prefix:
         raise ReplayConfigError(f"prefix: expected a non-empty string, got {prefix!r}")

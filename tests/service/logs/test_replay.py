@@ -163,6 +163,16 @@ def test_config_from_log_and_overrides(tmp_path: Path) -> None:
         resolve(recorded, assignments=["nonsense"])
     with pytest.raises(ReplayConfigError, match="epsilon"):
         resolve(recorded, assignments=["localizer.epsilon=-1"])
+    # one line naming the setting and the value, not pydantic's layout and its links
+    for assignment, said in (
+        ("localizer.epsilon=abc", "localizer.epsilon: Input should be a valid number"),
+        ("limits.max_range=-3", "limits.max_range: Input should be greater than 0 (got -3)"),
+        ('max_payload_bytes="x"', "max_payload_bytes: expected a whole number, got 'x'"),
+    ):
+        with pytest.raises(ReplayConfigError) as refused:
+            resolve(recorded, assignments=[assignment])
+        assert said in str(refused.value) and "pydantic.dev" not in str(refused.value)
+        assert "\n" not in str(refused.value)
     # A misspelt setting changed nothing, and the audit passed under settings the user did not
     # get: refused, from --set and from a file alike, nested ones too.
     with pytest.raises(ReplayConfigError, match="no setting of the service is named max_map_ar"):
