@@ -63,7 +63,14 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--rate", type=float, default=10.0, metavar="HZ", help="scans per second (default 10)"
     )
-    p.add_argument("--beams", type=int, default=360, metavar="N", help="beams (default 360)")
+    p.add_argument(
+        "--beams",
+        type=int,
+        default=360,
+        metavar="N",
+        help="beams a scan (default 360); the localizer compares a scan of at least "
+        "min_returns returns (8 by default): fewer get no pose, only an Event lost",
+    )
     p.add_argument(
         "--seed",
         type=SEED,
@@ -495,6 +502,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             fleet.close()
     print("\n".join(_summary(board)))
     got = sum(s.poses for s in board.snapshot())
+    if got == 0 and not args.no_initial_pose and events:
+        # The service is up and answered, with Events only: they say why, not the network.
+        heard = ", ".join(f"{code} {n}" for code, n in sorted(events.items()))
+        print(
+            f"rlutf simulate: no pose came back, though the service answered the robots with "
+            f"Events ({heard}); `rlutf events ROBOT` says why (a scan of too few returns, "
+            "with --beams under the localizer's min_returns, is lost and gets no pose)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
     if got == 0 and not args.no_initial_pose:
         print(
             f"rlutf simulate: no pose came back; is `rlutf serve` running at {where} with "

@@ -51,6 +51,19 @@ def test_robots_without_an_initial_pose_wait(
     assert "not_initialized" in out  # the service's Events, as the robots see them
 
 
+def test_scans_of_too_few_returns_are_not_taken_for_a_service_that_is_not_there(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 3 beams: under min_returns, every scan lost with an Event and no pose; the tool asked
+    # whether `rlutf serve` was running while it was answering.
+    with running_bench(tmp_path) as bench:
+        args = ["simulate", "-e", bench.endpoint, "--robots", "1", "--duration", "2"]
+        assert main([*args, "--beams", "3"]) == 1
+    err = capsys.readouterr().err
+    assert "though the service answered the robots with Events (lost" in err
+    assert "is `rlutf serve` running" not in err
+
+
 def test_only_the_fleets_own_events_are_counted(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
