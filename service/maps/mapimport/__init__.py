@@ -16,6 +16,7 @@ Every deliberate error is a :class:`MapImportError` whose message names the file
 
 from service.maps.mapimport.build import (
     DEFAULT_MAX_RANGE,
+    MAX_GRID_CELLS,
     CarmenLog,
     CarmenScan,
     build_from_carmen,
@@ -28,6 +29,7 @@ from service.maps.mapimport.errors import (
     CarmenError,
     ComponentError,
     EmptyMapError,
+    GridTooLargeError,
     MapFileError,
     MapImportError,
     MapYamlError,
@@ -67,6 +69,7 @@ __all__ = [
     "DEFAULT_MAX_RANGE",
     "DEFAULT_MIN_AREA",
     "DEFAULT_MIN_HOLE_AREA",
+    "MAX_GRID_CELLS",
     "CarmenError",
     "CarmenLog",
     "CarmenScan",
@@ -74,6 +77,7 @@ __all__ = [
     "ComponentError",
     "ComponentSpec",
     "EmptyMapError",
+    "GridTooLargeError",
     "ImportResult",
     "MapFileError",
     "MapImportError",

@@ -25,7 +25,13 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from service.maps.mapimport.errors import CarmenError, EmptyMapError, MapFileError, MapImportError
+from service.maps.mapimport.errors import (
+    CarmenError,
+    EmptyMapError,
+    GridTooLargeError,
+    MapFileError,
+    MapImportError,
+)
 from service.maps.mapimport.grid import FloatArray, OccupancyGrid
 from service.maps.mapimport.raymarch import traverse
 
@@ -35,6 +41,15 @@ DEFAULT_MAX_RANGE = 50.0
 _MARGIN_CELLS = 2
 #: Traversal steps to collect before counting them (bounds memory).
 _FLUSH_CELLS = 4_000_000
+#: Bytes a grid cell takes while a map is built: two int64 counts, the count of a chunk, then
+#: the classification's float64 temporaries (measured: 50 per cell at peak, the intel log at
+#: 1 cm, 14 million cells, peaked at 840 MB with the polygons).
+BUILD_BYTES_PER_CELL = 50
+#: The most cells :func:`build_grid` allocates: about 800 MB at :data:`BUILD_BYTES_PER_CELL`.
+#: At 5 cm a bounding box of 40,000 m2 (a 200 m square, a 400 x 100 m hall); a larger site is
+#: built at a coarser resolution, which the refusal names. A typo (``--resolution 0.001`` on
+#: the intel log: 1.4 billion cells, 70 GB) is refused before anything is allocated.
+MAX_GRID_CELLS = 16_000_000
 
 
 class CarmenScan(NamedTuple):
@@ -174,6 +189,7 @@ def build_grid(
     min_observations: int = 1,
     range_min: float = 0.0,
     chunk_beams: int = CHUNK_BEAMS,
+    max_cells: int = MAX_GRID_CELLS,
 ) -> OccupancyGrid:
     """Build an occupancy grid from scans taken at known poses.
 
@@ -194,6 +210,8 @@ def build_grid(
         min_observations: cells seen (hit or passed) fewer times are unknown.
         range_min: ranges at or below this are no return, metres.
         chunk_beams: beams counted at once.
+        max_cells: a larger grid is refused before it is allocated
+            (:data:`MAX_GRID_CELLS`; :data:`BUILD_BYTES_PER_CELL` bytes a cell).
 
     Returns:
         The grid, axis-aligned (yaw 0), its origin on a multiple of the resolution, covering
@@ -201,6 +219,8 @@ def build_grid(
 
     Raises:
         MapImportError: bad parameters, a scan of the wrong shape, or no beam with a return.
+        GridTooLargeError: the grid would have more than ``max_cells`` cells (the message
+            gives the cells, the memory and the resolution that would fit).
     """
     if not (math.isfinite(resolution) and resolution > 0):
         raise MapImportError(f"resolution: must be positive, got {resolution}")
@@ -225,10 +245,10 @@ def build_grid(
             high = np.maximum(high, np.maximum(start.max(axis=0), end.max(axis=0)))
     if not np.isfinite(low).all():
         raise EmptyMapError("no beam with a return: nothing to build a map from")
-    lo = np.floor(low / resolution) - _MARGIN_CELLS
-    hi = np.floor(high / resolution) + _MARGIN_CELLS
-    cols, rows = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
+    cols, rows, lo = _extent(low, high, resolution)
     size = rows * cols
+    if size > max_cells:
+        raise GridTooLargeError(_too_large(low, high, resolution, max_cells))
     hits = np.zeros(size, dtype=np.int64)
     passes = np.zeros(size, dtype=np.int64)
     for start, end in _chunks(_beams(read(), range_min), chunk_beams):
@@ -261,6 +281,36 @@ def build_grid(
         resolution=resolution,
         origin=(float(lo[0] * resolution), float(lo[1] * resolution), 0.0),
     )
+
+
+def _extent(low: FloatArray, high: FloatArray, resolution: float) -> tuple[int, int, FloatArray]:
+    """Columns, rows and lower-left cell of the grid that covers ``low`` to ``high`` (metres)
+    with the margin."""
+    lo = np.floor(low / resolution) - _MARGIN_CELLS
+    hi = np.floor(high / resolution) + _MARGIN_CELLS
+    return int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1, lo
+
+
+def _too_large(low: FloatArray, high: FloatArray, resolution: float, max_cells: int) -> str:
+    """Why a grid of the extent ``low`` to ``high`` is refused at ``resolution``, and the
+    resolution (a whole number of millimetres) at which it would fit."""
+    cols, rows, _ = _extent(low, high, resolution)
+    size = cols * rows
+    fits = math.ceil(resolution * math.sqrt(size / max_cells) * 1000.0) / 1000.0
+    while math.prod(_extent(low, high, fits)[:2]) > max_cells:
+        fits += 0.001
+    width, height = high - low
+    return (
+        f"resolution {resolution:g} m: the grid would be {cols:,} x {rows:,} = {size:,} cells "
+        f"(the scans span {width:.1f} x {height:.1f} m), about "
+        f"{_bytes(size * BUILD_BYTES_PER_CELL)} to build; at most {max_cells:,} cells "
+        f"({_bytes(max_cells * BUILD_BYTES_PER_CELL)}) are built: give --resolution {fits:g} "
+        "or more"
+    )
+
+
+def _bytes(n: float) -> str:
+    return f"{n / 1e9:,.1f} GB" if n >= 1e9 else f"{n / 1e6:,.0f} MB"
 
 
 def _beams(scans: Scans, range_min: float) -> Iterator[tuple[FloatArray, FloatArray]]:

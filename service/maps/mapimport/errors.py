@@ -25,6 +25,11 @@ class EmptyMapError(MapImportError):
     """The grid (or the part of it that was selected) holds no free space."""
 
 
+class GridTooLargeError(MapImportError):
+    """A grid to build would take more memory than a build allows (its cells at the resolution
+    given)."""
+
+
 class ComponentError(MapImportError):
     """The free-space component the user asked for does not exist."""
 

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import pytest
 from yaml_laughs import laughs
 
+from bench.scenarios import DATA
 from service.cli.main import main
 
 #: Nothing listens here: every client command must say how to reach the service.
@@ -153,6 +154,13 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["config", "--settings", "deep.toml"], 2, ["deep.toml", "not valid TOML"])
     yield Bad(["map", "show", "deep.json"], 2, ["deep.json", "nested deeper than a map"])
     yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
+    # a grid of 1.4 billion cells (70 GB) is refused before it is allocated, with what fits
+    intel = str(DATA / "carmen" / "intel-corrected.log.gz")
+    yield Bad(
+        ["map", "build", intel, "--resolution", "0.001"],
+        1,
+        ["1,391,435,640 cells", "69.6 GB", "give --resolution 0.01 or more"],
+    )
     yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])
     yield Bad(["log", "info", "missing.mcap"], 2, ["missing.mcap"])
     yield Bad(["replay", "foreign.txt", "--out", "o.mcap"], 2, ["foreign.txt"])

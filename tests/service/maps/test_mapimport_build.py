@@ -20,8 +20,10 @@ from rlutf.map import Map
 from rlutf.raycast import cast_rays
 from service.maps.mapimport import (
     BUILT_SURFACE_CELLS,
+    MAX_GRID_CELLS,
     CarmenError,
     EmptyMapError,
+    GridTooLargeError,
     MapFileError,
     MapImportError,
     build_from_carmen,
@@ -238,3 +240,25 @@ def test_surface_offset_keeps_a_wall_one_cell_thick() -> None:
     )
     geom = Map.from_geojson(built.map["geometry"]).geometry
     assert isinstance(geom, shapely.MultiPolygon) and len(geom.geoms) == 2
+
+
+def test_a_grid_too_large_is_refused_before_it_is_allocated() -> None:
+    """``--resolution 0.001`` on the intel log asked for 10 GB per count array (MemoryError, or
+    on a large host a build that takes it all): refused after the extent is read, with the
+    cells, the memory and a resolution that fits."""
+    log = read_carmen(CARMEN / "intel-corrected.log.gz")
+    start = time.perf_counter()
+    with pytest.raises(GridTooLargeError) as refused:
+        build_grid(log.scans, resolution=0.001)
+    assert time.perf_counter() - start < 10.0
+    said = str(refused.value)
+    assert "1,391,435,640 cells" in said and "69.6 GB" in said
+    assert f"at most {MAX_GRID_CELLS:,} cells" in said and "give --resolution 0.01 or more" in said
+    # the resolution said fits, and the one just under it does not
+    room = parse_carmen(room_log()).scans
+    with pytest.raises(GridTooLargeError, match=r"give --resolution ([\d.]+) or more") as small:
+        build_grid(room, resolution=0.05, max_cells=1000)
+    fits = float(str(small.value).rsplit("--resolution ", 1)[1].split()[0])
+    assert build_grid(room, resolution=fits, max_cells=1000).data.size <= 1000
+    with pytest.raises(GridTooLargeError):
+        build_grid(room, resolution=fits - 0.001, max_cells=1000)
