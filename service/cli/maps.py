@@ -16,6 +16,7 @@ from service.cli.flags import (
     EXIT_OK,
     EXIT_USAGE,
     client,
+    number,
     timeout_flag,
     writable,
     zenoh_flags,
@@ -29,7 +30,12 @@ def register(sub: Any) -> None:
     maps.set_defaults(func=cmd_map)
     put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
     put.add_argument("file", type=Path)
-    put.add_argument("--id", dest="map_id", help="map id (default: the file's map_id or stem)")
+    put.add_argument(
+        "--id",
+        dest="map_id",
+        type=_map_id,
+        help="map id, 1 to 64 of A-Z a-z 0-9 _ - (default: the file's map_id or stem)",
+    )
     put.add_argument(
         "--version",
         type=_version,
@@ -113,13 +119,23 @@ def register(sub: Any) -> None:
         default="/amcl_pose",
         help="with --ros2: PoseWithCovarianceStamped topic of the poses (default /amcl_pose)",
     )
-    build.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
     build.add_argument(
-        "--max-range", type=float, default=50.0, help="longer ranges are no return, m (default 50)"
+        "--resolution",
+        type=number(above=0),
+        default=0.05,
+        metavar="M",
+        help="cell size, m (default 0.05)",
+    )
+    build.add_argument(
+        "--max-range",
+        type=number(above=0),
+        default=50.0,
+        metavar="M",
+        help="longer ranges are no return, m (default 50)",
     )
     build.add_argument(
         "--surface-offset",
-        type=float,
+        type=number(minimum=0),
         default=None,
         metavar="M",
         help="move the walls this far into the occupied cells, m (default 0.4 cell: a surface "
@@ -149,7 +165,12 @@ def register(sub: Any) -> None:
 
 
 def _map_output_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--id", dest="map_id", help="map id (default: from the file name)")
+    p.add_argument(
+        "--id",
+        dest="map_id",
+        type=_map_id,
+        help="map id, 1 to 64 of A-Z a-z 0-9 _ - (default: from the file name)",
+    )
     p.add_argument(
         "--version",
         type=_version,
@@ -162,13 +183,18 @@ def _map_output_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--put", action="store_true", help="also put it into the map store")
     p.add_argument(
         "--component",
+        type=_component,
         help="free component to keep: index from the report, "
         "a point 'x,y' inside it, or 'all' (default: the largest)",
     )
-    p.add_argument("--min-area", type=float, help="drop free islands smaller than this, m^2")
+    p.add_argument(
+        "--min-area",
+        type=number(minimum=0),
+        help="with --component all: drop free islands smaller than this, m^2 (default 1)",
+    )
     p.add_argument(
         "--simplify",
-        type=float,
+        type=number(minimum=0),
         help="simplification tolerance, m (default half a cell; never more than a cell)",
     )
     p.add_argument("--png", type=Path, help="also render the result to this PNG")
@@ -179,6 +205,25 @@ def _version(text: str) -> int | str:
     from service.maps.client import parse_version
 
     return parse_version(text)
+
+
+def _map_id(text: str) -> str:
+    """``--id``: a map id (an empty or malformed one is refused as the flag's value)."""
+    from schemas import valid_id
+
+    if not valid_id(text):
+        raise argparse.ArgumentTypeError(f"invalid map id {text!r}: use 1 to 64 of A-Z a-z 0-9 _ -")
+    return text
+
+
+def _component(text: str) -> Any:
+    """``--component``: ``all``, an index or a point ``x,y``, read before any work."""
+    from service.maps.mapimport import MapImportError, parse_component
+
+    try:
+        return parse_component(text)
+    except MapImportError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix("component: ")) from None
 
 
 def cmd_map(args: argparse.Namespace) -> int:
@@ -216,11 +261,9 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 
 def _options(args: argparse.Namespace) -> dict[str, Any]:
-    from service.maps.mapimport import parse_component
-
     opts: dict[str, Any] = {"version": args.version if isinstance(args.version, int) else 1}
-    if args.component:
-        opts["component"] = parse_component(args.component)
+    if args.component is not None:
+        opts["component"] = args.component
     if args.min_area is not None:
         opts["min_area"] = args.min_area
     if args.simplify is not None:
@@ -257,10 +300,23 @@ def _outputs(args: argparse.Namespace) -> None:
             writable(path, "--" + flag.replace("_", "-"))
 
 
+def _inputs(paths: list[Path], what: str, *, folders: bool) -> None:
+    """Refuse input paths that do not exist (or are folders, unless ``folders``) before the
+    work starts."""
+    for path in paths:
+        if not path.exists():
+            raise CliError(f"{path}: no such file; give {what}", EXIT_USAGE)
+        if path.is_dir() and not folders:
+            raise CliError(f"{path}: is a folder, not a file; give {what}", EXIT_USAGE)
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """``rlutf map import``."""
     from service.maps.mapimport import MapImportError, import_grid
 
+    _inputs(
+        [args.yaml], "the map's YAML file (map_server writes it beside the image)", folders=False
+    )
     _outputs(args)
     try:
         result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
@@ -283,9 +339,23 @@ def cmd_build(args: argparse.Namespace) -> int:
         save_grid,
     )
 
+    _inputs(
+        args.log,
+        "a CARMEN log, MCAP logs (files or a folder of them) or, with --ros2, a bag",
+        folders=True,
+    )
     _outputs(args)
+    _cell_flags(args)
     log = args.log[0]
     mcap = not args.ros2 and (log.is_dir() or log.suffix == ".mcap")
+    if mcap:
+        from service.logs.mcapread import NotALog
+        from service.logs.runs import log_files
+
+        try:  # a folder with no log in it is refused before any is read
+            log_files(args.log)
+        except NotALog as err:
+            raise CliError(str(err), EXIT_USAGE) from err
     try:
         if not mcap and len(args.log) > 1:
             raise ValueError("one CARMEN log or bag at a time (several files: MCAP logs of a run)")
@@ -314,6 +384,24 @@ def cmd_build(args: argparse.Namespace) -> int:
         print(f"rlutf map build: {err}", file=sys.stderr)
         return EXIT_FAILURE
     return _finish(args, result)
+
+
+def _cell_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags bounded by a cell (``--surface-offset``, ``--simplify``) before the
+    log is read."""
+    cell = args.resolution
+    if args.surface_offset is not None and args.surface_offset >= 0.5 * cell:
+        raise CliError(
+            f"--surface-offset {args.surface_offset:g}: must be less than half a cell "
+            f"({0.5 * cell:g} m at --resolution {cell:g})",
+            EXIT_USAGE,
+        )
+    if args.simplify is not None and args.simplify > cell:
+        raise CliError(
+            f"--simplify {args.simplify:g}: must be at most a cell ({cell:g} m at --resolution "
+            f"{cell:g})",
+            EXIT_USAGE,
+        )
 
 
 def _run_scans(given: list[Path], map_id: str | None) -> Any:

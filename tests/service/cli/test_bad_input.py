@@ -58,6 +58,7 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)  # past the parser's depth
     (tmp_path / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000)
     (tmp_path / "dangling").symlink_to(tmp_path / "gone")
+    (tmp_path / "folder").mkdir()
     return tmp_path
 
 
@@ -146,7 +147,10 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
     yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])
     yield Bad(["map", "show", "foreign.yaml"], 2, ["rlutf map import foreign.yaml --png"])
-    yield Bad(["map", "import", "missing.yaml"], 1, ["missing.yaml"])
+    yield Bad(["map", "import", "missing.yaml"], 2, ["missing.yaml", "no such file"])
+    yield Bad(["map", "import", "folder"], 2, ["folder", "is a folder"])
+    yield Bad(["map", "build", "missing.log"], 2, ["missing.log", "no such file"])
+    yield Bad(["map", "build", "folder"], 2, ["folder", "no log file"])
     yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
     yield Bad(["config", "--settings", "laughs.yaml"], 2, ["laughs.yaml", "100,000 values"])
     yield Bad(["map", "import", "laughs-map.yaml"], 1, ["laughs-map.yaml", "100,000 values"])
@@ -154,8 +158,20 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["config", "--settings", "deep.toml"], 2, ["deep.toml", "not valid TOML"])
     yield Bad(["map", "show", "deep.json"], 2, ["deep.json", "nested deeper than a map"])
     yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
-    # a grid of 1.4 billion cells (70 GB) is refused before it is allocated, with what fits
     intel = str(DATA / "carmen" / "intel-corrected.log.gz")
+    # flags of map build and import refused before the log or grid is read (it was after)
+    for flag, value, said in (
+        ("--resolution", "0", "more than 0"),
+        ("--max-range", "-1", "more than 0"),
+        ("--component", "abc", "'abc'"),
+        ("--id", "", "invalid map id ''"),
+        ("--min-area", "-1", "at least 0"),
+        ("--surface-offset", "0.03", "half a cell (0.025 m"),
+        ("--simplify", "0.1", "at most a cell (0.05 m"),
+    ):
+        yield Bad(["map", "build", intel, flag, value], 2, [flag, said])
+    yield Bad(["map", "import", "foreign.yaml", "--component", "1,x"], 2, ["--component"])
+    # a grid of 1.4 billion cells (70 GB) is refused before it is allocated, with what fits
     yield Bad(
         ["map", "build", intel, "--resolution", "0.001"],
         1,
