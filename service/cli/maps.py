@@ -331,11 +331,12 @@ def cmd_build(args: argparse.Namespace) -> int:
     from service.logs.mcapread import LogError
     from service.maps.mapimport import (
         BUILT_SURFACE_CELLS,
+        DEFAULT_MIN_AREA,
         MapImportError,
-        build_from_carmen,
         build_grid,
         grid_to_map,
         map_id_from_name,
+        read_carmen,
         save_grid,
     )
 
@@ -371,7 +372,10 @@ def cmd_build(args: argparse.Namespace) -> int:
         elif mcap:
             grid = build_grid(_run_scans(args.log, args.from_map), resolution=args.resolution)
         else:
-            grid = build_from_carmen(log, resolution=args.resolution, max_range=args.max_range)
+            carmen = read_carmen(log, max_range=args.max_range)
+            if carmen.cut:
+                print(f"rlutf map build: warning: {log}: {carmen.cut}", file=sys.stderr)
+            grid = build_grid(carmen.scans, resolution=args.resolution)
         if args.save_grid:
             save_grid(grid, args.save_grid)
             print(f"wrote {args.save_grid}")
@@ -383,6 +387,15 @@ def cmd_build(args: argparse.Namespace) -> int:
     except (MapImportError, OSError, ValueError, LogError) as err:
         print(f"rlutf map build: {err}", file=sys.stderr)
         return EXIT_FAILURE
+    area = result.polygons.geometry.area
+    if area < DEFAULT_MIN_AREA:  # smaller than a robot: few of the log's beams had a return
+        print(
+            f"rlutf map build: warning: the map holds {area:.2f} m2 of free space, less than "
+            f"{DEFAULT_MIN_AREA:g} m2: few of the log's beams had a return (a range that is not "
+            "finite, or at or beyond the scanner's maximum or --max-range, is no return); "
+            "check the log",
+            file=sys.stderr,
+        )
     return _finish(args, result)
 
 

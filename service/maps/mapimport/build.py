@@ -11,6 +11,11 @@ range) mark nothing: a missing echo says little about where the free space ends.
 CARMEN logs (``FLASER`` lines, see ``bench/data/README.md``): a scan of ``n`` beams starts
 at -pi/2 and is spaced pi/n for even n and pi/(n - 1) for odd n; its ``x y theta`` is the
 laser's pose. Other message types are skipped. Gzip-compressed logs are read transparently.
+A range written ``nan``, ``inf`` or ``1e999`` (infinite) is read, as CARMEN's own reader
+(``strtod``) reads it, and is no return, as ROS's REP 117 defines non-finite ranges; a pose that
+is not finite is refused with its line. A last line cut short (the log of a crashed logger ends
+mid-line) is left out and named in :attr:`CarmenLog.cut`; a malformed line anywhere else is
+refused.
 """
 
 from __future__ import annotations
@@ -76,11 +81,14 @@ class CarmenLog:
         scans: the ``FLASER`` scans in file order.
         stamps: ``(S,)`` their timestamps, seconds.
         odometry: ``(M, 4)`` ``ODOM`` rows ``(timestamp, x, y, theta)``.
+        cut: the last line, left out because it is incomplete (the log ends mid-line, as a
+            crashed logger leaves it): its number and what it lacks; ``None`` if there is none.
     """
 
     scans: tuple[CarmenScan, ...]
     stamps: FloatArray
     odometry: FloatArray
+    cut: str | None = None
 
     @property
     def poses(self) -> FloatArray:
@@ -109,10 +117,12 @@ def parse_carmen(text: str | bytes, *, max_range: float = DEFAULT_MAX_RANGE) -> 
         max_range: the no-return range given to every scan, metres.
 
     Returns:
-        The scans and odometry.
+        The scans and odometry; an incomplete last line (no line end after it) that does not
+        parse is left out and named in :attr:`CarmenLog.cut`.
 
     Raises:
-        CarmenError: a malformed ``FLASER`` or ``ODOM`` line (named by its number), or no scan.
+        CarmenError: a malformed ``FLASER`` or ``ODOM`` line other than an incomplete last one
+            (named by its number), or no scan.
     """
     if isinstance(text, bytes):
         text = text.decode("utf-8", errors="replace")
@@ -120,10 +130,45 @@ def parse_carmen(text: str | bytes, *, max_range: float = DEFAULT_MAX_RANGE) -> 
     stamps: list[float] = []
     odometry: list[list[float]] = []
     angle_cache: dict[int, FloatArray] = {}
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        fields = line.split()
-        if not fields:
-            continue
+    lines = text.splitlines()
+    unended = len(lines) if lines and not text.endswith(("\n", "\r")) else 0
+    cut = None
+    for lineno, line in enumerate(lines, start=1):
+        try:
+            _parse_line(line, lineno, scans, stamps, odometry, angle_cache, max_range)
+        except CarmenError as err:
+            if lineno != unended:
+                raise
+            cut = (
+                f"{err}: the last line is cut short (the log ends mid-line, as a crashed logger "
+                "leaves it) and is left out"
+            )
+    if not scans:
+        raise CarmenError("the log holds no FLASER scan")
+    return CarmenLog(
+        tuple(scans),
+        np.array(stamps),
+        np.array(odometry, dtype=np.float64).reshape(-1, 4),
+        cut,
+    )
+
+
+def _parse_line(
+    line: str,
+    lineno: int,
+    scans: list[CarmenScan],
+    stamps: list[float],
+    odometry: list[list[float]],
+    angle_cache: dict[int, FloatArray],
+    max_range: float,
+) -> None:
+    """Add the scan or odometry of one line; other lines are skipped.
+
+    Raises:
+        CarmenError: a malformed ``FLASER`` or ``ODOM`` line, named by its number.
+    """
+    fields = line.split()
+    if fields:
         if fields[0] == "FLASER":
             try:
                 n = int(fields[1])
@@ -138,6 +183,9 @@ def parse_carmen(text: str | bytes, *, max_range: float = DEFAULT_MAX_RANGE) -> 
             if n not in angle_cache:
                 angle_cache[n] = carmen_angles(n)
             pose = np.array(values[n : n + 3])
+            if not np.isfinite(pose).all():
+                given = " ".join(fields[n + 2 : n + 5])
+                raise CarmenError(f"line {lineno}: FLASER pose x y theta is not finite: {given}")
             scans.append(CarmenScan(pose, np.array(values[:n]), angle_cache[n], max_range))
             stamps.append(values[n + 6])
         elif fields[0] == "ODOM":
@@ -145,11 +193,6 @@ def parse_carmen(text: str | bytes, *, max_range: float = DEFAULT_MAX_RANGE) -> 
                 raise CarmenError(f"line {lineno}: ODOM needs 7 fields, got {len(fields) - 1}")
             x, y, theta, _tv, _rv, _acc, stamp = _floats(fields[1:8], lineno)
             odometry.append([stamp, x, y, theta])
-    if not scans:
-        raise CarmenError("the log holds no FLASER scan")
-    return CarmenLog(
-        tuple(scans), np.array(stamps), np.array(odometry, dtype=np.float64).reshape(-1, 4)
-    )
 
 
 def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> CarmenLog:

@@ -262,3 +262,64 @@ def test_a_grid_too_large_is_refused_before_it_is_allocated() -> None:
     assert build_grid(room, resolution=fits, max_cells=1000).data.size <= 1000
     with pytest.raises(GridTooLargeError):
         build_grid(room, resolution=fits - 0.001, max_cells=1000)
+
+
+def test_non_finite_ranges_are_no_return_and_a_non_finite_pose_is_refused() -> None:
+    """``nan``, ``inf`` and ``1e999`` parse (as CARMEN's strtod reads them) and mark nothing, as
+    a range of the sensor's maximum does (REP 117's meaning of non-finite ranges)."""
+    text = room_log()
+    marked = text.replace(f"{NO_RETURN:.4f}", "nan", 28).replace(f"{NO_RETURN:.4f}", "1e999", 28)
+    assert marked.count(" nan ") and marked.count(" 1e999 ")
+    plain, odd = parse_carmen(text), parse_carmen(marked)
+    assert not np.isfinite(np.concatenate([s.ranges for s in odd.scans])).all()
+    same, other = build_grid(plain.scans), build_grid(odd.scans)
+    assert same.origin == other.origin and np.array_equal(same.data, other.data)
+    with pytest.raises(CarmenError, match="line 2: FLASER pose x y theta is not finite: nan 0 0"):
+        parse_carmen("# x\nFLASER 1 1.0 nan 0 0 0 0 0 1 h 1\n")
+
+
+def test_a_last_line_cut_short_is_left_out_and_named() -> None:
+    """A crashed logger leaves a log that ends mid-line: that line is left out (and said), not
+    the log refused; the same line anywhere else, or ended, is refused."""
+    text = room_log()
+    whole = parse_carmen(text)
+    assert whole.cut is None
+    lines = text.splitlines()
+    for cut_at in (12, 40):  # in the ODOM line, in the FLASER line
+        cut = "\n".join(lines[:-1]) + "\n" + lines[-1][:cut_at]
+        log = parse_carmen(cut)
+        assert len(log.scans) == len(whole.scans) - 1
+        assert log.cut is not None and log.cut.startswith(f"line {len(lines)}: FLASER")
+        assert "cut short" in log.cut
+    odom = "\n".join(lines[:-1]) + "\nODOM 1.0"
+    assert parse_carmen(odom).cut == (
+        f"line {len(lines)}: ODOM needs 7 fields, got 1: the last line is cut short (the log "
+        "ends mid-line, as a crashed logger leaves it) and is left out"
+    )
+    with pytest.raises(CarmenError, match=f"line {len(lines)}: ODOM needs 7 fields"):
+        parse_carmen(odom + "\n")  # ended: a malformed line, not a cut one
+    with pytest.raises(CarmenError, match="line 3: ODOM needs 7 fields"):
+        parse_carmen("\n".join([*lines[:2], "ODOM 1.0", *lines[2:]]))
+
+
+def test_map_build_says_what_it_left_out_and_a_map_of_next_to_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from service.cli.main import main
+
+    text = room_log()
+    cut = tmp_path / "cut.log"
+    cut.write_text(text + "ODOM 1.0 2.")
+    assert main(["map", "build", str(cut), "--out", str(tmp_path / "cut.json")]) == 0
+    err = capsys.readouterr().err
+    n = len(text.splitlines()) + 1
+    assert f"warning: {cut}: line {n}: ODOM needs 7 fields, got 2: the last line is cut" in err
+    assert "less than 1 m2" not in err
+    # scans whose beams are nearly all no return (nan here): a map is built, and said to be tiny
+    ranges = ["nan"] * 178 + ["0.2", "0.2"]
+    scarce = tmp_path / "scarce.log"
+    scarce.write_text(f"FLASER 180 {' '.join(ranges)} 0 0 0 0 0 0 1.0 h 1.0\n")
+    assert main(["map", "build", str(scarce), "--out", str(tmp_path / "s.json")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the map holds 0.0" in err and "less than 1 m2" in err
+    assert "not finite" in err
