@@ -156,11 +156,27 @@ def _brief(value: object) -> str:
     return _BRIEF.repr(value)
 
 
-def _number(doc: dict[str, Any], key: str) -> float:
-    value = doc[key]
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise MapYamlError(f"map YAML: '{key}' must be a finite number, got {_brief(value)}")
+def _finite(value: object) -> float | None:
+    """``value`` as a finite float, or ``None``. A string that reads as a number counts:
+    map_server's yaml-cpp reads YAML 1.2, where ``5e-2`` is a number, and PyYAML's YAML 1.1
+    gives it as a string (its floats need a dot: ``5.0e-2``)."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, str):
+        try:
+            value = float(value.strip())
+        except ValueError:
+            return None
+    if not isinstance(value, int | float) or not math.isfinite(value):
+        return None
     return float(value)
+
+
+def _number(doc: dict[str, Any], key: str) -> float:
+    value = _finite(doc[key])
+    if value is None:
+        raise MapYamlError(f"map YAML: '{key}' must be a finite number, got {_brief(doc[key])}")
+    return value
 
 
 def parse_map_yaml(text: str | bytes) -> MapMetadata:
@@ -192,16 +208,11 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
     resolution = _number(doc, "resolution")
     if resolution <= 0:
         raise MapYamlError(f"map YAML: 'resolution' must be positive, got {resolution}")
-    origin = doc["origin"]
-    if (
-        not isinstance(origin, list)
-        or len(origin) != 3
-        or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-            for v in origin
-        )
-    ):
-        raise MapYamlError(f"map YAML: 'origin' must be [x, y, yaw] numbers, got {_brief(origin)}")
+    given = doc["origin"]
+    values = [_finite(v) for v in given] if isinstance(given, list) else []
+    origin = [v for v in values if v is not None]
+    if len(values) != 3 or len(origin) != 3:
+        raise MapYamlError(f"map YAML: 'origin' must be [x, y, yaw] numbers, got {_brief(given)}")
     occ, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
     for key, value in (("occupied_thresh", occ), ("free_thresh", free)):
         if not 0.0 <= value <= 1.0:
@@ -219,7 +230,7 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
     return MapMetadata(
         image=image.strip(),
         resolution=resolution,
-        origin=(float(origin[0]), float(origin[1]), float(origin[2])),
+        origin=(origin[0], origin[1], origin[2]),
         negate=bool(negate),
         occupied_thresh=occ,
         free_thresh=free,

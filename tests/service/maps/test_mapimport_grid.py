@@ -58,6 +58,28 @@ def test_parse_yaml_reads_keys_and_defaults() -> None:
     assert parse_map_yaml(YAML.encode()).negate is False
 
 
+def test_parse_yaml_reads_numbers_as_map_server_does() -> None:
+    """map_server's yaml-cpp reads YAML 1.2, where ``5e-2`` is a number; PyYAML (YAML 1.1) gives
+    it as a string, which was refused ("'resolution' must be a finite number, got '5e-2'")."""
+    m = parse_map_yaml(
+        YAML.replace("resolution: 0.1", "resolution: 1e-1")
+        .replace("origin: [1.0, -2.0, 0.0]", "origin: [1e0, '-2', 0]")
+        .replace("free_thresh: 0.25", "free_thresh: 25e-2")
+        .replace("occupied_thresh: 0.65", "occupied_thresh: 65E-2")
+    )
+    assert m == MapMetadata("room.pgm", 0.1, (1.0, -2.0, 0.0), False, 0.65, 0.25, "trinary")
+    for text, words in (
+        ("resolution: nan", "'resolution' must be a finite number, got 'nan'"),
+        ("resolution: 1e999", "'resolution' must be a finite number"),
+        ("resolution: '5 cm'", "'resolution' must be a finite number, got '5 cm'"),
+        ("resolution: -5e-2", "'resolution' must be positive, got -0.05"),
+    ):
+        with pytest.raises(MapYamlError, match=words):
+            parse_map_yaml(YAML.replace("resolution: 0.1", text))
+    with pytest.raises(MapYamlError, match="'origin' must be"):
+        parse_map_yaml(YAML.replace("origin: [1.0, -2.0, 0.0]", "origin: [1e0, x, 0]"))
+
+
 def test_parse_yaml_names_every_missing_key() -> None:
     text = "image: a.pgm\nnegate: 0\nfree_thresh: 0.2\n"
     with pytest.raises(MapYamlError) as err:
