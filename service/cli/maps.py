@@ -45,7 +45,12 @@ def register(sub: Any) -> None:
         "1 when it holds none; a map equal to the one held is not put again",
     )
     put.add_argument(
-        "--timeout", type=float, default=5.0, help="wait this long for the store's answer, s"
+        "--timeout",
+        type=number(minimum=0),
+        default=5.0,
+        metavar="SECONDS",
+        help="seconds to wait for the store's answer (default 5; 0: put it without waiting, "
+        "so unconfirmed, with --version N)",
     )
     zenoh_flags(put, client=True)
     get = msub.add_parser("get", help="print a stored map")
@@ -236,9 +241,16 @@ def cmd_map(args: argparse.Namespace) -> int:
         return cmd_catalog(args)
     if args.map_command == "put":
         if not args.file.is_file():
+            what = "is a folder, not a file" if args.file.is_dir() else "no such file"
             raise CliError(
-                f"{args.file}: no such file; give a Map JSON or GeoJSON file (`rlutf map import` "
+                f"{args.file}: {what}; give a Map JSON or GeoJSON file (`rlutf map import` "
                 "writes one from a map_server grid)",
+                EXIT_USAGE,
+            )
+        if args.timeout == 0 and not isinstance(args.version, int):
+            raise CliError(
+                "--timeout 0 asks the store nothing, so --version next cannot learn the version "
+                "it holds: give --version N with it, or a --timeout above 0",
                 EXIT_USAGE,
             )
         settings, session = client(args)
@@ -272,15 +284,26 @@ def _options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _finish(args: argparse.Namespace, result: Any) -> int:
-    from service.maps.mapimport import render_map
+    from service.maps.mapimport import MapFileError, render_map
 
     print("\n".join(result.report))
     mid = result.map["map_id"]
     out = args.out or Path(f"{mid}.json")
-    out.write_text(json.dumps(result.map), encoding="utf-8")
+    try:
+        out.write_text(json.dumps(result.map), encoding="utf-8")
+    except OSError as err:  # the checks passed, the file system refused (/proc, full)
+        flag = "--out " if args.out else ""
+        raise CliError(
+            f"{flag}{out}: cannot write the file ({err.strerror or err}); choose another"
+        ) from err
     print(f"wrote {out}")
     if args.png:
-        render_map(result.map, args.png, title=f"{mid} v{result.map['version']}")
+        try:
+            render_map(result.map, args.png, title=f"{mid} v{result.map['version']}")
+        except MapFileError as err:
+            raise CliError(
+                f"--png {args.png}: cannot write the file ({_why(err)}); choose another"
+            ) from err
         print(f"wrote {args.png}")
     if args.put:
         from service.maps.client import put_map
@@ -444,13 +467,24 @@ def _run_scans(given: list[Path], map_id: str | None) -> Any:
     return lambda: scans_with_poses(files, map_id)  # read twice: the extent, then the cells
 
 
+def _why(err: BaseException) -> str:
+    """The operating system's reason under ``err`` (``No such file or directory``)."""
+    cause = err.__cause__
+    return (getattr(cause, "strerror", None) or str(cause or err)) if cause else str(err)
+
+
 def cmd_show(args: argparse.Namespace) -> int:
     """``rlutf map show``."""
-    from service.maps.mapimport import MapImportError, render_map
+    from service.maps.mapimport import MapFileError, MapImportError, render_map
 
     path = Path(args.source)
     writable(args.out, "--out")
-    if path.is_file():
+    if path.is_dir():  # a path that exists is read as a file, not asked for as an id
+        raise CliError(
+            f"{path}: is a folder, not a file; give a map JSON file or the id of a stored map",
+            EXIT_USAGE,
+        )
+    if path.exists():
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except OSError as err:
@@ -484,10 +518,11 @@ def cmd_show(args: argparse.Namespace) -> int:
         from service.keys import Keys
 
         if not valid_id(args.source):
-            print(
-                f"rlutf map show: {args.source!r} is neither a file nor a map id", file=sys.stderr
+            raise CliError(
+                f"{args.source}: no such file, and not a map id (1 to 64 of A-Z a-z 0-9 _ -); "
+                "give a map JSON file or the id of a stored map",
+                EXIT_USAGE,
             )
-            return EXIT_FAILURE
         settings, session = client(args)
         with session:
             replies = [
@@ -506,6 +541,10 @@ def cmd_show(args: argparse.Namespace) -> int:
     try:
         title = f"{data.get('map_id', path.stem)} v{data.get('version', '?')}"
         render_map(data, args.out, title=title)
+    except MapFileError as err:  # the checks passed, the file system refused (/proc, full)
+        raise CliError(
+            f"--out {args.out}: cannot write the file ({_why(err)}); choose another"
+        ) from err
     except (MapImportError, ValueError, KeyError, TypeError) as err:
         print(f"rlutf map show: not a map: {err}", file=sys.stderr)
         return EXIT_FAILURE

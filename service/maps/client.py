@@ -173,7 +173,8 @@ def put_map(
         timeout: how long to wait for the store, seconds.
 
     Returns:
-        0 when the store holds the map put (or already held it), 1 otherwise: unreadable or
+        0 when the store holds the map put (or already held it), or with ``timeout`` 0 when
+        it was put (nothing is asked, so it is not confirmed); 1 otherwise: unreadable or
         invalid file, a version the store refuses (the message names the version it holds and
         what to do), or no storage answering.
     """
@@ -183,6 +184,15 @@ def put_map(
     except ValueError as err:
         print(f"rlutf map put: {err}", file=sys.stderr)
         return 1
+    if timeout == 0 and version != NEXT:  # next needs the store's answer: it is asked
+        msg = decode(Map, payload, max_bytes=len(payload))
+        key = Keys(prefix).map(msg.map_id)
+        session.put(key, payload, encoding=JSON)
+        print(
+            f"put {key} (version {msg.version}, {len(payload)} bytes): not confirmed, --timeout "
+            f"0 waits for no answer (`rlutf map get {msg.map_id}` shows what the store holds)"
+        )
+        return 0
     put = put_payload(session, prefix, payload, NEXT if version == NEXT else None, timeout)
     if put.stored:
         print(put.said)

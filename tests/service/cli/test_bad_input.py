@@ -7,6 +7,7 @@ console script in a subprocess, as an operator would.
 
 from __future__ import annotations
 
+import json
 import resource
 import socket
 import subprocess
@@ -145,6 +146,12 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--record", "dangling/logs"], 2, ["--record", "cannot create the folder"])
     # missing, corrupt or foreign files
     yield Bad(["map", "put", "missing.json", "-e", NOWHERE], 2, ["missing.json"])
+    yield Bad(["map", "put", "folder", "-e", NOWHERE], 2, ["folder: is a folder, not a file"])
+    yield Bad(["map", "put", "foreign.txt", "--timeout", "-1"], 2, ["--timeout", "at least 0"])
+    yield Bad(["map", "put", "foreign.txt", "--id", "", "-e", NOWHERE], 2, ["--id", "''"])
+    yield Bad(["map", "put", "foreign.txt", "--timeout", "0", "-e", NOWHERE], 2, ["--version N"])
+    yield Bad(["map", "show", "folder", "-e", NOWHERE], 2, ["folder: is a folder, not a file"])
+    yield Bad(["map", "show", "missing.json"], 2, ["missing.json: no such file, and not a map"])
     yield Bad(["map", "show", "corrupt.json"], 2, ["corrupt.json", "line 2", "not a map"])
     yield Bad(["map", "show", "foreign.yaml"], 2, ["rlutf map import foreign.yaml --png"])
     yield Bad(["map", "import", "missing.yaml"], 2, ["missing.yaml", "no such file"])
@@ -312,6 +319,25 @@ def test_a_fleet_too_big_is_refused_before_its_robots_are_named(
     )
     assert done.returncode == 2, done.stderr
     assert "100000000 robots" in done.stderr and "GB" in done.stderr
+
+
+def test_an_output_the_file_system_refuses_is_named_as_the_output(
+    files: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """/proc passes the checks (a folder root may write in) and refuses the file: said of --out
+    and --png, not 'not a map' or an unexpected error."""
+    room = {"type": "Polygon", "coordinates": [[[0, 0], [6, 0], [6, 4], [0, 4], [0, 0]]]}
+    (files / "room.json").write_text(json.dumps(room))
+    yaml = DATA / "maps" / "tb3_sandbox.yaml"
+    for argv, flag in (
+        (["map", "show", "room.json", "--out", "/proc/x.png"], "--out"),
+        (["map", "import", str(yaml), "--out", "t.json", "--png", "/proc/x.png"], "--png"),
+        (["map", "import", str(yaml), "--out", "/proc/t.json"], "--out"),
+    ):
+        code = _run(argv)
+        err = capsys.readouterr().err
+        assert code in (1, 2), err  # 2: refused before the work where /proc is not writable
+        assert f"{flag} /proc/" in err and "not a map" not in err and "unexpected" not in err
 
 
 @pytest.mark.parametrize(

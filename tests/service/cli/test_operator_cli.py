@@ -261,6 +261,36 @@ def test_map_list_and_remove(bench: Bench, capsys: pytest.CaptureFixture[str]) -
     assert code == 1 and "no storage answered with a map" in err
 
 
+def test_map_put_with_timeout_0_is_put_unconfirmed_and_map_show_reads_paths_as_files(
+    bench: Bench, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """--timeout 0 waits for nothing: the map is put and said to be unconfirmed (it was said
+    that nothing holds it, exit 1, while the store held it). A folder given to map show is
+    refused as one, not asked for as a map id."""
+    e = bench.endpoint
+    path = tmp_path / "hall.json"
+    path.write_text(
+        json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [6, 0], [6, 4], [0, 4], [0, 0]]]})
+    )
+    code, out, err = _cli(
+        capsys, "map", "put", str(path), "--version", "2", "--timeout", "0", "-e", e
+    )
+    assert code == 0, err
+    assert "put rlutf/maps/hall (version 2" in out and "not confirmed, --timeout 0" in out
+    assert "nothing holds it" not in err
+    deadline = time.monotonic() + 10.0
+    while not (bench.store / "hall.json").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert json.loads((bench.store / "hall.json").read_text())["version"] == 2
+    # next needs the store's answer, which --timeout 0 does not wait for: refused, nothing put
+    code, _, err = _cli(capsys, "map", "put", str(path), "--id", "other", "--timeout", "0", "-e", e)
+    assert code == 2 and "--version N" in err
+    assert not (bench.store / "other.json").exists()
+    (tmp_path / "hall").mkdir()
+    code, _, err = _cli(capsys, "map", "show", str(tmp_path / "hall"), "-e", e)
+    assert code == 2 and "is a folder, not a file" in err and "storage" not in err
+
+
 def test_events_without_a_robot_include_the_service_wide_ones(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
