@@ -178,11 +178,12 @@ def _cases() -> Iterator[Bad]:
     ):
         yield Bad(["map", "build", intel, flag, value], 2, [flag, said])
     yield Bad(["map", "import", "foreign.yaml", "--component", "1,x"], 2, ["--component"])
-    # a grid of 1.4 billion cells (70 GB) is refused before it is allocated, with what fits
+    # a grid of 139 billion cells (7 TB: over half the memory of any host) is refused before
+    # it is allocated, with what fits here
     yield Bad(
-        ["map", "build", intel, "--resolution", "0.001"],
+        ["map", "build", intel, "--resolution", "0.0001"],
         1,
-        ["1,391,435,640 cells", "69.6 GB", "give --resolution 0.01 or more"],
+        ["139,113,398,844 cells", "GB to build", "give --resolution"],
     )
     yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])
     yield Bad(["log", "info", "missing.mcap"], 2, ["missing.mcap"])
