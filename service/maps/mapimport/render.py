@@ -97,6 +97,12 @@ def render_map(
     geom = _as_geometry(source)
     if geom.is_empty:
         raise MapImportError("render: the map is empty")
+    x0, y0, x1, y1 = geom.bounds
+    if not math.isfinite((x1 - x0) * (y1 - y0)):  # finite corners, an extent past a float
+        raise MapImportError(
+            f"render: the map spans {x1 - x0:g} m x {y1 - y0:g} m, more than a float holds "
+            "(are the coordinates in metres?); no storage takes it"
+        )
     segments = [
         np.asarray(ring.coords)[:, :2]
         for poly in shapely.get_parts(geom)

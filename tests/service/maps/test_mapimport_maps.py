@@ -14,7 +14,13 @@ from numpy.lib.stride_tricks import sliding_window_view
 from bench.scenarios import DATA
 from rlutf.map import Map
 from rlutf.raycast import cast_rays
-from service.maps.mapimport import ImportResult, import_grid, march_rays, render_map
+from service.maps.mapimport import (
+    ImportResult,
+    MapImportError,
+    import_grid,
+    march_rays,
+    render_map,
+)
 
 MAPS = DATA / "maps"
 NAMES = ["depot", "tb3_sandbox"]
@@ -108,3 +114,12 @@ def test_render_writes_a_png(tmp_path: Path) -> None:
     stream = io.BytesIO()
     render_map(result.polygons.geometry, stream, title="plain geometry")
     assert stream.getvalue()[:4] == b"\x89PNG"
+
+
+def test_render_refuses_a_map_past_what_a_float_holds(tmp_path: Path) -> None:
+    # finite corners at 1e308: drawn with shapely's and matplotlib's overflow warnings on the
+    # terminal, a picture of nothing, exit 0
+    huge = {"type": "Polygon", "coordinates": [[[0, 0], [1e308, 0], [0, 1e308], [0, 0]]]}
+    with pytest.raises(MapImportError, match="more than a float holds"):
+        render_map(huge, tmp_path / "h.png")
+    assert not (tmp_path / "h.png").exists()
