@@ -22,6 +22,7 @@ from service.cli.flags import (
     zenoh_file_config,
     zenoh_flags,
 )
+from service.cli.simreport import event_counter, progress, robot_of, summary
 
 DESCRIPTION = """\
 Simulated robots join a running `rlutf serve`: each drives its own path through a building
@@ -176,30 +177,6 @@ def _ids(args: argparse.Namespace) -> tuple[str, ...]:
     return tuple(f"{args.names}{i:03d}" for i in range(max(args.robots, 1)))
 
 
-def _robot_of(keys: Any, ids: frozenset[str], sample: Any) -> str | None:
-    """The robot of a sample's key (``{prefix}/robots/{robot}/...``) if it is one of ``ids``."""
-    with contextlib.suppress(ValueError):
-        parsed = keys.parse_robot_key(str(sample.key_expr))
-        if parsed is not None and parsed[0] in ids:
-            return str(parsed[0])
-    return None
-
-
-def _event_counter(keys: Any, ids: tuple[str, ...], events: Counter[str]) -> Any:
-    """What counts, in ``events`` by code, the Events of the robots ``ids`` heard on
-    ``{prefix}/robots/*/events``: other robots' Events on the bus (another fleet, a broken
-    client) are not this fleet's, and cost a key test (one subscriber, not one per robot)."""
-    ours = frozenset(ids)
-
-    def on_event(sample: Any) -> None:
-        if _robot_of(keys, ours, sample) is None:
-            return
-        with contextlib.suppress(ValueError, AttributeError):
-            events[str(json.loads(sample.payload.to_bytes()).get("code"))] += 1
-
-    return on_event
-
-
 class _Drivers:
     """Which of ``ids`` something drives on the bus now: scans put on their keys, or poses
     published for them, heard from when it is made until :meth:`taken` (at least
@@ -219,7 +196,7 @@ class _Drivers:
 
     def _robot(self, sample: Any) -> str | None:
         """The robot of a sample's key if it is one of ``ids``."""
-        return _robot_of(self._keys, self._ids, sample)
+        return robot_of(self._keys, self._ids, sample)
 
     def _on_scan(self, sample: Any) -> None:
         robot = self._robot(sample)
@@ -293,49 +270,6 @@ def _stored_world(session: Any, key: str, map_id: str) -> Any:
             except MapRejected:
                 return None
     return None
-
-
-def _progress(elapsed: float, board: Any, events: Counter[str], rejected: int) -> str:
-    import numpy as np
-
-    scores = board.snapshot()
-    sent = sum(s.sent for s in scores)
-    poses = sum(s.poses for s in scores)
-    placed = sum(1 for s in scores if s.poses)
-    recent = [s.errors[-1] for s in scores if s.errors]
-    line = f"[{elapsed:6.1f} s] sent {sent} scans, got {poses} poses; {placed} of {len(scores)} "
-    line += "robots localized"
-    if recent:
-        line += (
-            f"; last error median {100 * float(np.median(recent)):.1f} cm, "
-            f"max {100 * max(recent):.1f} cm"
-        )
-    latencies = [s.latency_ms(50) for s in scores if s.latencies_ms]
-    if latencies:
-        line += f"; latency p50 {float(np.median(latencies)):.1f} ms"
-    if events:
-        line += "; events " + ", ".join(f"{code} {n}" for code, n in sorted(events.items()))
-    if rejected:
-        line += f"; bad inputs sent {rejected}"
-    return line
-
-
-def _summary(board: Any) -> list[str]:
-    import numpy as np
-
-    rows = [f"{'robot':<10} {'poses/scans':>12} {'RMSE cm':>8} {'max cm':>7}  statuses"]
-    for s in board.snapshot():
-        if not s.errors:
-            rows.append(f"{s.robot_id:<10} {f'0/{s.sent}':>12} {'-':>8} {'-':>7}  -")
-            continue
-        e = np.asarray(s.errors)
-        statuses = ", ".join(f"{k} {n}" for k, n in sorted(s.statuses.items()))
-        rows.append(
-            f"{s.robot_id:<10} {f'{s.poses}/{s.sent}':>12} "
-            f"{100 * math.sqrt(float(np.mean(e**2))):>8.1f} {100 * float(e.max()):>7.1f}  "
-            f"{statuses}"
-        )
-    return rows
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -459,7 +393,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     keys.all_poses, lambda s: board.on_pose(s.payload.to_bytes(), time.time_ns())
                 ),
                 operator.declare_subscriber(
-                    keys.robot("*", "events"), _event_counter(keys, plan_ids, events)
+                    keys.robot("*", "events"), event_counter(keys, plan_ids, events)
                 ),
             ]
             fleet.start(t0)
@@ -487,7 +421,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 while robots.is_alive():
                     robots.join(max(0.0, min(0.5, due - time.monotonic())))
                     if time.monotonic() >= due:
-                        print(_progress(time.monotonic() - started, board, events, bad[0]))
+                        print(progress(time.monotonic() - started, board, events, bad[0]))
                         due += args.report_every
             except KeyboardInterrupt:
                 print("interrupted: stopping the robots", flush=True)
@@ -496,11 +430,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             time.sleep(0.5)  # the last poses
             for sub in subs:
                 sub.undeclare()
-            print(_progress(time.monotonic() - started, board, events, bad[0]))
+            print(progress(time.monotonic() - started, board, events, bad[0]))
         finally:
             stop.set()
             fleet.close()
-    print("\n".join(_summary(board)))
+    print("\n".join(summary(board)))
     got = sum(s.poses for s in board.snapshot())
     if got == 0 and not args.no_initial_pose and events:
         # The service is up and answered, with Events only: they say why, not the network.

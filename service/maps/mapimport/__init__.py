@@ -22,6 +22,7 @@ from service.maps.mapimport.build import (
     build_from_carmen,
     build_grid,
     carmen_angles,
+    max_grid_cells,
     parse_carmen,
     read_carmen,
 )
@@ -96,6 +97,7 @@ __all__ = [
     "load_grid",
     "map_id_from_name",
     "march_rays",
+    "max_grid_cells",
     "parse_carmen",
     "parse_component",
     "parse_map_yaml",

@@ -50,22 +50,21 @@ _FLUSH_CELLS = 4_000_000
 #: the classification's float64 temporaries (measured: 50 per cell at peak, the intel log at
 #: 1 cm, 14 million cells, peaked at 840 MB with the polygons).
 BUILD_BYTES_PER_CELL = 50
-#: The cells :func:`build_grid` always allows: about 800 MB at :data:`BUILD_BYTES_PER_CELL`, at
-#: 5 cm a bounding box of 40,000 m2 (a 200 m square, a 400 x 100 m hall). Beyond it a grid
-#: may take up to half the memory the host has available (:func:`max_grid_cells`): a larger
-#: site builds where there is memory for it, and a typo (``--resolution 0.001`` on the intel
-#: log: 1.4 billion cells, 70 GB) is refused before anything is allocated.
+#: The cells :func:`build_grid` allows by default and ``rlutf map build`` always: about 800 MB
+#: at :data:`BUILD_BYTES_PER_CELL`, at 5 cm a bounding box of 40,000 m2 (a 200 m square). ``rlutf
+#: map build`` lets a grid take up to half the memory the host has available
+#: (:func:`max_grid_cells`): a larger site builds where there is memory for it, and a typo
+#: (``--resolution 0.0001`` on the intel log: 139 billion cells) is refused before anything is
+#: allocated.
 MAX_GRID_CELLS = 16_000_000
 
 
-def max_grid_cells() -> int:
-    """The most cells a map build allocates here: :data:`MAX_GRID_CELLS`, or as many as half
-    the memory available to this process holds (``service.cores.available_memory``: the
-    system's, capped by a container's limit), whichever is more."""
-    from service.cores import available_memory
-
-    free = available_memory()
-    return max(MAX_GRID_CELLS, (free or 0) // 2 // BUILD_BYTES_PER_CELL)
+def max_grid_cells(available: int | None) -> int:
+    """The most cells a map build allocates with ``available`` bytes of memory free (``rlutf map
+    build`` gives ``service.cores.available_memory``: the system's, capped by a container's
+    limit; ``None``: not known): as many as half of it holds, or :data:`MAX_GRID_CELLS`,
+    whichever is more."""
+    return max(MAX_GRID_CELLS, (available or 0) // 2 // BUILD_BYTES_PER_CELL)
 
 
 class CarmenScan(NamedTuple):
@@ -243,7 +242,7 @@ def build_grid(
     min_observations: int = 1,
     range_min: float = 0.0,
     chunk_beams: int = CHUNK_BEAMS,
-    max_cells: int | None = None,
+    max_cells: int = MAX_GRID_CELLS,
 ) -> OccupancyGrid:
     """Build an occupancy grid from scans taken at known poses.
 
@@ -264,7 +263,7 @@ def build_grid(
         min_observations: cells seen (hit or passed) fewer times are unknown.
         range_min: ranges at or below this are no return, metres.
         chunk_beams: beams counted at once.
-        max_cells: a larger grid is refused before it is allocated (default
+        max_cells: a larger grid is refused before it is allocated (``rlutf map build``:
             :func:`max_grid_cells`; :data:`BUILD_BYTES_PER_CELL` bytes a cell).
 
     Returns:
@@ -301,9 +300,8 @@ def build_grid(
         raise EmptyMapError("no beam with a return: nothing to build a map from")
     cols, rows, lo = _extent(low, high, resolution)
     size = rows * cols
-    limit = max_grid_cells() if max_cells is None else max_cells
-    if size > limit:
-        raise GridTooLargeError(_too_large(low, high, resolution, limit))
+    if size > max_cells:
+        raise GridTooLargeError(_too_large(low, high, resolution, max_cells))
     hits = np.zeros(size, dtype=np.int64)
     passes = np.zeros(size, dtype=np.int64)
     for start, end in _chunks(_beams(read(), range_min), chunk_beams):
@@ -359,8 +357,8 @@ def _too_large(low: FloatArray, high: FloatArray, resolution: float, max_cells: 
         f"resolution {resolution:g} m: the grid would be {cols:,} x {rows:,} = {size:,} cells "
         f"(the scans span {width:.1f} x {height:.1f} m), about "
         f"{_bytes(size * BUILD_BYTES_PER_CELL)} to build; at most {max_cells:,} cells "
-        f"({_bytes(max_cells * BUILD_BYTES_PER_CELL)}, half the memory available here or "
-        f"{MAX_GRID_CELLS:,} cells, the more) are built: give --resolution {fits:g} or more"
+        f"({_bytes(max_cells * BUILD_BYTES_PER_CELL)}) are built here: give --resolution "
+        f"{fits:g} or more"
     )
 
 

@@ -115,7 +115,7 @@ def test_two_runs_or_two_maps_are_not_mixed(
     code, err = _built(tmp_path, capsys, str(two_maps), "--from-map", "floor3")
     assert code == 1 and "no scan has a pose on map 'floor3'" in err
     code, err = _built(tmp_path, capsys, str(tmp_path / "missing.mcap"))
-    assert code == 1 and "missing.mcap: cannot open" in err
+    assert code == 2 and "missing.mcap: no such file" in err  # refused before any work
 
 
 def test_the_runs_of_one_serves_processes_build_one_map(

@@ -265,12 +265,13 @@ def test_a_grid_too_large_is_refused_before_it_is_allocated() -> None:
 def test_the_grid_limit_follows_the_memory_the_host_has() -> None:
     """A fixed 16 million cells refused a 300 m warehouse at 5 cm on any host; the limit is now
     half the memory available (at 50 bytes a cell built), never under the fixed floor."""
-    from service.cores import available_memory
     from service.maps.mapimport.build import BUILD_BYTES_PER_CELL, max_grid_cells
 
-    free = available_memory()
-    assert free is not None  # Linux
-    assert max_grid_cells() == max(MAX_GRID_CELLS, free // 2 // BUILD_BYTES_PER_CELL)
+    assert max_grid_cells(None) == max_grid_cells(10**9) == MAX_GRID_CELLS  # 1 GB free: the floor
+    assert max_grid_cells(100 * 10**9) == 10**9 * 50 // BUILD_BYTES_PER_CELL  # 100 GB: 1e9 cells
+    room = parse_carmen(room_log()).scans
+    with pytest.raises(GridTooLargeError, match="at most 16,000,000 cells"):
+        build_grid(room, resolution=1e-4, max_cells=max_grid_cells(None))
 
 
 def test_non_finite_ranges_are_no_return_and_a_non_finite_pose_is_refused() -> None:

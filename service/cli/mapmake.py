@@ -1,0 +1,219 @@
+"""``rlutf map import`` and ``rlutf map build``: a Map from an occupancy grid (map_server's
+YAML and image) or from logs (CARMEN, the service's MCAP logs, a ROS 2 bag), written, drawn and
+put as ``rlutf map`` writes, draws and puts every map."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from service.cli.errors import CliError
+from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, writable
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    opts: dict[str, Any] = {"version": args.version if isinstance(args.version, int) else 1}
+    if args.component is not None:
+        opts["component"] = args.component
+    if args.min_area is not None:
+        opts["min_area"] = args.min_area
+    if args.simplify is not None:
+        opts["simplify"] = args.simplify
+    return opts
+
+
+def _finish(args: argparse.Namespace, result: Any) -> int:
+    from service.maps.mapimport import MapFileError, render_map
+
+    print("\n".join(result.report))
+    mid = result.map["map_id"]
+    out = args.out or Path(f"{mid}.json")
+    try:
+        out.write_text(json.dumps(result.map), encoding="utf-8")
+    except OSError as err:  # the checks passed, the file system refused (/proc, full)
+        flag = "--out " if args.out else ""
+        raise CliError(
+            f"{flag}{out}: cannot write the file ({err.strerror or err}); choose another"
+        ) from err
+    print(f"wrote {out}")
+    if args.png:
+        try:
+            render_map(result.map, args.png, title=f"{mid} v{result.map['version']}")
+        except MapFileError as err:
+            raise CliError(
+                f"--png {args.png}: cannot write the file ({why(err)}); choose another"
+            ) from err
+        print(f"wrote {args.png}")
+    if args.put:
+        from service.maps.client import put_map
+
+        settings, session = client(args)
+        with session:
+            version = args.version if args.version is not None else "next"
+            return put_map(session, settings.prefix, out, mid, version)
+    return EXIT_OK
+
+
+def _outputs(args: argparse.Namespace) -> None:
+    """Refuse output paths that cannot be written before the work starts."""
+    for flag in ("out", "png", "save_grid"):
+        path = getattr(args, flag, None)
+        if path is not None:
+            writable(path, "--" + flag.replace("_", "-"))
+
+
+def _inputs(paths: list[Path], what: str, *, folders: bool) -> None:
+    """Refuse input paths that do not exist (or are folders, unless ``folders``) before the
+    work starts."""
+    for path in paths:
+        if not path.exists():
+            raise CliError(f"{path}: no such file; give {what}", EXIT_USAGE)
+        if path.is_dir() and not folders:
+            raise CliError(f"{path}: is a folder, not a file; give {what}", EXIT_USAGE)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """``rlutf map import``."""
+    from service.maps.mapimport import MapImportError, import_grid
+
+    _inputs(
+        [args.yaml], "the map's YAML file (map_server writes it beside the image)", folders=False
+    )
+    _outputs(args)
+    try:
+        result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
+    except MapImportError as err:
+        print(f"rlutf map import: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    return _finish(args, result)
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """``rlutf map build``."""
+    from service.cores import available_memory
+    from service.logs.mcapread import LogError
+    from service.maps.mapimport import (
+        BUILT_SURFACE_CELLS,
+        DEFAULT_MIN_AREA,
+        MapImportError,
+        build_grid,
+        grid_to_map,
+        map_id_from_name,
+        max_grid_cells,
+        read_carmen,
+        save_grid,
+    )
+
+    _inputs(
+        args.log,
+        "a CARMEN log, MCAP logs (files or a folder of them) or, with --ros2, a bag",
+        folders=True,
+    )
+    _outputs(args)
+    _cell_flags(args)
+    log = args.log[0]
+    # half the memory the host has for the grid (16 million cells always)
+    cells = {"resolution": args.resolution, "max_cells": max_grid_cells(available_memory())}
+    mcap = not args.ros2 and (log.is_dir() or log.suffix == ".mcap")
+    if mcap:
+        from service.logs.mcapread import NotALog
+        from service.logs.runs import log_files
+
+        try:  # a folder with no log in it is refused before any is read
+            log_files(args.log)
+        except NotALog as err:
+            raise CliError(str(err), EXIT_USAGE) from err
+    try:
+        if not mcap and len(args.log) > 1:
+            raise ValueError("one CARMEN log or bag at a time (several files: MCAP logs of a run)")
+        if args.ros2:
+            from service.ros2.bags import BagError
+            from service.ros2.bags import scans_with_poses as bag_scans
+
+            topics = (args.scan_topic, args.pose_topic)
+            try:  # the scans read twice (the extent, then the cells) rather than held
+                grid = build_grid(lambda: bag_scans(log, *topics), **cells)
+            except BagError as err:
+                raise ValueError(str(err)) from err
+        elif mcap:
+            grid = build_grid(_run_scans(args.log, args.from_map), **cells)
+        else:
+            carmen = read_carmen(log, max_range=args.max_range)
+            if carmen.cut:
+                print(f"rlutf map build: warning: {log}: {carmen.cut}", file=sys.stderr)
+            grid = build_grid(carmen.scans, **cells)
+        if args.save_grid:
+            save_grid(grid, args.save_grid)
+            print(f"wrote {args.save_grid}")
+        mid = args.map_id or map_id_from_name(log.name)
+        offset = args.surface_offset
+        if offset is None:
+            offset = BUILT_SURFACE_CELLS * grid.resolution
+        result = grid_to_map(grid, map_id=mid, surface_offset=offset, **_options(args))
+    except (MapImportError, OSError, ValueError, LogError) as err:
+        print(f"rlutf map build: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    area = result.polygons.geometry.area
+    if area < DEFAULT_MIN_AREA:  # smaller than a robot: few of the log's beams had a return
+        print(
+            f"rlutf map build: warning: the map holds {area:.2f} m2 of free space, less than "
+            f"{DEFAULT_MIN_AREA:g} m2: few of the log's beams had a return (a range that is not "
+            "finite, or at or beyond the scanner's maximum or --max-range, is no return); "
+            "check the log",
+            file=sys.stderr,
+        )
+    return _finish(args, result)
+
+
+def _cell_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags bounded by a cell (``--surface-offset``, ``--simplify``) before the
+    log is read."""
+    cell = args.resolution
+    if args.surface_offset is not None and args.surface_offset >= 0.5 * cell:
+        raise CliError(
+            f"--surface-offset {args.surface_offset:g}: must be less than half a cell "
+            f"({0.5 * cell:g} m at --resolution {cell:g})",
+            EXIT_USAGE,
+        )
+    if args.simplify is not None and args.simplify > cell:
+        raise CliError(
+            f"--simplify {args.simplify:g}: must be at most a cell ({cell:g} m at --resolution "
+            f"{cell:g})",
+            EXIT_USAGE,
+        )
+
+
+def _run_scans(given: list[Path], map_id: str | None) -> Any:
+    """What reads the posed scans of the MCAP logs ``given`` (files or folders) recorded at one
+    time (:func:`service.maps.mapimport.build_grid` reads them twice rather than hold them): the
+    runs of the processes of one ``rlutf serve`` (or of a fleet's instances) together, but not
+    runs of two times (two starts of a service, maybe two buildings under one map id)."""
+    from service.cli.present import unfinished
+    from service.logs.mcapmaps import scans_with_poses
+    from service.logs.runs import group_runs, log_files, recordings
+
+    files = log_files(given)
+    unfinished("map build", given, files, "not read")
+    runs = group_runs(files)
+    groups = recordings(runs) or [runs]  # no message at all: said by scans_with_poses
+    if len(groups) > 1:
+        listed = "; ".join(
+            f"{k}: " + ", ".join(f"{r.label}: {' '.join(map(str, r.files))}" for r in group)
+            for k, group in enumerate(groups, 1)
+        )
+        raise ValueError(
+            f"the logs hold {len(groups)} recordings made at different times ({listed}): a "
+            "map is built from one of them (the runs of one start of rlutf serve, one per "
+            "process, are one recording)"
+        )
+    files = [f for run in groups[0] for f in run.files]
+    return lambda: scans_with_poses(files, map_id)  # read twice: the extent, then the cells
+
+
+def why(err: BaseException) -> str:
+    """The operating system's reason under ``err`` (``No such file or directory``)."""
+    cause = err.__cause__
+    return (getattr(cause, "strerror", None) or str(cause or err)) if cause else str(err)
