@@ -20,10 +20,10 @@ refused.
 
 from __future__ import annotations
 
-import gzip
 import math
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -92,7 +92,8 @@ class CarmenLog:
         stamps: ``(S,)`` their timestamps, seconds.
         odometry: ``(M, 4)`` ``ODOM`` rows ``(timestamp, x, y, theta)``.
         cut: the last line, left out because it is incomplete (the log ends mid-line, as a
-            crashed logger leaves it): its number and what it lacks; ``None`` if there is none.
+            crashed logger leaves it): its number and what it lacks; or that a gzip stream
+            ends early; ``None`` if there is none.
     """
 
     scans: tuple[CarmenScan, ...]
@@ -213,16 +214,39 @@ def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> Ca
         CarmenError: a malformed line.
     """
     p = Path(path)
+    ended = True
     try:
         data = p.read_bytes()
         if data[:2] == b"\x1f\x8b":
-            data = gzip.decompress(data)
-    except (OSError, EOFError) as err:
+            data, ended = _gunzip(data)
+    except (OSError, zlib.error) as err:
         raise MapFileError(f"CARMEN log '{p}': cannot read: {err}") from err
     try:
-        return parse_carmen(data, max_range=max_range)
+        log = parse_carmen(data, max_range=max_range)
     except CarmenError as err:
         raise CarmenError(f"{p}: {err}") from err
+    if not ended and log.cut is None:  # cut at a line's end: the lines read are whole
+        log = replace(log, cut="the gzip stream ends early (a crashed logger's?): read to there")
+    return log
+
+
+def _gunzip(raw: bytes) -> tuple[bytes, bool]:
+    """A gzip file's content, and whether its stream ended: a log compressed as it was written
+    and cut by a crash is read to where it stops (``gzip.decompress`` refuses it whole), as a
+    plain log cut mid-line is. Members after the first (``cat a.gz b.gz``) are read too.
+
+    Raises:
+        zlib.error: corrupt data (not a stream cut short).
+    """
+    out = []
+    rest = raw
+    while rest:
+        stream = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        out.append(stream.decompress(rest))
+        if not stream.eof:
+            return b"".join(out), False
+        rest = stream.unused_data
+    return b"".join(out), True
 
 
 Scans = Iterable[tuple[ArrayLike, ArrayLike, ArrayLike, float]]

@@ -7,6 +7,7 @@ report of what was kept and dropped for the user.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,9 +77,12 @@ def parse_component(text: str) -> ComponentSpec:
     parts = value.split(",")
     if len(parts) == 2:
         try:
-            return (float(parts[0]), float(parts[1]))
+            point = (float(parts[0]), float(parts[1]))
         except ValueError:
             pass
+        else:
+            if all(map(math.isfinite, point)):  # nan or inf is no place on a map
+                return point
     raise MapImportError(
         f"component: expected 'all', an index like 0 or a point like 12.5,-3.0; got {text!r}"
     )

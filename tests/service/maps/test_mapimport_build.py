@@ -22,6 +22,7 @@ from service.maps.mapimport import (
     BUILT_SURFACE_CELLS,
     MAX_GRID_CELLS,
     CarmenError,
+    CarmenLog,
     EmptyMapError,
     GridTooLargeError,
     MapFileError,
@@ -113,6 +114,33 @@ def test_read_carmen_accepts_gzip_and_reports_missing_files(tmp_path: Path) -> N
     (tmp_path / "bad.log").write_text("FLASER 2 1 1\n")
     with pytest.raises(CarmenError, match=r"bad\.log: line 1"):
         read_carmen(tmp_path / "bad.log")
+
+
+def test_a_gzip_log_cut_by_a_crash_is_read_to_where_it_stops(tmp_path: Path) -> None:
+    # gzip.decompress refused such a log whole ("cannot read": Compressed file ended before the
+    # end-of-stream marker), where the same log plain, cut mid-line, is read without its last
+    # line; two members (cat a.gz b.gz) are read whole, and corrupt data is still refused.
+    text = room_log()
+    packed = gzip.compress(text.encode())
+    whole = read_carmen_bytes(tmp_path, packed)
+    assert whole.cut is None
+    cut = read_carmen_bytes(tmp_path, packed[: len(packed) * 2 // 3])
+    assert cut.cut is not None and 0 < len(cut.scans) < len(whole.scans)
+    lines = text.splitlines(keepends=True)
+    half = "".join(lines[: len(lines) // 2]).encode()
+    members = gzip.compress(half) + gzip.compress(text.encode()[len(half) :])
+    two = read_carmen_bytes(tmp_path, members)
+    assert two.cut is None and len(two.scans) == len(whole.scans)
+    broken = bytearray(packed)
+    broken[len(broken) // 2] ^= 0xFF
+    with pytest.raises(MapFileError, match="cannot read"):
+        read_carmen_bytes(tmp_path, bytes(broken))
+
+
+def read_carmen_bytes(tmp_path: Path, data: bytes) -> CarmenLog:
+    path = tmp_path / "log.gz"
+    path.write_bytes(data)
+    return read_carmen(path)
 
 
 def test_build_from_a_synthetic_log_recovers_the_room(tmp_path: Path) -> None:

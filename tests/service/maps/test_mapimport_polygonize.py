@@ -123,6 +123,13 @@ def test_unknown_component_raises(spec: object, words: str) -> None:
         polygonize(grid_of(rooms()), component=spec)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("text", ["nan,1", "1,inf", "-inf,0"])
+def test_a_point_that_is_no_place_is_no_component(text: str) -> None:
+    # --component nan,1 was taken for a point, and then contained in nothing
+    with pytest.raises(MapImportError, match=r"a point like 12\.5,-3\.0"):
+        parse_component(text)
+
+
 def test_all_components_below_min_area_raises() -> None:
     with pytest.raises(EmptyMapError, match="at least 100 m2"):
         polygonize(grid_of(rooms()), component="all", min_area=100.0)
