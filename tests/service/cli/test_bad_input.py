@@ -14,7 +14,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import pytest
 from yaml_laughs import laughs
@@ -297,6 +297,18 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert out.startswith("rlutf ") and "v1.2" in out
 
 
+def _console_script(argv: list[str], **run: Any) -> subprocess.CompletedProcess[str]:
+    """``python -m service ARGV`` in a process of its own, as the console script runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "service", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        **run,
+    )
+
+
 def _address_space(limit: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
@@ -310,14 +322,7 @@ def test_a_fleet_too_big_is_refused_before_its_robots_are_named(
 ) -> None:
     """The fleet was sized after its robots' ids were made: 22 GB for 10**8 robots, until the
     kernel's OOM killer ended it (here, a process held to 1.5 GB: a MemoryError)."""
-    done = subprocess.run(
-        [sys.executable, "-m", "service", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        preexec_fn=lambda: _address_space(1_500_000_000),
-    )
+    done = _console_script(argv, preexec_fn=lambda: _address_space(1_500_000_000))
     assert done.returncode == 2, done.stderr
     assert "100000000 robots" in done.stderr and "GB" in done.stderr
 
@@ -351,13 +356,7 @@ def test_an_output_the_file_system_refuses_is_named_as_the_output(
     ],
 )
 def test_the_console_script_says_the_same(files: Path, argv: list[str], says: str) -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "service", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    done = _console_script(argv)
     assert done.returncode != 0
     assert says in done.stderr
     assert "Traceback" not in done.stderr
