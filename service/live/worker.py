@@ -147,6 +147,11 @@ def tune_gc() -> None:
     gc.collect()
     gc.freeze()
     gc.set_threshold(*_GC_THRESHOLDS)
+    log.debug(
+        "garbage collection tuned: %d objects frozen, thresholds %s",
+        gc.get_freeze_count(),
+        _GC_THRESHOLDS,
+    )
 
 
 def worker_main(
