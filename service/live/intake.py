@@ -20,6 +20,7 @@ from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Messag
 from service.live.admission import Gate
 from service.live.keywatch import KeyWatch
 from service.live.stats import Stats
+from service.ros2.frontdoor import Ros2FrontDoor
 
 #: Robot keys the intake keeps split at most (a fleet uses a few per robot).
 KEYS_SPLIT = 8192
@@ -120,14 +121,48 @@ class Intake:
             return
         svc.ownership.offer(robot, leaf, payload, msg, received)
 
+    def front_door(self) -> Ros2FrontDoor:
+        """The ROS 2 front door, handing its inputs to :meth:`offer`."""
+        s = self.svc.settings
+        return Ros2FrontDoor(
+            s.ros2,
+            self.offer,
+            self.reject,
+            self.svc.clock,
+            s.max_payload_bytes,
+            self.svc.keys,
+            s.max_robots,
+            self.limit,
+        )
+
     def offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:
-        """A validated input from the ROS 2 front door (``payload``: its JSON encoding)."""
+        """A validated input from the ROS 2 front door (``payload``: its JSON encoding), taken
+        as a JSON one is: within ``max_robots`` and ``max_stamp_ahead_s``."""
         svc = self.svc
         if not svc.ownership.owns(robot):
             svc.ownership.ignore(robot, kind, payload, svc.settings.max_payload_bytes)
             return
         svc.stats.add("received")
+        key = svc.keys.robot(robot, kind)
+        refused = svc.gate.refuse_new(svc, robot, at)
+        if refused is not None:
+            svc.stats.add("rejected")
+            if refused:
+                svc._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, at)
+            return
+        problem = svc.gate.stamp_problem(msg.stamp_ns, at)
+        if problem is not None:
+            svc.stats.add("rejected")
+            if svc.gate.allow_event(at):
+                svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, at)
+            return
         svc.ownership.offer(robot, kind, payload, msg, at)
+
+    def limit(self, key: str, message: str, at: int) -> None:
+        """A ROS 2 namespace refused by the front door, ``max_robots`` held."""
+        self.svc.stats.add("received")
+        self.svc.stats.add("rejected")
+        self.svc._global_event("warning", EventCode.ROBOT_LIMIT, key, message, at)
 
     def reject(self, robot: str | None, key: str, message: str, at: int) -> None:
         """Bad input from the ROS 2 front door: an Event, nothing else."""

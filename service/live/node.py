@@ -64,7 +64,6 @@ from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import Held, MapBook
 from service.maps.store import FileMapStore, MapStorage
-from service.ros2.frontdoor import Ros2FrontDoor
 
 log = logging.getLogger(__name__)
 
@@ -127,8 +126,6 @@ class LocalizationService:
         self._on_drop = self.out.on_drop
         self.ready = False
         self.intake = Intake(self)
-        self._offer = self.intake.offer
-        self._reject = self.intake.reject
         self._token: Any = None
         self._storage: MapStorage | None = None
         self.dispatcher = Dispatcher(
@@ -183,16 +180,7 @@ class LocalizationService:
         )
         owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
         self.keywatch = KeyWatch(self.keys, self._global_event, self.clock, settings, owns_key)
-        self.ros2: Ros2FrontDoor | None = None
-        if settings.ros2.enabled:
-            self.ros2 = Ros2FrontDoor(
-                settings.ros2,
-                self._offer,
-                self._reject,
-                self.clock,
-                settings.max_payload_bytes,
-                self.keys,
-            )
+        self.ros2 = self.intake.front_door() if settings.ros2.enabled else None
         self.gate = Gate(self.clock, int(settings.max_stamp_ahead_s * 1e9), settings.max_robots)
         self.ownership.followed.max_ahead_ns = self.gate.max_ahead_ns
         self.ownership.followed.max_robots = settings.max_robots
@@ -357,6 +345,8 @@ class LocalizationService:
             self._poses.pop(robot, None)
             self.robot_view.forget(robot)
             self.posestate.forget(robot)
+            if self.ros2 is not None:  # its tokens and publishers go
+                self.ros2.forget(robot)
             self._robot_event(
                 robot,
                 "info",
@@ -468,7 +458,8 @@ class LocalizationService:
             "robots_evicted": self.sweeper.evicted,
         }
         if self.ros2 is not None:
-            extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace
+            extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace, the first 50
+            extra["ros2_robots_count"] = self.ros2.robots_count()
             extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
             extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link

@@ -21,7 +21,6 @@ started without a map, the front door says at once what will be refused
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from collections.abc import Callable
@@ -38,10 +37,12 @@ from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
+from service.ros2.entities import declare_publisher, no_map_warning, undeclare
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import EMPTY_SRV, SERVICE_QOS, GlobalLocalization
+from service.ros2.gridmaps import GridImports
 from service.ros2.names import Distro
-from service.ros2.statictf import StaticFrames
+from service.ros2.statictf import Pose2, StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,13 @@ Offer = Callable[[str, InputKind, bytes, Message, int], None]
 """Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
 Reject = Callable[[str | None, str, str, int], None]
 """Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
+Limit = Callable[[str, str, int], None]
+"""Report a namespace refused, ``max_robots`` held: key, why, receive time (ns)."""
 Clock = Callable[[], int]
+#: Least time between two ``robot_limit`` Events of the front door, ns.
+LIMIT_EVENT_NS = 1_000_000_000
+#: Scan frames with no tf_static link said in the log per robot (a robot's scans use one).
+WARNED_FRAMES = 4
 
 Leaf = Literal["scan", "odom", "initialpose", "tf"]
 
@@ -72,7 +79,6 @@ class _Robot:
     odometry: OdometryTrail = field(default_factory=OdometryTrail)
     publishers: dict[str, _Publisher] = field(default_factory=dict)
     tokens: list[Any] = field(default_factory=list)
-    warned_frames: set[str] = field(default_factory=set)
 
 
 class Ros2FrontDoor:
@@ -85,6 +91,8 @@ class Ros2FrontDoor:
         clock: receive times (ns since the epoch, increasing).
         max_payload_bytes: largest payload accepted.
         keys: the key layout (maps from ``map_topic`` are put on its map keys).
+        max_robots: most robots (namespaces) held; the inputs of one more are refused.
+        on_limit: where such a refusal is reported (at most once a second).
     """
 
     def __init__(
@@ -95,6 +103,8 @@ class Ros2FrontDoor:
         clock: Clock,
         max_payload_bytes: int = 1_000_000,
         keys: Keys | None = None,
+        max_robots: int = 10_000,
+        on_limit: Limit | None = None,
     ) -> None:
         self.settings = settings
         self.keys = keys or Keys()
@@ -102,6 +112,10 @@ class Ros2FrontDoor:
         self.reject = reject
         self.clock = clock
         self.max_payload_bytes = max_payload_bytes
+        self.max_robots = max_robots
+        self.on_limit = on_limit
+        self.robots_refused = 0  # inputs of namespaces refused, max_robots held
+        self._last_limit = -LIMIT_EVENT_NS
         self._robots: dict[str, _Robot] = {}
         self._by_id: dict[str, _Robot] = {}
         self._lock = threading.Lock()
@@ -121,8 +135,10 @@ class Ros2FrontDoor:
             topics[settings.tf_topic] = "tf"
         self._topics = topics
         self._static: dict[str, StaticFrames] = {}
+        self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
+        self.grids = GridImports(settings, reject, clock, self._put_map)
         self.globalloc = GlobalLocalization(settings, self.gate.put, reject, clock, overrides)
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
@@ -143,7 +159,7 @@ class Ros2FrontDoor:
             self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
         # tf_static and maps are transient local: published once, maybe long ago, so a late
         # joiner asks the publishers' caches for the last sample (as rmw_zenoh's subscribers).
-        cached = ((s.tf_static_topic, self._on_static), (s.map_topic, self._on_map))
+        cached = ((s.tf_static_topic, self._on_static), (s.map_topic, self.grids.on_sample))
         for topic, callback in cached:
             if topic:
                 self._declared.append(
@@ -167,6 +183,7 @@ class Ros2FrontDoor:
     def close(self) -> None:
         """Undeclare publishers, tokens and subscriptions."""
         self._stop.set()
+        self.grids.close()
         self.globalloc.close()
         if self._flusher is not None:
             self._flusher.join(1.0)
@@ -176,17 +193,22 @@ class Ros2FrontDoor:
             self._by_id.clear()
         for r in robots:
             for p in r.publishers.values():
-                _undeclare(p.publisher)
+                undeclare(p.publisher)
             for t in r.tokens:
-                _undeclare(t)
+                undeclare(t)
         for d in reversed(self._declared):
-            _undeclare(d)
+            undeclare(d)
         self._declared.clear()
 
-    def robots(self) -> dict[str, str]:
-        """Robot id to namespace of the ROS robots seen."""
+    def robots(self, most: int = 50) -> dict[str, str]:
+        """Robot id to namespace of the ROS robots held, the first ``most`` by id."""
         with self._lock:
-            return {r.robot_id: r.namespace for r in self._robots.values()}
+            held = sorted((r.robot_id, r.namespace) for r in self._robots.values())
+        return dict(held[:most])
+
+    def robots_count(self) -> int:
+        """How many ROS robots are held."""
+        return len(self._robots)
 
     # ------------------------------------------------------------------------- inputs
     def _on(self, leaf: Leaf, sample: zenoh.Sample) -> None:
@@ -220,12 +242,14 @@ class Ros2FrontDoor:
                 received,
             )
             return
-        robot = self._robot(robot_id, dk.namespace, dk.distro)
-        try:
-            messages = self._decode(robot, raw, leaf)
+        if not self._room(dk.namespace, robot_id, key, received):
+            return
+        try:  # decoded first: input that is no message makes no robot
+            messages = self._decode(dk.namespace, robot_id, raw, leaf)
         except SchemaError as err:
             self.reject(robot_id, key, str(err), received)
             return
+        robot = self._robot(robot_id, dk.namespace, dk.distro)
         for kind, msg in messages:
             if kind == "odom":
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
@@ -246,80 +270,101 @@ class Ros2FrontDoor:
             self.reject(None, key, str(err), self.clock())
             return
         with self._lock:
-            frames = self._static.setdefault(dk.namespace, StaticFrames())
+            frames = self._static.get(dk.namespace)
+            if frames is None:
+                if len(self._static) >= self.max_robots:  # namespaces invented without end
+                    return
+                frames = self._static[dk.namespace] = StaticFrames()
         for parent, child, pose in found:
             frames.add(parent, child, pose)
 
-    def _laser_offset(self, robot: _Robot, frame_id: str) -> tuple[float, float, float]:
+    def _laser_offset(self, namespace: str, robot_id: str, frame_id: str) -> Pose2:
         """The laser's pose in the base frame, from the robot's tf_static (zero if unknown)."""
         base = self.settings.base_frame
         with self._lock:
-            frames = self._static.get(robot.namespace)
+            frames = self._static.get(namespace)
         found = frames.offset(base, frame_id) if frames is not None else None
         if found is None:
             found = (0.0, 0.0, 0.0)
             if frame_id.lstrip("/") not in ("", base):
                 self.laser_at_base += 1
-                if frame_id not in robot.warned_frames:
-                    robot.warned_frames.add(frame_id)
+                with self._lock:  # said once per robot and frame, for a few frames a robot
+                    warned = self._warned.setdefault(namespace, set())
+                    say = frame_id not in warned and len(warned) < WARNED_FRAMES
+                    if say:
+                        warned.add(frame_id)
+                if say:
                     log.warning(
-                        "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base",
-                        robot.robot_id,
+                        "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base%s",
+                        robot_id,
                         base,
                         frame_id,
+                        "" if len(warned) < WARNED_FRAMES else " (its further frames not said)",
                     )
         return found
 
-    def _on_map(self, sample: zenoh.Sample) -> None:
-        key, raw = str(sample.key_expr), sample.payload.to_bytes()
-        received = self.clock()
-        dk = names.parse_data_key(key, self.settings.domain_id)
-        if dk is None:
-            return
-        # Polygonizing a grid takes a while: not on a Zenoh thread.
-        threading.Thread(
-            target=self._import_map, args=(key, dk, raw, received), daemon=True
-        ).start()
-
-    def _import_map(self, key: str, dk: names.DataKey, raw: bytes, received: int) -> None:
-        from service.maps.mapimport import MapImportError, grid_to_map
-
-        map_id = self.settings.robot(dk.namespace).map_id or self.settings.map_id
-        try:
-            if dk.msgtype != convert.OCCUPANCY_GRID:
-                raise convert.CdrError(f"{dk.topic} carries {dk.msgtype}, expected a grid")
-            if map_id is None:
-                raise convert.CdrError("no map id for ROS maps: give ros2.map_id (--ros-map)")
-            grid, stamp = convert.occupancy_grid(raw)
-            # Newer grids give newer versions: the stamp in ms (the receive time without one).
-            version = (stamp or received) // 1_000_000
-            result = grid_to_map(grid, map_id=map_id, version=version)
-        except (SchemaError, MapImportError, ValueError) as err:
-            self.reject(None, key, f"map not imported: {err}", received)
-            return
-        payload = json.dumps(result.map).encode()
-        log.info("map %s v%d imported from %s", map_id, version, dk.topic)
+    def _put_map(self, map_id: str, payload: bytes) -> None:
         session = self._session
         if session is not None:
             # Into the store and to every instance, as `rlutf map put` does.
             session.put(self.keys.map(map_id), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
-    def _decode(self, robot: _Robot, raw: bytes, leaf: Leaf) -> list[tuple[InputKind, Message]]:
+    def _decode(
+        self, namespace: str, robot_id: str, raw: bytes, leaf: Leaf
+    ) -> list[tuple[InputKind, Message]]:
         s = self.settings
         if leaf == "scan":
-            scan = convert.laser_scan(raw, offset_of=partial(self._laser_offset, robot))
-            return [("scan", scan)]
+            offset_of = partial(self._laser_offset, namespace, robot_id)
+            return [("scan", convert.laser_scan(raw, offset_of=offset_of))]
         if leaf == "odom":
             return [("odom", convert.odometry(raw))]
         if leaf == "tf":
             found = convert.odometry_from_tf(raw, s.odom_frame, s.base_frame)
             return [("odom", m) for m in found]
-        if robot.map_id is None:
+        map_id = s.robot(namespace).map_id or s.map_id
+        if map_id is None:
             raise convert.CdrError(
                 "no map for ROS 2 robots: give ros2.map_id (--ros-map) or ros2.robots."
-                f"{robot.namespace.strip('/') or '/'}.map_id"
+                f"{namespace.strip('/') or '/'}.map_id"
             )
-        return [("initialpose", convert.initial_pose(raw, robot.map_id, s.global_frame))]
+        return [("initialpose", convert.initial_pose(raw, map_id, s.global_frame))]
+
+    def _room(self, namespace: str, robot_id: str, key: str, received: int) -> bool:
+        """Whether a namespace's input may be taken: its robot is held, or fewer than
+        ``max_robots`` are; else it is refused, with an Event ``robot_limit`` a second."""
+        with self._lock:
+            if namespace in self._robots or len(self._robots) < self.max_robots:
+                return True
+            self.robots_refused += 1
+            say = received - self._last_limit >= LIMIT_EVENT_NS
+            if say:
+                self._last_limit = received
+        if say and self.on_limit is not None:
+            self.on_limit(
+                key,
+                f"ROS robot {robot_id!r} refused: the ROS 2 front door holds {self.max_robots} "
+                f"robots (max_robots); {self.robots_refused} inputs of new namespaces refused so "
+                "far. Idle robots are evicted after robot_idle_s; raise max_robots or add "
+                "instances",
+                received,
+            )
+        return False
+
+    def forget(self, robot_id: str) -> None:
+        """Drop a robot the service evicted: its tokens, publishers and held input go (its
+        next input makes it anew)."""
+        with self._lock:
+            r = self._by_id.pop(robot_id, None)
+            if r is None:
+                return
+            self._robots.pop(r.namespace, None)
+            self._static.pop(r.namespace, None)
+            self._warned.pop(r.namespace, None)
+        self.gate.forget(robot_id)
+        for p in r.publishers.values():
+            undeclare(p.publisher)
+        for t in r.tokens:
+            undeclare(t)
 
     def _robot(self, robot_id: str, namespace: str, distro: Distro) -> _Robot:
         with self._lock:
@@ -380,40 +425,14 @@ class Ros2FrontDoor:
             if kind == "MP":
                 key = names.data_key(s.domain_id, topic, msgtype, r.distro)
                 r.publishers[msgtype] = _Publisher(
-                    key, self._publisher(session, key, q), Sequencer(gid_of(token))
+                    key, declare_publisher(session, key, q), Sequencer(gid_of(token))
                 )
-
-    @staticmethod
-    def _publisher(session: zenoh.Session, key: str, qos: names.Qos) -> Any:
-        common: dict[str, Any] = {
-            "congestion_control": zenoh.CongestionControl.DROP,
-            "allowed_destination": zenoh.Locality.REMOTE,  # not to our own tf subscriber
-        }
-        if qos.transient_local:
-            # rmw_zenoh's transient-local publisher: a cache late subscribers query; reliable,
-            # also sequence numbers and a heartbeat (sent each 0.5 s if a sample went out
-            # meanwhile), from which a subscriber with recovery detects a lost last sample and
-            # fetches it from the cache (rmw_publisher_data.cpp, Humble to Rolling).
-            miss = (
-                zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S)
-                if qos.reliable
-                else None
-            )
-            return zenoh.ext.declare_advanced_publisher(
-                session,
-                key,
-                cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
-                sample_miss_detection=miss,
-                publisher_detection=True,
-                **common,
-            )
-        return session.declare_publisher(key, **common)
 
     def _redeclare(self, r: _Robot, distro: Distro) -> None:
         for p in r.publishers.values():
-            _undeclare(p.publisher)
+            undeclare(p.publisher)
         for t in r.tokens:
-            _undeclare(t)
+            undeclare(t)
         r.publishers.clear()
         r.tokens.clear()
         r.distro = distro
@@ -461,35 +480,9 @@ class Ros2FrontDoor:
             log.warning("could not publish on %s", pub.key, exc_info=True)
 
 
-#: rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms, sporadic), seconds.
-HEARTBEAT_S = 0.5
-
-
-def no_map_warning(s: Ros2Settings) -> str | None:
-    """What goes wrong when ROS robots have no map, and the flag that fixes it (``None``: fine)."""
-    if s.map_id is not None:
-        return None
-    without = "ROS robots" if not s.robots else "ROS robots without ros2.robots.NS.map_id"
-    grid = f"; maps on {s.map_topic} will not be imported (they need an id)" if s.map_topic else ""
-    service = f" and {s.global_localization_service} calls" if s.global_localization_service else ""
-    return (
-        f"ROS 2 front door: no map given for {without}: their initial poses (initialpose, "
-        f"RViz's 2D Pose Estimate){service} will be refused with an invalid_message Event, "
-        f"so they will not be localized{grid}. Fix: rlutf serve --ros2 --ros-map MAP_ID "
-        "(or the setting ros2.map_id, or ros2.robots.NS.map_id per robot)"
-    )
-
-
 _EXPECTED: dict[Leaf, str] = {
     "scan": convert.LASER_SCAN,
     "odom": convert.ODOMETRY,
     "initialpose": convert.POSE_COV,
     "tf": convert.TF_MESSAGE,
 }
-
-
-def _undeclare(entity: Any) -> None:
-    try:
-        entity.undeclare()
-    except Exception:  # already gone with the session
-        log.debug("undeclare failed", exc_info=True)

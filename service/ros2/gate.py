@@ -95,6 +95,13 @@ class OdometryGate:
                     self._without.add(robot)  # sends no odometry: its scans go on as they come
                 self._release(robot)
 
+    def forget(self, robot: str) -> None:
+        """Drop what is kept of a robot (evicted): a scan held for it goes unanswered."""
+        with self._lock:
+            self._latest.pop(robot, None)
+            self._held.pop(robot, None)
+            self._without.discard(robot)
+
     def _release(self, robot: str) -> None:
         held = self._held.pop(robot, None)
         if held is not None:

@@ -19,6 +19,8 @@ Pose2 = tuple[float, float, float]
 
 #: Longest chain followed from a frame up to the base.
 _MAX_DEPTH = 32
+#: Most frames of one robot's tree (a URDF has tens), and most lookups remembered.
+MAX_FRAMES = 1024
 
 
 class StaticFrames:
@@ -31,8 +33,10 @@ class StaticFrames:
 
     def add(self, parent: str, child: str, pose: Pose2) -> None:
         """A transform ``parent`` -> ``child``; a newer one of the same child replaces it."""
+        child = child.lstrip("/")
         with self._lock:
-            self._edges[child.lstrip("/")] = (parent.lstrip("/"), pose)
+            if child in self._edges or len(self._edges) < MAX_FRAMES:
+                self._edges[child] = (parent.lstrip("/"), pose)
             self._cache.clear()
 
     def offset(self, base: str, frame: str) -> Pose2 | None:
@@ -43,6 +47,8 @@ class StaticFrames:
         with self._lock:
             key = (base, frame)
             if key not in self._cache:
+                if len(self._cache) >= MAX_FRAMES:  # scans' frame ids are the robot's to invent
+                    self._cache.clear()
                 self._cache[key] = self._walk(base, frame)
             return self._cache[key]
 
