@@ -29,6 +29,7 @@ __all__ = [
     "client",
     "load",
     "number",
+    "seconds",
     "timeout_flag",
     "usable_folder",
     "writable",
@@ -140,11 +141,22 @@ def usable_folder(path: Path, flag: str) -> None:
         ) from err
 
 
+#: Longest wait a flag takes, seconds (about 31 years): Python's timed waits stop at
+#: ``threading.TIMEOUT_MAX`` (about 292 years) and zenoh's at 2**64 s, past which they raise.
+MAX_WAIT_S = 1e9
+
+
+def seconds(*, minimum: float | None = None, above: float | None = None) -> Callable[[str], Any]:
+    """An argparse ``type`` for a wait in seconds: finite, within bounds, at most
+    :data:`MAX_WAIT_S`."""
+    return number(minimum=minimum, above=above, maximum=MAX_WAIT_S)
+
+
 def timeout_flag(p: argparse.ArgumentParser, default: float = 3.0, what: str = "answers") -> None:
     """Add ``--timeout SECONDS`` (more than 0) with its help."""
     p.add_argument(
         "--timeout",
-        type=number(above=0),
+        type=seconds(above=0),
         default=default,
         metavar="SECONDS",
         help=f"seconds to wait for {what} (default {default:g})",

@@ -17,6 +17,7 @@ from service.cli.flags import (
     EXIT_USAGE,
     client,
     number,
+    seconds,
     timeout_flag,
     writable,
     zenoh_flags,
@@ -47,7 +48,7 @@ def register(sub: Any) -> None:
     )
     put.add_argument(
         "--timeout",
-        type=number(minimum=0),
+        type=seconds(minimum=0),
         default=5.0,
         metavar="SECONDS",
         help="seconds to wait for the store's answer (default 5; 0: put it without waiting, "

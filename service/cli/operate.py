@@ -10,7 +10,7 @@ import time
 from typing import Any
 
 from service.cli.errors import EXIT_FAILURE, EXIT_OK
-from service.cli.flags import client, number, zenoh_flags
+from service.cli.flags import client, seconds, zenoh_flags
 from service.cli.query import (
     check_ids,
     json_flag,
@@ -63,7 +63,7 @@ def register(sub: Any) -> None:
     events.add_argument("robot", nargs="?", help="robot id (default: every robot and the service)")
     events.add_argument(
         "--seconds",
-        type=number(above=0),
+        type=seconds(above=0),
         metavar="S",
         help="stop after S seconds (default: run until Ctrl-C)",
     )

@@ -11,7 +11,7 @@ from typing import Any
 
 from schemas import Event, EventCode, encode
 from service.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CliError
-from service.cli.flags import client, number, timeout_flag, zenoh_flags
+from service.cli.flags import client, seconds, timeout_flag, zenoh_flags
 
 
 def register(sub: Any) -> None:
@@ -70,7 +70,7 @@ def request_flags(p: argparse.ArgumentParser, wait: float, until: str) -> None:
     p.add_argument("--map", required=True, metavar="ID", help="map the robot is on")
     p.add_argument(
         "--wait",
-        type=number(minimum=0),
+        type=seconds(minimum=0),
         default=wait,
         metavar="SECONDS",
         help=f"follow the robot's events {until}, at most this long (default {wait:g}; 0: put "

@@ -125,6 +125,20 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "health", "depot", "--timeout", "nan"], 2, ["--timeout", "finite"])
     yield Bad(["map", "health", "depot", "--timeout", "inf"], 2, ["--timeout", "finite"])
     yield Bad(["events", "--seconds", "-1"], 2, ["--seconds"])
+    # waits past what a clock or zenoh can time: refused, not an unexpected error (and not
+    # after an initial pose or a relocalization was put)
+    for argv in (
+        ["events", "--seconds", "1e10"],
+        ["pose", "--timeout", "1e300"],
+        ["robots", "--timeout", "1e20"],
+        ["health", "--timeout", "1e20"],
+        ["map", "list", "--timeout", "1e20"],
+        ["map", "put", "foreign.txt", "--timeout", "1e20"],
+        ["map", "health", "depot", "--timeout", "1e20"],
+        ["initialpose", "r1", "--map", "m", "--pose", "1,2,3", "--wait", "1e10"],
+        ["relocalize", "r1", "--map", "m", "--wait", "1e10"],
+    ):
+        yield Bad([*argv, "-e", NOWHERE], 2, [argv[-2], "at most"])
     yield Bad(["replay", "corrupt.json", "--jobs", "-1"], 2, ["--jobs", "at least 0"])
     yield Bad(["relocalize", "r1", "--map", "m", "--wait", "-1"], 2, ["--wait"])
     yield Bad(["initialpose", "r1", "--map", "m", "--pose", "1,2"], 2, ["--pose", "X,Y,THETA"])
