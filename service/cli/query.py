@@ -57,7 +57,7 @@ def register(sub: Any) -> None:
         "the scan-to-pose latency percentiles. --json prints every figure.",
     )
     timeout_flag(health)
-    health.add_argument("--instance", default="*", help="instance name (default: all)")
+    health.add_argument("--instance", default="*", help="instance name (default *: all)")
     json_flag(health, "one Health (WIRE.md) per line")
     zenoh_flags(health, client=True)
     health.set_defaults(func=cmd_health)
@@ -244,6 +244,8 @@ def cmd_health(args: argparse.Namespace) -> int:
     from service.cli.present import health_problems, health_table
     from service.live.queries import fetch_health
 
+    if args.instance != "*":
+        check_ids("health", instance=args.instance)
     settings, session = client(args)
     with session:
         healths = fetch_health(session, settings.prefix, args.instance, args.timeout)

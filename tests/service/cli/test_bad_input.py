@@ -125,6 +125,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "health", "depot", "--timeout", "nan"], 2, ["--timeout", "finite"])
     yield Bad(["map", "health", "depot", "--timeout", "inf"], 2, ["--timeout", "finite"])
     yield Bad(["events", "--seconds", "-1"], 2, ["--seconds"])
+    # an instance name is an id (or * for all), as `serve --instance` takes it
+    for name in ("", "a/b", "**", "x" * 65):
+        yield Bad(["health", "--instance", name, "-e", NOWHERE], 2, ["instance", repr(name)])
     # waits past what a clock or zenoh can time: refused, not an unexpected error (and not
     # after an initial pose or a relocalization was put)
     for argv in (
