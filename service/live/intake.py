@@ -133,6 +133,7 @@ class Intake:
             self.svc.keys,
             s.max_robots,
             self.limit,
+            int(s.robot_idle_s * 1e9),
         )
 
     def offer(self, robot: str, kind: InputKind, payload: bytes, msg: Message, at: int) -> None:

@@ -2,7 +2,8 @@
 
 Publishers (a transient-local one is an advanced publisher with a cache and a sample-miss
 heartbeat, as ``rmw_publisher_data.cpp`` declares it), undeclaring one that may be gone with its
-session, and the warning of a front door started with no map (:func:`no_map_warning`).
+session, the warning of a front door started with no map (:func:`no_map_warning`) and the
+Event of a namespace refused, ``max_robots`` held (:func:`limit_message`).
 """
 
 from __future__ import annotations
@@ -69,4 +70,13 @@ def no_map_warning(s: Ros2Settings) -> str | None:
         f"RViz's 2D Pose Estimate){service} will be refused with an invalid_message Event, "
         f"so they will not be localized{grid}. Fix: rlutf serve --ros2 --ros-map MAP_ID "
         "(or the setting ros2.map_id, or ros2.robots.NS.map_id per robot)"
+    )
+
+
+def limit_message(robot_id: str, max_robots: int, refused: int) -> str:
+    """The Event ``robot_limit`` of a namespace the front door refused."""
+    return (
+        f"ROS robot {robot_id!r} refused: the ROS 2 front door holds {max_robots} robots "
+        f"(max_robots); {refused} inputs of new namespaces refused so far. Robots idle for "
+        "robot_idle_s make room; raise max_robots or add instances"
     )

@@ -37,7 +37,7 @@ from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
-from service.ros2.entities import declare_publisher, no_map_warning, undeclare
+from service.ros2.entities import declare_publisher, limit_message, no_map_warning, undeclare
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import EMPTY_SRV, SERVICE_QOS, GlobalLocalization
 from service.ros2.gridmaps import GridImports
@@ -79,6 +79,7 @@ class _Robot:
     odometry: OdometryTrail = field(default_factory=OdometryTrail)
     publishers: dict[str, _Publisher] = field(default_factory=dict)
     tokens: list[Any] = field(default_factory=list)
+    seen_ns: int = 0  # receive time of its latest input
 
 
 class Ros2FrontDoor:
@@ -91,8 +92,10 @@ class Ros2FrontDoor:
         clock: receive times (ns since the epoch, increasing).
         max_payload_bytes: largest payload accepted.
         keys: the key layout (maps from ``map_topic`` are put on its map keys).
-        max_robots: most robots (namespaces) held; the inputs of one more are refused.
+        max_robots: most robots (namespaces) held; the inputs of one more are refused, once
+            those with no input for ``idle_ns`` are dropped.
         on_limit: where such a refusal is reported (at most once a second).
+        idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
     """
 
     def __init__(
@@ -105,6 +108,7 @@ class Ros2FrontDoor:
         keys: Keys | None = None,
         max_robots: int = 10_000,
         on_limit: Limit | None = None,
+        idle_ns: int = 3600 * 1_000_000_000,
     ) -> None:
         self.settings = settings
         self.keys = keys or Keys()
@@ -114,6 +118,8 @@ class Ros2FrontDoor:
         self.max_payload_bytes = max_payload_bytes
         self.max_robots = max_robots
         self.on_limit = on_limit
+        self.idle_ns = idle_ns
+        self._last_sweep = -LIMIT_EVENT_NS
         self.robots_refused = 0  # inputs of namespaces refused, max_robots held
         self._last_limit = -LIMIT_EVENT_NS
         self._robots: dict[str, _Robot] = {}
@@ -249,7 +255,7 @@ class Ros2FrontDoor:
         except SchemaError as err:
             self.reject(robot_id, key, str(err), received)
             return
-        robot = self._robot(robot_id, dk.namespace, dk.distro)
+        robot = self._robot(robot_id, dk.namespace, dk.distro, received)
         for kind, msg in messages:
             if kind == "odom":
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
@@ -335,19 +341,23 @@ class Ros2FrontDoor:
         with self._lock:
             if namespace in self._robots or len(self._robots) < self.max_robots:
                 return True
+            idle = []
+            if received - self._last_sweep >= LIMIT_EVENT_NS:  # a look at most once a second
+                self._last_sweep = received
+                gone = received - self.idle_ns
+                idle = [r.robot_id for r in self._robots.values() if r.seen_ns < gone]
+        for gone_id in idle:  # owned elsewhere, or never taken: this instance evicts no one
+            self.forget(gone_id)
+        with self._lock:
+            if len(self._robots) < self.max_robots:
+                return True
             self.robots_refused += 1
             say = received - self._last_limit >= LIMIT_EVENT_NS
             if say:
                 self._last_limit = received
         if say and self.on_limit is not None:
-            self.on_limit(
-                key,
-                f"ROS robot {robot_id!r} refused: the ROS 2 front door holds {self.max_robots} "
-                f"robots (max_robots); {self.robots_refused} inputs of new namespaces refused so "
-                "far. Idle robots are evicted after robot_idle_s; raise max_robots or add "
-                "instances",
-                received,
-            )
+            why = limit_message(robot_id, self.max_robots, self.robots_refused)
+            self.on_limit(key, why, received)
         return False
 
     def forget(self, robot_id: str) -> None:
@@ -366,10 +376,11 @@ class Ros2FrontDoor:
         for t in r.tokens:
             undeclare(t)
 
-    def _robot(self, robot_id: str, namespace: str, distro: Distro) -> _Robot:
+    def _robot(self, robot_id: str, namespace: str, distro: Distro, seen: int) -> _Robot:
         with self._lock:
             r = self._robots.get(namespace)
             if r is not None:
+                r.seen_ns = seen
                 if not r.forced and r.distro != distro:
                     log.info("ROS robot %s now uses %s key naming", robot_id, distro)
                     self._redeclare(r, distro)
@@ -383,6 +394,7 @@ class Ros2FrontDoor:
                 over.map_id or self.settings.map_id,
                 chosen if chosen != "auto" else distro,
                 forced,
+                seen_ns=seen,
             )
             self._robots[namespace] = r
             self._by_id[robot_id] = r

@@ -217,3 +217,30 @@ def test_a_flood_of_grids_on_the_map_topic_is_imported_one_at_a_time(tmp_path: P
             watcher.join()
         # one thread imports, whatever the number of grids (+1: the watcher)
         assert peak[0] - baseline <= 2, peak[0] - baseline
+
+
+def test_robots_the_service_does_not_hold_leave_the_front_door_when_idle(tmp_path: Path) -> None:
+    """A namespace whose inputs the service never takes (another instance owns it, or its
+    stamps are refused) is never evicted by this instance: idle, it makes room all the same."""
+    with running_bench(
+        tmp_path, ros2=Ros2Settings(enabled=True, map_id="m1"), max_robots=2, robot_idle_s=1.0
+    ) as bench:
+        events = Collector()
+        sub = bench.client.declare_subscriber("rlutf/**/events", events)
+        bench.put_map()
+        time.sleep(0.3)
+        ahead = time.time_ns() + 365 * 86400 * 10**9
+        for i in range(2):
+            r = _robot(bench, f"/ahead{i}", i, t0=ahead)
+            r.initial_pose()
+            r.advance()
+        assert _wait(lambda: len(_health(bench)["extra"]["ros2_robots"]) == 2)
+        time.sleep(1.5)  # past robot_idle_s
+        fresh = _robot(bench, "/fresh", 5)
+        fresh.initial_pose()
+        for _ in range(3):
+            fresh.advance()
+            time.sleep(0.05)
+        assert _wait(lambda: "fresh" in _health(bench)["extra"]["ros2_robots"])
+        assert not any(e["code"] == "robot_limit" for e in events.on("rlutf/events"))
+        sub.undeclare()
