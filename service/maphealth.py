@@ -136,6 +136,7 @@ class _MapState:
     last_put_ns: int | None = None
     last_payload: bytes | None = None
     report: bytes | None = None  # the newest MapHealth made, answered to gets
+    report_ns: int | None = None  # when it was made (receive time), if known
 
 
 @dataclass(frozen=True)
@@ -201,7 +202,7 @@ class MapHealthEngine:
                 continue
             state.changed = False
             payload = self._report(map_id, state)
-            state.report = payload
+            state.report, state.report_ns = payload, now_ns
             if payload == state.last_payload:
                 continue
             state.last_payload, state.last_put_ns = payload, now_ns
@@ -210,13 +211,22 @@ class MapHealthEngine:
             )
         return out
 
-    def answer(self, map_id: str) -> bytes | None:
-        """The current MapHealth of a map (for a get), or ``None`` when nothing was counted."""
+    def answer(self, map_id: str, now_ns: int | None = None) -> bytes | None:
+        """The current MapHealth of a map (for a get), or ``None`` when nothing was counted.
+
+        Given ``now_ns``, a report made less than ``interval_ns`` before is answered again
+        (making one walks the whole grid: a flood of gets must not make one each), as puts
+        are at most once per ``interval_ns``."""
         state = self._maps.get(map_id)
         if state is None or state.grid is None:
             return None
-        if state.report is None or state.changed:
-            state.report = self._report(map_id, state)
+        fresh = (
+            now_ns is not None
+            and state.report_ns is not None
+            and now_ns - state.report_ns < self.interval_ns
+        )
+        if state.report is None or (state.changed and not fresh):
+            state.report, state.report_ns = self._report(map_id, state), now_ns
         return state.report
 
     def map_ids(self) -> list[str]:

@@ -175,7 +175,8 @@ class HealthFeed:
         with query:
             ke = query.key_expr
             with self._lock:
-                answers = [(m, self.engine.answer(m)) for m in self.engine.map_ids()]
+                now = self.clock()
+                answers = [(m, self.engine.answer(m, now)) for m in self.engine.map_ids()]
             for map_id, payload in answers:
                 key = self.keys.maphealth(map_id)
                 if payload is not None and ke.intersects(zenoh.KeyExpr(key)):
