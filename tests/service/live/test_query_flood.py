@@ -19,6 +19,7 @@ from service_harness import running_bench
 import service.maphealth
 from service.config import Settings
 from service.live.node import LocalizationService
+from service.live.robots import RobotView
 
 pytestmark = pytest.mark.integration
 
@@ -96,3 +97,37 @@ def test_a_flood_of_map_health_gets_makes_a_report_at_most_once_a_second(
             assert made[0] <= 2 * 2 * (elapsed + 1), (made[0], gets)
         finally:
             other.close()
+
+
+def test_a_flood_of_robots_view_gets_decodes_the_fleet_a_few_times_a_second(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each answer of ``{prefix}/service/*/robots`` decodes every pose held (about 12 us a
+    robot: 0.1 s at 10,000 robots): a flood of gets may not make one each."""
+    made = [0]
+    real = RobotView.states
+
+    def counted(view: RobotView) -> Any:
+        made[0] += 1
+        return real(view)
+
+    monkeypatch.setattr(RobotView, "states", counted)
+    with running_bench(tmp_path) as bench:
+        bench.put_map()
+        time.sleep(0.5)
+        robots = [bench.robot(f"r{i}", i, steps=60) for i in range(3)]
+        for r in robots:
+            r.initial_pose("m1")
+        for _ in range(5):
+            for r in robots:
+                r.advance()
+            time.sleep(0.1)
+        made[0] = 0
+        start, gets = time.monotonic(), 0
+        while time.monotonic() - start < 2.0:
+            answers = list(bench.client.get("rlutf/service/*/robots", timeout=1.0))
+            assert len(answers) == 1 and answers[0].ok is not None
+            gets += 1
+        elapsed = time.monotonic() - start
+        assert gets >= 50
+        assert made[0] <= 4 * (elapsed + 1), (made[0], gets)
