@@ -91,7 +91,14 @@ class Engine(Protocol):
     def _handle(self, robot: Any, message: Message, received_ns: int) -> list[Outbound]: ...
 
     def _event(
-        self, robot: Any, now_ns: int, level: Any, code: str, key: str, message: str
+        self,
+        robot: Any,
+        now_ns: int,
+        level: Any,
+        code: str,
+        key: str,
+        message: str,
+        limited: bool = True,
     ) -> list[Outbound]: ...
 
 
@@ -106,9 +113,13 @@ def guarded(engine: Engine, robot: Any, message: Message, received_ns: int) -> l
     if problem is not None:
         kind = kind_of(message)
         key = engine.keys.robot(robot.robot_id, kind)
+        # An operator's request is answered each time: `rlutf initialpose` waits for the Event
+        # (a robot's scans and odometry come too often for that: held back per interval).
+        request = isinstance(message, InitialPose | Relocalize)
+        code = EventCode.INVALID_MESSAGE
         return [
             Outbound("rejected", key, b"", message.stamp_ns, robot.robot_id),
-            *engine._event(robot, received_ns, "error", EventCode.INVALID_MESSAGE, key, problem),
+            *engine._event(robot, received_ns, "error", code, key, problem, limited=not request),
         ]
     # Odometry only appends to the robot's readings, all or nothing (FleetEngine._add_odometry):
     # nothing to put back, and no snapshot to take for half of the inputs.

@@ -128,6 +128,26 @@ def test_a_refused_initial_pose_is_told_what_to_mend(
         assert "map list" not in err
 
 
+def test_a_request_refused_again_within_a_second_is_told_refused_again(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The service holds back repeated Events of one code for one robot (event_interval_s);
+    # the refusal of an operator's request is never held back: the command waits for it.
+    with running_bench(tmp_path, event_interval_s=1.0) as bench:
+        bench.put_map()
+        e = bench.endpoint
+        for theta in ("1e9", "2e9"):  # the operator mends one field, not the other
+            argv = ["initialpose", "r1", "--map", "m1", "--pose", f"1,2,{theta}", "-e", e]
+            code, out, err = _cli(capsys, *argv, "--wait", "3")
+            assert code == 1, (theta, out, err)
+            assert "InitialPose.theta" in out
+        for radius in ("1e9", "2e9"):
+            argv = ["relocalize", "r1", "--map", "m1", "--near", f"1,2,{radius}", "-e", e]
+            code, out, err = _cli(capsys, *argv, "--wait", "3")
+            assert code == 1, (radius, out, err)
+            assert "Relocalize.region.radius" in out
+
+
 def test_an_initial_pose_far_off_the_stored_map_is_refused_before_it_is_put(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
