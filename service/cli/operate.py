@@ -97,11 +97,16 @@ def off_map(payload: bytes, x: float, y: float) -> str | None:
         return None
     x0, y0, x1, y1 = free.bounds
     return (
-        f"({x:g}, {y:g}) is {away:.1f} m outside the free space of map {world.map_id!r} "
+        f"({x:g}, {y:g}) is {_tenths(away)} m outside the free space of map {world.map_id!r} "
         f"(version {world.version}: x {x0:.1f} to {x1:.1f} m, y {y0:.1f} to {y1:.1f} m); is the "
         "pose in that map's coordinates, in metres? `rlutf map show "
         f"{world.map_id} --out map.png` draws it; --force puts the pose anyway"
     )
+
+
+def _tenths(value: float) -> str:
+    """A number to a tenth, or, past a million, as ``1e+300`` (not its 300 digits)."""
+    return f"{value:.1f}" if abs(value) < 1e6 else f"{value:.3g}"
 
 
 def _pose(text: str) -> tuple[float, float, float]:
@@ -141,7 +146,7 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
         outcome = put_request(
             session, settings.prefix, args.robot, request, args.wait, show_event(args.json)
         )
-    said = f"{args.robot} at x {x:g} m, y {y:g} m, θ {math.degrees(theta):.1f}° on {args.map}"
+    said = f"{args.robot} at x {x:g} m, y {y:g} m, θ {_tenths(math.degrees(theta))}° on {args.map}"
     if outcome.result == "refused":
         print(refused_hint("initialpose", args.map, outcome.code), file=sys.stderr)
         return EXIT_FAILURE

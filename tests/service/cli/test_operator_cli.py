@@ -161,6 +161,12 @@ def test_an_initial_pose_far_off_the_stored_map_is_refused_before_it_is_put(
         code, out, err = _cli(capsys, *argv)
         assert code == 1 and out == ""
         assert "outside the free space of map 'm1'" in err and "--force" in err
+        # an absurd number reads as one, not as its 300 digits
+        absurd = ["initialpose", "r1", "--map", "m1", "--pose", "1e300,1,0", "-e", e]
+        code, out, err = _cli(capsys, *absurd)
+        assert code == 1 and "1e+300 m outside" in err and len(err) < 600, err
+        code, out, err = _cli(capsys, *absurd[:5], "1,2,1e300", "--degrees", "--wait", "0", "-e", e)
+        assert len(out + err) < 600, (out, err)
         code, out, _ = _cli(capsys, "robots", "-e", e, "--json")
         assert json.loads(out) == []  # nothing was put
         # near the map (a click into a wall): put as before
