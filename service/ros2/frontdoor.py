@@ -34,7 +34,7 @@ import zenoh.ext
 
 from schemas import PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
-from service.keys import InputKind, Keys, Message
+from service.keys import InputKind, Keys, Message, printable
 from service.ros2 import convert, names
 from service.ros2.attachment import Sequencer, gid_of
 from service.ros2.entities import declare_publisher, limit_message, no_map_warning, undeclare
@@ -221,7 +221,7 @@ class Ros2FrontDoor:
         try:
             self._handle(str(sample.key_expr), sample.payload.to_bytes(), leaf)
         except Exception:  # a callback must never raise into zenoh
-            log.exception("ROS 2 input on %s failed", sample.key_expr)
+            log.exception("ROS 2 input on %s failed", printable(str(sample.key_expr)))
 
     def _handle(self, key: str, raw: bytes, leaf: Leaf) -> None:
         s = self.settings
@@ -304,7 +304,7 @@ class Ros2FrontDoor:
                         "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base%s",
                         robot_id,
                         base,
-                        frame_id,
+                        printable(frame_id),  # the robot's text: no forged log line
                         "" if len(warned) < WARNED_FRAMES else " (its further frames not said)",
                     )
         return found

@@ -23,7 +23,7 @@ import zenoh
 
 from schemas import Relocalize
 from service.config import Ros2Settings
-from service.keys import InputKind, Message
+from service.keys import InputKind, Message, printable
 from service.ros2 import attachment, convert, names
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,9 @@ class GlobalLocalization:
             try:
                 self._answer(query)
             except Exception:  # a callback must never raise into zenoh
-                log.exception("global localization request on %s failed", query.key_expr)
+                log.exception(
+                    "global localization request on %s failed", printable(str(query.key_expr))
+                )
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)

@@ -19,6 +19,7 @@ import zenoh
 
 from schemas import SchemaError
 from service.config import Ros2Settings
+from service.keys import printable
 from service.ros2 import convert, names
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,7 @@ class GridImports:
             try:
                 self._import(*item)
             except Exception:  # the thread must go on with the next grid
-                log.exception("map import from %s failed", item[0])
+                log.exception("map import from %s failed", printable(item[0]))
 
     def _import(self, key: str, dk: names.DataKey, raw: bytes, received: int) -> None:
         from service.maps.mapimport import MapImportError, grid_to_map
@@ -110,5 +111,5 @@ class GridImports:
         except (SchemaError, MapImportError, ValueError) as err:
             self.reject(None, key, f"map not imported: {err}", received)
             return
-        log.info("map %s v%d imported from %s", map_id, version, dk.topic)
+        log.info("map %s v%d imported from %s", map_id, version, printable(dk.topic))
         self.put_map(map_id, json.dumps(result.map).encode())

@@ -244,3 +244,22 @@ def test_robots_the_service_does_not_hold_leave_the_front_door_when_idle(tmp_pat
         assert _wait(lambda: "fresh" in _health(bench)["extra"]["ros2_robots"])
         assert not any(e["code"] == "robot_limit" for e in events.on("rlutf/events"))
         sub.undeclare()
+
+
+def test_a_frame_id_cannot_forge_a_line_of_the_service_log(
+    small_bench: Bench, caplog: pytest.LogCaptureFixture
+) -> None:
+    bench = small_bench
+    bench.put_map()
+    time.sleep(0.3)
+    r = _robot(bench, "/robot1", 1)
+    r.initial_pose()
+    forged = "laser\n2026-12-07 04:00:00,000 ERROR service.live.node: forged\x1b[2J"
+    with caplog.at_level(logging.WARNING, logger="service.ros2.frontdoor"):
+        r.step += 1
+        r.odom(r.step)
+        msg = scan_msg(WORLD, r.truth[r.step], r.stamp(r.step), np.random.default_rng(5), forged)
+        r.put("scan", SCAN, msg)
+        assert _wait(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 1)
+    said = [rec.getMessage() for rec in caplog.records if "tf_static" in rec.getMessage()]
+    assert said and all("\n" not in m and "\x1b" not in m for m in said), said
