@@ -23,6 +23,7 @@ from service.cli.flags import (
     timeout_flag,
     zenoh_flags,
 )
+from service.keys import printable
 
 
 def register(msub: Any) -> None:
@@ -82,18 +83,32 @@ def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | None
 
     settings, session = client(args)
     keys = Keys(settings.prefix)
+    from schemas import Map, MapHealth
+
     with session:
-        health = _first(session.get(keys.maphealth(args.map_id), timeout=args.timeout))
+        health = _first(session.get(keys.maphealth(args.map_id), timeout=args.timeout), MapHealth)
         world = None
         if health is not None and args.png is not None:
-            world = _first(session.get(keys.map(args.map_id), timeout=args.timeout))
+            world = _first(session.get(keys.map(args.map_id), timeout=args.timeout), Map)
     return None if health is None else (health, world)
 
 
-def _first(replies: Any) -> dict[str, Any] | None:
+def _first(replies: Any, model: Any) -> dict[str, Any] | None:
+    """The first answer that is a ``model`` message, as JSON data; ``None`` if none is (any
+    client may answer on these keys: what is no such message is said and skipped)."""
+    from schemas import SchemaError, decode
+
     for reply in replies:
         if reply.ok is not None:
-            data = json.loads(reply.ok.payload.to_bytes())
+            payload = reply.ok.payload.to_bytes()
+            try:
+                decode(model, payload, max_bytes=len(payload))
+            except SchemaError as err:
+                key = printable(str(reply.ok.key_expr))
+                print(f"rlutf map health: the answer on {key} is no {model.__name__}: {err}",
+                      file=sys.stderr)  # fmt: skip
+                continue
+            data = json.loads(payload)
             return data if isinstance(data, dict) else None
     return None
 

@@ -338,7 +338,23 @@ def cmd_show(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return EXIT_FAILURE
-        data = json.loads(replies[0].payload.to_bytes())
+        from schemas import Map, SchemaError, decode
+
+        maps, problem = [], ""
+        for reply in replies:  # any client may answer on a map key: the first map is drawn
+            payload = reply.payload.to_bytes()
+            try:
+                decode(Map, payload, max_bytes=len(payload))
+                maps.append(payload)
+            except SchemaError as err:
+                problem = str(err)
+        if not maps:
+            print(
+                f"rlutf map show: the answer for map {args.source!r} is no map: {problem}",
+                file=sys.stderr,
+            )
+            return EXIT_FAILURE
+        data = json.loads(maps[0])
     try:
         title = f"{data.get('map_id', path.stem)} v{data.get('version', '?')}"
         render_map(data, args.out, title=title)

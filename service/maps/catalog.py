@@ -57,19 +57,15 @@ def _extent(geometry: Any) -> tuple[float, float] | None:
 
 def describe(map_id: str, payload: bytes) -> StoredMap:
     """A stored map's id, version, size and extent (a payload that is not a map: no version)."""
-    try:
+    try:  # any client may answer on a map key: nested past any depth, say
         data = json.loads(payload)
-    except ValueError:
-        data = None
+        extent = _extent(data.get("geometry")) if isinstance(data, dict) else None
+    except (ValueError, RecursionError):
+        data = extent = None
     if not isinstance(data, dict):
         return StoredMap(map_id, None, len(payload), None)
     version = data.get("version")
-    return StoredMap(
-        map_id,
-        version if isinstance(version, int) else None,
-        len(payload),
-        _extent(data.get("geometry")),
-    )
+    return StoredMap(map_id, version if isinstance(version, int) else None, len(payload), extent)
 
 
 def list_maps(session: zenoh.Session, prefix: str, timeout: float) -> list[StoredMap]:

@@ -324,10 +324,16 @@ def get_map(
         print(f"rlutf map get: invalid map id {map_id!r}", file=sys.stderr)
         return 2
     key = Keys(prefix).map(map_id)
+    refused = ""
     for reply in session.get(key, timeout=timeout):
         if reply.ok is None:
             continue
         payload = reply.ok.payload.to_bytes()
+        try:  # any client may answer on a map key: only a map is printed or written
+            decode(Map, payload, max_bytes=len(payload))
+        except SchemaError as err:
+            refused = f"; an answer for {key} is no map ({str(err)[:200]}), skipped"
+            continue
         if out is not None:
             out.write_bytes(payload)
             print(f"wrote {out}")
@@ -335,8 +341,8 @@ def get_map(
             sys.stdout.write(payload.decode() + "\n")
         return 0
     print(
-        f"rlutf map get: no storage answered for {key} within {timeout:g} s (`rlutf map list` "
-        "shows the stored maps)",
+        f"rlutf map get: no storage answered for {key} within {timeout:g} s{refused} (`rlutf "
+        "map list` shows the stored maps)",
         file=sys.stderr,
     )
     return 1

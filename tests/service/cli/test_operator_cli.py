@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 from service_harness import JSON, Bench, Collector, SimRobot, running_bench
 
 from schemas import encode
@@ -342,3 +343,42 @@ def test_events_without_a_robot_include_the_service_wide_ones(
     codes = {(e["code"], e["key"]) for e in events}
     assert ("invalid_map", "rlutf/maps/broken") in codes
     assert ("not_initialized", "rlutf/robots/r5/scan") in codes
+
+
+def test_answers_that_are_no_map_from_another_client_are_said_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Any client may answer gets on the map and map health keys: a reply nested past the
+    # parser's depth, or not UTF-8, used to end these commands in "unexpected error".
+    with running_bench(tmp_path) as bench:
+        bench.put_map()
+        time.sleep(0.3)
+        bad = {
+            "deep": b"[" * 100_000,
+            "binary": b"\xff\xfe not json",
+            "huge": b'{"map_id": "huge", "version": 1e999}',
+        }
+
+        def answer(query: zenoh.Query) -> None:
+            for map_id, payload in bad.items():
+                for key in (f"rlutf/maps/{map_id}", f"rlutf/maphealth/{map_id}"):
+                    if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                        query.reply(key, payload)
+
+        rogue = bench.client.declare_queryable("rlutf/**", answer)
+        e = bench.endpoint
+        code, out, err = _cli(capsys, "map", "list", "-e", e, "--timeout", "2")
+        assert code == 0 and "m1" in out and "unexpected error" not in err, err
+        for map_id in bad:
+            written = tmp_path / f"{map_id}.json"
+            for argv in (
+                ["map", "get", map_id],
+                ["map", "get", map_id, "--out", str(written)],
+                ["map", "show", map_id, "--out", str(tmp_path / f"{map_id}.png")],
+                ["map", "health", map_id],
+            ):
+                code, out, err = _cli(capsys, *argv, "-e", e, "--timeout", "2")
+                assert "unexpected error" not in err and "Traceback" not in err, (argv, err)
+                assert code == 1 and map_id in err, (argv, out, err)
+            assert not written.exists()  # nothing that is no map is written
+        rogue.undeclare()
