@@ -23,6 +23,7 @@ from service.cli.flags import (
     zenoh_flags,
 )
 from service.cli.mapmake import cmd_build, cmd_import, why
+from service.infile import read_regular
 
 
 def register(sub: Any) -> None:
@@ -243,7 +244,13 @@ def cmd_map(args: argparse.Namespace) -> int:
         return cmd_catalog(args)
     if args.map_command == "put":
         if not args.file.is_file():
-            what = "is a folder, not a file" if args.file.is_dir() else "no such file"
+            what = (
+                "is a folder, not a file"
+                if args.file.is_dir()
+                else "is not a regular file (a FIFO, a device or a socket)"
+                if args.file.exists()
+                else "no such file"
+            )
             raise CliError(
                 f"{args.file}: {what}; give a Map JSON or GeoJSON file (`rlutf map import` "
                 "writes one from a map_server grid)",
@@ -287,7 +294,7 @@ def cmd_show(args: argparse.Namespace) -> int:
         )
     if path.exists():
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = json.loads(read_regular(path).decode("utf-8"))
         except OSError as err:
             raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
         except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:

@@ -8,6 +8,6 @@ recorder protocol the live service holds) and ``mcaplog`` (the MCAP recorder), `
 (scans with known poses, for ``rlutf map build``).
 
 May import: ``rlutf``, ``schemas``, ``service.keys``, ``service.config``, ``service.engine``,
-``service.maps``. Not the cluster, the live service or the command line: replay runs the
-engine with no Zenoh.
+``service.maps``, ``service.infile``. Not the cluster, the live service or the command line:
+replay runs the engine with no Zenoh.
 """

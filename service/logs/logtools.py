@@ -28,6 +28,7 @@ from mcap.writer import CompressionType, Writer
 from rich.console import Console
 from rich.table import Table
 
+from service.infile import open_regular
 from service.logs.mcapread import (
     MAGIC,
     ChannelInfo,
@@ -463,7 +464,7 @@ def recover(src: Path, dst: Path) -> RecoverReport:
     if dst.exists() and dst.resolve() == src.resolve():
         raise NotALog(f"{dst}: the output must not be the input")
     try:
-        stream = open(src, "rb")  # noqa: SIM115 -- closed below
+        stream = open_regular(src)  # closed below
     except OSError as err:
         raise NotALog(f"{src}: cannot open: {err.strerror or err}") from err
     with stream:

@@ -18,6 +18,7 @@ from typing import IO, Any, NamedTuple
 
 from mcap.reader import SeekingReader
 
+from service.infile import open_regular
 from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -153,7 +154,7 @@ class LogFile:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         try:
-            self._stream: IO[bytes] = open(self.path, "rb")  # noqa: SIM115 -- closed in close()
+            self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
             raise NotALog(f"{self.path}: cannot open: {err.strerror or err}") from err
         try:

@@ -24,6 +24,7 @@ from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from service.config import Settings
 from service.guard import Limits
+from service.infile import read_regular
 
 _DEFAULT_LIMITS = MapLimits(
     Settings.model_fields["max_map_area"].default,
@@ -95,7 +96,7 @@ def _merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
 def read_settings_file(path: Path) -> dict[str, Any]:
     """A settings file as a mapping (JSON, TOML or YAML, by suffix)."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_regular(path).decode("utf-8")
     except OSError as err:
         raise ReplayConfigError(f"cannot read settings file {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:

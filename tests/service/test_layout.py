@@ -19,6 +19,7 @@ BENCH = ROOT / "bench"
 ALLOWED: dict[str, set[str]] = {
     "keys": set(),
     "yamlfile": set(),
+    "infile": set(),
     "cores": set(),
     "kernelcache": set(),
     "guard": {"keys", "maphealth"},
@@ -28,7 +29,7 @@ ALLOWED: dict[str, set[str]] = {
     "evidence": {"maphealth"},
     "prepared": set(),
     "engine": {"keys", "relocalization", "guard", "prepared", "maphealth"},
-    "maps": {"keys", "yamlfile"},
+    "maps": {"keys", "yamlfile", "infile"},
     "cluster": {"keys"},
     "logs": {
         "keys",
@@ -39,6 +40,7 @@ ALLOWED: dict[str, set[str]] = {
         "guard",
         "maphealth",
         "yamlfile",
+        "infile",
     },
     "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs", "guard", "maphealth"},
     "live": {
@@ -59,6 +61,7 @@ ALLOWED: dict[str, set[str]] = {
     "sim": {"keys", "cores", "config", "maps", "logs", "live", "ros2", "guard"},
     "cli": {
         "cores",
+        "infile",
         "kernelcache",
         "guard",
         "keys",

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from service.infile import read_regular
 from service.maps.mapimport.errors import (
     CarmenError,
     EmptyMapError,
@@ -216,11 +217,12 @@ def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> Ca
     p = Path(path)
     ended = True
     try:
-        data = p.read_bytes()
+        data = read_regular(p)
         if data[:2] == b"\x1f\x8b":
             data, ended = _gunzip(data)
     except (OSError, zlib.error) as err:
-        raise MapFileError(f"CARMEN log '{p}': cannot read: {err}") from err
+        why = err.strerror if isinstance(err, OSError) and err.strerror else err
+        raise MapFileError(f"CARMEN log '{p}': cannot read: {why}") from err
     try:
         log = parse_carmen(data, max_range=max_range)
     except CarmenError as err:

@@ -37,6 +37,7 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 from PIL import Image, UnidentifiedImageError
 
+from service.infile import read_regular
 from service.maps.mapimport.errors import MapFileError, MapYamlError
 from service.yamlfile import YamlTooLarge, load_yaml
 
@@ -370,7 +371,7 @@ def load_grid(yaml_path: str | Path) -> OccupancyGrid:
     """
     path = Path(yaml_path)
     try:
-        text = path.read_bytes()
+        text = read_regular(path)
     except OSError as err:
         raise MapFileError(f"map YAML '{path}': cannot read: {err.strerror or err}") from err
     if _an_image(text):
@@ -386,7 +387,7 @@ def load_grid(yaml_path: str | Path) -> OccupancyGrid:
     if not image_path.is_absolute():
         image_path = path.parent / image_path
     try:
-        image = image_path.read_bytes()
+        image = read_regular(image_path)
     except OSError as err:
         raise MapFileError(
             f"image file '{image_path}' (named by 'image' in '{path}'): "

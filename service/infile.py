@@ -1,0 +1,61 @@
+"""Input files opened without a hang: only a regular file is read.
+
+A FIFO named where a log, a map or a settings file is expected blocked ``open`` until something
+wrote to it (``rlutf log info``, ``replay``, ``map import``, ``map show`` and ``map build`` hung
+for ever), and a device such as ``/dev/zero`` was read until memory ran out. :func:`open_regular`
+opens the path without blocking, checks what it is and refuses anything but a regular file with
+an ``OSError`` whose ``strerror`` says what it is; callers report it as they report a missing
+file.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+from typing import IO
+
+
+def _not_a_file(mode: int) -> str | None:
+    """What a path of this mode is, if it is not a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return os.strerror(errno.EISDIR)
+    kind = (
+        "a FIFO (named pipe)"
+        if stat.S_ISFIFO(mode)
+        else "a device"
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "not a file"
+    )
+    return f"{kind}, not a regular file: copy what it holds into a file and give that"
+
+
+def open_regular(path: Path | str) -> IO[bytes]:
+    """Open a regular file for reading in binary mode.
+
+    Raises:
+        OSError: missing or unreadable, or not a regular file (a folder, a FIFO, a device, a
+            socket): ``strerror`` says which.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        problem = _not_a_file(os.fstat(fd).st_mode)
+        if problem is not None:
+            code = errno.EISDIR if problem == os.strerror(errno.EISDIR) else errno.EINVAL
+            raise OSError(code, problem, str(path))
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path: Path | str) -> bytes:
+    """The whole content of a regular file (see :func:`open_regular`)."""
+    with open_regular(path) as stream:
+        return stream.read()
