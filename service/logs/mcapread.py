@@ -16,7 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
+from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
 
 from service.infile import open_regular
 from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
@@ -132,6 +136,19 @@ def map_topic(topic: str) -> tuple[str, str] | None:
     return "/".join(parts[:-2]), parts[-1]
 
 
+def _lists_every_channel(summary: Summary) -> bool:
+    """Whether a summary lists every channel its statistics and chunk indexes name (and some
+    channel if it counts messages): a writer may leave them out of it (``repeat_channels``)."""
+    listed = set(summary.channels)
+    stats = summary.statistics
+    named = set(stats.channel_message_counts) if stats is not None else set()
+    for chunk in summary.chunk_indexes:
+        named.update(chunk.message_index_offsets)
+    if stats is not None and stats.message_count > 0 and not listed:
+        return False
+    return named <= listed
+
+
 @dataclass(frozen=True)
 class _Index:
     channels: dict[int, tuple[str, str, str]]  # id -> topic, schema name, encoding
@@ -178,15 +195,15 @@ class LogFile:
             detail = f"unreadable summary ({type(err).__name__}: {err})"
             raise DamagedLog(self.path, detail) from err
         if summary is None:
-            return self._scan_index()
-        schemas = {i: s.name for i, s in summary.schemas.items()}
+            return self._scan_index(None)
+        names = {i: s.name for i, s in summary.schemas.items()}
         channels = {
-            i: (c.topic, schemas.get(c.schema_id, ""), c.message_encoding)
+            i: (c.topic, names.get(c.schema_id, ""), c.message_encoding)
             for i, c in summary.channels.items()
         }
         stats = summary.statistics
-        if stats is None:
-            return self._scan_index(channels)
+        if stats is None or not _lists_every_channel(summary):
+            return self._scan_index(summary)
         counts = dict(stats.channel_message_counts)
         empty = stats.message_count == 0
         return _Index(
@@ -196,20 +213,47 @@ class LogFile:
             None if empty else stats.message_end_time,
         )
 
-    def _scan_index(self, channels: dict[int, tuple[str, str, str]] | None = None) -> _Index:
-        """Index a file without summary statistics by reading it through."""
-        found: dict[int, tuple[str, str, str]] = dict(channels or {})
+    def _scan_index(self, summary: Summary | None) -> _Index:
+        """Index a file whose summary lacks statistics, or channels, by reading it through once
+        in file order (a chunk at a time); the channels and schemas its summary does not list
+        (the MCAP spec leaves repeating them there to the writer) are added to it, so that the
+        indexed reads find them."""
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
         counts: dict[int, int] = {}
         start = end = None
-        for schema, channel, message in self._iter(None):
-            found[channel.id] = (
-                channel.topic,
-                schema.name if schema else "",
-                channel.message_encoding,
+        try:
+            with open_regular(self.path) as stream:
+                for record in StreamReader(stream, validate_crcs=True).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                    elif isinstance(record, Message):
+                        if record.channel_id not in channels:
+                            raise McapError(
+                                f"a message on channel {record.channel_id}, which no Channel "
+                                "record before it declares"
+                            )
+                        counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                        t = record.log_time
+                        start = t if start is None else min(start, t)
+                        end = t if end is None else max(end, t)
+        except Exception as err:  # CRC mismatch, zstd error, short read ...
+            raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
+        if summary is not None:
+            for i, schema in schemas.items():
+                summary.schemas.setdefault(i, schema)
+            for i, channel in channels.items():
+                summary.channels.setdefault(i, channel)
+        found = {
+            i: (
+                c.topic,
+                schemas[c.schema_id].name if c.schema_id in schemas else "",
+                c.message_encoding,
             )
-            counts[channel.id] = counts.get(channel.id, 0) + 1
-            start = message.log_time if start is None else min(start, message.log_time)
-            end = message.log_time if end is None else max(end, message.log_time)
+            for i, c in channels.items()
+        }
         return _Index(found, counts, start, end)
 
     def _iter(self, topics: list[str] | None) -> Iterator[Any]:

@@ -5,13 +5,19 @@ kilobytes) in an Event, a Map or a pose crashed ``rlutf log info``, ``rlutf repl
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
 from mcaplog_fixtures import simulated_inputs, write_log
 
 from service.cli.main import main
 from service.logs.mcapfile import Record
+from service.logs.mcapread import LogFile
+from service.logs.replay import replay
 
 DEEP = b"[" * 100_000 + b"]" * 100_000
 
@@ -39,3 +45,68 @@ def test_the_log_tools_read_a_log_with_payloads_nested_past_the_parsers_depth(
     assert "unexpected error" not in err and "RecursionError" not in err, err
     assert code == 0, err  # the pose is no pose: nothing to audit, the inputs replayed
     assert "replayed" in err + out
+
+
+def _rewrite(src: Path, dst: Path, shift_pose_x: float = 0.0, **options: Any) -> Path:
+    """``src`` written again by the ``mcap`` library's own writer, with ``options`` (say, no
+    channels repeated in the summary); with ``shift_pose_x``, the first recorded pose moved."""
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        writer = McapWriter(out, **options)
+        writer.start("another writer", "")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        shifted = False
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            assert schema is not None
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            data = message.data
+            if shift_pose_x and schema.name == "rlutf.PoseEstimate" and not shifted:
+                pose = json.loads(data)
+                pose["x"] += shift_pose_x
+                data, shifted = json.dumps(pose).encode(), True
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    return dst
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A log with inputs and the poses computed from them, as the service writes it."""
+    folder = tmp_path_factory.mktemp("recorded")
+    inputs = write_log(folder / "in.mcap", simulated_inputs(seed=2, steps=6, beams=90))
+    replay([inputs], folder / "recorded.mcap", foxglove=False)
+    return folder / "recorded.mcap"
+
+
+def test_a_log_whose_summary_lists_no_channels_is_read_and_audited(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The MCAP spec leaves repeating channels and schemas in the summary to the writer. A log
+    written without them was called damaged by ``rlutf log info`` and ``log views`` (KeyError)
+    and replayed as holding nothing: "no recorded poses in the input: nothing to audit", exit 0,
+    whatever its poses were."""
+    bare = {"repeat_channels": False, "repeat_schemas": False}
+    log = _rewrite(recorded, tmp_path / "bare.mcap", **bare)
+    with LogFile(recorded) as a, LogFile(log) as b:
+        assert b.channels() == a.channels() and b.time_range == a.time_range
+        assert list(b.messages()) == list(a.messages())
+    assert main(["log", "info", str(log)]) == 0
+    assert main(["log", "views", str(log), "--out", str(tmp_path / "views.mcap")]) == 0
+    assert main(["replay", str(log), "--quiet", "--jobs", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "audit: passed" in out + err and "nothing to audit" not in out + err
+    wrong = _rewrite(recorded, tmp_path / "wrong.mcap", shift_pose_x=1.0, **bare)
+    assert main(["replay", str(wrong), "--quiet", "--jobs", "1"]) == 1
+    # and without statistics either: read through
+    nostats = _rewrite(recorded, tmp_path / "nostats.mcap", 1.0, use_statistics=False, **bare)
+    assert main(["replay", str(nostats), "--quiet", "--jobs", "1"]) == 1
