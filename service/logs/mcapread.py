@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
+from mcap.reader import NonSeekingReader, SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
@@ -170,6 +170,7 @@ class LogFile:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
+        self._ordered: bool | None = None  # messages in log-time order in the file; None: unknown
         try:
             self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
@@ -222,6 +223,7 @@ class LogFile:
         channels: dict[int, Channel] = {}
         counts: dict[int, int] = {}
         start = end = None
+        ordered = True
         try:
             with open_regular(self.path) as stream:
                 for record in StreamReader(stream, validate_crcs=True).records:
@@ -237,10 +239,12 @@ class LogFile:
                             )
                         counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
                         t = record.log_time
+                        ordered = ordered and (end is None or t >= end)
                         start = t if start is None else min(start, t)
                         end = t if end is None else max(end, t)
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
+        self._ordered = ordered
         if summary is not None:
             for i, schema in schemas.items():
                 summary.schemas.setdefault(i, schema)
@@ -258,7 +262,20 @@ class LogFile:
 
     def _iter(self, topics: list[str] | None) -> Iterator[Any]:
         try:
+            summary = self._reader.get_summary()
+            if summary is None or not summary.chunk_indexes:
+                # No chunk index to read by: the library would sort every message of the file
+                # in memory. A file already in log-time order is streamed as it is instead.
+                if self._ordered is None:
+                    self._scan_index(summary)
+                if self._ordered:
+                    with open_regular(self.path) as stream:
+                        reader = NonSeekingReader(stream, validate_crcs=True)
+                        yield from reader.iter_messages(topics=topics, log_time_order=False)
+                    return
             yield from self._reader.iter_messages(topics=topics, log_time_order=True)
+        except LogError:
+            raise
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
 

@@ -6,11 +6,13 @@ kilobytes) in an Event, a Map or a pose crashed ``rlutf log info``, ``rlutf repl
 from __future__ import annotations
 
 import json
+import tracemalloc
 from pathlib import Path
 from typing import Any
 
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import IndexType
 from mcap.writer import Writer as McapWriter
 from mcaplog_fixtures import simulated_inputs, write_log
 
@@ -110,3 +112,57 @@ def test_a_log_whose_summary_lists_no_channels_is_read_and_audited(
     # and without statistics either: read through
     nostats = _rewrite(recorded, tmp_path / "nostats.mcap", 1.0, use_statistics=False, **bare)
     assert main(["replay", str(nostats), "--quiet", "--jobs", "1"]) == 1
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"use_chunking": False},
+        {"index_types": IndexType.NONE},
+        {"index_types": IndexType.NONE, "use_statistics": False, "use_summary_offsets": False}
+        | {"repeat_channels": False, "repeat_schemas": False},
+    ],
+    ids=["unchunked", "no chunk index", "no summary"],
+)
+def test_a_log_without_a_chunk_index_is_streamed_not_held_in_memory(
+    options: dict[str, Any], tmp_path: Path
+) -> None:
+    """A log without chunk indexes (not chunked, or without a summary) was read by sorting all
+    its messages in memory: a replay of a 70 MB unchunked log took 360 MB, and grew with the
+    log. One in log-time order is now read as it lies, a message at a time."""
+    path = tmp_path / "flat.mcap"
+    payload = json.dumps({"pad": "x" * 2000}).encode()
+    with open(path, "wb") as out:
+        writer = McapWriter(out, chunk_size=200_000, **options)  # a chunk is read whole
+        writer.start("another writer", "")
+        schema = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
+        channel = writer.register_channel("rlutf/robots/r1/events", "json", schema)
+        for i in range(2000):  # 4 MB of payloads
+            writer.add_message(channel, 1000 + i, payload, 1000 + i)
+        writer.finish()
+    with LogFile(path) as log:
+        tracemalloc.start()
+        try:
+            seen = sum(1 for _ in log.messages())
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+    assert seen == 2000
+    assert peak < 1_000_000, f"{peak} bytes held to read 4 MB of messages"
+
+
+def test_a_log_without_a_chunk_index_out_of_order_is_still_read_in_log_time_order(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "shuffled.mcap"
+    with open(path, "wb") as out:
+        writer = McapWriter(out, use_chunking=False)
+        writer.start("another writer", "")
+        schema = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
+        channel = writer.register_channel("rlutf/robots/r1/events", "json", schema)
+        for t in (5, 3, 9, 1, 3):
+            writer.add_message(channel, t, str(t).encode(), t)
+        writer.finish()
+    with LogFile(path) as log:
+        assert [r.log_time_ns for r in log.messages()] == [1, 3, 3, 5, 9]
+        assert log.time_range == (1, 9)
