@@ -23,12 +23,13 @@ from pathlib import Path
 from typing import IO, Any
 
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from rich.console import Console
 from rich.table import Table
 
 from service.infile import open_regular
+from service.logs.mcapchunks import unpack_chunk
 from service.logs.mcapread import (
     MAGIC,
     ChannelInfo,
@@ -427,7 +428,7 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
                         end = src.tell()
                         continue
                     try:
-                        inner = breakup_chunk(rec, validate_crc=True)
+                        inner = unpack_chunk(rec)
                     except Exception:  # bad CRC or compression: skip this chunk only
                         report.bad_chunks += 1
                         end = src.tell()

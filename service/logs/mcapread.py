@@ -16,13 +16,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
 from service.infile import open_regular
+from service.logs.mcapchunks import inflated_size, unpack_chunk
 from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -149,6 +151,27 @@ def _lists_every_channel(summary: Summary) -> bool:
     return named <= listed
 
 
+def _unpacked(records: Iterable[McapRecord]) -> Iterator[McapRecord]:
+    """Records read with ``emit_chunks``, a chunk's own records in its place (bounded)."""
+    for record in records:
+        if isinstance(record, Chunk):
+            yield from unpack_chunk(record)
+        else:
+            yield record
+
+
+def _declared_chunk(index: ChunkIndex) -> Chunk:
+    """A chunk with no data that declares the size its index says."""
+    return Chunk(
+        compression="",
+        data=b"",
+        message_end_time=0,
+        message_start_time=0,
+        uncompressed_crc=0,
+        uncompressed_size=index.uncompressed_size,
+    )
+
+
 @dataclass(frozen=True)
 class _Index:
     channels: dict[int, tuple[str, str, str]]  # id -> topic, schema name, encoding
@@ -171,6 +194,7 @@ class LogFile:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         self._ordered: bool | None = None  # messages in log-time order in the file; None: unknown
+        self._chunks_bounded = False  # every chunk checked against MAX_CHUNK_BYTES
         try:
             self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
@@ -226,7 +250,8 @@ class LogFile:
         ordered = True
         try:
             with open_regular(self.path) as stream:
-                for record in StreamReader(stream, validate_crcs=True).records:
+                reader = StreamReader(stream, emit_chunks=True, validate_crcs=True)
+                for record in _unpacked(reader.records):
                     if isinstance(record, Schema):
                         schemas[record.id] = record
                     elif isinstance(record, Channel):
@@ -245,6 +270,7 @@ class LogFile:
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
         self._ordered = ordered
+        self._chunks_bounded = True
         if summary is not None:
             for i, schema in schemas.items():
                 summary.schemas.setdefault(i, schema)
@@ -260,6 +286,16 @@ class LogFile:
         }
         return _Index(found, counts, start, end)
 
+    def _bound_chunks(self, chunks: Iterable[ChunkIndex]) -> None:
+        """Check that no chunk the library will decompress whole is past the bound, a piece at a
+        time (see :mod:`service.logs.mcapchunks`)."""
+        with open_regular(self.path) as stream:
+            for index in chunks:
+                inflated_size(_declared_chunk(index))  # refused before it is read
+                stream.seek(index.chunk_start_offset + 1 + 8)
+                inflated_size(Chunk.read(ReadDataStream(stream)))
+        self._chunks_bounded = True
+
     def _iter(self, topics: list[str] | None) -> Iterator[Any]:
         try:
             summary = self._reader.get_summary()
@@ -273,6 +309,8 @@ class LogFile:
                         reader = NonSeekingReader(stream, validate_crcs=True)
                         yield from reader.iter_messages(topics=topics, log_time_order=False)
                     return
+            if not self._chunks_bounded and summary is not None:
+                self._bound_chunks(summary.chunk_indexes)
             yield from self._reader.iter_messages(topics=topics, log_time_order=True)
         except LogError:
             raise

@@ -12,7 +12,9 @@ import re
 from typing import IO
 
 from mcap.records import Chunk, Metadata
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader
+
+from service.logs.mcapchunks import unpack_chunk
 
 #: Opcodes of the records reading may resume at after an unreadable stretch.
 _CHUNK, _METADATA = 0x06, 0x0C
@@ -33,7 +35,7 @@ def _resumable(src: IO[bytes], at: int, size: int) -> bool:
     try:
         record = next(iter(StreamReader(src, skip_magic=True, emit_chunks=True).records))
         if isinstance(record, Chunk):
-            breakup_chunk(record, validate_crc=True)
+            unpack_chunk(record)
             return record.uncompressed_crc != 0  # a CRC was written: it is what checked out
         return isinstance(record, Metadata) and _METADATA_NAME.fullmatch(record.name) is not None
     except Exception:
