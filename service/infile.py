@@ -55,6 +55,16 @@ def open_regular(path: Path | str) -> IO[bytes]:
         raise
 
 
+def not_a_file(path: Path | str) -> str | None:
+    """What ``path`` is if it exists and is not a regular file or a folder (a FIFO, a device, a
+    socket), said as :func:`open_regular` says it; ``None`` otherwise. It does not open it."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISDIR(mode) else _not_a_file(mode)
+
+
 def read_regular(path: Path | str) -> bytes:
     """The whole content of a regular file (see :func:`open_regular`)."""
     with open_regular(path) as stream:

@@ -13,7 +13,7 @@ Modules: :mod:`~service.ros2.names` (key expressions, liveliness tokens, namespa
 (CDR to and from WIRE.md messages, with rosbags), :mod:`~service.ros2.frontdoor` (the live
 front door on a Zenoh session), :mod:`~service.ros2.bags` (rosbag2 in and out).
 
-May import: ``rlutf``, ``schemas``, ``service.keys``, ``service.config``, ``service.maps`` and
-``service.logs``; ``service.live`` and ``service.cli`` import it (the service wires the front
-door in), never the other way.
+May import: ``rlutf``, ``schemas``, ``service.keys``, ``service.config``, ``service.maps``,
+``service.logs`` and ``service.infile``; ``service.live`` and ``service.cli`` import it (the
+service wires the front door in), never the other way.
 """

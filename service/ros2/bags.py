@@ -36,6 +36,7 @@ from schemas import (
     SchemaError,
     decode,
 )
+from service.infile import not_a_file
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
 from service.ros2 import convert, names
@@ -102,6 +103,10 @@ def _reader(bag: Path) -> Iterator[Any]:
     is a :class:`BagError`, like one it cannot find."""
     from rosbags.highlevel import AnyReader
 
+    for path in [bag, *(sorted(bag.iterdir()) if bag.is_dir() else [])]:
+        problem = not_a_file(path)  # rosbags would wait on a FIFO for ever
+        if problem is not None:
+            raise BagError(f"{path}: not a readable rosbag2 recording: {problem}")
     try:
         reader = AnyReader([bag], default_typestore=convert.typestore())
         reader.open()

@@ -1,6 +1,7 @@
 """A FIFO or a device where a file is expected is refused at once, by every command that reads
 one. A FIFO no one wrote to hung ``rlutf log info``, ``replay``, ``log recover``, ``map import``
-(as the YAML or the image it names), ``map show`` and ``map build`` for ever; ``/dev/zero`` was
+(as the YAML or the image it names), ``map show`` and ``map build`` (and ``--ros2``: a FIFO as
+the bag or in its folder) for ever; ``/dev/zero`` was
 read until memory ran out (an "unexpected error: MemoryError" under a ulimit, the OOM killer
 without)."""
 
@@ -70,12 +71,17 @@ def _yaml(tmp_path: Path, image: str) -> Path:
         ["map", "import", "{yaml}", "--out", "{tmp}/site.json"],
         ["map", "show", "{fifo}", "--out", "{tmp}/site.png"],
         ["map", "build", "{fifo}", "--out", "{tmp}/site.json"],
+        ["map", "build", "--ros2", "{fifo}", "--out", "{tmp}/site.json"],
+        ["replay", "--ros2", "{fifo}", "--map", "{tmp}/site.json", "--initial-pose", "0,0,0"],
+        ["replay", "--ros2", "{tmp}", "--map", "{tmp}/site.json", "--initial-pose", "0,0,0"],
     ],
 )
 def test_a_fifo_is_refused_at_once(
     argv: list[str], fifo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     names = {"fifo": str(fifo), "tmp": str(tmp_path), "yaml": str(_yaml(tmp_path, str(fifo)))}
+    room = {"type": "Polygon", "coordinates": [[[0, 0], [4, 0], [4, 3], [0, 3], [0, 0]]]}
+    (tmp_path / "site.json").write_text(json.dumps({"map_id": "site", "geometry": room}))
     started = time.monotonic()
     code = main([a.format(**names) for a in argv])
     _, err = capsys.readouterr()

@@ -42,7 +42,17 @@ ALLOWED: dict[str, set[str]] = {
         "yamlfile",
         "infile",
     },
-    "ros2": {"keys", "config", "engine", "relocalization", "maps", "logs", "guard", "maphealth"},
+    "ros2": {
+        "keys",
+        "config",
+        "engine",
+        "relocalization",
+        "maps",
+        "logs",
+        "guard",
+        "maphealth",
+        "infile",
+    },
     "live": {
         "keys",
         "cores",
