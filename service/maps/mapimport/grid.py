@@ -30,7 +30,7 @@ import reprlib
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, cast
+from typing import Any, Final, Literal, cast
 
 import numpy as np
 import yaml
@@ -47,6 +47,14 @@ Mode = Literal["trinary", "scale", "raw"]
 
 MODES: tuple[Mode, ...] = ("trinary", "scale", "raw")
 REQUIRED_KEYS = ("image", "resolution", "origin", "occupied_thresh", "free_thresh")
+#: The cell sizes a floor map may have, metres: a tenth of a millimetre to a kilometre. Past
+#: them, a typo or another unit (1e-300 m crashed the import; 1e300 m spanned more than a float).
+MIN_RESOLUTION: Final = 1e-4
+MAX_RESOLUTION: Final = 1e3
+#: Farthest origin from 0, metres (UTM coordinates are within it): past it a cell is below the
+#: float's precision.
+MAX_ORIGIN: Final = 1e8
+
 #: Pixel values map_saver writes for free, occupied and unknown cells (trinary).
 SAVE_FREE, SAVE_OCCUPIED, SAVE_UNKNOWN = 254, 0, 205
 
@@ -214,6 +222,16 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
     origin = [v for v in values if v is not None]
     if len(values) != 3 or len(origin) != 3:
         raise MapYamlError(f"map YAML: 'origin' must be [x, y, yaw] numbers, got {_brief(given)}")
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise MapYamlError(
+            f"map YAML: 'resolution' must be between {MIN_RESOLUTION:g} and {MAX_RESOLUTION:g} "
+            f"m per cell, got {resolution:g} (the size of a cell, in metres)"
+        )
+    if max(abs(origin[0]), abs(origin[1])) > MAX_ORIGIN:
+        raise MapYamlError(
+            f"map YAML: 'origin' x and y must be within {MAX_ORIGIN:g} m of 0, got "
+            f"{_brief(given)} (the position of the lower-left cell, in metres)"
+        )
     occ, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
     for key, value in (("occupied_thresh", occ), ("free_thresh", free)):
         if not 0.0 <= value <= 1.0:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from service.cli.main import main
 from service.maps.mapimport import (
     MapFileError,
     MapImportError,
@@ -321,3 +322,41 @@ def test_a_large_image_is_read_in_bands_with_no_seam(
     for field in ("data", "free", "occupied"):
         assert np.array_equal(getattr(whole, field), getattr(banded, field)), field
     assert whole.free.any() and whole.occupied.any()
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        (("resolution: 0.1", "resolution: 1e-300"), "'resolution' must be between"),
+        (("resolution: 0.1", "resolution: 1e300"), "'resolution' must be between"),
+        (("resolution: 0.1", "resolution: 1e-5"), "'resolution' must be between"),
+        (("origin: [1.0, -2.0, 0.0]", "origin: [1e100, 0, 0]"), "'origin' x and y must be"),
+        (("origin: [1.0, -2.0, 0.0]", "origin: [0, -1e20, 0]"), "'origin' x and y must be"),
+    ],
+)
+def test_map_import_refuses_a_scale_no_floor_has(
+    edit: tuple[str, str], words: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A resolution of 1e-300 m (or 1e300) crashed ``rlutf map import`` with "unexpected error:
+    ZeroDivisionError" (or a GEOSException), and an origin of 1e20 m said "the simplified free
+    space is empty": a typo, or the wrong unit, is named as one."""
+    pixels = np.full((20, 30), 254)
+    pixels[[0, -1], :] = pixels[:, [0, -1]] = 0
+    (tmp_path / "room.pgm").write_bytes(pgm(pixels))
+    (tmp_path / "room.yaml").write_text(YAML.replace(*edit))
+    code = main(["map", "import", str(tmp_path / "room.yaml"), "--out", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 1 and words in err and "unexpected error" not in err, err
+
+
+def test_map_import_takes_the_scales_floors_have(tmp_path: Path) -> None:
+    pixels = np.full((20, 30), 254)
+    pixels[[0, -1], :] = pixels[:, [0, -1]] = 0
+    (tmp_path / "room.pgm").write_bytes(pgm(pixels))
+    for resolution, origin in (("0.0001", "[0, 0, 0]"), ("1000", "[-5e6, 4e6, 3.1]")):
+        text = YAML.replace("resolution: 0.1", f"resolution: {resolution}")
+        (tmp_path / "room.yaml").write_text(
+            text.replace("origin: [1.0, -2.0, 0.0]", f"origin: {origin}")
+        )
+        out = tmp_path / "r.json"
+        assert main(["map", "import", str(tmp_path / "room.yaml"), "--out", str(out)]) == 0
