@@ -186,7 +186,7 @@ def zenoh_flags(p: argparse.ArgumentParser, *, client: bool) -> None:
         action="append",
         metavar="ENDPOINT",
         help="endpoint to connect to, repeatable"
-        + (" (default: tcp/127.0.0.1:7447)" if client else ""),
+        + (" (default: the -c file's, else tcp/127.0.0.1:7447)" if client else ""),
     )
     g.add_argument("-c", "--config", type=Path, metavar="FILE", help="zenoh JSON5 config file")
     p.add_argument("--prefix", help="key prefix (default: rlutf)")
@@ -370,16 +370,21 @@ def client(args: argparse.Namespace) -> Any:
 
     from service.config import Settings
 
+    mode = args.mode or "client"
     settings = _settings(
         lambda: Settings(
-            mode=args.mode or "client",
-            connect=args.connect or ["tcp/127.0.0.1:7447"],
+            mode=mode,
+            connect=args.connect or _file_endpoints(args.config, mode) or [DEFAULT_CONNECT],
             listen=[],
             zenoh_config=args.config,
             **({"prefix": args.prefix} if args.prefix else {}),
         )
     )
     config = zenoh_file_config(settings)
+    # A tool asks once: a file made for the service (connect.timeout_ms -1: retry for ever, as
+    # deploy/zenoh's) must not make it wait for ever when the router is down.
+    config.insert_json5("connect/timeout_ms", "0")
+    config.insert_json5("connect/exit_on_failure", "true")
     try:
         return settings, zenoh.open(config)
     except zenoh.ZError as err:
@@ -387,6 +392,28 @@ def client(args: argparse.Namespace) -> Any:
             f"cannot reach zenoh at {', '.join(settings.connect)} ({zenoh_text(err)}); "
             + UNREACHABLE_HINT
         ) from err
+
+
+#: Where the tools look for a running service when neither -e nor a -c file says.
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def _file_endpoints(path: Path | None, mode: str) -> list[str]:
+    """The endpoints a zenoh file connects to (in ``mode``, where it says per mode); none for no
+    file, or one zenoh cannot read (:func:`zenoh_file_config` says why)."""
+    import json
+
+    import zenoh
+
+    if path is None:
+        return []
+    try:
+        found = json.loads(zenoh.Config.from_file(str(path)).get_json("connect/endpoints"))
+    except (zenoh.ZError, ValueError, TypeError, OSError):
+        return []
+    if isinstance(found, dict):
+        found = found.get(mode, [])
+    return [str(e) for e in found] if isinstance(found, list) else []
 
 
 def zenoh_file_config(settings: Any) -> Any:
