@@ -23,6 +23,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.infile import not_a_file
 from service.logs.mcapread import LogError, LogFile, NotALog
 
 RUN_METADATA = "rlutf.run"
@@ -309,6 +310,24 @@ def unfinished_logs(paths: Sequence[Path]) -> list[Path]:
     return sorted(p for p in found if p.name.endswith(".mcap.part") and p.is_file())
 
 
+def _a_log_file(entry: Path, suffix: str) -> None:
+    """Refuse a folder's ``*.mcap`` entry that is no file: left out, the logs it should hold
+    would go unread, and an audit of the folder pass without them."""
+    if entry.is_file():
+        return
+    what = (
+        f"a symbolic link to {entry.readlink()}, which does not exist"
+        if entry.is_symlink() and not entry.exists()
+        else "a folder"
+        if entry.is_dir()
+        else not_a_file(entry) or "not a file"
+    )
+    raise NotALog(
+        f"{entry}: {what}; every *{suffix} entry of a log folder is read as a log: put the log "
+        "there, or give the other logs as files"
+    )
+
+
 def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
     """The log files ``paths`` name: a file as it is, a folder as the files in it (not in its
     subfolders) whose names end in ``suffix``, in name order.
@@ -319,14 +338,18 @@ def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
 
     Raises:
         service.logs.mcapread.NotALog: a folder holds no such file (the message says what it
-            holds instead: unfinished ``.mcap.part`` logs, and how to read them).
+            holds instead: unfinished ``.mcap.part`` logs, and how to read them), or an entry
+            of that name that is no file (a dangling link, a folder, a FIFO).
     """
     files: list[Path] = []
     for path in paths:
         if not Path(path).is_dir():
             files.append(Path(path))
             continue
-        found = sorted(p for p in Path(path).iterdir() if p.name.endswith(suffix) and p.is_file())
+        entries = sorted(p for p in Path(path).iterdir() if p.name.endswith(suffix))
+        for entry in entries:
+            _a_log_file(entry, suffix)
+        found = entries
         if not found:
             parts = [p for p in Path(path).iterdir() if p.name.endswith(".mcap.part")]
             hint = (

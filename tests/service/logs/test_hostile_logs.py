@@ -6,6 +6,7 @@ kilobytes) in an Event, a Map or a pose crashed ``rlutf log info``, ``rlutf repl
 from __future__ import annotations
 
 import json
+import os
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -166,3 +167,26 @@ def test_a_log_without_a_chunk_index_out_of_order_is_still_read_in_log_time_orde
     with LogFile(path) as log:
         assert [r.log_time_ns for r in log.messages()] == [1, 3, 3, 5, 9]
         assert log.time_range == (1, 9)
+
+
+@pytest.mark.parametrize("entry", ["dangling link", "folder", "fifo"])
+def test_a_folders_log_entry_that_is_no_file_is_named_not_skipped(
+    entry: str, recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A folder's ``run-2.mcap`` that is a symbolic link to a volume not mounted (or a folder, or
+    a FIFO) was left out without a word: ``rlutf replay logs/`` said "audit: passed" over the
+    logs it did read."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "run-1.mcap").write_bytes(recorded.read_bytes())
+    odd = logs / "run-2.mcap"
+    if entry == "dangling link":
+        odd.symlink_to(tmp_path / "archive" / "run-2.mcap")
+    elif entry == "folder":
+        odd.mkdir()
+    else:
+        os.mkfifo(odd)
+    for argv in (["replay", str(logs), "--quiet", "--jobs", "1"], ["log", "info", str(logs)]):
+        assert main(argv) == 2
+        out, err = capsys.readouterr()
+        assert str(odd) in err and "audit: passed" not in out + err, err
