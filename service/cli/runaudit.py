@@ -111,9 +111,16 @@ def report(
     poses = result.match.recorded_total
     if (gap := audit.gap_note(audits, result.gap_ns)) is not None:
         console.print(f"[yellow]{gap}[/yellow]")
-    if not audits:
+    if not audits and not result.unreadable_poses:
         console.print("no recorded poses in the input: nothing to audit")
         return audit.run_verdict(run, out, 0, poses, "nothing to audit")
+    if not audits:  # every recorded pose is unreadable: none could be checked
+        console.print(
+            f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates, and no "
+            "other pose was recorded: none could be checked[/red]"
+        )
+        console.print("audit: [bold red]FAILED[/bold red]")
+        return audit.run_verdict(run, out, 0, poses, "FAILED")
     audit.render(audits, tol_m, tol_rad, console, args.strict, heading)
     ok = audit.all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
     if result.unreadable_poses:

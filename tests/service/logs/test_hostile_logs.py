@@ -46,13 +46,17 @@ def test_the_log_tools_read_a_log_with_payloads_nested_past_the_parsers_depth(
     code = main(["replay", str(hostile), "--out", str(tmp_path / "re.mcap"), "--quiet"])
     out, err = capsys.readouterr()
     assert "unexpected error" not in err and "RecursionError" not in err, err
-    assert code == 0, err  # the pose is no pose: nothing to audit, the inputs replayed
-    assert "replayed" in err + out
+    # the inputs replayed; the one recorded pose is no pose, so nothing could be checked
+    assert code == 1, err
+    assert "replayed" in err + out and "none could be checked" in err + out
 
 
-def _rewrite(src: Path, dst: Path, shift_pose_x: float = 0.0, **options: Any) -> Path:
+def _rewrite(
+    src: Path, dst: Path, shift_pose_x: float = 0.0, pose: bytes | None = None, **options: Any
+) -> Path:
     """``src`` written again by the ``mcap`` library's own writer, with ``options`` (say, no
-    channels repeated in the summary); with ``shift_pose_x``, the first recorded pose moved."""
+    channels repeated in the summary); with ``shift_pose_x``, the first recorded pose moved;
+    with ``pose``, every recorded pose's payload replaced by it."""
     with open(src, "rb") as f, open(dst, "wb") as out:
         reader = make_reader(f)
         writer = McapWriter(out, **options)
@@ -72,9 +76,11 @@ def _rewrite(src: Path, dst: Path, shift_pose_x: float = 0.0, **options: Any) ->
                 )
             data = message.data
             if shift_pose_x and schema.name == "rlutf.PoseEstimate" and not shifted:
-                pose = json.loads(data)
-                pose["x"] += shift_pose_x
-                data, shifted = json.dumps(pose).encode(), True
+                moved = json.loads(data)
+                moved["x"] += shift_pose_x
+                data, shifted = json.dumps(moved).encode(), True
+            if pose is not None and schema.name == "rlutf.PoseEstimate":
+                data = pose
             writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, record.metadata)
@@ -190,3 +196,16 @@ def test_a_folders_log_entry_that_is_no_file_is_named_not_skipped(
         assert main(argv) == 2
         out, err = capsys.readouterr()
         assert str(odd) in err and "audit: passed" not in out + err, err
+
+
+def test_a_log_whose_every_recorded_pose_is_unreadable_fails_its_audit(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One unreadable pose among readable ones failed the audit, but a log whose every pose was
+    overwritten said "no recorded poses in the input: nothing to audit", exit 0."""
+    log = _rewrite(recorded, tmp_path / "overwritten.mcap", pose=b'{"x": "gone"}')
+    for jobs in ("1", "2"):
+        assert main(["replay", str(log), "--quiet", "--jobs", jobs]) == 1
+        out, err = capsys.readouterr()
+        assert "12 recorded poses are not valid PoseEstimates" in out + err
+        assert "nothing to audit" not in out + err and "audit: FAILED" in out + err
