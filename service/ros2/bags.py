@@ -38,6 +38,7 @@ from schemas import (
 )
 from service.infile import not_a_file
 from service.keys import Keys
+from service.logs.mcapchunks import ChunkTooLarge, bound_file
 from service.logs.mcapfile import LogWriter, Record
 from service.ros2 import convert, names
 from service.ros2.statictf import StaticFrames
@@ -107,6 +108,11 @@ def _reader(bag: Path) -> Iterator[Any]:
         problem = not_a_file(path)  # rosbags would wait on a FIFO for ever
         if problem is not None:
             raise BagError(f"{path}: not a readable rosbag2 recording: {problem}")
+        if path.name.endswith(".mcap") and path.is_file():
+            try:  # rosbags decompresses a chunk whole, to whatever size it says
+                bound_file(path)
+            except (ChunkTooLarge, OSError) as err:
+                raise BagError(f"{path}: not a readable rosbag2 recording: {err}") from err
     try:
         reader = AnyReader([bag], default_typestore=convert.typestore())
         reader.open()

@@ -8,6 +8,7 @@ cheap: read whole it would be 513 MiB, bounded the reads hold a few megabytes.""
 from __future__ import annotations
 
 import io
+import json
 import struct
 import tracemalloc
 from collections.abc import Callable
@@ -46,12 +47,16 @@ def _records(*records: object) -> bytes:
     return bytes(builder.end())
 
 
-def _inner() -> tuple[bytes, bytes, int]:
+def _inner(ros2: bool = False) -> tuple[bytes, bytes, int]:
     """The chunk's records: a schema and a channel, then the head of a message whose data (PAD
     spaces and ``{}``) follows; and their size."""
     head = _records(
-        Schema(id=1, name="rlutf.Event", encoding="jsonschema", data=b"{}"),
-        Channel(
+        Schema(id=1, name="sensor_msgs/msg/LaserScan", encoding="ros2msg", data=b"")
+        if ros2
+        else Schema(id=1, name="rlutf.Event", encoding="jsonschema", data=b"{}"),
+        Channel(id=1, topic="/scan", message_encoding="cdr", schema_id=1, metadata={})
+        if ros2
+        else Channel(
             id=1, topic="rlutf/robots/r1/events", message_encoding="json", schema_id=1, metadata={}
         ),
     )
@@ -60,8 +65,8 @@ def _inner() -> tuple[bytes, bytes, int]:
     return head, message, len(head) + len(message) + data_len
 
 
-def _zstd(content_size: bool) -> tuple[bytes, int]:
-    head, message, size = _inner()
+def _zstd(content_size: bool, ros2: bool = False) -> tuple[bytes, int]:
+    head, message, size = _inner(ros2)
     out = io.BytesIO()
     compressor = zstandard.ZstdCompressor(level=1, write_content_size=content_size)
     with compressor.stream_writer(out, size=size if content_size else -1, closefd=False) as w:
@@ -81,7 +86,9 @@ def _lz4() -> tuple[bytes, int]:
     return b"".join(parts), size
 
 
-def _bomb(path: Path, compression: str, data: bytes, declared: int, indexed: bool) -> Path:
+def _bomb(
+    path: Path, compression: str, data: bytes, declared: int, indexed: bool, profile: str = ""
+) -> Path:
     """A complete MCAP file with that one chunk; with ``indexed``, a summary that indexes it."""
     chunk = Chunk(
         compression=compression,
@@ -91,7 +98,7 @@ def _bomb(path: Path, compression: str, data: bytes, declared: int, indexed: boo
         uncompressed_crc=0,
         uncompressed_size=declared,
     )
-    start = _records(Header(profile="", library="a bomb"))
+    start = _records(Header(profile=profile, library="a bomb"))
     body = _records(chunk)
     out = MAGIC + start
     chunk_at = len(out)
@@ -198,3 +205,28 @@ def test_a_chunk_within_the_bound_is_counted_whatever_it_declares() -> None:
     assert inflated_size(lz4_chunk) == 5000
     with pytest.raises(ChunkTooLarge, match="declares"):
         inflated_size(lz4_chunk, limit=4096)  # the lz4 frame says 5000
+
+
+def test_a_rosbag2_mcap_with_a_chunk_past_the_bound_is_refused_before_rosbags_reads_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--ros2`` reads a bag with rosbags, which decompresses a chunk whole too: a 17 KB bag
+    took 1.1 GB to ``rlutf replay --ros2`` and ``rlutf map build --ros2``."""
+    data, size = _zstd(content_size=True, ros2=True)
+    bag = _bomb(tmp_path / "bag.mcap", "zstd", data, size, indexed=False, profile="ros2")
+    room = {"type": "Polygon", "coordinates": [[[0, 0], [4, 0], [4, 3], [0, 3], [0, 0]]]}
+    (tmp_path / "site.json").write_text(json.dumps({"map_id": "site", "geometry": room}))
+    pose = ["--map", str(tmp_path / "site.json"), "--initial-pose", "1,1,0"]
+    tracemalloc.start()
+    try:
+        for argv, exit_code in (
+            (["replay", "--ros2", str(bag), *pose, "--quiet"], 2),
+            (["map", "build", "--ros2", str(bag), "--out", str(tmp_path / "m.json")], 1),
+        ):
+            assert main(argv) == exit_code
+            err = capsys.readouterr().err
+            assert "not a readable rosbag2 recording" in err and "past the" in err, err
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 << 20, f"{peak:,} bytes held"
