@@ -294,7 +294,7 @@ def cmd_show(args: argparse.Namespace) -> int:
         )
     if path.exists():
         try:
-            data = json.loads(read_regular(path).decode("utf-8"))
+            data = json.loads(read_regular(path).decode("utf-8-sig"))  # a BOM is no matter
         except OSError as err:
             raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
         except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:

@@ -13,6 +13,7 @@ from typing import Any
 import zenoh
 
 from schemas import Event, EventCode, Map, SchemaError, decode, encode, valid_id
+from service.infile import read_regular
 from service.keys import Keys
 from service.maps.book import (
     FILE_MAX_BYTES,
@@ -32,7 +33,7 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
         ValueError: unreadable file, bad JSON, invalid id or invalid map (message says why).
     """
     try:
-        data: Any = json.loads(path.read_text(encoding="utf-8"))
+        data: Any = json.loads(read_regular(path).decode("utf-8-sig"))  # a BOM is no matter
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:

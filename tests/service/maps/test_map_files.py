@@ -100,3 +100,19 @@ def test_map_show_draws_a_feature_collection(
     line = {"type": "FeatureCollection", "features": [_feature("LineString", ROOM[0])]}
     assert main(["map", "show", str(_file(tmp_path, "l.geojson", line)), "--out", str(png)]) == 1
     assert "feature 1 of 1 is a LineString" in capsys.readouterr().err
+
+
+def test_a_json_file_with_a_byte_order_mark_is_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A GeoJSON saved by Windows Notepad begins with a UTF-8 byte order mark, which JSON lets a
+    reader ignore: ``rlutf map put`` and ``map show`` refused it ("malformed JSON: Unexpected
+    UTF-8 BOM (decode using utf-8-sig)")."""
+    from service.cli.main import main
+
+    plain = _file(tmp_path, "plain.json", {"type": "Polygon", "coordinates": ROOM})
+    marked = tmp_path / "marked.json"
+    marked.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    assert map_message_from_file(marked, "site", 1) == map_message_from_file(plain, "site", 1)
+    png = tmp_path / "marked.png"
+    assert main(["map", "show", str(marked), "--out", str(png)]) == 0, capsys.readouterr().err
