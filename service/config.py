@@ -418,9 +418,9 @@ class SettingsFileError(ValueError):
 
 def _file_source(settings_cls: type[BaseSettings], path: Path) -> PydanticBaseSettingsSource:
     if not path.is_file():
+        what = "not found" if not path.exists() else "is not a regular file"  # a folder, a FIFO
         raise SettingsFileError(
-            f"settings file {path} not found: give an existing file with --settings or "
-            "RLUTF_SETTINGS"
+            f"settings file {path} {what}: give an existing file with --settings or RLUTF_SETTINGS"
         )
     suffix = path.suffix.lower()
     sources = {

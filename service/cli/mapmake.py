@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from service.cli.errors import CliError
-from service.cli.flags import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, client, writable
+from service.cli.flags import EXIT_OK, EXIT_USAGE, client, writable
 
 
 def _options(args: argparse.Namespace) -> dict[str, Any]:
@@ -85,9 +85,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     _outputs(args)
     try:
         result = import_grid(args.yaml, map_id=args.map_id, **_options(args))
-    except MapImportError as err:
+    except MapImportError as err:  # the YAML or its image: the input to fix
         print(f"rlutf map import: {err}", file=sys.stderr)
-        return EXIT_FAILURE
+        return EXIT_USAGE
     return _finish(args, result)
 
 
@@ -153,9 +153,9 @@ def cmd_build(args: argparse.Namespace) -> int:
         if offset is None:
             offset = BUILT_SURFACE_CELLS * grid.resolution
         result = grid_to_map(grid, map_id=mid, surface_offset=offset, **_options(args))
-    except (MapImportError, OSError, ValueError, LogError) as err:
+    except (MapImportError, OSError, ValueError, LogError) as err:  # the log: the input to fix
         print(f"rlutf map build: {err}", file=sys.stderr)
-        return EXIT_FAILURE
+        return EXIT_USAGE
     area = result.polygons.geometry.area
     if area < DEFAULT_MIN_AREA:  # smaller than a robot: few of the log's beams had a return
         print(

@@ -320,7 +320,7 @@ def cmd_show(args: argparse.Namespace) -> int:
                 data = unwrap_geojson(path, data)["geometry"]
             except ValueError as err:
                 print(f"rlutf map show: {err}", file=sys.stderr)
-                return EXIT_FAILURE
+                return EXIT_USAGE
     else:
         from schemas import valid_id
         from service.keys import Keys
@@ -371,6 +371,6 @@ def cmd_show(args: argparse.Namespace) -> int:
         ) from err
     except (MapImportError, ValueError, KeyError, TypeError) as err:
         print(f"rlutf map show: not a map: {err}", file=sys.stderr)
-        return EXIT_FAILURE
+        return EXIT_USAGE if path.exists() else EXIT_FAILURE  # a file given, or a stored map
     print(f"wrote {args.out}")
     return EXIT_OK

@@ -175,16 +175,17 @@ def put_map(
 
     Returns:
         0 when the store holds the map put (or already held it), or with ``timeout`` 0 when
-        it was put (nothing is asked, so it is not confirmed); 1 otherwise: unreadable or
-        invalid file, a version the store refuses (the message names the version it holds and
-        what to do), or no storage answering.
+        it was put (nothing is asked, so it is not confirmed); 2 for a file that is unreadable
+        or no valid map (the input to fix, as every command's exit code 2); 1 when the put
+        failed: a version the store refuses (the message names the version it holds and what
+        to do), or no storage answering.
     """
     explicit = version if isinstance(version, int) else None
     try:
         payload = map_message_from_file(path, map_id, explicit)
     except ValueError as err:
         print(f"rlutf map put: {err}", file=sys.stderr)
-        return 1
+        return 2
     if timeout == 0 and version != NEXT:  # next needs the store's answer: it is asked
         msg = decode(Map, payload, max_bytes=len(payload))
         key = Keys(prefix).map(msg.map_id)

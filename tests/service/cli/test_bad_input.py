@@ -8,6 +8,7 @@ console script in a subprocess, as an operator would.
 from __future__ import annotations
 
 import json
+import os
 import resource
 import socket
 import subprocess
@@ -60,6 +61,7 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000)
     (tmp_path / "dangling").symlink_to(tmp_path / "gone")
     (tmp_path / "folder").mkdir()
+    os.mkfifo(tmp_path / "pipe.yaml")  # nothing writes to it: reading it would wait for ever
     return tmp_path
 
 
@@ -71,6 +73,8 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["config", "--settings", "list.yaml"], 2, ["list.yaml", "holds a list"])
     yield Bad(["config", "--settings", "unknown.yaml"], 2, ["modee", "unknown setting"])
     yield Bad(["config", "--settings", "missing.yaml"], 2, ["missing.yaml", "not found"])
+    yield Bad(["config", "--settings", "folder"], 2, ["folder", "is not a regular file"])
+    yield Bad(["config", "--settings", "pipe.yaml"], 2, ["pipe.yaml", "not a regular file"])
     yield Bad(["config", "--settings", "x.ini"], 2, ["x.ini", ".yaml"])
     # zenoh's own config file
     yield Bad(["pose", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2", "-c/--config"])
@@ -175,13 +179,13 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "import", "folder"], 2, ["folder", "is a folder"])
     yield Bad(["map", "build", "missing.log"], 2, ["missing.log", "no such file"])
     yield Bad(["map", "build", "folder"], 2, ["folder", "no log file"])
-    yield Bad(["map", "import", "foreign.yaml"], 1, ["foreign.yaml"])
+    yield Bad(["map", "import", "foreign.yaml"], 2, ["foreign.yaml"])
     yield Bad(["config", "--settings", "laughs.yaml"], 2, ["laughs.yaml", "100,000 values"])
-    yield Bad(["map", "import", "laughs-map.yaml"], 1, ["laughs-map.yaml", "100,000 values"])
+    yield Bad(["map", "import", "laughs-map.yaml"], 2, ["laughs-map.yaml", "100,000 values"])
     yield Bad(["config", "--settings", "deep.json"], 2, ["deep.json", "not valid JSON"])
     yield Bad(["config", "--settings", "deep.toml"], 2, ["deep.toml", "not valid TOML"])
     yield Bad(["map", "show", "deep.json"], 2, ["deep.json", "nested deeper than a map"])
-    yield Bad(["map", "build", "foreign.txt"], 1, ["foreign.txt"])
+    yield Bad(["map", "build", "foreign.txt"], 2, ["foreign.txt"])
     intel = str(DATA / "carmen" / "intel-corrected.log.gz")
     # flags of map build and import refused before the log or grid is read (it was after)
     for flag, value, said in (
@@ -199,7 +203,7 @@ def _cases() -> Iterator[Bad]:
     # it is allocated, with what fits here
     yield Bad(
         ["map", "build", intel, "--resolution", "0.0001"],
-        1,
+        2,
         ["139,113,398,844 cells", "GB to build", "give --resolution"],
     )
     yield Bad(["log", "info", "corrupt.mcap"], 2, ["corrupt.mcap", "not an MCAP file"])

@@ -221,7 +221,7 @@ def test_a_rosbag2_mcap_with_a_chunk_past_the_bound_is_refused_before_rosbags_re
     try:
         for argv, exit_code in (
             (["replay", "--ros2", str(bag), *pose, "--quiet"], 2),
-            (["map", "build", "--ros2", str(bag), "--out", str(tmp_path / "m.json")], 1),
+            (["map", "build", "--ros2", str(bag), "--out", str(tmp_path / "m.json")], 2),
         ):
             assert main(argv) == exit_code
             err = capsys.readouterr().err

@@ -38,7 +38,7 @@ def test_log_without_poses_is_a_clear_error(
 ) -> None:
     log = tmp_path / "inputs.mcap"
     write_log(log, simulated_inputs(steps=3))
-    assert main(["map", "build", str(log), "--out", str(tmp_path / "m.json")]) == 1
+    assert main(["map", "build", str(log), "--out", str(tmp_path / "m.json")]) == 2
     assert "no scan has a pose" in capsys.readouterr().err
 
 
@@ -106,14 +106,14 @@ def test_two_runs_or_two_maps_are_not_mixed(
     _rerecord(replayed, logs, 1 << 28, {})
     _rerecord(replayed, logs, 1 << 28, {}, later_ns=3600 * 10**9)  # a second start, later
     code, err = _built(tmp_path, capsys, str(logs))
-    assert code == 1 and "the logs hold 2 recordings made at different times" in err
+    assert code == 2 and "the logs hold 2 recordings made at different times" in err
     (two_maps,) = _rerecord(replayed, tmp_path / "floors", 1 << 28, {"r2": "floor2"})
     code, err = _built(tmp_path, capsys, str(two_maps))
-    assert code == 1 and "2 maps (floor2, m1)" in err and "--from-map" in err
+    assert code == 2 and "2 maps (floor2, m1)" in err and "--from-map" in err
     code, _ = _built(tmp_path, capsys, str(two_maps), "--from-map", "floor2")
     assert code == 0
     code, err = _built(tmp_path, capsys, str(two_maps), "--from-map", "floor3")
-    assert code == 1 and "no scan has a pose on map 'floor3'" in err
+    assert code == 2 and "no scan has a pose on map 'floor3'" in err
     code, err = _built(tmp_path, capsys, str(tmp_path / "missing.mcap"))
     assert code == 2 and "missing.mcap: no such file" in err  # refused before any work
 

@@ -98,7 +98,7 @@ def test_map_show_draws_a_feature_collection(
     assert main(["map", "show", str(_file(tmp_path, "two.geojson", two)), "--out", str(png)]) == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
     line = {"type": "FeatureCollection", "features": [_feature("LineString", ROOM[0])]}
-    assert main(["map", "show", str(_file(tmp_path, "l.geojson", line)), "--out", str(png)]) == 1
+    assert main(["map", "show", str(_file(tmp_path, "l.geojson", line)), "--out", str(png)]) == 2
     assert "feature 1 of 1 is a LineString" in capsys.readouterr().err
 
 

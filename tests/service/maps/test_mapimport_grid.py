@@ -346,7 +346,7 @@ def test_map_import_refuses_a_scale_no_floor_has(
     (tmp_path / "room.yaml").write_text(YAML.replace(*edit))
     code = main(["map", "import", str(tmp_path / "room.yaml"), "--out", str(tmp_path / "r.json")])
     err = capsys.readouterr().err
-    assert code == 1 and words in err and "unexpected error" not in err, err
+    assert code == 2 and words in err and "unexpected error" not in err, err
 
 
 def test_map_import_takes_the_scales_floors_have(tmp_path: Path) -> None:

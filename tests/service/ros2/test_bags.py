@@ -313,7 +313,7 @@ def test_a_damaged_bag_is_one_line_that_says_so(
     data.write_bytes(bytes(raw))
     topics = ["--scan-topic", "/robot1/scan", "--pose-topic", "/robot1/amcl_pose"]
     out = ["--out", str(tmp_path / "built.json")]
-    assert main(["map", "build", str(tmp_path / "posed"), "--ros2", *topics, *out]) == 1
+    assert main(["map", "build", str(tmp_path / "posed"), "--ros2", *topics, *out]) == 2
     err = capsys.readouterr().err
     assert f"{tmp_path / 'posed'}: damaged: " in err and "mcap recover" in err, err
     assert "unexpected error" not in err and len(err.strip().splitlines()) == 1, err
