@@ -101,11 +101,7 @@ class Intake:
             return
         received = svc.clock()
         svc.stats.add("received")
-        refused = svc.gate.refuse_new(svc, robot, received)
-        if refused is not None:
-            svc.stats.add("rejected")
-            if refused:
-                svc._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, received)
+        if self._over_limit(robot, key, received):
             return
         try:
             msg = decode(MODELS[leaf], payload, max_bytes=limit)
@@ -113,13 +109,31 @@ class Intake:
             svc.stats.add("rejected")
             svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
             return
-        problem = svc.gate.stamp_problem(msg.stamp_ns, received)
-        if problem is not None:
-            svc.stats.add("rejected")
-            if svc.gate.allow_event(received):
-                svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, received)
+        if self._stamp_refused(robot, key, msg.stamp_ns, received):
             return
         svc.ownership.offer(robot, leaf, payload, msg, received)
+
+    def _over_limit(self, robot: str, key: str, at: int) -> bool:
+        """Whether a new robot is refused (``max_robots`` held): counted, an Event a second."""
+        svc = self.svc
+        refused = svc.gate.refuse_new(svc, robot, at)
+        if refused is None:
+            return False
+        svc.stats.add("rejected")
+        if refused:
+            svc._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, at)
+        return True
+
+    def _stamp_refused(self, robot: str, key: str, stamp_ns: int, at: int) -> bool:
+        """Whether a stamp is refused (``max_stamp_ahead_s``): counted, Events rate-limited."""
+        svc = self.svc
+        problem = svc.gate.stamp_problem(stamp_ns, at)
+        if problem is None:
+            return False
+        svc.stats.add("rejected")
+        if svc.gate.allow_event(at):
+            svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, at)
+        return True
 
     def front_door(self) -> Ros2FrontDoor:
         """The ROS 2 front door, handing its inputs to :meth:`offer`."""
@@ -145,17 +159,7 @@ class Intake:
             return
         svc.stats.add("received")
         key = svc.keys.robot(robot, kind)
-        refused = svc.gate.refuse_new(svc, robot, at)
-        if refused is not None:
-            svc.stats.add("rejected")
-            if refused:
-                svc._global_event("warning", EventCode.ROBOT_LIMIT, key, refused, at)
-            return
-        problem = svc.gate.stamp_problem(msg.stamp_ns, at)
-        if problem is not None:
-            svc.stats.add("rejected")
-            if svc.gate.allow_event(at):
-                svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, at)
+        if self._over_limit(robot, key, at) or self._stamp_refused(robot, key, msg.stamp_ns, at):
             return
         svc.ownership.offer(robot, kind, payload, msg, at)
 
