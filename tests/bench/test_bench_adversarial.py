@@ -52,7 +52,7 @@ def test_misses_names_the_targets_missed() -> None:
 @pytest.mark.integration
 def test_quick_campaign_runs_and_measures(capsys: pytest.CaptureFixture[str]) -> None:
     assert adversarial.QUICK_CLASSES == ["none", "mixed"] and set(CLASSES) >= {"none", "mixed"}
-    assert adversarial.main(["--quick"]) == 0
+    assert adversarial.main(["--quick", "--duration", "5", "--mixed-duration", "5"]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| none |")]
     assert rows, out
