@@ -46,7 +46,8 @@ def _declared(size: int, limit: int) -> None:
 
 
 def inflated_size(chunk: Chunk, limit: int = MAX_CHUNK_BYTES) -> int:
-    """The size ``chunk`` decompresses to, counted a piece at a time.
+    """The size ``chunk`` decompresses to: counted a piece at a time, or, for a zstd frame that
+    declares its size, that size.
 
     Raises:
         ChunkTooLarge: it declares, or decompresses to, more than ``limit`` bytes.
@@ -57,7 +58,13 @@ def inflated_size(chunk: Chunk, limit: int = MAX_CHUNK_BYTES) -> int:
     if chunk.compression == "":
         total = len(chunk.data)
     elif chunk.compression == "zstd":
-        _declared(zstandard.frame_content_size(chunk.data), limit)  # allocated up front
+        size = zstandard.frame_content_size(chunk.data)  # -1: the frame does not say
+        _declared(size, limit)  # allocated up front
+        if size >= 0:
+            # The library decompresses the first frame to the size its header says (zstd refuses
+            # a frame that outgrows it), as every chunk the service writes says it: bounded
+            # without decompressing it here too.
+            return int(size)
         reader = zstandard.ZstdDecompressor().stream_reader(
             io.BytesIO(chunk.data), read_across_frames=True
         )
