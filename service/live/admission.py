@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 LIMIT_EVENT_INTERVAL_NS = 1_000_000_000
 #: Stamp rejections reported per second at most (the others are counted).
 EVENTS_PER_S = 10
+#: Robots whose last rejection Event the gate remembers: ids can be invented without end, so the
+#: memory starts again when full (at worst one more Event for a robot then).
+REJECTIONS_KEPT = 8192
 #: How often idle robots are looked for, seconds.
 SWEEP_INTERVAL_S = 1.0
 
@@ -46,17 +49,28 @@ class Gate:
         clock: the service's receive clock, ns.
         max_ahead_ns: largest accepted lead of a stamp over the clock.
         max_robots: most robots held at once.
+        event_interval_ns: least time between two rejection Events of one code for one robot
+            (the ``event_interval_s`` setting).
     """
 
-    def __init__(self, clock: Callable[[], int], max_ahead_ns: int, max_robots: int) -> None:
+    def __init__(
+        self,
+        clock: Callable[[], int],
+        max_ahead_ns: int,
+        max_robots: int,
+        event_interval_ns: int = 1_000_000_000,
+    ) -> None:
         self._clock = clock
         self.max_ahead_ns = max_ahead_ns
         self.max_robots = max_robots
+        self.event_interval_ns = event_interval_ns
         self.stamps_rejected = 0
         self.robots_refused = 0
         self._last_limit_event = -LIMIT_EVENT_INTERVAL_NS
         self._window_ns = 0
         self._window_events = 0
+        # (robot, code) -> (stamp of the last Event sent, rejections held back since)
+        self._rejections: dict[tuple[str, str], tuple[int, int]] = {}
 
     def stamp_problem(self, stamp_ns: int, now_ns: int) -> str | None:
         """Why a stamp is not trusted, or ``None``."""
@@ -95,6 +109,22 @@ class Gate:
             self._window_ns, self._window_events = now_ns, 0
         self._window_events += 1
         return self._window_events <= EVENTS_PER_S
+
+    def rejection(self, robot: str, code: str, now_ns: int) -> int | None:
+        """Whether a rejection Event of ``code`` for ``robot`` goes out now: at most one per
+        ``event_interval_ns``, as the engine holds back its own Events (a robot, or anyone
+        writing on its keys, sending malformed messages must not become an Event and a record
+        of the service's log per message). Returns ``None`` when it is held back (counted), else
+        how many were held back since the last one went out."""
+        key = (robot, code)
+        last = self._rejections.get(key)
+        if last is not None and now_ns - last[0] < self.event_interval_ns:
+            self._rejections[key] = (last[0], last[1] + 1)
+            return None
+        if last is None and len(self._rejections) >= REJECTIONS_KEPT:
+            self._rejections.clear()
+        self._rejections[key] = (now_ns, 0)
+        return 0 if last is None else last[1]
 
     def figures(self) -> dict[str, object]:
         """Figures for the health message."""

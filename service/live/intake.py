@@ -24,6 +24,8 @@ from service.ros2.frontdoor import Ros2FrontDoor
 
 #: Robot keys the intake keeps split at most (a fleet uses a few per robot).
 KEYS_SPLIT = 8192
+#: Inputs that are an operator's request, answered each time (`rlutf initialpose` waits for it).
+REQUESTS = frozenset(("initialpose", "relocalize"))
 
 
 class Service(Protocol):
@@ -107,7 +109,7 @@ class Intake:
             msg = decode(MODELS[leaf], payload, max_bytes=limit)
         except SchemaError as err:
             svc.stats.add("rejected")
-            svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, str(err), received)
+            self._invalid(robot, leaf, key, str(err), received)
             return
         if self._stamp_refused(robot, key, msg.stamp_ns, received):
             return
@@ -179,4 +181,14 @@ class Intake:
         if robot is None:
             svc._global_event("error", EventCode.INVALID_KEY, key, message, at)
         else:
-            svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message, at)
+            self._invalid(robot, None, key, message, at)
+
+    def _invalid(self, robot: str, kind: str | None, key: str, message: str, at: int) -> None:
+        """An Event ``invalid_message`` for a rejected input of ``robot``: at most one per
+        ``event_interval_s`` for a robot's scans and odometry, the next counting those held back
+        (Health counts every one); an operator's request is answered each time."""
+        held = 0 if kind in REQUESTS else self.svc.gate.rejection(robot, "invalid_message", at)
+        if held is None:
+            return
+        more = f" ({held} more like it since the last such Event)" if held else ""
+        self.svc._robot_event(robot, "error", EventCode.INVALID_MESSAGE, key, message + more, at)

@@ -181,7 +181,12 @@ class LocalizationService:
         owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
         self.keywatch = KeyWatch(self.keys, self._global_event, self.clock, settings, owns_key)
         self.ros2 = self.intake.front_door() if settings.ros2.enabled else None
-        self.gate = Gate(self.clock, int(settings.max_stamp_ahead_s * 1e9), settings.max_robots)
+        self.gate = Gate(
+            self.clock,
+            int(settings.max_stamp_ahead_s * 1e9),
+            settings.max_robots,
+            int(settings.event_interval_s * 1e9),
+        )
         self.ownership.followed.max_ahead_ns = self.gate.max_ahead_ns
         self.ownership.followed.max_robots = settings.max_robots
         self.sweeper = Sweeper(
