@@ -89,7 +89,8 @@ def report(
     console.print(
         f"replayed {result.inputs} inputs ({result.dropped} scans dropped as live, "
         f"{result.rejected} rejected): {recomputed} poses -> "
-        f"{out if args.kept else 'not kept (--out keeps them)'}"
+        f"{out if args.kept else 'not kept (--out keeps them)'}",
+        soft_wrap=True,  # one line whatever the width: a path or a grep is not cut in two
     )
     if summary is not None and args.ros2_out is not None:
         from service.cli.ros2bags import write_out
@@ -98,13 +99,15 @@ def report(
             written = write_out(args, result, summary)
         except Exception as err:  # rosbags' writer raises its own errors
             raise ValueError(f"{args.ros2_out}: {err}") from err
-        console.print(f"wrote {written} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}")
+        console.print(
+            f"wrote {written} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}", soft_wrap=True
+        )
     if args.plot is not None:
         from service.logs.plots import plot_all
 
         folder = args.plot if n == 1 else args.plot / f"run{k}"
         for path in plot_all(result, folder):
-            console.print(f"wrote {path}")
+            console.print(f"wrote {path}", soft_wrap=True)
     tol_m = args.tolerance
     tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
     audits = audit.audit_match(result.match)
