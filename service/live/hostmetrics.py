@@ -14,11 +14,12 @@ from __future__ import annotations
 import logging
 import urllib.request
 from collections.abc import Iterator
-from wsgiref.simple_server import WSGIServer
 
-from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client import CollectorRegistry
 from prometheus_client.core import GaugeMetricFamily, Metric
 from prometheus_client.parser import text_string_to_metric_families
+
+from service.live.httpserve import BoundedServer, serve_metrics
 
 log = logging.getLogger(__name__)
 
@@ -65,14 +66,14 @@ class HostMetrics:
         self._ports = ports
         self._want = (port, addr)
         self.registry = CollectorRegistry(auto_describe=False)
-        self._server: WSGIServer | None = None
+        self._server: BoundedServer | None = None
         self.port: int | None = None
 
     def start(self) -> None:
         """Serve (raises OSError when the port is taken)."""
         self.registry.register(_Merged(self._ports))
         port, addr = self._want
-        server, _thread = start_http_server(port, addr, registry=self.registry)
+        server, _thread = serve_metrics(port, addr, self.registry)
         self._server = server
         self.port = int(server.server_address[1])
 

@@ -20,14 +20,14 @@ import logging
 import threading
 from collections.abc import Iterator
 from typing import Protocol
-from wsgiref.simple_server import WSGIServer
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, start_http_server
+from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from service.cluster.ownership import Ownership
 from service.live.dispatch import Dispatcher
+from service.live.httpserve import BoundedServer, serve_metrics
 from service.live.robots import RobotView
 from service.live.stats import Stats
 from service.logs.recording import Recorder
@@ -190,7 +190,7 @@ class ServiceMetrics:
         self.instance = instance
         self.registry = CollectorRegistry(auto_describe=False)
         self._want = (addr, port)
-        self._server: WSGIServer | None = None
+        self._server: BoundedServer | None = None
         self._thread: threading.Thread | None = None
         latency = Histogram(
             LATENCY.removesuffix("_seconds"),
@@ -246,7 +246,7 @@ class ServiceMetrics:
         """
         self.registry.register(_ServiceCollector(self.instance, service))
         addr, port = self._want
-        self._server, self._thread = start_http_server(port, addr, registry=self.registry)
+        self._server, self._thread = serve_metrics(port, addr, self.registry)
         log.info("metrics on http://%s:%d/metrics", addr, self._server.server_port)
 
     def close(self) -> None:
