@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from typing import Any
 
 import foxglove
@@ -58,6 +59,51 @@ SOURCES = {
 }
 #: The shared channels each kind of message also feeds.
 SHARED = {"scan": (), "pose": (TF_TOPIC, FLEET_TOPIC), "initialpose": (TF_TOPIC,)}
+
+
+#: Lines of the Foxglove SDK's own log let through per :data:`SDK_LOG_WINDOW_S` (the rest are
+#: counted, and the next line let through says how many were held back).
+SDK_LOG_BURST = 20
+SDK_LOG_WINDOW_S = 10.0
+
+
+class _SdkLogLimit(logging.Handler):
+    """Hands the SDK's log records (logger ``foxglove`` and below) on to the root logger's
+    handlers, at most :data:`SDK_LOG_BURST` per :data:`SDK_LOG_WINDOW_S`.
+
+    The SDK logs an ERROR line per malformed frame and per unknown channel of a subscribe: one
+    16 MiB subscribe message from a client made 130,000 lines, 56 MB of log from one
+    connection, and a client may reconnect for ever.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._window_end = 0.0
+        self._let = 0
+        self.held = 0  # records held back in this window (tests, figures)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        now = time.monotonic()
+        if now >= self._window_end:
+            self._window_end, self._let = now + SDK_LOG_WINDOW_S, 0
+        if self._let >= SDK_LOG_BURST:
+            self.held += 1
+            return
+        self._let += 1
+        if self.held:
+            held = f"{self.held} lines of the Foxglove server held back"
+            record.msg = f"{record.getMessage()} ({held})"
+            record.args = None
+            self.held = 0
+        logging.getLogger().handle(record)
+
+
+def _limit_sdk_log() -> None:
+    """Route the SDK's log through :class:`_SdkLogLimit` (once per process)."""
+    sdk = logging.getLogger("foxglove")
+    if not any(isinstance(h, _SdkLogLimit) for h in sdk.handlers):
+        sdk.addHandler(_SdkLogLimit())
+        sdk.propagate = False
 
 
 class LiveViewError(OSError):
@@ -115,6 +161,7 @@ class FoxgloveView:
         Raises:
             LiveViewError: the port is in use or the address is not local.
         """
+        _limit_sdk_log()
         self._context = Context()
         try:
             self._server = foxglove.start_server(
