@@ -32,7 +32,7 @@ from pydantic_settings import (
 from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from schemas import ID_PATTERN
-from service.guard import Limits
+from service.guard import Limits, Seconds
 from service.yamlfile import load_yaml
 
 ZenohMode = Literal["router", "peer", "client"]
@@ -170,10 +170,10 @@ class Settings(BaseSettings):
         description="Count the scans' disagreement with the maps and publish MapHealth on "
         "{prefix}/maphealth/{map_id} (off: nothing counted, nothing published).",
     )
-    state_interval_s: float = Field(
+    state_interval_s: Seconds = Field(
         1.0, gt=0, description="Seconds between two writes of the pose state (when changed)."
     )
-    resume_max_age_s: float = Field(
+    resume_max_age_s: Seconds = Field(
         300.0,
         gt=0,
         description="A robot whose last pose before a restart is older than this is "
@@ -182,7 +182,7 @@ class Settings(BaseSettings):
     record_dir: Path = Field(Path("logs"), description="Folder of the MCAP recordings.")
     no_record: bool = Field(False, description="Do not record MCAP logs.")
     record_max_bytes: int = Field(256 * 1024 * 1024, gt=0, description="Rotate logs at size.")
-    record_max_seconds: float = Field(3600.0, gt=0, description="Rotate logs after seconds.")
+    record_max_seconds: Seconds = Field(3600.0, gt=0, description="Rotate logs after seconds.")
     record_queue: int = Field(
         20000,
         gt=0,
@@ -285,14 +285,14 @@ class Settings(BaseSettings):
         gt=0,
         description="Most vertices of a map (validation and walls cost time in proportion).",
     )
-    map_timeout_s: float = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
-    max_stamp_ahead_s: float = Field(
+    map_timeout_s: Seconds = Field(2.0, gt=0, description="Timeout of a map get, seconds.")
+    max_stamp_ahead_s: Seconds = Field(
         60.0,
         gt=0,
         description="Inputs and followed poses stamped further ahead of the service's clock are "
         "rejected (Event stamp_rejected): a far-future stamp would pin a robot's pose.",
     )
-    robot_idle_s: float = Field(
+    robot_idle_s: Seconds = Field(
         3600.0,
         gt=0,
         description="A robot that sends nothing for this long is evicted (Event robot_evicted).",
@@ -302,22 +302,22 @@ class Settings(BaseSettings):
         gt=0,
         description="Robot ids an instance holds at once; inputs for more get robot_limit.",
     )
-    event_interval_s: float = Field(
+    event_interval_s: Seconds = Field(
         1.0, ge=0, description="Least time between two events of one code for one robot."
     )
-    handover_timeout_s: float = Field(
+    handover_timeout_s: Seconds = Field(
         1.0,
         gt=0,
         description="Timeout of the liveliness get at start and of the pose get that seeds a "
         "robot acquired with no pose in memory, seconds.",
     )
-    handover_odom_s: float = Field(
+    handover_odom_s: Seconds = Field(
         5.0,
         gt=0,
         description="Odometry kept per robot owned by another instance (by stamp, seconds), to "
         "anchor the seed when this instance takes the robot over.",
     )
-    join_warmup_s: float = Field(
+    join_warmup_s: Seconds = Field(
         0.5,
         ge=0,
         description="When other instances are live at start: seconds to follow the fleet's "

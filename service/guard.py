@@ -24,7 +24,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final, Literal, Protocol
+from typing import TYPE_CHECKING, Annotated, Any, Final, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -41,6 +41,12 @@ Message = LaserScan | Odometry | InitialPose | Relocalize
 OutKind = Literal["pose", "event", "need_map", "skipped", "rejected", "evidence"]
 
 _TWO_PI: Final = 2.0 * math.pi
+#: Longest duration a setting in seconds may hold: the service waits on these (a lock's timed
+#: wait fails past ``threading.TIMEOUT_MAX``, about 9.2e9 s) and counts them in nanoseconds
+#: (``int(1e308 * 1e9)`` overflows); 1e9 s is 31 years, as the commands' ``--timeout``.
+MAX_SECONDS: Final = 1e9
+#: A setting in seconds: finite, at most :data:`MAX_SECONDS` (its own ``Field`` adds its floor).
+Seconds = Annotated[float, Field(le=MAX_SECONDS)]
 #: Metres added to the map's diagonal (and the sensor's offset) beyond which a range is no return.
 _REACH_MARGIN_M: Final = 1.0
 #: The attribute of :class:`rlutf.localizer.Localizer` holding a relocalization under way, the
