@@ -359,7 +359,7 @@ class Settings(BaseSettings):
     def _state_in_store(cls, data: Any) -> Any:
         # The default follows store_dir, so the state lands on the store's volume.
         if isinstance(data, dict) and data.get("state_dir") is None:
-            return {**data, "state_dir": Path(data.get("store_dir") or "store") / "state"}
+            return {**data, "state_dir": Path(str(data.get("store_dir") or "store")) / "state"}
         return data
 
     @classmethod

@@ -49,6 +49,7 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "bad.toml").write_text('mode = "router"\nworkers = \n')
     (tmp_path / "list.yaml").write_text("- a\n- b\n")
     (tmp_path / "unknown.yaml").write_text("modee: router\n")
+    (tmp_path / "store-list.yaml").write_text("store_dir: [a, b]\n")  # a TypeError before
     (tmp_path / "x.ini").write_text("[a]\n")
     (tmp_path / "corrupt.json").write_text('{"map_id": \n')
     (tmp_path / "corrupt.mcap").write_bytes(b"garbage\x00\x01")
@@ -72,6 +73,9 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--settings", "bad.yaml"], 2, ["bad.yaml", "line 2"])
     yield Bad(["config", "--settings", "list.yaml"], 2, ["list.yaml", "holds a list"])
     yield Bad(["config", "--settings", "unknown.yaml"], 2, ["modee", "unknown setting"])
+    # a store folder of the wrong type: named, not an "unexpected error" (its default state_dir)
+    yield Bad(["config", "--settings", "store-list.yaml"], 2, ["store_dir", "not a valid path"])
+    yield Bad(["serve", "--settings", "store-list.yaml"], 2, ["store_dir", "['a', 'b']"])
     yield Bad(["config", "--settings", "missing.yaml"], 2, ["missing.yaml", "not found"])
     yield Bad(["config", "--settings", "folder"], 2, ["folder", "is not a regular file"])
     yield Bad(["config", "--settings", "pipe.yaml"], 2, ["pipe.yaml", "not a regular file"])
