@@ -236,6 +236,11 @@ class EventCode:
     """A relocalization found several near-equal hypotheses; it follows them until one wins."""
     STATE_UNREADABLE: Final = "state_unreadable"
     """The durable pose state could not be read or its folder made; started without it."""
+    STATE_WRITE_FAILED: Final = "state_write_failed"
+    """The durable pose state could not be written (a full or read-only disk, its folder
+    gone): a restart may not resume the robots until it can; it tries at each interval."""
+    STATE_WRITE_RESUMED: Final = "state_write_resumed"
+    """The durable pose state is written again after ``state_write_failed``."""
     MAP_VERSION_CONFLICT: Final = "map_version_conflict"
     """A map put of a version lower than the one held, or of the same version with other
     content (WIRE.md v1.2): it changed nothing; the message names both versions."""

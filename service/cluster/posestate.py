@@ -35,13 +35,14 @@ import logging
 import os
 import tempfile
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from schemas import Odometry, PoseEstimate, SchemaError, decode
+from schemas import EventCode, Odometry, PoseEstimate, SchemaError, decode
 
 log = logging.getLogger(__name__)
 
@@ -210,6 +211,9 @@ class PoseState:
         interval_s: seconds between two snapshots (only when a pose changed).
         clock: the service clock, ns since the epoch.
         max_bytes: largest accepted payload when reading the file back.
+        report: ``(level, code, message)``: an Event on ``{prefix}/events`` when writes start
+            failing (``state_write_failed``) and when one succeeds again
+            (``state_write_resumed``); without it, log lines say the same.
     """
 
     def __init__(
@@ -219,6 +223,7 @@ class PoseState:
         interval_s: float,
         clock: Callable[[], int],
         max_bytes: int = 1_000_000,
+        report: Callable[[str, str, str], None] | None = None,
     ) -> None:
         self.folder = Path(folder)
         self.path = self.folder / FILE_NAME
@@ -240,6 +245,8 @@ class PoseState:
         self.writes = 0
         self.write_errors = 0
         self.last_written_ns = 0
+        self._report = report
+        self._failing: tuple[float, int] | None = None  # since (monotonic), errors then
 
     # ------------------------------------------------------------------------ lifecycle
     def open(self) -> tuple[list[RestoredRobot], list[str]]:
@@ -340,11 +347,37 @@ class PoseState:
             except OSError as err:
                 self._dirty = True  # try again at the next interval
                 self.write_errors += 1
-                if self.write_errors == 1 or self.write_errors % 60 == 0:
+                if self._failing is None:
+                    self._failing = (time.monotonic(), self.write_errors - 1)
+                    self._say(
+                        "error",
+                        EventCode.STATE_WRITE_FAILED,
+                        f"pose state: cannot write {self.path} ({err}): the robots' poses are "
+                        "not kept for a restart until it can write again (tried every "
+                        f"{self.interval_s:g} s)",
+                    )
+                elif self.write_errors % 60 == 0:
                     log.warning("pose state: cannot write %s: %s", self.path, err)
                 return False
             self.writes += 1
+            if self._failing is not None:
+                since, before = self._failing
+                self._failing = None
+                self._say(
+                    "warning",
+                    EventCode.STATE_WRITE_RESUMED,
+                    f"pose state: written again to {self.path} after "
+                    f"{time.monotonic() - since:.1f} s and {self.write_errors - before} failed "
+                    "writes",
+                )
             return True
+
+    def _say(self, level: str, code: str, message: str) -> None:
+        """An Event through ``report`` (which logs it too), else a log line."""
+        if self._report is not None:
+            self._report(level, code, message)
+        else:
+            log.warning("%s", message)
 
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:

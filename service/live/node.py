@@ -176,6 +176,7 @@ class LocalizationService:
                 settings.state_interval_s,
                 self.clock,
                 settings.max_payload_bytes,
+                lambda level, code, msg: self._global_event(level, code, self.keys.events, msg),
             )
         )
         owns_key = lambda key: self.ownership.ready and self.membership.owns_key(key)  # noqa: E731
