@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import re
 from collections.abc import Sequence
 
@@ -101,6 +102,8 @@ def explain(err: BaseException) -> tuple[str, int] | None:
         )
     if isinstance(err, UnicodeDecodeError):
         return "the file is not UTF-8 text (a binary or foreign file?)", EXIT_USAGE
+    if type(err).__name__ == "SettingsError" and type(err).__module__.startswith("pydantic_"):
+        return _environment_message(err), EXIT_USAGE
     if type(err).__module__.startswith("zenoh"):
         text = zenoh_text(err)
         if "Address already in use" in text:
@@ -111,3 +114,31 @@ def explain(err: BaseException) -> tuple[str, int] | None:
             hint = "check the zenoh flags (-m, -l, -e, -c)"
         return f"zenoh: {text}; {hint}", EXIT_FAILURE
     return None
+
+
+def _environment_message(err: BaseException) -> str:
+    """pydantic-settings' error for an ``RLUTF_*`` variable of a nested setting (``localizer``,
+    ``ros2``, ``limits``) or a list that is not JSON: the variable, its problem and the fix.
+
+    Before, ``RLUTF_LOCALIZER=garbage`` (or ``RLUTF_ROS2__ROBOTS=r7``) made every command exit 1
+    with "unexpected error: SettingsError: error parsing value for field ...", naming no
+    variable.
+    """
+    found = re.search(r'field "(\w+)"', str(err))
+    field = found.group(1) if found else ""
+    prefix = f"RLUTF_{field.upper()}"
+    names = []
+    for name, value in sorted(os.environ.items()):
+        if name.upper() == prefix or name.upper().startswith(prefix + "__"):
+            try:
+                json.loads(value)
+            except ValueError:
+                names.append(name)
+    cause = err.__cause__
+    why = f" ({str(cause).split(':')[0]})" if isinstance(cause, ValueError) else ""
+    given = " or ".join(names[:3]) or f"{prefix} or {prefix}__*"
+    return (
+        f"invalid configuration: {given} in the environment is not valid JSON{why}: a nested "
+        f"setting is given as a JSON object ({prefix}='{{\"name\": value}}') or one variable "
+        f"per name ({prefix}__NAME=value); `rlutf config` prints the settings"
+    )

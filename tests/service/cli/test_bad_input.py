@@ -385,3 +385,25 @@ def test_the_console_script_says_the_same(files: Path, argv: list[str], says: st
     assert done.returncode != 0
     assert says in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("variable", "value"),
+    [("RLUTF_LOCALIZER", "garbage"), ("RLUTF_ROS2__ROBOTS", "r7"), ("RLUTF_LIMITS", "{")],
+)
+@pytest.mark.parametrize("argv", [["config"], ["serve"], ["pose", "-e", NOWHERE]])
+def test_a_nested_setting_in_the_environment_that_is_not_json_is_named(
+    files: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    variable: str,
+    value: str,
+    argv: list[str],
+) -> None:
+    """Before: "unexpected error: SettingsError: error parsing value for field ...", exit 1."""
+    monkeypatch.setenv(variable, value)
+    assert _run(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{variable} in the environment is not valid JSON" in err, err
+    assert "unexpected error" not in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
