@@ -303,7 +303,7 @@ def load(args: argparse.Namespace) -> Any:
     """
     from service.config import load_settings
 
-    return _settings(
+    settings = _settings(
         lambda: load_settings(
             args.settings,
             mode=args.mode,
@@ -327,6 +327,16 @@ def load(args: argparse.Namespace) -> Any:
             ros2=_ros2_overrides(args),
         )
     )
+    if settings.zenoh_config is None:
+        return settings
+    import zenoh
+
+    from service.live.sessions import with_file
+
+    try:
+        return with_file(settings)  # what the file states, where no setting is given
+    except zenoh.ZError:
+        return settings  # `serve` names the file (zenoh_file_config) before it starts
 
 
 def _settings(make: Callable[[], Any]) -> Any:

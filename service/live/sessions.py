@@ -79,6 +79,45 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     )
 
 
+#: What a zenoh file may state that a setting also sets: the setting, the file's key.
+FILE_KEYS = (
+    ("mode", "mode"),
+    ("listen", "listen/endpoints"),
+    ("connect", "connect/endpoints"),
+    ("multicast_scouting", "scouting/multicast/enabled"),
+)
+
+
+def with_file(settings: Settings) -> Settings:
+    """``settings`` with what its zenoh file (``-c/--config``) states of :data:`FILE_KEYS`
+    where the setting is not given (a flag, an ``RLUTF_*`` variable, the settings file).
+
+    Before, the settings' defaults replaced the file's values: a file saying ``mode: "client"``
+    and ``connect`` to a TLS router ran a router that listened on ``tcp/[::]:7447``, every
+    interface, unencrypted; a file's ``listen`` endpoints were not listened on.
+
+    Raises:
+        zenoh.ZError: the file is not one zenoh reads (:func:`zenoh_config` on it says why).
+    """
+    if settings.zenoh_config is None:
+        return settings
+    cfg = zenoh.Config.from_file(str(settings.zenoh_config))
+    default = zenoh.Config()
+    stated: dict[str, object] = {}
+    for name, key in FILE_KEYS:
+        value = json.loads(cfg.get_json(key))
+        if name in settings.model_fields_set or value in (None, []):
+            continue
+        if isinstance(value, dict):  # per mode, as zenoh's own default: stated if not that
+            if value == json.loads(default.get_json(key)):
+                continue
+            value = value.get(str(stated.get("mode", settings.mode)))
+            if not isinstance(value, list) or not value:
+                continue
+        stated[name] = [str(v) for v in value] if isinstance(value, list) else value
+    return settings.model_copy(update=stated) if stated else settings
+
+
 def service_config(settings: Settings) -> zenoh.Config:
     """The service's own zenoh configuration (:func:`zenoh_config`), with a warning when the
     settings' zenoh file leaves a link's send queue for data shorter than

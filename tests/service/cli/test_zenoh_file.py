@@ -76,3 +76,57 @@ def test_a_config_file_that_retries_for_ever_costs_a_tool_one_attempt(tmp_path: 
         pytest.fail("rlutf health -c FILE waited for the router for ever")
     assert time.monotonic() - started < 20
     assert done.returncode == 1 and f"cannot reach zenoh at {endpoint}" in done.stderr, done.stderr
+
+
+def _config(argv: list[str], capsys: pytest.CaptureFixture[str]) -> dict[str, object]:
+    import json
+
+    assert main(["config", *argv]) == 0
+    return dict(json.loads(capsys.readouterr().out))
+
+
+def test_serve_takes_what_its_zenoh_file_states_where_no_flag_says(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``rlutf serve -c FILE`` ran mode router on ``tcp/[::]:7447`` whatever FILE said: the
+    settings' defaults replaced its ``mode`` and ``listen``, so deploy/zenoh's TLS client file
+    without ``--mode client`` opened an unencrypted router port on every interface."""
+    secure = str(DEPLOY / "service-client-secure.json5")
+    got = _config(["-c", secure], capsys)
+    assert (got["mode"], got["connect"]) == ("client", ["tls/zenoh-router:7447"])
+    path = tmp_path / "router.json5"
+    path.write_text('{ mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:7999"] },\n'
+                    "  scouting: { multicast: { enabled: true } } }")  # fmt: skip
+    got = _config(["-c", str(path)], capsys)
+    assert (got["mode"], got["listen"], got["multicast_scouting"]) == (
+        "peer", ["tcp/127.0.0.1:7999"], True
+    )  # fmt: skip
+    # what is given otherwise wins, as before: flags, then RLUTF_* (a flag here)
+    got = _config(["-c", str(path), "--mode", "router", "-l", "tcp/127.0.0.1:1"], capsys)
+    assert (got["mode"], got["listen"]) == ("router", ["tcp/127.0.0.1:1"])
+    # a file that states none of them changes nothing
+    (tmp_path / "plain.json5").write_text("{ transport: {} }")
+    got = _config(["-c", str(tmp_path / "plain.json5")], capsys)
+    assert (got["mode"], got["listen"], got["connect"]) == ("router", ["tcp/[::]:7447"], [])
+
+
+def test_serve_listens_where_its_zenoh_file_says(tmp_path: Path) -> None:
+    port = free_port()
+    path = tmp_path / "z.json5"
+    path.write_text(f'{{ mode: "router", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }} }}')
+    argv = ["serve", "-c", str(path), "--no-store", "--no-record", "--workers", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", *argv, "--processes", "0"],
+        cwd=tmp_path,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        while line and "ready" not in line:
+            line = proc.stderr.readline()
+        assert f"listening on tcp/127.0.0.1:{port}" in line, line
+    finally:
+        proc.terminate()
+        proc.wait(30)
