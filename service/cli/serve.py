@@ -132,7 +132,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
         live_view_errors = (LiveViewError,)
     zenoh_file_config(settings)  # a bad -c/--config file is named before anything starts
-    _metrics_addr_usable(settings)
+    _addrs_usable(settings)
     if not settings.no_store:
         usable_folder(settings.store_dir, "--store")
         _store_free(
@@ -245,30 +245,35 @@ def follow_host(host_pid: int, stop: threading.Event) -> None:
     threading.Thread(target=watch, name="rlutf-host-watch", daemon=True).start()
 
 
-def _metrics_addr_usable(settings: Any) -> None:
-    """Refuse a ``--metrics-addr`` that is no address of this host (a name that does not
-    resolve, another host's address) before anything starts: the metrics endpoint binds it once
-    the service has started, a host's processes included.
+def _addrs_usable(settings: Any) -> None:
+    """Refuse a ``--metrics-addr`` or ``--foxglove-addr`` that is no address of this host (a
+    name that does not resolve, another host's address) before anything starts: the endpoint
+    binds it once the service has started, a host's processes included. (A bad
+    ``--foxglove-addr`` was "cannot serve the live view ...: choose another --foxglove-port",
+    exit 1.)
 
     Raises:
         CliError: naming the flag, the address and the fix.
     """
     import socket
 
-    if settings.metrics_port is None:
-        return
-    addr = settings.metrics_addr
-    try:
-        family, kind, _, _, where = socket.getaddrinfo(addr, 0, type=socket.SOCK_STREAM)[0]
-        with socket.socket(family, kind) as probe:
-            probe.bind(where)  # port 0: takes no port the endpoint will want
-    except (OSError, UnicodeError) as err:  # UnicodeError: a name no DNS label takes
-        why = getattr(err, "strerror", None) or str(err)
-        raise CliError(
-            f"--metrics-addr {addr}: not an address of this host ({why}); give one of its "
-            "addresses, e.g. 0.0.0.0 (all of them) or 127.0.0.1",
-            EXIT_USAGE,
-        ) from None
+    for port, addr, flag in (
+        (settings.metrics_port, settings.metrics_addr, "--metrics-addr"),
+        (settings.foxglove_port, settings.foxglove_addr, "--foxglove-addr"),
+    ):
+        if port is None:
+            continue
+        try:
+            family, kind, _, _, where = socket.getaddrinfo(addr, 0, type=socket.SOCK_STREAM)[0]
+            with socket.socket(family, kind) as probe:
+                probe.bind(where)  # port 0: takes no port the endpoint will want
+        except (OSError, UnicodeError) as err:  # UnicodeError: a name no DNS label takes
+            why = getattr(err, "strerror", None) or str(err)
+            raise CliError(
+                f"{flag} {addr}: not an address of this host ({why}); give one of its "
+                "addresses, e.g. 0.0.0.0 (all of them) or 127.0.0.1",
+                EXIT_USAGE,
+            ) from None
 
 
 def _store_free(folder: Path, fix: str) -> None:

@@ -118,6 +118,9 @@ def _cases() -> Iterator[Bad]:
     for addr in ("999.1.1.1", "192.0.2.1"):
         argv = ["serve", "--metrics-addr", addr, "--metrics-port", "0"]
         yield Bad(argv, 2, [f"--metrics-addr {addr}", "not an address of this host"])
+        # the live view's: exit 1 and "choose another --foxglove-port" before
+        argv = ["serve", "--foxglove-addr", addr, "--foxglove-port", "0", "--processes", "0"]
+        yield Bad(argv, 2, [f"--foxglove-addr {addr}", "not an address of this host"])
     yield Bad(["serve", "--processes", "65"], 2, ["--processes", "at most 64"])
     # a layout whose processes would not fit in memory (robots meant): refused before any starts
     yield Bad(["serve", "--workers", "100000"], 2, ["--workers 100000", "GB", "usable here"])
