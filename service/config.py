@@ -33,7 +33,7 @@ from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from schemas import ID_PATTERN
 from service.guard import Limits, Seconds
-from service.yamlfile import load_yaml
+from service.yamlfile import load_yaml, unique_keys
 
 ZenohMode = Literal["router", "peer", "client"]
 
@@ -444,11 +444,11 @@ def _check_file(path: Path, suffix: str) -> None:
     try:
         text = path.read_text(encoding="utf-8")
         if kind == "JSON":
-            data: Any = json.loads(text)
+            data: Any = json.loads(text, object_pairs_hook=unique_keys)
         elif kind == "TOML":
             data = tomllib.loads(text)
         else:
-            data = load_yaml(text)
+            data = load_yaml(text, unique=True)
     except (ValueError, RecursionError, yaml.YAMLError, OSError) as err:
         raise SettingsFileError(
             f"settings file {path}{_where(err)}: not valid {kind} ({_problem(err)}); fix the "

@@ -7,6 +7,10 @@ value (an error message's ``repr``, a settings library's deep copy) meets billio
 ``rlutf map import`` and ``rlutf config --settings`` ran for minutes and past 5 GB. A settings
 or map file needs a few dozen values; :func:`load_yaml` counts them, every alias's anew, and
 refuses a document past :data:`MAX_VALUES`.
+
+A settings file is read with ``unique=True`` (and its JSON with :func:`unique_keys`): a key
+given twice in one mapping is refused with its line, as TOML's reader does, instead of the
+second silently winning (``record_dir`` set at the top of a long file and again at its end).
 """
 
 from __future__ import annotations
@@ -23,15 +27,52 @@ class YamlTooLarge(ValueError):
     """A YAML document that holds (or repeats, through its aliases) too many values."""
 
 
-def load_yaml(text: str | bytes) -> Any:
+class _UniqueLoader(yaml.SafeLoader):  # type: ignore[misc]
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (merges, ``<<``, may
+    override as YAML says)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                again = key in seen
+                seen.add(key)
+            except TypeError:  # an unhashable key: SafeLoader refuses it itself
+                continue
+            if again:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"found {key!r} twice in one mapping", key_node.start_mark
+                )
+        mapping: dict[Any, Any] = super().construct_mapping(node, deep)
+        return mapping
+
+
+def unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` of ``json.loads`` that refuses a key given twice in one object."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"found {key!r} twice in one object")
+        out[key] = value
+    return out
+
+
+def load_yaml(text: str | bytes, unique: bool = False) -> Any:
     """``yaml.safe_load(text)``, refused past :data:`MAX_VALUES` values.
 
+    Args:
+        text: the document.
+        unique: refuse a key given twice in one mapping (a settings file).
+
     Raises:
-        yaml.YAMLError: not YAML.
+        yaml.YAMLError: not YAML (or, with ``unique``, a key twice).
         YamlTooLarge: more values than :data:`MAX_VALUES`, aliases counted as what they repeat.
     """
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_UniqueLoader) if unique else yaml.safe_load(text)
     except RecursionError:
         raise YamlTooLarge("the document nests deeper than the YAML reader can follow") from None
     left = MAX_VALUES

@@ -50,6 +50,10 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "list.yaml").write_text("- a\n- b\n")
     (tmp_path / "unknown.yaml").write_text("modee: router\n")
     (tmp_path / "store-list.yaml").write_text("store_dir: [a, b]\n")  # a TypeError before
+    # a key twice: the last silently won in YAML and JSON (TOML's reader refused it)
+    (tmp_path / "twice.yaml").write_text("record_dir: a\nworkers: 0\nrecord_dir: b\n")
+    (tmp_path / "twice-nested.yaml").write_text("ros2:\n  map_id: a\n  map_id: b\n")
+    (tmp_path / "twice.json").write_text('{"record_dir": "a", "record_dir": "b"}')
     (tmp_path / "x.ini").write_text("[a]\n")
     (tmp_path / "corrupt.json").write_text('{"map_id": \n')
     (tmp_path / "corrupt.mcap").write_bytes(b"garbage\x00\x01")
@@ -73,6 +77,12 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--settings", "bad.yaml"], 2, ["bad.yaml", "line 2"])
     yield Bad(["config", "--settings", "list.yaml"], 2, ["list.yaml", "holds a list"])
     yield Bad(["config", "--settings", "unknown.yaml"], 2, ["modee", "unknown setting"])
+    for name, says in (
+        ("twice.yaml", ["twice.yaml, line 3", "'record_dir' twice"]),
+        ("twice-nested.yaml", ["line 3", "'map_id' twice"]),
+        ("twice.json", ["twice.json", "'record_dir' twice"]),
+    ):
+        yield Bad(["config", "--settings", name], 2, says)
     # a store folder of the wrong type: named, not an "unexpected error" (its default state_dir)
     yield Bad(["config", "--settings", "store-list.yaml"], 2, ["store_dir", "not a valid path"])
     yield Bad(["serve", "--settings", "store-list.yaml"], 2, ["store_dir", "['a', 'b']"])
