@@ -474,6 +474,8 @@ def recover(src: Path, dst: Path) -> RecoverReport:
         stream.seek(0)
         report = RecoverReport()
         part = dst.with_name(dst.name + ".part")
+        if part.exists() and part.resolve() == src.resolve():  # `recover X.mcap.part X.mcap`
+            part = dst.with_name(f".{dst.name}.recovering")  # not the input, which it truncated
         try:
             with open(part, "wb") as out:
                 writer = Writer(out, compression=CompressionType.ZSTD)

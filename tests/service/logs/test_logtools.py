@@ -150,6 +150,28 @@ def test_recover_refuses_to_overwrite_its_input(
     assert code == 2 and "must not be the input" in err
 
 
+@pytest.mark.parametrize("into_folder", [False, True])
+def test_recover_of_x_part_into_x_keeps_its_input(
+    log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], into_folder: bool
+) -> None:
+    """``rlutf log recover X.mcap.part X.mcap`` (or a folder of .part files into itself)
+    wrote its output first as ``X.mcap.part``: it truncated its input, recovered nothing of it
+    ("no message could be recovered (the input is cut at byte 3063)") and deleted it."""
+    data = log.read_bytes()
+    cut = data[: len(data) * 3 // 4]  # a recording cut short: a .part file
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    part = folder / "run-001.mcap.part"
+    part.write_bytes(cut)
+    out = folder if into_folder else folder / "run-001.mcap"
+    code, stdout, err = _run(["log", "recover", str(part), str(out)], capsys)
+    assert code == 0 and "recovered" in stdout, err
+    assert part.read_bytes() == cut  # the input untouched
+    got = read_all(folder / "run-001.mcap")
+    assert len(got) > 0 and got == read_all(log)[: len(got)]
+    assert sorted(p.name for p in folder.iterdir()) == ["run-001.mcap", "run-001.mcap.part"]
+
+
 def test_recover_with_nothing_to_salvage_or_nowhere_to_write_says_so(
     log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
