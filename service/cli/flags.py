@@ -303,7 +303,7 @@ def load(args: argparse.Namespace) -> Any:
     """
     from service.config import load_settings
 
-    settings = _settings(
+    settings = checked_settings(
         lambda: load_settings(
             args.settings,
             mode=args.mode,
@@ -339,7 +339,7 @@ def load(args: argparse.Namespace) -> Any:
         return settings  # `serve` names the file (zenoh_file_config) before it starts
 
 
-def _settings(make: Callable[[], Any]) -> Any:
+def checked_settings(make: Callable[[], Any]) -> Any:
     """``make()`` with its errors (settings file, values) as a :class:`CliError`."""
     from pydantic import ValidationError
 
@@ -381,7 +381,7 @@ def client(args: argparse.Namespace) -> Any:
     from service.config import Settings
 
     mode = args.mode or "client"
-    settings = _settings(
+    settings = checked_settings(
         lambda: Settings(
             mode=mode,
             connect=args.connect or _file_endpoints(args.config, mode) or [DEFAULT_CONNECT],

@@ -19,6 +19,7 @@ from service.cli.flags import (
     EXIT_USAGE,
     PORT,
     SEED,
+    checked_settings,
     load,
     number,
     ros2_flags,
@@ -343,8 +344,6 @@ def _layout_fits(command: str, settings: Any) -> bool:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``rlutf demo``."""
-    from pydantic import ValidationError
-
     from service.cli.present import console
     from service.config import Settings
     from service.sim.demo import demo_layout, demo_spec, run_demo
@@ -354,11 +353,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"rlutf demo: {problem} (--robots, --duration, --beams)", file=sys.stderr)
         return EXIT_USAGE
-    try:  # values the settings refuse are reported where the demo builds them
-        layout = Settings(**demo_layout(args))
-    except ValidationError:
-        layout = None
-    if layout is not None and not _layout_fits("rlutf demo", layout):
+    # An RLUTF_* value the settings refuse, named as `serve` names it (exit 2; it was
+    # "unexpected error: ValidationError", exit 1, from the demo's own settings).
+    layout = checked_settings(lambda: Settings(**demo_layout(args)))
+    if not _layout_fits("rlutf demo", layout):
         return EXIT_USAGE
     if args.store is not None:
         usable_folder(args.store, "--store")

@@ -19,6 +19,7 @@ from service.cli.flags import (
     EXIT_USAGE,
     ROS_DOMAIN_ID,
     SEED,
+    checked_settings,
     zenoh_file_config,
     zenoh_flags,
 )
@@ -289,12 +290,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if problem:
         print(f"rlutf simulate: {problem}", file=sys.stderr)
         return EXIT_USAGE
-    settings = Settings(
-        mode=args.mode or "client",
-        connect=args.connect or ["tcp/127.0.0.1:7447"],
-        listen=[],
-        zenoh_config=args.config,
-        **({"prefix": args.prefix} if args.prefix else {}),
+    settings = checked_settings(  # a bad RLUTF_* value: named, exit 2 (a ValidationError, 1)
+        lambda: Settings(
+            mode=args.mode or "client",
+            connect=args.connect or ["tcp/127.0.0.1:7447"],
+            listen=[],
+            zenoh_config=args.config,
+            **({"prefix": args.prefix} if args.prefix else {}),
+        )
     )
     keys = Keys(settings.prefix)
     where = ", ".join(settings.connect)

@@ -420,3 +420,15 @@ def test_a_nested_setting_in_the_environment_that_is_not_json_is_named(
     assert f"{variable} in the environment is not valid JSON" in err, err
     assert "unexpected error" not in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_demo_names_a_bad_environment_value_as_serve_does(
+    files: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: "rlutf demo: unexpected error: ValidationError: 1 validation error ...", exit 1."""
+    monkeypatch.setenv("RLUTF_LOCALIZER__MIN_FIT", "2")
+    for argv in (["demo", "--duration", "1"], ["simulate", "-e", NOWHERE], ["serve"]):
+        assert _run(argv) == 2
+        err = capsys.readouterr().err
+        assert "invalid configuration" in err and "min_fit" in err, err
+        assert "unexpected error" not in err
