@@ -283,6 +283,7 @@ class McapRecorder:
             with contextlib.suppress(OSError):
                 if part.stat().st_size == 0:
                     part.unlink()
+                    self._sequence -= 1  # its number goes to the next file that opens
         self._retry_at = time.monotonic() + RETRY_S
         if self._failing is not None:
             log.debug("recording failed again", exc_info=True)
@@ -367,9 +368,14 @@ class McapRecorder:
             part = final.with_name(final.name + PART_SUFFIX)
             if not final.exists() and not part.exists():
                 break
-        stream = open(part, "xb")  # noqa: SIM115 -- owned by _OpenFile until _finish
+        try:
+            stream = open(part, "xb")  # noqa: SIM115 -- owned by _OpenFile until _finish
+        except OSError:
+            self._sequence -= 1  # a retry of a full disk or a folder gone takes no number
+            raise
         writer = LogWriter(stream, self._converter, self.chunk_size, self.zstd_level)
-        log.info("recording to %s", part)
+        # each retry while recording fails opens a file: said once the file is written to
+        (log.info if self._failing is None else log.debug)("recording to %s", part)
         return _OpenFile(part, final, stream, writer, time.monotonic())
 
     def _report_overflow(self) -> None:

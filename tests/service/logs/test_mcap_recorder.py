@@ -283,6 +283,9 @@ def test_a_recorder_that_cannot_write_says_so_counts_what_it_drops_and_resumes(
     # The stretch not logged is a file of the run that the log tools name as missing.
     (run,) = group_runs([*sorted(saved.glob("*.mcap")), *after])
     assert run.missing
+    # The retries took no file number: the files' names go on from where the folder was left.
+    numbers = [int(f.name[-8:-5]) for f in [*sorted(saved.glob("*.mcap")), *after]]
+    assert numbers == list(range(1, len(numbers) + 1)), numbers
 
 
 def test_a_gap_that_ends_just_before_the_stop_is_marked_in_the_last_file(
