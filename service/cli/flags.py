@@ -327,6 +327,13 @@ def load(args: argparse.Namespace) -> Any:
             ros2=_ros2_overrides(args),
         )
     )
+    return _with_file(settings)
+
+
+def _with_file(settings: Any) -> Any:
+    """``settings`` with what its zenoh file states where no setting is given
+    (:func:`service.live.sessions.with_file`); as they are when zenoh cannot read the file
+    (:func:`zenoh_file_config` names it before anything starts)."""
     if settings.zenoh_config is None:
         return settings
     import zenoh
@@ -334,9 +341,9 @@ def load(args: argparse.Namespace) -> Any:
     from service.live.sessions import with_file
 
     try:
-        return with_file(settings)  # what the file states, where no setting is given
+        return with_file(settings)
     except zenoh.ZError:
-        return settings  # `serve` names the file (zenoh_file_config) before it starts
+        return settings
 
 
 def checked_settings(make: Callable[[], Any]) -> Any:
@@ -380,16 +387,15 @@ def client(args: argparse.Namespace) -> Any:
 
     from service.config import Settings
 
-    mode = args.mode or "client"
+    given = {"connect": args.connect} if args.connect else {}
+    if args.prefix:
+        given["prefix"] = args.prefix
     settings = checked_settings(
-        lambda: Settings(
-            mode=mode,
-            connect=args.connect or _file_endpoints(args.config, mode) or [DEFAULT_CONNECT],
-            listen=[],
-            zenoh_config=args.config,
-            **({"prefix": args.prefix} if args.prefix else {}),
-        )
+        lambda: Settings(mode=args.mode or "client", listen=[], zenoh_config=args.config, **given)
     )
+    settings = _with_file(settings)  # the file's endpoints (in this mode) where -e gives none
+    if not settings.connect:
+        settings = settings.model_copy(update={"connect": [DEFAULT_CONNECT]})
     config = zenoh_file_config(settings)
     # A tool asks once: a file made for the service (connect.timeout_ms -1: retry for ever, as
     # deploy/zenoh's) must not make it wait for ever when the router is down.
@@ -406,24 +412,6 @@ def client(args: argparse.Namespace) -> Any:
 
 #: Where the tools look for a running service when neither -e nor a -c file says.
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
-
-
-def _file_endpoints(path: Path | None, mode: str) -> list[str]:
-    """The endpoints a zenoh file connects to (in ``mode``, where it says per mode); none for no
-    file, or one zenoh cannot read (:func:`zenoh_file_config` says why)."""
-    import json
-
-    import zenoh
-
-    if path is None:
-        return []
-    try:
-        found = json.loads(zenoh.Config.from_file(str(path)).get_json("connect/endpoints"))
-    except (zenoh.ZError, ValueError, TypeError, OSError):
-        return []
-    if isinstance(found, dict):
-        found = found.get(mode, [])
-    return [str(e) for e in found] if isinstance(found, list) else []
 
 
 def zenoh_file_config(settings: Any) -> Any:
