@@ -215,8 +215,7 @@ class EventCode:
     """A newer scan replaced an unprocessed older one."""
     MAP_DROPPED: Final = "map_dropped"
     """A map put was not taken: too many map puts already waited to be checked or stored (a
-    flood), or the store could not write it (a full disk). The service then loads what the
-    store holds; the message says what happened."""
+    flood). The service then loads what the store holds; the message says what happened."""
     RECORDER_OVERFLOW: Final = "recorder_overflow"
     """The MCAP recorder's queue was full and messages were not logged."""
     RECORDING_FAILED: Final = "recording_failed"
@@ -241,6 +240,12 @@ class EventCode:
     gone): a restart may not resume the robots until it can; it tries at each interval."""
     STATE_WRITE_RESUMED: Final = "state_write_resumed"
     """The durable pose state is written again after ``state_write_failed``."""
+    MAP_WRITE_FAILED: Final = "map_write_failed"
+    """The embedded store took a map put (it serves it, and the services load it, as any put)
+    but could not write it to disk (a full or read-only disk, its folder gone): it holds it in
+    memory and tries again every few seconds; a restart before then loses it."""
+    MAP_WRITE_RESUMED: Final = "map_write_resumed"
+    """A map held in memory after ``map_write_failed`` is written to disk."""
     MAP_VERSION_CONFLICT: Final = "map_version_conflict"
     """A map put of a version lower than the one held, or of the same version with other
     content (WIRE.md v1.2): it changed nothing; the message names both versions."""

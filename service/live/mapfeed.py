@@ -195,9 +195,11 @@ class MapFeed:
                 "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg
             ),
             forward=self.on_sample,
-            # Not held back behind a flood's map_dropped Events (a kind of its own).
             on_unwritten=lambda key, msg: report(
-                "map_unwritten", "error", EventCode.MAP_DROPPED, key, msg
+                "map_write_failed", "error", EventCode.MAP_WRITE_FAILED, key, msg
+            ),
+            on_written=lambda key, msg: report(
+                "map_write_resumed", "warning", EventCode.MAP_WRITE_RESUMED, key, msg
             ),
         )
         self.store_busy = storage.busy

@@ -22,6 +22,7 @@ from service.maps.book import (
     load_map,
     put_verdict,
 )
+from service.maps.store import UNWRITTEN_MARK
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -142,17 +143,28 @@ def held_map(
     """The map a storage answers for ``key``, or ``None`` when none answers; ``unless`` itself
     (not decoded: a map of real size takes seconds) when the storage answers with those bytes.
     """
+    return held_reply(session, key, timeout, unless)[0]
+
+
+def held_reply(
+    session: zenoh.Session, key: str, timeout: float, unless: bytes | None = None
+) -> tuple[Map | bytes | None, bool]:
+    """:func:`held_map`, and whether the storage holds it in memory only (the embedded store
+    could not write it to disk yet: its reply carries :data:`~service.maps.store.UNWRITTEN_MARK`).
+    """
     for reply in session.get(key, timeout=timeout):
         if reply.ok is None:
             continue
         payload = reply.ok.payload.to_bytes()
+        mark = reply.ok.attachment
+        unwritten = mark is not None and mark.to_bytes() == UNWRITTEN_MARK
         if unless is not None and payload == unless:
-            return unless
+            return unless, unwritten
         try:
-            return decode(Map, payload, max_bytes=FILE_MAX_BYTES)
+            return decode(Map, payload, max_bytes=FILE_MAX_BYTES), unwritten
         except SchemaError:
             continue
-    return None
+    return None, False
 
 
 def put_map(
@@ -229,12 +241,12 @@ def put_payload(
     """
     msg = decode(Map, payload, max_bytes=len(payload))
     key = Keys(prefix).map(msg.map_id)
-    found = held_map(session, key, timeout)
+    found, in_memory = held_reply(session, key, timeout)
     held = found if isinstance(found, Map) else None
     if version == NEXT:
         if held is not None and _same_content(held, msg):
             said = f"unchanged: {key} already holds this map as version {held.version}"
-            return Put(True, held.version, said)
+            return _unchanged(key, held.version, said, in_memory)
         msg = msg.model_copy(update={"version": held.version + 1 if held is not None else 1})
         payload = encode(msg)
     if held is not None:
@@ -243,7 +255,7 @@ def put_payload(
         )
         if verdict == "echo":
             said = f"unchanged: {key} already holds version {msg.version} with this content"
-            return Put(True, msg.version, said)
+            return _unchanged(key, msg.version, said, in_memory)
         if verdict == "conflict":
             return Put(False, held.version, _refused(key, msg.version, held.version))
     refused: list[Event] = []  # the store's Events about this put (it could not take it)
@@ -253,7 +265,7 @@ def put_payload(
             ev = decode(Event, sample.payload.to_bytes())
         except SchemaError:
             return
-        if ev.key == key and ev.code in (EventCode.MAP_DROPPED, EventCode.INVALID_MAP):
+        if ev.key == key and ev.code in _REFUSALS:
             refused.append(ev)
 
     watch = session.declare_subscriber(Keys(prefix).events, on_event)
@@ -262,6 +274,25 @@ def put_payload(
         return _confirm(session, key, msg, payload, timeout, refused)
     finally:
         watch.undeclare()
+
+
+#: The store's Events that say a put is not (durably) stored.
+_REFUSALS = (EventCode.MAP_DROPPED, EventCode.INVALID_MAP, EventCode.MAP_WRITE_FAILED)
+
+
+def _unchanged(key: str, version: int, said: str, in_memory: bool) -> Put:
+    """A put that changes nothing: done, unless the store holds the map in memory only."""
+    if not in_memory:
+        return Put(True, version, said)
+    return Put(False, version, f"{said}, in memory only: {_NOT_WRITTEN}")
+
+
+#: What a put held in memory only means (the embedded store could not write it to disk).
+_NOT_WRITTEN = (
+    "the store could not write it to disk (full, read-only, or its folder gone; Event "
+    "map_write_failed: `rlutf events`); the running services use it and the store tries to write "
+    "it every 5 s, but a restart of the store before then loses it"
+)
 
 
 def _same_content(held: Map, msg: Map) -> bool:
@@ -289,10 +320,13 @@ def _confirm(
     digest = content_digest(msg)
     deadline = time.monotonic() + timeout
     while True:
-        if refused:
+        if refused and refused[0].code != EventCode.MAP_WRITE_FAILED:
             return Put(False, None, f"the store did not take {key}: {refused[0].message}")
-        held = held_map(session, key, min(timeout, 2.0), unless=payload)
+        held, in_memory = held_reply(session, key, min(timeout, 2.0), unless=payload)
         if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
+            if in_memory or refused:
+                said = f"put {key} (version {msg.version}): taken, but {_NOT_WRITTEN}"
+                return Put(False, msg.version, said, new=True)
             said = f"put {key} (version {msg.version}, {len(payload)} bytes): stored"
             return Put(True, msg.version, said, new=True)
         assert not isinstance(held, bytes)

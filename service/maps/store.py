@@ -14,6 +14,7 @@ import os
 import queue
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Protocol
@@ -34,11 +35,21 @@ from service.maps.book import (
 
 log = logging.getLogger(__name__)
 
+JSON = zenoh.Encoding.APPLICATION_JSON
+
 #: Map puts that may wait to be stored; a flood of puts beyond it is refused, with an Event.
 _QUEUED = 16
 #: Bytes of map puts that may wait to be stored (a put that arrives when none waits is always
 #: taken, however large: the size limit is the check's to enforce).
 _QUEUED_BYTES = 64 * 1024 * 1024
+#: Seconds between two tries to write the maps held in memory only (the disk refused them).
+RETRY_S = 5.0
+#: The attachment of a get's reply served from memory (a map the disk refused so far): the
+#: tools that put maps tell an operator the put is not durable yet.
+UNWRITTEN_MARK = b"rlutf:unwritten"
+#: Bytes of maps held in memory only at most; a put beyond them, which the disk also refuses, is
+#: not taken (the old rule of a store that cannot write).
+UNWRITTEN_BYTES = 256 * 1024 * 1024
 
 
 def room_for(waiting: int, waiting_bytes: int, size: int, most: int, most_bytes: int) -> bool:
@@ -194,6 +205,14 @@ class MapStorage:
     with other content, is not stored (the service that sees the same put reports the conflict).
     Invalid maps are not stored. Gets are answered from the files, so maps survive restarts.
 
+    A newer version the disk refuses (full, read-only, the folder gone) is taken all the same
+    and held in memory: every service on the bus loads a put as it sees it, so a store that did
+    not take it would hold an older version than the running services, and a restart would
+    switch robots back without anyone asking. Gets are answered with it, ``on_unwritten``
+    reports it, and the store tries to write it every :data:`RETRY_S` seconds (and when it
+    closes) until it can (``on_written``). At most :data:`UNWRITTEN_BYTES` are held so; a put
+    beyond them is not taken (``on_drop`` says so).
+
     Args:
         session: the Zenoh session.
         keys: key layout.
@@ -205,7 +224,9 @@ class MapStorage:
         on_drop: reports a put not stored because too many already waited (default:
             ``on_error``).
         on_unwritten: reports a put the store could not write (a full disk; default:
-            ``on_drop``).
+            ``on_drop``), held in memory; past :data:`UNWRITTEN_BYTES`, ``on_drop`` says it
+            was not taken.
+        on_written: reports a map held in memory written at last (default: a log line).
         forward: called with every sample on ``{prefix}/maps/*`` this storage did not drop:
             the service beside it follows the maps so, and never loads a put its store dropped.
     """
@@ -222,6 +243,7 @@ class MapStorage:
         on_drop: Callable[[str, str], None] | None = None,
         forward: Callable[[zenoh.Sample], None] | None = None,
         on_unwritten: Callable[[str, str], None] | None = None,
+        on_written: Callable[[str, str], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -231,6 +253,9 @@ class MapStorage:
         self.on_error = on_error or (lambda key, msg: None)
         self.on_drop = on_drop or self.on_error
         self.on_unwritten = on_unwritten or self.on_drop
+        self.on_written = on_written or (lambda key, msg: log.info("%s", msg))
+        # Maps taken but not on disk yet: map id -> (payload, monotonic time of the first refusal)
+        self._unwritten: dict[str, tuple[bytes, float]] = {}
         self._pending = 0  # puts queued or being stored
         self._queued_bytes = 0
         self._queue_lock = threading.Lock()  # not _lock, which a file write holds
@@ -301,7 +326,14 @@ class MapStorage:
         return self._pending > 0
 
     def _run(self) -> None:
-        while (task := self._tasks.get()) is not None:
+        while True:
+            try:
+                task = self._tasks.get(timeout=RETRY_S if self._unwritten else None)
+            except queue.Empty:
+                self._write_held()
+                continue
+            if task is None:
+                break
             try:
                 self._apply(*task)
             except Exception:
@@ -311,6 +343,29 @@ class MapStorage:
                     self._pending -= 1
                     self._queued_bytes -= 0 if task[2] is None else len(task[2])
             del task  # the payload is not kept while the thread waits
+        self._write_held()
+
+    def unwritten(self) -> list[str]:
+        """Ids of the maps held in memory only (their disk writes failed so far)."""
+        with self._lock:
+            return sorted(self._unwritten)
+
+    def _write_held(self) -> None:
+        """Try again to write the maps held in memory only."""
+        with self._lock:
+            for map_id, (payload, since) in list(self._unwritten.items()):
+                try:
+                    self.store.put(map_id, payload)
+                except OSError as err:
+                    log.debug("map %s still not written: %s", map_id, err)
+                    continue
+                del self._unwritten[map_id]
+                version = self._versions[map_id][0]
+                self.on_written(
+                    self.keys.map(map_id),
+                    f"map {map_id} version {version} written to the store after "
+                    f"{time.monotonic() - since:.0f} s held in memory only",
+                )
 
     def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:
         if payload is None:  # `rlutf map remove`: an operator's choice
@@ -321,6 +376,7 @@ class MapStorage:
                     self.on_error(key, f"could not remove map {map_id}: {err}")
                     return
                 self._versions.pop(map_id, None)
+                self._unwritten.pop(map_id, None)
             log.info("map %s removed", map_id)
             return
         try:
@@ -336,26 +392,56 @@ class MapStorage:
                 return
             try:
                 self.store.put(map_id, payload)
-            except OSError as err:  # a full disk: the put is not taken, as under a flood
-                self.on_unwritten(
-                    key,
-                    f"map {map_id} not stored: the store could not write it ({err}); put it "
-                    "again once it can",
-                )
+            except OSError as err:  # a full disk: held in memory, written when it can be
+                self._hold_unwritten(key, map_id, payload, (version, digest), err)
                 return
+            self._unwritten.pop(map_id, None)  # an older version waiting is superseded
             self._versions[map_id] = (version, digest)
+
+    def _hold_unwritten(
+        self, key: str, map_id: str, payload: bytes, held: Held, err: OSError
+    ) -> None:
+        """A newer version the disk refused: held in memory (within :data:`UNWRITTEN_BYTES`),
+        or, past that, not taken. Called with ``_lock`` held."""
+        waiting = sum(len(p) for m, (p, _) in self._unwritten.items() if m != map_id)
+        if waiting + len(payload) > UNWRITTEN_BYTES:
+            self.on_drop(
+                key,
+                f"map {map_id} version {held[0]} not stored: the store could not write it "
+                f"({err}) and holds {waiting / 1e6:.0f} MB of maps it could not write already; "
+                "put it again once it can write",
+            )
+            return
+        since = self._unwritten.get(map_id, (b"", time.monotonic()))[1]
+        self._unwritten[map_id] = (payload, since)
+        self._versions[map_id] = held
+        self.on_unwritten(
+            key,
+            f"map {map_id} version {held[0]} taken but not written: the store could not write "
+            f"it ({err}); it serves it from memory and tries again every {RETRY_S:g} s (a "
+            "restart before then loses it)",
+        )
 
     def _on_query(self, query: zenoh.Query) -> None:
         with query:
             ke = query.key_expr
             with self._lock:
                 held = list(self._versions)
+                memory = {m: p for m, (p, _) in self._unwritten.items()}
             for map_id in held:
                 key = self.keys.map(map_id)
                 if ke.intersects(zenoh.KeyExpr(key)):
-                    payload = self.store.get(map_id)
+                    payload = memory.get(map_id)
                     if payload is not None:
-                        query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+                        query.reply(key, payload, encoding=JSON, attachment=UNWRITTEN_MARK)
+                        continue
+                    try:
+                        payload = self.store.get(map_id)
+                    except OSError as err:  # its folder gone or unreadable: nothing to answer
+                        log.warning("map %s could not be read from the store: %s", map_id, err)
+                        continue
+                    if payload is not None:
+                        query.reply(key, payload, encoding=JSON)
 
     def close(self) -> None:
         """Stop serving (after the puts already received are stored)."""
