@@ -101,9 +101,19 @@ def writable(path: Path, flag: str) -> None:
         )
     if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise CliError(
-            f"{flag} {path}: not writable (permission denied); choose a path you may write",
+            f"{flag} {path}: not writable ({_denied(folder)}); choose a path you may write",
             EXIT_USAGE,
         )
+
+
+def _denied(path: Path) -> str:
+    """Why ``path`` cannot be written, as a user reads it: on a read-only file system (a
+    read-only mount or container layer) or, else, permission denied."""
+    try:
+        read_only = bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    return "on a read-only file system" if read_only else "permission denied"
 
 
 def usable_folder(path: Path, flag: str) -> None:
@@ -128,7 +138,7 @@ def usable_folder(path: Path, flag: str) -> None:
         )
     if not os.access(part, os.W_OK | os.X_OK):
         raise CliError(
-            f"{flag} {path}: cannot write in {part} (permission denied); choose a folder you "
+            f"{flag} {path}: cannot write in {part} ({_denied(part)}); choose a folder you "
             "may write",
             EXIT_USAGE,
         )

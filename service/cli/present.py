@@ -234,6 +234,9 @@ _LOSSES = (
     ("recorder_overflow", "messages not recorded: the recorder's queue was full"),
     ("state_write_errors", "pose-state writes failed: a restart may not resume its robots"),
 )
+#: Figures of :data:`_LOSSES` that matter only while a flag of the same Health says so: failed
+#: pose-state writes are made good by the next one that works (recorded messages lost are not).
+_WHILE = {"state_write_errors": "state_write_failing"}
 
 
 def health_problems(healths: Iterable[Health]) -> list[str]:
@@ -245,6 +248,8 @@ def health_problems(healths: Iterable[Health]) -> list[str]:
             continue
         for figure, says in _LOSSES:
             n = h.extra.get(figure)
+            if h.extra.get(_WHILE.get(figure, ""), True) is False:
+                continue  # failed before, written since
             if isinstance(n, int) and n > 0:
                 lines.append(f"{h.instance}: {n:,} {says}")
     return lines

@@ -143,6 +143,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         )
     if not settings.no_record:
         usable_folder(settings.record_dir, "--record")
+    if not settings.no_state:
+        usable_folder(settings.state_dir, "--state")
     stop = threading.Event()
 
     # A host's process is stopped by its host, which says so itself: not a warning there.

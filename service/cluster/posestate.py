@@ -337,7 +337,8 @@ class PoseState:
                 return False
             self._dirty = False
             try:
-                self.folder.mkdir(parents=True, exist_ok=True)
+                # The folder is made at open only: one gone since (a volume unmounted) is a
+                # failed write, not a new folder on the disk beneath the mount point.
                 with self._locked():
                     self._merge_file()
                     for robot, entry in self._own_entries().items():
@@ -460,5 +461,7 @@ class PoseState:
         return {
             "state_writes": self.writes,
             "state_write_errors": self.write_errors,
+            # Whether writes fail now (the errors above are counted for ever).
+            "state_write_failing": self._failing is not None,
             "state_written_ns": self.last_written_ns,
         }

@@ -178,6 +178,7 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["serve", "--store", "foreign.txt/maps"], 2, ["--store", "not a folder"])
     yield Bad(["serve", "--record", "foreign.txt/logs"], 2, ["--record", "not a folder"])
     yield Bad(["demo", "--record", "foreign.txt"], 2, ["--record", "not a folder"])
+    yield Bad(["serve", "--state", "foreign.txt/state"], 2, ["--state", "not a folder"])
     # folders the checks allow and the file system does not (a read-only one; here a name
     # longer than any file system takes, and a link to nothing on the way)
     yield Bad(["serve", "--store", "s" * 300], 2, ["--store", "cannot create the folder"])
@@ -432,3 +433,29 @@ def test_demo_names_a_bad_environment_value_as_serve_does(
         err = capsys.readouterr().err
         assert "invalid configuration" in err and "min_fit" in err, err
         assert "unexpected error" not in err
+
+
+def test_a_read_only_file_system_is_named_as_such(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A folder on a read-only mount (a container's read-only layer) was reported as
+    "permission denied", which sends an operator to chmod; the file system's own flag says
+    which it is. (Mounting one needs root: the flag is given here as statvfs would give it.)"""
+
+    from service.cli.errors import CliError
+    from service.cli.flags import usable_folder, writable
+
+    real = os.statvfs
+
+    class ReadOnly:
+        f_flag = os.ST_RDONLY
+
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    monkeypatch.setattr(os, "statvfs", lambda path: ReadOnly())
+    with pytest.raises(CliError, match=r"--state .*on a read-only file system"):
+        usable_folder(tmp_path / "state", "--state")
+    with pytest.raises(CliError, match=r"--out .*not writable \(on a read-only file system\)"):
+        writable(tmp_path / "x.json", "--out")
+    monkeypatch.setattr(os, "statvfs", real)
+    with pytest.raises(CliError, match=r"--out .*\(permission denied\)"):
+        writable(tmp_path / "x.json", "--out")

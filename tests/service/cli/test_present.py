@@ -272,6 +272,8 @@ def test_health_warns_of_an_instance_losing_its_log_or_its_pose_state() -> None:
             health("h-p0", **{**fine, "recorder_unrecorded": 1652}),
             health("h-p1", **{**fine, "state_write_errors": 3, "recorder_overflow": 7}),
             health("other", **fine),
+            # failed writes before, written since: nothing to warn of now
+            health("healed", **{**fine, "state_write_errors": 5, "state_write_failing": False}),
             health("old"),  # an instance that reports none of these figures
         ]
     )
@@ -279,6 +281,8 @@ def test_health_warns_of_an_instance_losing_its_log_or_its_pose_state() -> None:
     assert [line.split(":")[0] for line in lines] == ["h-p0", "h-p1", "h-p1"]
     assert "recorder's queue was full" in lines[1] and "7" in lines[1]
     assert "a restart may not resume its robots" in lines[2]
+    failing = health("f", **{**fine, "state_write_errors": 5, "state_write_failing": True})
+    assert health_problems([failing])[0].startswith("f: 5 pose-state writes failed")
 
 
 def test_payloads_that_are_not_events_are_said_at_most_every_few_seconds(

@@ -114,3 +114,27 @@ def test_the_running_service_says_it_on_its_events(tmp_path: Path) -> None:
         assert codes().count("state_write_failed") == 1
         assert "state_write_resumed" in codes()
     shutil.rmtree(tmp_path / "store", ignore_errors=True)
+
+
+def test_a_folder_gone_is_a_failed_write_not_a_new_folder(tmp_path: Path) -> None:
+    """The folder is made at open only: a volume unmounted under a running service must not
+    get a new state folder on the disk beneath its mount point (the writer made it again at
+    each write before)."""
+    said: list[tuple[str, str, str]] = []
+    clock = itertools.count(10 * S, S)
+    folder = tmp_path / "volume" / "state"
+    state = PoseState(folder, "i1", 3600.0, lambda: next(clock), report=lambda *e: said.append(e))
+    state.open()
+    state.pose("r1", _pose("r1", S), S, S)
+    assert state.write() and not state.figures()["state_write_failing"]
+    shutil.rmtree(folder)
+    state.pose("r1", _pose("r1", 2 * S), 2 * S, 2 * S)
+    assert not state.write()
+    assert not folder.exists()
+    assert [code for _, code, _ in said] == ["state_write_failed"]
+    assert state.figures()["state_write_failing"] is True
+    folder.mkdir()  # the volume back
+    assert state.write()
+    assert state.figures()["state_write_failing"] is False
+    assert state.figures()["state_write_errors"] == 1
+    state.close()
