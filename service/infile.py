@@ -65,7 +65,26 @@ def not_a_file(path: Path | str) -> str | None:
     return None if stat.S_ISDIR(mode) else _not_a_file(mode)
 
 
-def read_regular(path: Path | str) -> bytes:
-    """The whole content of a regular file (see :func:`open_regular`)."""
+def read_regular(path: Path | str, max_bytes: int | None = None) -> bytes:
+    """The whole content of a regular file (see :func:`open_regular`).
+
+    Args:
+        max_bytes: the most that is read: a larger file is refused before more is read (what
+            the caller takes has a size beyond which no real input goes, and memory is bounded
+            whatever path a user gives).
+
+    Raises:
+        OSError: as :func:`open_regular`; ``EFBIG`` for a file over ``max_bytes``.
+    """
     with open_regular(path) as stream:
-        return stream.read()
+        if max_bytes is None:
+            return stream.read()
+        data = stream.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise too_large(path, max_bytes)
+    return data
+
+
+def too_large(path: Path | str, max_bytes: int) -> OSError:
+    """The error of an input over ``max_bytes`` (its ``strerror`` names the size)."""
+    return OSError(errno.EFBIG, f"larger than {max_bytes:,} bytes, the most read of it", str(path))

@@ -24,6 +24,7 @@ from service.cli.flags import (
 )
 from service.cli.mapmake import cmd_build, cmd_import, why
 from service.infile import read_regular
+from service.maps.book import FILE_MAX_BYTES
 
 
 def register(sub: Any) -> None:
@@ -294,7 +295,8 @@ def cmd_show(args: argparse.Namespace) -> int:
         )
     if path.exists():
         try:
-            data = json.loads(read_regular(path).decode("utf-8-sig"))  # a BOM is no matter
+            # A BOM is no matter.
+            data = json.loads(read_regular(path, FILE_MAX_BYTES).decode("utf-8-sig"))
         except OSError as err:
             raise CliError(f"cannot read {path}: {err.strerror or err}", EXIT_USAGE) from err
         except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:

@@ -93,10 +93,14 @@ def _merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
     return base
 
 
+#: The most of a settings file that is read (settings are a few kB).
+SETTINGS_MAX_BYTES = 16 << 20
+
+
 def read_settings_file(path: Path) -> dict[str, Any]:
     """A settings file as a mapping (JSON, TOML or YAML, by suffix)."""
     try:
-        text = read_regular(path).decode("utf-8")
+        text = read_regular(path, SETTINGS_MAX_BYTES).decode("utf-8")
     except OSError as err:
         raise ReplayConfigError(f"cannot read settings file {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:

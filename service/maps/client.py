@@ -34,7 +34,8 @@ def map_message_from_file(path: Path, map_id: str | None, version: int | None) -
         ValueError: unreadable file, bad JSON, invalid id or invalid map (message says why).
     """
     try:
-        data: Any = json.loads(read_regular(path).decode("utf-8-sig"))  # a BOM is no matter
+        text = read_regular(path, FILE_MAX_BYTES).decode("utf-8-sig")  # a BOM is no matter
+        data: Any = json.loads(text)
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:

@@ -131,3 +131,21 @@ def test_open_regular_reads_a_file_and_names_a_folder(tmp_path: Path) -> None:
     assert caught.value.errno == errno.EISDIR
     with pytest.raises(FileNotFoundError):
         open_regular(tmp_path / "missing")
+
+
+def test_a_file_over_its_bound_is_refused_before_more_is_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """What a command reads whole has a size past which no real input goes: a map's YAML is a
+    few hundred bytes, and a 2 MB one (a wrong file, a generated one gone wrong) was read
+    whole; now it is refused by name, exit 2."""
+    path = tmp_path / "f"
+    path.write_bytes(b"x" * 100)
+    assert read_regular(path, 100) == b"x" * 100
+    with pytest.raises(OSError, match=r"larger than 99 bytes") as err:
+        read_regular(path, 99)
+    assert err.value.errno == errno.EFBIG
+    yaml = tmp_path / "site.yaml"
+    yaml.write_text("image: site.pgm\n" + "#" * (2 << 20) + "\n")
+    assert main(["map", "import", str(yaml), "--out", str(tmp_path / "m.json")]) == 2
+    assert "larger than 1,048,576 bytes" in capsys.readouterr().err

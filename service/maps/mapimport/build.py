@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from service.infile import read_regular
+from service.infile import read_regular, too_large
 from service.maps.mapimport.errors import (
     CarmenError,
     EmptyMapError,
@@ -207,6 +207,11 @@ def _parse_line(
             odometry.append([stamp, x, y, theta])
 
 
+#: The most of a CARMEN log's text that is read (the public logs are tens of MB; every scan is
+#: held in memory while the map is built).
+MAX_CARMEN_BYTES = 1 << 30
+
+
 def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> CarmenLog:
     """Read a CARMEN log file, gzip-compressed or not.
 
@@ -217,9 +222,11 @@ def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> Ca
     p = Path(path)
     ended = True
     try:
-        data = read_regular(p)
+        data = read_regular(p, MAX_CARMEN_BYTES)
         if data[:2] == b"\x1f\x8b":
-            data, ended = _gunzip(data)
+            data, ended = _gunzip(data, MAX_CARMEN_BYTES)
+            if len(data) > MAX_CARMEN_BYTES:
+                raise too_large(p, MAX_CARMEN_BYTES)
     except (OSError, zlib.error) as err:
         why = err.strerror if isinstance(err, OSError) and err.strerror else err
         raise MapFileError(f"CARMEN log '{p}': cannot read: {why}") from err
@@ -232,21 +239,31 @@ def read_carmen(path: str | Path, *, max_range: float = DEFAULT_MAX_RANGE) -> Ca
     return log
 
 
-def _gunzip(raw: bytes) -> tuple[bytes, bool]:
+def _gunzip(raw: bytes, max_bytes: int) -> tuple[bytes, bool]:
     """A gzip file's content, and whether its stream ended: a log compressed as it was written
     and cut by a crash is read to where it stops (``gzip.decompress`` refuses it whole), as a
-    plain log cut mid-line is. Members after the first (``cat a.gz b.gz``) are read too.
+    plain log cut mid-line is. Members after the first (``cat a.gz b.gz``) are read too. At most
+    ``max_bytes`` and one more are inflated (a few MB of gzip can hold gigabytes of zeros): a
+    result longer than ``max_bytes`` is the caller's to refuse.
 
     Raises:
         zlib.error: corrupt data (not a stream cut short).
     """
     out = []
+    size = 0
     rest = raw
     while rest:
         stream = zlib.decompressobj(16 + zlib.MAX_WBITS)
-        out.append(stream.decompress(rest))
-        if not stream.eof:
-            return b"".join(out), False
+        pending = rest
+        while not stream.eof and size <= max_bytes:
+            piece = stream.decompress(pending, max_bytes + 1 - size)
+            out.append(piece)
+            size += len(piece)
+            pending = stream.unconsumed_tail
+            if not piece and not pending:
+                break  # the input is used up: a stream cut short
+        if size > max_bytes or not stream.eof:
+            return b"".join(out), stream.eof
         rest = stream.unused_data
     return b"".join(out), True
 

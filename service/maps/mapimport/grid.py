@@ -54,6 +54,11 @@ MAX_RESOLUTION: Final = 1e3
 #: Farthest origin from 0, metres (UTM coordinates are within it): past it a cell is below the
 #: float's precision.
 MAX_ORIGIN: Final = 1e8
+#: The most of a map's YAML that is read (map_server's are a few hundred bytes).
+MAX_YAML_BYTES: Final = 1 << 20
+#: The most of a map's image that is read: Pillow refuses more than about 179 million pixels
+#: (:data:`PIL.Image.MAX_IMAGE_PIXELS` twice), at most 4 bytes each, before it decodes them.
+MAX_IMAGE_BYTES: Final = 1 << 30
 
 #: Pixel values map_saver writes for free, occupied and unknown cells (trinary).
 SAVE_FREE, SAVE_OCCUPIED, SAVE_UNKNOWN = 254, 0, 205
@@ -389,7 +394,7 @@ def load_grid(yaml_path: str | Path) -> OccupancyGrid:
     """
     path = Path(yaml_path)
     try:
-        text = read_regular(path)
+        text = read_regular(path, MAX_YAML_BYTES)
     except OSError as err:
         raise MapFileError(f"map YAML '{path}': cannot read: {err.strerror or err}") from err
     if _an_image(text):
@@ -405,7 +410,7 @@ def load_grid(yaml_path: str | Path) -> OccupancyGrid:
     if not image_path.is_absolute():
         image_path = path.parent / image_path
     try:
-        image = read_regular(image_path)
+        image = read_regular(image_path, MAX_IMAGE_BYTES)
     except OSError as err:
         raise MapFileError(
             f"image file '{image_path}' (named by 'image' in '{path}'): "

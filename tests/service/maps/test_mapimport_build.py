@@ -137,6 +137,25 @@ def test_a_gzip_log_cut_by_a_crash_is_read_to_where_it_stops(tmp_path: Path) -> 
         read_carmen_bytes(tmp_path, bytes(broken))
 
 
+def test_a_gzip_bomb_or_an_endless_log_is_refused_within_its_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A few MB of gzip can hold gigabytes of zeros, and the whole log was inflated in memory
+    (a log downloaded from anywhere, given to ``rlutf map build``): now at most the bound and
+    one byte more are inflated, and a larger log, packed or plain, is refused by name."""
+    from service.maps.mapimport import build
+
+    monkeypatch.setattr(build, "MAX_CARMEN_BYTES", 1 << 20)
+    text = room_log().encode()
+    assert len(text) < 1 << 20
+    assert read_carmen_bytes(tmp_path, gzip.compress(text)).cut is None  # under it: read
+    bomb = gzip.compress(b"\0" * (64 << 20), 9)  # 64 MB of zeros in ~64 kB
+    with pytest.raises(MapFileError, match=r"larger than 1,048,576 bytes"):
+        read_carmen_bytes(tmp_path, bomb)
+    with pytest.raises(MapFileError, match=r"larger than 1,048,576 bytes"):
+        read_carmen_bytes(tmp_path, text * ((1 << 20) // len(text) + 1))
+
+
 def read_carmen_bytes(tmp_path: Path, data: bytes) -> CarmenLog:
     path = tmp_path / "log.gz"
     path.write_bytes(data)
