@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -260,6 +261,7 @@ def put_payload(
         if verdict == "conflict":
             return Put(False, held.version, _refused(key, msg.version, held.version))
     refused: list[Event] = []  # the store's Events about this put (it could not take it)
+    verdicts: list[Event] = []  # the running services' (loaded it, or refused it)
 
     def on_event(sample: zenoh.Sample) -> None:
         try:
@@ -268,17 +270,63 @@ def put_payload(
             return
         if ev.key == key and ev.code in _REFUSALS:
             refused.append(ev)
+        if ev.key == key and ev.code in _VERDICTS:
+            verdicts.append(ev)
 
     watch = session.declare_subscriber(Keys(prefix).events, on_event)
     try:
+        services = _live_services(session, prefix, min(timeout, 1.0))
+        deadline = time.monotonic() + timeout
         session.put(key, payload, encoding=JSON)
-        return _confirm(session, key, msg, payload, timeout, refused)
+        put = _confirm(session, key, msg, payload, timeout, refused)
+        if put.stored and put.new:
+            return _services_took(put, key, services, verdicts, deadline)
+        return put
     finally:
         watch.undeclare()
 
 
 #: The store's Events that say a put is not (durably) stored.
 _REFUSALS = (EventCode.MAP_DROPPED, EventCode.INVALID_MAP, EventCode.MAP_WRITE_FAILED)
+#: A running service's Events that say what it made of a map put.
+_VERDICTS = (EventCode.MAP_UPDATED, EventCode.MAP_VERSION_CONFLICT)
+
+
+def _live_services(session: zenoh.Session, prefix: str, timeout: float) -> int:
+    """How many service instances are live (liveliness tokens on ``{prefix}/service/*``)."""
+    replies = session.liveliness().get(Keys(prefix).all_services, timeout=timeout)
+    return len({str(r.ok.key_expr) for r in replies if r.ok is not None})
+
+
+def _services_took(
+    put: Put, key: str, services: int, verdicts: list[Event], deadline: float
+) -> Put:
+    """A put the store holds, and what the running services made of it: a service that holds a
+    newer version refuses it (``map_version_conflict``). The store and a service then disagree,
+    which happens after ``rlutf map remove``: the store forgets the map's version, the running
+    services keep their copy, so a put of version 1 is new to one and old to the other. Waits
+    until each live service has said (or the deadline: a service that already held this very
+    map says nothing)."""
+    while len(verdicts) < services and time.monotonic() < deadline:
+        time.sleep(0.05)
+    conflict = next((e for e in verdicts if e.code == EventCode.MAP_VERSION_CONFLICT), None)
+    if conflict is None:
+        return put
+    found = re.search(r"held version (\d+)", conflict.message)
+    fix = (
+        f"put it as version {int(found[1]) + 1} with --version {int(found[1]) + 1}"
+        if found
+        else "put it again with a --version above the one that service holds"
+    )
+    return Put(
+        False,
+        put.version,
+        f"the store took {key} as version {put.version}, but a running service refused it "
+        f"({conflict.message}); it holds a version from before the map was removed (`rlutf map "
+        f"remove` leaves running services their copy until they restart): {fix}, which the "
+        "store and the services both take",
+        new=True,
+    )
 
 
 def _unchanged(key: str, version: int, said: str, in_memory: bool) -> Put:

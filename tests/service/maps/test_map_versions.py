@@ -311,3 +311,29 @@ def test_a_put_past_the_memory_the_store_holds_unwritten_is_not_taken(
     finally:
         bench.store.unlink()
         aside.rename(bench.store)
+
+
+def test_map_put_after_a_remove_says_when_the_running_service_refuses_it(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`rlutf map remove` empties the store, but a running service keeps the version it holds:
+    a put of version 1 afterwards is new to the store and older than the service's. Before, `map
+    put` said "stored" (exit 0) while the service refused it with map_version_conflict: the
+    store then held one map and the robots ran on another, until a restart switched them."""
+    bench.put_map(version=2)
+    assert Collector().wait_for(
+        lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 2
+    )
+    assert main(["map", "remove", "m1", "-e", bench.endpoint, "--force"]) == 0
+    capsys.readouterr()
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1, MOVED))
+    assert _put_cli(bench, path) == 1  # next: version 1, the store holds none
+    err = capsys.readouterr().err
+    assert "refused" in err and "version 2" in err and "--version 3" in err, err
+    held = bench.service.maps.get("m1")
+    assert held is not None and held.version == 2
+    assert _put_cli(bench, path, "--version", "3") == 0  # above the service's: taken everywhere
+    assert Collector().wait_for(
+        lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 3
+    )
