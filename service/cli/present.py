@@ -47,8 +47,8 @@ WAITING_HINT = (
     "`rlutf initialpose ROBOT --map ID --pose X,Y,THETA`"
 )
 NO_SCAN_HINT = (
-    "no scan yet: the robot has an initial pose and has sent no scan since; its next scan "
-    "gives its first pose (is it sending scans? `rlutf events ROBOT`)"
+    "no scan yet: the robot has an initial pose (or a Relocalize) and has sent no scan since; "
+    "its next scan gives its first pose (is it sending scans? `rlutf events ROBOT`)"
 )
 NO_RETURNS_HINT = (
     "no returns: the robot's scans have too few returns to compare, so no pose goes out (a "

@@ -55,7 +55,7 @@ from service.live.memory import HeapTrimmer
 from service.live.metrics import make_metrics
 from service.live.outbox import Outbox
 from service.live.publishing import EVENT_SCHEMA, Announcer
-from service.live.robots import RobotView, robots_key
+from service.live.robots import PLACING, RobotView, robots_key
 from service.live.sessions import service_config
 from service.live.shards import Done
 from service.live.stats import Stats
@@ -371,7 +371,7 @@ class LocalizationService:
         self.dispatcher.submit(robot, kind, payload, msg, at)
         if kind == "odom":
             self.posestate.odom(robot, msg.stamp_ns, payload)
-        elif kind == "initialpose" and check_input(msg, self.settings.limits) is None:
+        elif kind in PLACING and check_input(msg, self.settings.limits) is None:
             self.robot_view.initialized(robot, at, getattr(msg, "map_id", None))  # not if refused
 
     def _record_seed(self, robot: str, entry: Entry) -> None:

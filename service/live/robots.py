@@ -127,6 +127,10 @@ _WAITING = {
 }
 #: The reason of a robot given an initial pose that has sent no scan since.
 NO_SCAN_YET = "no_scan_yet"
+#: Inputs that place a robot on a map, after which it is listed (:data:`NO_SCAN_YET`) until its
+#: first pose: a Relocalize too (it went unlisted, or stayed "no map" after one on a mistyped
+#: map while the robot sent no scans).
+PLACING = ("initialpose", "relocalize")
 #: The reason of a robot whose scans have too few returns to give a pose (a lidar blocked or
 #: failing, range limits that leave nothing): it sends scans, so "no scan yet" would mislead.
 NO_RETURNS = "no_returns"

@@ -301,3 +301,29 @@ def test_a_robot_restored_after_a_restart_is_shown_by_its_owner_until_its_first_
     ]
     view.forget("r2")  # handed to another instance
     assert [s.robot_id for s in view.states()] == ["r1"]
+
+
+def test_a_relocalize_before_any_scan_lists_the_robot_on_its_map(bench: Bench) -> None:
+    # `rlutf relocalize r6 --map m1` for a robot that streams nothing yet: the view did not
+    # list it at all (an initial pose did), and after a Relocalize on a map no storage has, a
+    # second one on the right map left it listed as "no map" with no map.
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/robots/r6/events", col)
+    bench.put_map()
+    time.sleep(0.3)
+
+    def waiting() -> list[tuple[str, str, str | None]]:
+        (answer,) = ask(bench, "rlutf/service/*/robots")
+        return [(w["robot_id"], w["reason"], w["map_id"]) for w in answer["waiting"]]
+
+    def relocalize(map_id: str) -> None:
+        payload = json.dumps({"stamp_ns": time.time_ns(), "map_id": map_id}).encode()
+        bench.client.put("rlutf/robots/r6/relocalize", payload)
+
+    relocalize("m1")
+    assert col.wait_for(lambda: waiting() == [("r6", "no_scan_yet", "m1")], 5.0), waiting()
+    relocalize("typo")
+    assert col.wait_for(lambda: waiting() == [("r6", "map_not_found", "typo")], 5.0), waiting()
+    relocalize("m1")
+    assert col.wait_for(lambda: waiting() == [("r6", "no_scan_yet", "m1")], 5.0), waiting()
+    sub.undeclare()
