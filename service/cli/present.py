@@ -150,7 +150,7 @@ def robots_table(
     ]
     text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
     shown = {_wait(w)[1] for w in waits}
-    hints = [h for h in (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT) if h in shown]
+    hints = [h for h in (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT, NO_RETURNS_HINT) if h in shown]
     return "\n\n".join([text, *hints])
 
 

@@ -329,3 +329,12 @@ def test_payloads_that_are_not_events_from_several_threads_are_one_line_a_period
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 2, lines
     assert lines[1].endswith("(and 3999 more since the last such line)"), lines
+
+
+def test_a_robot_whose_scans_have_no_returns_reads_no_returns_with_its_hint() -> None:
+    # A blocked lidar: the status read "no returns" but no line under the table said what it
+    # means (every other waiting status has one).
+    blocked = WaitingRobot(robot_id="r3", reason="no_returns", age_s=1.0, owner="a", map_id="m")
+    text, hint = robots_table([], [blocked]).split("\n\n")
+    assert text.splitlines()[-1].split()[:4] == ["r3", "m", "no", "returns"]
+    assert hint.startswith("no returns:") and "lidar" in hint
