@@ -29,6 +29,7 @@ def _finish(args: argparse.Namespace, result: Any) -> int:
     from service.maps.mapimport import MapFileError, render_map
 
     print("\n".join(result.report))
+    _within_limits(result.map)
     mid = result.map["map_id"]
     out = args.out or Path(f"{mid}.json")
     try:
@@ -55,6 +56,52 @@ def _finish(args: argparse.Namespace, result: Any) -> int:
             version = args.version if args.version is not None else "next"
             return put_map(session, settings.prefix, out, mid, version)
     return EXIT_OK
+
+
+def _within_limits(wire: dict[str, Any]) -> None:
+    """Refuse a map the service would refuse with the settings in effect (``max_map_area``,
+    ``max_map_vertices``, ``max_map_bytes``; defaults, ``RLUTF_*``, ``RLUTF_SETTINGS``), before
+    it is written: WIRE.md v1.2 promises that every map import and build write is taken. A grid
+    of large extent (a 2 km site at 0.5 m is 16 million cells and a few walls) was written, exit
+    0, and only its put refused, once the file was on its way to the site.
+
+    Raises:
+        CliError: the figure, the setting and the value that takes it (exit 2).
+    """
+    import shapely
+    from shapely.geometry import shape
+
+    from rlutf.errors import MapError
+    from service.cli.flags import checked_settings
+    from service.config import Settings
+
+    settings = checked_settings(lambda: Settings(mode="client", listen=[]))
+    geometry = shape(wire["geometry"])
+    x0, y0, x1, y1 = geometry.bounds
+    vertices = int(shapely.get_num_coordinates(geometry))
+    size = len(json.dumps(wire, separators=(",", ":")))
+    try:
+        settings.map_limits().check((x0, y0, x1, y1), vertices)
+        if size > settings.max_map_bytes:
+            raise MapError(
+                f"the map is {size} bytes of JSON, more than the limit of "
+                f"{settings.max_map_bytes} (setting max_map_bytes)"
+            )
+    except MapError as err:
+        needed = {
+            "max_map_area": f"{(x1 - x0) * (y1 - y0):.0f}",
+            "max_map_vertices": str(vertices),
+            "max_map_bytes": str(size),
+        }
+        name = next(n for n in needed if n in str(err))
+        raise CliError(
+            f"{err}: the map store and the service refuse it with the settings in effect, so it "
+            f"is not written. For a site this large, give the service and this command a larger "
+            f"{name} (RLUTF_{name.upper()}={needed[name]}, or {name} in the settings file; "
+            "docs/operations.md, Maps, says the memory it takes), or keep less of the grid "
+            "(--component, a cropped image)",
+            EXIT_USAGE,
+        ) from err
 
 
 def _outputs(args: argparse.Namespace) -> None:

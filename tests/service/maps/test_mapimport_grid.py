@@ -349,7 +349,12 @@ def test_map_import_refuses_a_scale_no_floor_has(
     assert code == 2 and words in err and "unexpected error" not in err, err
 
 
-def test_map_import_takes_the_scales_floors_have(tmp_path: Path) -> None:
+def test_map_import_takes_the_scales_floors_have(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # 30 x 20 cells of 1 km: a scale the YAML check takes, and a map over the default
+    # max_map_area, which import refuses unless the settings take it (test_map_limits_cli.py).
+    monkeypatch.setenv("RLUTF_MAX_MAP_AREA", "1e12")
     pixels = np.full((20, 30), 254)
     pixels[[0, -1], :] = pixels[:, [0, -1]] = 0
     (tmp_path / "room.pgm").write_bytes(pgm(pixels))
