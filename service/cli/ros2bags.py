@@ -61,7 +61,7 @@ def load_map(spec: str, store: Path) -> bytes:
         return map_message_from_file(path, None, None)
     if not valid_id(spec):
         raise ValueError(f"--map {spec!r}: neither a file nor a map id")
-    from service.maps.store import FileMapStore
+    from service.maps.files import FileMapStore
 
     payload = FileMapStore(store).get(spec)
     if payload is None:

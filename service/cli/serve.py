@@ -281,13 +281,13 @@ def _addrs_usable(settings: Any) -> None:
 
 def _store_free(folder: Path, fix: str) -> None:
     """Refuse a --store that another running service serves, before anything starts (the
-    service claims it for good when its store starts: service.maps.store.FileMapStore.claim);
+    service claims it for good when its store starts: service.maps.files.FileMapStore.claim);
     ``fix`` says what to do instead.
 
     Raises:
         CliError: another process serves the folder.
     """
-    from service.maps.store import FileMapStore, StoreInUse
+    from service.maps.files import FileMapStore, StoreInUse
 
     store = FileMapStore(folder)
     try:

@@ -28,7 +28,8 @@ from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
 from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
-from service.maps.store import FileMapStore, MapStorage, room_for
+from service.maps.files import FileMapStore
+from service.maps.store import MapStorage, room_for
 
 log = logging.getLogger(__name__)
 
@@ -200,6 +201,9 @@ class MapFeed:
             ),
             on_written=lambda key, msg: report(
                 "map_write_resumed", "warning", EventCode.MAP_WRITE_RESUMED, key, msg
+            ),
+            on_conflict=lambda key, msg: report(
+                "store_conflict", "error", EventCode.MAP_VERSION_CONFLICT, key, msg
             ),
         )
         self.store_busy = storage.busy

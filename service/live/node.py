@@ -63,7 +63,8 @@ from service.live.warmaside import warm_up_aside
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
 from service.maps.book import Held, MapBook
-from service.maps.store import FileMapStore, MapStorage
+from service.maps.files import FileMapStore
+from service.maps.store import MapStorage
 
 log = logging.getLogger(__name__)
 

@@ -250,7 +250,35 @@ def put_payload(
             said = f"unchanged: {key} already holds this map as version {held.version}"
             return _unchanged(key, held.version, said, in_memory)
         msg = msg.model_copy(update={"version": held.version + 1 if held is not None else 1})
-        payload = encode(msg)
+        put = _put(session, prefix, key, msg, held, in_memory, timeout)
+        named = None if put.stored or held is not None else held_named(put.said)
+        if named is None:
+            return put
+        # Nothing stored, yet a version is held: the map was removed (`rlutf map remove`) at a
+        # version the store and the running services keep. Next is the one after it.
+        msg = msg.model_copy(update={"version": named + 1})
+    return _put(session, prefix, key, msg, held, in_memory, timeout)
+
+
+def held_named(said: str) -> int | None:
+    """The version a refusal of a put names as held (the store's of a version not newer than
+    one removed, :func:`service.maps.store.removed_conflict`, or a running service's
+    :class:`~service.maps.book.VersionConflict`), if ``said`` is such a refusal."""
+    found = re.search(r"(?:not newer than version|than the held version) (\d+)", said)
+    return int(found[1]) if found else None
+
+
+def _put(
+    session: zenoh.Session,
+    prefix: str,
+    key: str,
+    msg: Map,
+    held: Map | None,
+    in_memory: bool,
+    timeout: float,
+) -> Put:
+    """Put ``msg`` as it is (its version chosen) and wait for the store's answer."""
+    payload = encode(msg)
     if held is not None:
         verdict = put_verdict(
             (held.version, content_digest(held)), msg.version, content_digest(msg)
@@ -286,8 +314,14 @@ def put_payload(
         watch.undeclare()
 
 
-#: The store's Events that say a put is not (durably) stored.
-_REFUSALS = (EventCode.MAP_DROPPED, EventCode.INVALID_MAP, EventCode.MAP_WRITE_FAILED)
+#: The store's Events that say a put is not (durably) stored (a conflict here: a version not
+#: newer than one removed, which the tool cannot see before it puts).
+_REFUSALS = (
+    EventCode.MAP_DROPPED,
+    EventCode.INVALID_MAP,
+    EventCode.MAP_WRITE_FAILED,
+    EventCode.MAP_VERSION_CONFLICT,
+)
 #: A running service's Events that say what it made of a map put.
 _VERDICTS = (EventCode.MAP_UPDATED, EventCode.MAP_VERSION_CONFLICT)
 

@@ -3,26 +3,22 @@
 A Zenoh storage is a subscriber that persists puts plus a ``complete`` queryable that answers
 gets; zenoh-python ignores zenohd's plugin section, so the service hosts this one itself. Maps
 are files ``{map_id}.json`` in one folder, written atomically (temporary file, fsync, rename,
-fsync of the folder), so a crash leaves either the old map or the new one, never half of one.
+fsync of the folder: :mod:`service.maps.files`), so a crash leaves either the old map or the new
+one, never half of one.
 Fleets that run zenohd's storage manager start the service with ``--no-store``.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import queue
-import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import Protocol
+from collections.abc import Callable
 
 import zenoh
 
 from rlutf.map import MapLimits
-from schemas import valid_id
 from service.keys import KeyError_, Keys
 from service.maps.book import (
     Held,
@@ -32,6 +28,7 @@ from service.maps.book import (
     check_map,
     put_verdict,
 )
+from service.maps.files import FileMapStore
 
 log = logging.getLogger(__name__)
 
@@ -58,141 +55,14 @@ def room_for(waiting: int, waiting_bytes: int, size: int, most: int, most_bytes:
     return waiting == 0 or (waiting < most and waiting_bytes + size <= most_bytes)
 
 
-class MapStore(Protocol):
-    """Persistence of map payloads by id."""
-
-    def get(self, map_id: str) -> bytes | None:
-        """The stored payload, or ``None``."""
-
-    def put(self, map_id: str, payload: bytes) -> None:
-        """Store a payload, replacing any other."""
-
-    def delete(self, map_id: str) -> None:
-        """Forget a map."""
-
-    def ids(self) -> list[str]:
-        """Every stored id."""
-
-
-#: The file in a store's folder that its serving process holds locked (``flock``), with its pid.
-CLAIM_FILE = ".rlutf-store.lock"
-
-
-class StoreInUse(RuntimeError):
-    """Another running process serves the store's folder."""
-
-
-class FileMapStore:
-    """Maps as JSON files in one folder.
-
-    Args:
-        root: the folder; created if missing.
-    """
-
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
-        self._claim: int | None = None
-
-    def claim(self) -> None:
-        """Serve this folder alone: hold its :data:`CLAIM_FILE` locked until :meth:`release`
-        (or this process ends, when the system lets the lock go by itself).
-
-        Two services on one folder (a second site or a test instance started from the same
-        working directory, each with the default ``--store store``) each checked map versions
-        against what they had read at their start, and each overwrote the other's files: a
-        site's map replaced by another site's of the same id at its next restart. Readers (the
-        CLI reading a map from a folder) do not claim it. A file system that refuses locks
-        (some network mounts) is served unclaimed.
-
-        Raises:
-            StoreInUse: another process holds the folder (the message names its pid).
-        """
-        import fcntl
-
-        path = self.root / CLAIM_FILE
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
-            os.close(fd)
-            raise StoreInUse(
-                f"the map store folder {self.root} is served by another running process (pid "
-                f"{holder}: another `rlutf serve`?)"
-            ) from None
-        except OSError as err:
-            os.close(fd)
-            log.warning("map store %s: not locked (%s): serve it from one process only", path, err)
-            return
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        self._claim = fd
-
-    def release(self) -> None:
-        """Let the folder go (:meth:`claim`)."""
-        if self._claim is not None:
-            os.close(self._claim)
-            self._claim = None
-
-    def _path(self, map_id: str) -> Path:
-        if not valid_id(map_id):
-            raise ValueError(f"invalid map id {map_id!r}")
-        return self.root / f"{map_id}.json"
-
-    def get(self, map_id: str) -> bytes | None:
-        """The stored payload, or ``None``."""
-        try:
-            return self._path(map_id).read_bytes()
-        except FileNotFoundError:
-            return None
-
-    def put(self, map_id: str, payload: bytes) -> None:
-        """Write atomically: a crash leaves the old file or the new one."""
-        path = self._path(map_id)
-        with self._lock:
-            fd, tmp = tempfile.mkstemp(prefix=f".{map_id}.", suffix=".tmp", dir=self.root)
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    f.write(payload)
-                    f.flush()
-                    os.fsync(f.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
-            dir_fd = os.open(self.root, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
-
-    def delete(self, map_id: str) -> None:
-        """Remove the file if present, durably (a crash does not bring the map back)."""
-        path = self._path(map_id)
-        with self._lock:
-            if path.exists():
-                path.unlink(missing_ok=True)
-                self._sync_folder()
-
-    def _sync_folder(self) -> None:
-        dir_fd = os.open(self.root, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-
-    def ids(self) -> list[str]:
-        """Ids of the stored maps, sorted."""
-        return sorted(p.stem for p in self.root.glob("*.json") if valid_id(p.stem))
-
-    def items(self) -> Iterator[tuple[str, bytes]]:
-        """Every stored ``(map_id, payload)``."""
-        for map_id in self.ids():
-            payload = self.get(map_id)
-            if payload is not None:
-                yield map_id, payload
+def removed_conflict(map_id: str, version: int, removed: int) -> str:
+    """The store's Event message for a put not newer than the version ``rlutf map remove``
+    removed (read back by :func:`service.maps.client.removed_version`)."""
+    return (
+        f"map {map_id!r}: version {version} put, not newer than version {removed} that was "
+        "removed (`rlutf map remove`), which running services may still hold; nothing changed "
+        f"(put version {removed + 1} or later: rlutf map put --version next)"
+    )
 
 
 class MapStorage:
@@ -204,6 +74,11 @@ class MapStorage:
     stored; an echo of the held version changes nothing; an older version, or the held version
     with other content, is not stored (the service that sees the same put reports the conflict).
     Invalid maps are not stored. Gets are answered from the files, so maps survive restarts.
+
+    A map removed (``rlutf map remove``) leaves running services their copy and its version, so
+    the store keeps the version removed (``.{map_id}.removed``): a later put must be newer than
+    it, or be the removed version put back as it was, as for the services, and a refused one is
+    reported here (``on_conflict``), since a service restarted since would not know to.
 
     A newer version the disk refuses (full, read-only, the folder gone) is taken all the same
     and held in memory: every service on the bus loads a put as it sees it, so a store that did
@@ -227,6 +102,8 @@ class MapStorage:
             ``on_drop``), held in memory; past :data:`UNWRITTEN_BYTES`, ``on_drop`` says it
             was not taken.
         on_written: reports a map held in memory written at last (default: a log line).
+        on_conflict: reports a put refused because a newer version of the map was removed
+            (no running service may hold it to say so; default: a log line).
         forward: called with every sample on ``{prefix}/maps/*`` this storage did not drop:
             the service beside it follows the maps so, and never loads a put its store dropped.
     """
@@ -244,6 +121,7 @@ class MapStorage:
         forward: Callable[[zenoh.Sample], None] | None = None,
         on_unwritten: Callable[[str, str], None] | None = None,
         on_written: Callable[[str, str], None] | None = None,
+        on_conflict: Callable[[str, str], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -254,6 +132,7 @@ class MapStorage:
         self.on_drop = on_drop or self.on_error
         self.on_unwritten = on_unwritten or self.on_drop
         self.on_written = on_written or (lambda key, msg: log.info("%s", msg))
+        self.on_conflict = on_conflict or (lambda key, msg: log.info("%s", msg))
         # Maps taken but not on disk yet: map id -> (payload, monotonic time of the first refusal)
         self._unwritten: dict[str, tuple[bytes, float]] = {}
         self._pending = 0  # puts queued or being stored
@@ -264,6 +143,9 @@ class MapStorage:
         self._versions: dict[str, Held] = {}
         self._lock = threading.Lock()
         store.claim()  # the versions held below are this process's to keep
+        # Maps removed (`rlutf map remove`): running services keep their copy, so a put must be
+        # newer than the version removed for the store and them to agree.
+        self._removed: dict[str, Held] = store.removed()
         for map_id, payload in store.items():
             try:
                 checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
@@ -279,9 +161,10 @@ class MapStorage:
         )
 
     def held(self, map_id: str) -> Held | None:
-        """The version stored for ``map_id`` and its content digest, if any."""
+        """The version stored for ``map_id`` and its content digest, if any; for a map removed
+        and not put since, the version removed (the rule's version to beat)."""
         with self._lock:
-            return self._versions.get(map_id)
+            return self._versions.get(map_id) or self._removed.get(map_id)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if (
@@ -370,13 +253,16 @@ class MapStorage:
     def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:
         if payload is None:  # `rlutf map remove`: an operator's choice
             with self._lock:
+                held = self._versions.get(map_id) or self._removed.get(map_id)
                 try:
-                    self.store.delete(map_id)
+                    self.store.delete(map_id, held)
                 except OSError as err:
                     self.on_error(key, f"could not remove map {map_id}: {err}")
                     return
                 self._versions.pop(map_id, None)
                 self._unwritten.pop(map_id, None)
+                if held is not None:
+                    self._removed[map_id] = held
             log.info("map %s removed", map_id)
             return
         try:
@@ -385,9 +271,14 @@ class MapStorage:
             return  # the service's map subscriber reports it
         with self._lock:
             held = self._versions.get(map_id)
-            verdict = put_verdict(held, version, digest)
+            removed = None if held is not None else self._removed.get(map_id)
+            verdict = put_verdict(held or removed, version, digest)
+            if removed is not None and verdict != "conflict":
+                verdict = "new"  # the removed version put back as it was, or a newer one
             if verdict != "new":
-                if held is not None and verdict == "conflict":
+                if removed is not None:  # no running service may know of the removal
+                    self.on_conflict(key, removed_conflict(map_id, version, removed[0]))
+                elif held is not None and verdict == "conflict":
                     log.info("%s", VersionConflict(map_id, version, held[0]))
                 return
             try:
@@ -397,6 +288,11 @@ class MapStorage:
                 return
             self._unwritten.pop(map_id, None)  # an older version waiting is superseded
             self._versions[map_id] = (version, digest)
+            if self._removed.pop(map_id, None) is not None:
+                try:
+                    self.store.unmark(map_id)
+                except OSError as err:  # the mark stays: its version is older than this one's
+                    log.warning("map %s: removal mark left: %s", map_id, err)
 
     def _hold_unwritten(
         self, key: str, map_id: str, payload: bytes, held: Held, err: OSError

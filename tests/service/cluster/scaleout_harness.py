@@ -19,7 +19,8 @@ from rlutf.map import Map as World
 from schemas import Map, encode
 from service.keys import Keys
 from service.live.sessions import session_config
-from service.maps.store import FileMapStore, MapStorage
+from service.maps.files import FileMapStore
+from service.maps.store import MapStorage
 
 
 def router_config(port: int) -> zenoh.Config:

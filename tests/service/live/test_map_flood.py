@@ -25,7 +25,8 @@ from service.live import mapfeed
 from service.live.sessions import session_config
 from service.maps import store as store_module
 from service.maps.book import MapBook, MapChecker
-from service.maps.store import FileMapStore, MapStorage
+from service.maps.files import FileMapStore
+from service.maps.store import MapStorage
 
 pytestmark = pytest.mark.integration
 PUTS = 12

@@ -313,13 +313,15 @@ def test_a_put_past_the_memory_the_store_holds_unwritten_is_not_taken(
         aside.rename(bench.store)
 
 
-def test_map_put_after_a_remove_says_when_the_running_service_refuses_it(
+def test_a_put_after_a_remove_must_be_newer_than_the_version_removed_everywhere(
     bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`rlutf map remove` empties the store, but a running service keeps the version it holds:
-    a put of version 1 afterwards is new to the store and older than the service's. Before, `map
-    put` said "stored" (exit 0) while the service refused it with map_version_conflict: the
-    store then held one map and the robots ran on another, until a restart switched them."""
+    """`rlutf map remove` empties the store, but a running service keeps the version it holds.
+    Before, the store forgot the version: a put of version 1 afterwards was new to the store and
+    older than the service's, `map put` said "stored" (exit 0), and the store held one map while
+    the robots ran on another until a restart switched them. Now the store keeps the version
+    removed: version 1 is refused by both (exit 1, naming the version to beat), `--version next`
+    (the default) takes the one after it, and the store and the service end on the same map."""
     bench.put_map(version=2)
     assert Collector().wait_for(
         lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 2
@@ -328,12 +330,17 @@ def test_map_put_after_a_remove_says_when_the_running_service_refuses_it(
     capsys.readouterr()
     path = tmp_path / "m1.json"
     path.write_bytes(_payload(1, MOVED))
-    assert _put_cli(bench, path) == 1  # next: version 1, the store holds none
+    assert _put_cli(bench, path, "--version", "1") == 1
     err = capsys.readouterr().err
-    assert "refused" in err and "version 2" in err and "--version 3" in err, err
+    assert "not newer than version 2 that was removed" in err or "held version 2" in err, err
+    assert _stored(bench) is None  # nothing changed anywhere
     held = bench.service.maps.get("m1")
     assert held is not None and held.version == 2
-    assert _put_cli(bench, path, "--version", "3") == 0  # above the service's: taken everywhere
+    assert _put_cli(bench, path) == 0  # next: after the version removed
+    assert "version 3" in capsys.readouterr().out
     assert Collector().wait_for(
         lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 3
     )
+    stored = _stored(bench)
+    assert stored is not None and stored.version == 3
+    assert not list(bench.store.glob(".m1.removed"))  # a newer version: the mark is gone

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from service.cli.main import main
-from service.maps.store import CLAIM_FILE, FileMapStore, StoreInUse
+from service.maps.files import CLAIM_FILE, FileMapStore, StoreInUse
 
 
 def test_a_folder_is_served_by_one_store_at_a_time(tmp_path: Path) -> None:

@@ -12,7 +12,8 @@ from service_harness import WORLD
 from schemas import Map, encode
 from service.keys import Keys
 from service.live.sessions import session_config
-from service.maps.store import FileMapStore, MapStorage
+from service.maps.files import FileMapStore
+from service.maps.store import MapStorage
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -37,7 +38,14 @@ def _served(session: zenoh.Session) -> list[bytes]:
 @pytest.mark.integration
 def test_a_delete_on_the_key_removes_the_map_and_its_version(tmp_path: Path) -> None:
     with zenoh.open(session_config("peer")) as session:
-        storage = MapStorage(session, Keys(), FileMapStore(tmp_path), 10_000_000)
+        conflicts: list[str] = []
+        storage = MapStorage(
+            session,
+            Keys(),
+            FileMapStore(tmp_path),
+            10_000_000,
+            on_conflict=lambda key, msg: conflicts.append(msg),
+        )
         try:
             session.put("rlutf/maps/m1", _payload(3), encoding=JSON)
             deadline = time.monotonic() + 5
@@ -50,12 +58,29 @@ def test_a_delete_on_the_key_removes_the_map_and_its_version(tmp_path: Path) -> 
                 time.sleep(0.05)
             assert _served(session) == []
             assert not (tmp_path / "m1.json").exists()
-            # the removal forgot version 3: a first version is a new map, not an old one
+            # the removal kept version 3 (running services keep their copy): version 1 is an
+            # older version, refused and said; version 3 as it was is put back; then 4 is new
             session.put("rlutf/maps/m1", _payload(1), encoding=JSON)
+            while not conflicts and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert _served(session) == [] and "not newer than version 3" in conflicts[0]
+            assert storage.held("m1") is not None and storage.held("m1")[0] == 3
+            session.put("rlutf/maps/m1", _payload(3), encoding=JSON)
             while not _served(session) and time.monotonic() < deadline:
                 time.sleep(0.05)
-            assert _served(session) == [_payload(1)]
+            assert _served(session) == [_payload(3)]
+            assert not (tmp_path / ".m1.removed").exists()
         finally:
             storage.close()
     # and a store opened on the folder again serves what is left
     assert FileMapStore(tmp_path).ids() == ["m1"]
+
+
+def test_the_version_removed_is_kept_across_restarts(tmp_path: Path) -> None:
+    store = FileMapStore(tmp_path)
+    store.put("m1", _payload(3))
+    store.delete("m1", (3, "digest"))
+    assert store.ids() == [] and FileMapStore(tmp_path).removed() == {"m1": (3, "digest")}
+    store.unmark("m1")
+    assert FileMapStore(tmp_path).removed() == {}
+    assert list(tmp_path.iterdir()) == []
