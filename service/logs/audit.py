@@ -13,8 +13,10 @@ how many payloads are byte-identical, and the poses present on one side only:
   inputs, so the replay cannot recompute them as they were; reported, not compared, and not a
   failure unless ``strict``.
 
-A robot fails when a deviation exceeds its tolerance, a status differs, or poses are missing or
-extra. Where the log holds no poses at all there is nothing to audit.
+A robot fails when a deviation exceeds its tolerance, a status differs, any other field of a
+matched pair differs (``map_id``, the covariance, the quality fields, the hypotheses, a key on
+one side only; numbers by more than the translation tolerance), or poses are missing or extra.
+Where the log holds no poses at all there is nothing to audit.
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ class RobotAudit:
     max_heading: float
     rms_heading: float
     after_gap: int = 0
+    fields: tuple[tuple[str, int, float], ...] = ()
+    """Fields other than the pose and status that differ: (name, pairs, largest deviation)."""
+
+    def fields_past(self, tolerance_m: float) -> list[tuple[str, int, float]]:
+        """The fields that differ by more than ``tolerance_m`` (infinity: not a number)."""
+        return [f for f in self.fields if f[2] > tolerance_m]
 
     def passed(self, tolerance_m: float, tolerance_rad: float, strict: bool = False) -> bool:
         """Whether the robot's recorded poses are reproduced within the tolerances."""
@@ -61,6 +69,7 @@ class RobotAudit:
             and self.missing == 0
             and self.extra == 0
             and self.status_differs == 0
+            and not self.fields_past(tolerance_m)
             and (not strict or self.unverified == self.after_gap == 0)
         )
 
@@ -86,6 +95,7 @@ def _robot_audit(robot: str, r: Tally) -> RobotAudit:
         max_heading=r.max_heading,
         rms_heading=rms(r.sum_heading_sq),
         after_gap=r.after_gap,
+        fields=tuple((name, n, d) for name, (n, d) in sorted(r.fields.items())),
     )
 
 
@@ -178,6 +188,15 @@ def render(
             "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]",
         )
     console.print(table)
+    for a in audits:
+        past = a.fields_past(tolerance_m)
+        if past:
+            said = ", ".join(
+                f"{name} in {n} pose(s)" + (f" (by up to {d:.3g})" if math.isfinite(d) else "")
+                for name, n, d in past
+            )
+            console.print(f"[red]{a.robot}: recorded poses differ from the recomputed ones in "
+                          f"{said}[/red]", soft_wrap=True)  # fmt: skip
 
 
 @dataclass(frozen=True)

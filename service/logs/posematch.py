@@ -15,9 +15,10 @@ the end, where they count as missing, extra or unverified (:mod:`service.logs.au
 
 from __future__ import annotations
 
+import json
 import math
 from collections import deque
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from rlutf.motion import wrap_scalar
 
@@ -35,11 +36,72 @@ class PoseRecord(NamedTuple):
     payload: bytes
 
 
+#: The fields a pair is matched on (``robot_id``, ``stamp_ns``), judged apart (``x``, ``y``,
+#: ``theta`` against the tolerances, ``status`` exactly), or none of the pose's.
+_JUDGED_APART = frozenset({"robot_id", "stamp_ns", "x", "y", "theta", "status"})
+
+#: At most this many field names are told apart per robot; further ones are counted together
+#: (a tampered log may add a new key to every pose: the counts must not grow with the log).
+MAX_FIELDS = 16
+OTHER_FIELDS = "(other fields)"
+
+
+def _deviation(a: Any, b: Any) -> float:
+    """How far two JSON values lie apart: the largest difference of their numbers, and
+    infinity where anything else differs (a string, a key, a list's length, a type)."""
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers):
+        if isinstance(a, bool) or isinstance(b, bool):
+            return 0.0 if a is b else math.inf
+        if a == b:
+            return 0.0
+        d = abs(float(a) - float(b))
+        return math.inf if math.isnan(d) else d  # inf against inf, or a NaN: no distance
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return math.inf
+        return max((_deviation(u, v) for u, v in zip(a, b, strict=True)), default=0.0)
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return math.inf
+        return max((_deviation(a[k], b[k]) for k in a), default=0.0)
+    return 0.0 if type(a) is type(b) and a == b else math.inf
+
+
+def _object(payload: bytes) -> dict[str, Any] | None:
+    try:
+        value = json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def field_deviations(recorded: bytes, recomputed: bytes) -> dict[str, float]:
+    """Per field of two PoseEstimate payloads other than those judged apart, how far they
+    differ (:func:`_deviation`), for the fields that differ: ``map_id``, the covariance, the
+    quality fields, the hypotheses, a key on one side only (``payload`` when only one of
+    them is a JSON object). Empty when neither is (the audit's own tests feed made-up
+    payloads; a replay's are PoseEstimates, both decoded already)."""
+    a, b = _object(recorded), _object(recomputed)
+    if a is None or b is None:
+        return {} if a is b else {"payload": math.inf}
+    found: dict[str, float] = {}
+    for key in (a.keys() | b.keys()) - _JUDGED_APART:
+        try:
+            d = _deviation(a[key], b[key]) if key in a and key in b else math.inf
+        except RecursionError:  # nested deeper than Python recurses: they differ
+            d = math.inf
+        if d > 0.0:
+            found[key] = d
+    return found
+
+
 class Tally:
     """One robot's counts and the poses waiting for their other half, per stamp."""
 
     __slots__ = (
         "after_gap",
+        "fields",
         "identical",
         "last_recorded",
         "matched",
@@ -59,13 +121,26 @@ class Tally:
         self.max_translation = self.sum_translation_sq = 0.0
         self.max_heading = self.sum_heading_sq = 0.0
         self.last_recorded: int | None = None
+        # Per field other than the pose and status: the pairs it differs in and by how much
+        # at most. Before, only x, y, theta and status were compared: a recorded pose moved
+        # to another map_id, or given a wider deviation_range or another covariance,
+        # passed the audit.
+        self.fields: dict[str, tuple[int, float]] = {}
 
     def compare(self, rec: PoseRecord, new: PoseRecord) -> None:
         dt = math.hypot(new.x - rec.x, new.y - rec.y)
         dh = abs(wrap_scalar(new.theta - rec.theta))
+        same = new.payload == rec.payload
         self.matched += 1
-        self.identical += new.payload == rec.payload
+        self.identical += same
         self.status_differs += new.status != rec.status
+        if not same:  # parsed only where the bytes differ: never in a log that passes
+            for field, d in field_deviations(rec.payload, new.payload).items():
+                name = (
+                    field if field in self.fields or len(self.fields) < MAX_FIELDS else OTHER_FIELDS
+                )
+                n, most = self.fields.get(name, (0, 0.0))
+                self.fields[name] = (n + 1, max(most, d))
         self.max_translation = max(self.max_translation, dt)
         self.max_heading = max(self.max_heading, dh)
         self.sum_translation_sq += dt * dt

@@ -185,3 +185,46 @@ def test_cli_audit_passes_and_a_nudged_pose_fails(
         ]
     )
     assert code == 0
+
+
+@pytest.mark.parametrize(
+    ("field", "change"),
+    [
+        ("map_id", lambda v: "m2"),  # the robot put on another map
+        ("deviation_range", lambda v: v + 0.5),  # its 95 % bound widened by half a metre
+        ("covariance", lambda v: [c * 2 for c in v]),
+        ("localization_score", lambda v: 1.0 - v / 2),
+        ("added", lambda v: True),  # a key the service never wrote
+    ],
+)
+def test_cli_audit_fails_on_any_field_of_a_recorded_pose_changed(
+    live: tuple[Path, int],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    field: str,
+    change: object,
+) -> None:
+    """Every field of a recorded PoseEstimate is audited, not x, y, theta and status only: a
+    pose moved to another map, or shown as surer than it was, passed as "audit: passed"."""
+    log, _ = live
+    with LogFile(log) as lf:
+        config = lf.config()
+        records = list(lf.messages())
+    poses = [i for i, r in enumerate(records) if r.schema_name == "rlutf.PoseEstimate"]
+    k = poses[len(poses) // 2]
+    data = json.loads(records[k].payload)
+    data[field] = change(data.get(field))  # type: ignore[operator]
+    changed = json.dumps(data, separators=(",", ":")).encode()
+    records[k] = Record(*records[k][:2], changed, *records[k][3:])
+    tampered = write_log(
+        tmp_path / "tampered.mcap",
+        [r for r in records if r.schema_name.startswith("rlutf.")],
+        config,
+    )
+    for jobs in ("1", "2"):  # one process, and the audit split by robot
+        assert main(["replay", str(tampered), "--quiet", "--jobs", jobs]) == 1
+        out = capsys.readouterr().out
+        assert "audit: FAILED" in out and "FAIL" in out
+        assert f"{data['robot_id']}: recorded poses differ from the recomputed ones in {field}" in (
+            " ".join(out.split())
+        )
