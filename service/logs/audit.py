@@ -6,8 +6,10 @@ how many payloads are byte-identical, and the poses present on one side only:
 
 * ``missing``: recorded but not recomputed: always a failure;
 * ``extra``: recomputed but not recorded, before the robot's last recorded pose: a failure;
-* ``unverified``: recomputed after the robot's last recorded pose: the log ends before them
-  (a recovered crash log loses its last second), reported but not a failure unless ``strict``;
+* ``unverified``: recomputed after the robot's last recorded pose, for an input received in the
+  log's last :data:`TAIL_NS`: the log ends before them (a recovered crash log loses its last
+  second), reported but not a failure unless ``strict``; one answering an input received
+  earlier had time to be recorded, and is ``extra``;
 * ``after_gap``: recorded poses stamped after a recording gap began (Event
   ``recording_resumed``: the recorder could not write, a full disk): the log lacks the gap's
   inputs, so the replay cannot recompute them as they were; reported, not compared, and not a
@@ -34,6 +36,14 @@ from service.logs.posematch import PoseMatch, PoseRecord, Tally
 from service.logs.runs import LogRun
 
 DEFAULT_TOLERANCE = 1e-9
+
+TAIL_NS = 30_000_000_000
+"""How long before a log's end an input may have been received and its pose still not be in
+the log. A pose is published a moment after its scan, seconds after it under overload; a log
+recovered after a crash loses its last second or so (the recorder flushes every second); 30 s,
+as long as a map build waits for a scan's pose. Before, every pose recomputed after a robot's
+last recorded one was "unverified", however early: a log with all of one robot's poses
+deleted (or all from some hour on) audited as passed."""
 UNREADABLE = "unreadable"
 """A run's result when one of its files could not be read."""
 
@@ -74,10 +84,14 @@ class RobotAudit:
         )
 
 
-def _robot_audit(robot: str, r: Tally) -> RobotAudit:
+def _robot_audit(robot: str, r: Tally, tail_from: int | None) -> RobotAudit:
     last = r.last_recorded
-    left = [p.stamp_ns for q in r.recomputed.values() for p in q]
-    unverified = sum(1 for stamp in left if last is None or stamp > last)
+    left = [p for q in r.recomputed.values() for p in q]
+    unverified = sum(
+        1
+        for p in left
+        if (last is None or p.stamp_ns > last) and (tail_from is None or p.log_time_ns >= tail_from)
+    )
 
     def rms(total: float) -> float:
         return math.sqrt(total / r.matched) if r.matched else 0.0
@@ -104,7 +118,10 @@ def audit_match(match: PoseMatch) -> list[RobotAudit]:
     recorded pose was fed (nothing to audit)."""
     if not match.recorded_total:
         return []
-    return [_robot_audit(robot, match.robots[robot]) for robot in sorted(match.robots)]
+    # Where the recorder had a gap, poses queued when it began were lost too: the old rule.
+    known = match.end_ns is not None and match.gap_ns is None
+    tail_from = match.end_ns - TAIL_NS if known and match.end_ns is not None else None
+    return [_robot_audit(robot, match.robots[robot], tail_from) for robot in sorted(match.robots)]
 
 
 def audit(

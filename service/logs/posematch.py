@@ -34,6 +34,8 @@ class PoseRecord(NamedTuple):
     theta: float
     status: str
     payload: bytes
+    log_time_ns: int = 0
+    """When the input it answers was received (a recomputed pose's; 0: not known)."""
 
 
 #: The fields a pair is matched on (``robot_id``, ``stamp_ns``), judged apart (``x``, ``y``,
@@ -172,6 +174,9 @@ class PoseMatch:
 
     def __init__(self, gap_ns: int | None = None) -> None:
         self.gap_ns = gap_ns
+        self.end_ns: int | None = None
+        """The log's last ``log_time``, once the replay has read it all (see
+        :data:`service.logs.audit.TAIL_NS`)."""
         self.robots: dict[str, Tally] = {}
         self.recorded_total = 0
         self.recomputed_total = 0
@@ -219,6 +224,8 @@ class PoseMatch:
         if shared:
             raise ValueError(f"both matches hold robots {sorted(shared)}")
         self.robots.update(other.robots)
+        if other.end_ns is not None:
+            self.end_ns = max(self.end_ns or 0, other.end_ns)
         self.recorded_total += other.recorded_total
         self.recomputed_total += other.recomputed_total
 

@@ -159,14 +159,16 @@ def _source_run(logs: Sequence[LogFile]) -> str | None:
     return distinct[0] if distinct else None
 
 
-def pose_record(payload: bytes) -> PoseRecord:
-    """A PoseRecord from a PoseEstimate payload.
+def pose_record(payload: bytes, log_time_ns: int = 0) -> PoseRecord:
+    """A PoseRecord from a PoseEstimate payload (``log_time_ns``: when its input came).
 
     Raises:
         SchemaError: not a valid PoseEstimate.
     """
     p = decode(PoseEstimate, payload)
-    return PoseRecord(p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload)
+    return PoseRecord(
+        p.robot_id, p.stamp_ns, p.map_id, p.x, p.y, p.theta, p.status, payload, log_time_ns
+    )
 
 
 def _prefix_hint(logs: Sequence[LogFile]) -> str | None:
@@ -300,7 +302,7 @@ class _Run:
             schema = POSE_SCHEMA if out.kind == "pose" else EVENT_SCHEMA
             self._write(Record(out.key, schema, out.payload, rec.log_time_ns, out.stamp_ns))
             if out.kind == "pose":
-                pose = pose_record(out.payload)
+                pose = pose_record(out.payload, rec.log_time_ns)
                 self.result.match.recomputed(pose)
                 if keep:
                     self.result.recomputed[robot].append(pose)
@@ -446,6 +448,7 @@ def replay(
                 if progress is not None:
                     progress(1)
             run.finish_health(last_ns)
+            result.match.end_ns = last_ns
             if writer is not None and stream is not None:
                 writer.finish()
                 stream.flush()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -272,3 +273,37 @@ def test_every_pose_carries_its_covariance(inputs_log: Path, tmp_path: Path) -> 
         assert np.all(np.linalg.eigvalsh(cov) > 0)
         # 120 beams: millimetres to a centimetre
         assert 1e-4 < np.sqrt(cov[0, 0] + cov[1, 1]) < 0.02
+
+
+def test_poses_deleted_long_before_the_log_ends_fail_the_audit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A pose the log lacks counts as unverified only near the log's end, where a crash cuts a
+    log short. Before, a log with all of one robot's poses deleted audited as passed (each
+    "unverified"), and so did one with a robot's poses deleted from some time on."""
+    honest = tmp_path / "honest.mcap"
+    replay([write_log(tmp_path / "in.mcap", simulated_inputs(steps=400))], honest)
+    records = read_all(honest)
+    end, sec = records[-1].log_time_ns, 10**9
+
+    def without(name: str, gone: Callable[[Record], bool]) -> str:
+        kept = [r for r in records if not (r.schema_name == "rlutf.PoseEstimate" and gone(r))]
+        assert len(kept) < len(records)
+        return str(
+            write_log(tmp_path / name, [r for r in kept if r.schema_name.startswith("rlutf.")])
+        )
+
+    assert main(["replay", str(honest), "--quiet"]) == 0
+    every = without("no-r2.mcap", lambda r: "/r2/" in r.topic)  # 40 s of poses
+    since = without("r2-cut.mcap", lambda r: "/r2/" in r.topic and r.log_time_ns > end - 35 * sec)
+    tail = without("r2-tail.mcap", lambda r: "/r2/" in r.topic and r.log_time_ns > end - 2 * sec)
+    capsys.readouterr()
+    for log in (every, since):
+        for jobs in ("1", "2"):
+            assert main(["replay", log, "--quiet", "--jobs", jobs]) == 1
+            out = capsys.readouterr().out
+            assert "audit: FAILED" in out and "│ r2 " in out
+    # The last seconds' poses missing, as after a crash: reported, not a failure.
+    assert main(["replay", tail, "--quiet"]) == 0
+    assert "audit: passed" in capsys.readouterr().out
+    assert main(["replay", tail, "--quiet", "--strict"]) == 1
