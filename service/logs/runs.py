@@ -305,8 +305,22 @@ def run_outputs(out: str | Path, runs: Sequence[LogRun]) -> list[Path]:
 
 def unfinished_logs(paths: Sequence[Path]) -> list[Path]:
     """The unfinished logs (``*.mcap.part``) in the folders among ``paths``, in name order:
-    what :func:`log_files` leaves out of a folder (a log being recorded, or one a crash left)."""
-    found = (p for path in paths if Path(path).is_dir() for p in Path(path).iterdir())
+    what :func:`log_files` leaves out of a folder (a log being recorded, or one a crash left).
+
+    A folder whose finished logs are all among ``paths`` counts as given: ``logs/*.mcap`` is
+    how the shell gives ``logs/``. Before, ``rlutf replay logs/*.mcap`` (the command the
+    operations guide shows) passed with the logs a ``kill -9`` left unread and unnamed, where
+    ``rlutf replay logs/`` said ``incomplete``."""
+    folders = {Path(path) for path in paths if Path(path).is_dir()}
+    given = {Path(path).resolve() for path in paths if not Path(path).is_dir()}
+    for parent in {Path(path).parent for path in paths if not Path(path).is_dir()}:
+        try:
+            logs = {e.resolve() for e in parent.iterdir() if e.name.endswith(".mcap")}
+        except OSError:  # a file's folder that cannot be listed: its files are read alone
+            continue
+        if logs and logs <= given:
+            folders.add(parent)
+    found = (p for folder in folders for p in folder.iterdir())
     return sorted(p for p in found if p.name.endswith(".mcap.part") and p.is_file())
 
 

@@ -424,6 +424,10 @@ def test_an_audit_of_a_folder_names_its_unfinished_logs(
     assert "audit: incomplete" in out and "1 file(s) could not be read; 1 run(s) passed" in out
     assert f"not audited: {part}: this log was left unfinished" in err
     assert f"rlutf log recover {logs}/ RECOVERED/" in err
+    # The shell's logs/*.mcap is the folder: the same verdict (it passed, the .part unnamed).
+    assert main(["replay", *map(str, logs.glob("*.mcap")), "--quiet"]) == 2
+    out, err = capsys.readouterr()
+    assert "audit: incomplete" in out and f"not audited: {part}: this log was left" in err
     assert main(["log", "info", str(logs)]) == 0
     assert f"not described: {part}" in capsys.readouterr().err
     assert main(["log", "views", str(logs), "--out", f"{tmp_path}/views/"]) == 0
@@ -434,6 +438,9 @@ def test_an_audit_of_a_folder_names_its_unfinished_logs(
     assert main(["replay", str(logs), str(fixed), "--quiet"]) == 0
     out, err = capsys.readouterr()
     assert "audit: passed (2 runs)" in out and "not audited" not in err
+    globs = [*map(str, logs.glob("*.mcap")), *map(str, fixed.glob("*.mcap"))]
+    assert main(["replay", *globs, "--quiet"]) == 0
+    assert "not audited" not in capsys.readouterr().err
     os.utime(part)  # written just now: being recorded
     (fixed / part.name.removesuffix(".part")).unlink()
     assert main(["replay", str(logs), "--quiet"]) == 0
