@@ -79,10 +79,19 @@ def read_regular(path: Path | str, max_bytes: int | None = None) -> bytes:
     with open_regular(path) as stream:
         if max_bytes is None:
             return stream.read()
-        data = stream.read(max_bytes + 1)
-    if len(data) > max_bytes:
+        size = os.fstat(stream.fileno()).st_size
+        if size > max_bytes:
+            raise too_large(path, max_bytes)
+        # read(n) sets n bytes aside first: n is the file's size (+1 to see it grew), never the
+        # bound (gigabytes held for a map file of a few kB).
+        parts = [stream.read(size + 1)]
+        got = len(parts[0])
+        while got > size and got <= max_bytes and (more := stream.read(1 << 20)):
+            parts.append(more)  # it grew while being read: on, a MiB at a time, to the bound
+            got += len(more)
+    if got > max_bytes:
         raise too_large(path, max_bytes)
-    return data
+    return b"".join(parts)
 
 
 def too_large(path: Path | str, max_bytes: int) -> OSError:
