@@ -113,7 +113,7 @@ def report(
     audits = audit.audit_match(result.match)
     poses = result.match.recorded_total
     if (gap := audit.gap_note(audits, result.gap_ns)) is not None:
-        console.print(f"[yellow]{gap}[/yellow]")
+        console.print(f"[yellow]{gap}[/yellow]", soft_wrap=True)
     if not audits and not result.unreadable_poses:
         console.print("no recorded poses in the input: nothing to audit")
         return audit.run_verdict(run, out, 0, poses, "nothing to audit")

@@ -11,7 +11,8 @@ how many payloads are byte-identical, and the poses present on one side only:
   second), reported but not a failure unless ``strict``; one answering an input received
   earlier had time to be recorded, and is ``extra``;
 * ``after_gap``: recorded poses stamped after a recording gap began (Event
-  ``recording_resumed``: the recorder could not write, a full disk): the log lacks the gap's
+  ``recording_resumed``: the recorder could not write, a full disk; or ``recorder_overflow``:
+  its queue was full and messages were lost): the log lacks the gap's
   inputs, so the replay cannot recompute them as they were; reported, not compared, and not a
   failure unless ``strict``.
 
@@ -148,8 +149,8 @@ def gap_note(audits: Sequence[RobotAudit], gap_ns: int | None) -> str | None:
         return None
     began = datetime.fromtimestamp(gap_ns / 1e9, UTC).isoformat(timespec="milliseconds")
     return (
-        f"{left} recorded poses after a recording gap (from {began}, Event recording_resumed) "
-        "not audited: the log lacks the gap's inputs"
+        f"{left} recorded poses after a recording gap (from {began}, Event recording_resumed or "
+        "recorder_overflow) not audited: the log lacks the gap's inputs"
     )
 
 

@@ -10,6 +10,7 @@ load was. The same pass finds the robots the service evicted and the recording g
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
 from collections.abc import Callable, Sequence
 
@@ -19,6 +20,8 @@ from service.logs.mcapread import LogFile, merged_messages, robot_topic
 
 EVENT_SCHEMA = "rlutf.Event"
 """The schema of an Event in a log."""
+#: The service's Events that mark a recording gap: the log lacks messages from their stamp on.
+_GAP_CODES = re.compile(rb'"code":"(?:recording_resumed|recorder_overflow)"')
 
 
 def dropped_scans(
@@ -34,14 +37,14 @@ def dropped_scans(
 
     Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
     ``(log_time_ns, robot)``, in log order, and their records to the events returned; the
-    start of each recording gap (Event ``recording_resumed``, stamped when the gap began) to
-    ``gaps``.
+    start of each recording gap (Event ``recording_resumed``, or ``recorder_overflow``: messages
+    lost to a full queue; each stamped when the gap began) to ``gaps``.
     """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
     for rec in merged_messages(logs, {EVENT_SCHEMA}):
         where = robot_topic(rec.topic)
-        if where is None and gaps is not None and b'"code":"recording_resumed"' in rec.payload:
+        if where is None and gaps is not None and _GAP_CODES.search(rec.payload):
             gaps.append(rec.publish_time_ns)
         if where is None or where.leaf != "events" or (owns is not None and not owns(where.robot)):
             continue

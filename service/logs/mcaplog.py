@@ -121,6 +121,7 @@ class McapRecorder:
         self._lock = threading.Lock()
         self._overflowed = 0
         self._unreported = 0
+        self._overflow_since_ns = 0  # the first message lost since the last overflow Event
         self._closed = False
         self._config: dict[str, Any] | None = None
         self._maps: dict[str, Record] = {}
@@ -160,6 +161,8 @@ class McapRecorder:
         if not self._queue.put_nowait((topic, schema_name, payload, log_time_ns, publish_time_ns)):
             with self._lock:
                 self._overflowed += 1
+                if not self._unreported:
+                    self._overflow_since_ns = log_time_ns
                 self._unreported += 1
 
     def set_config(self, config: dict[str, Any]) -> None:
@@ -381,12 +384,16 @@ class McapRecorder:
     def _report_overflow(self) -> None:
         with self._lock:
             lost, self._unreported = self._unreported, 0
+            since = self._overflow_since_ns
         self._report(
             "warning",
             EventCode.RECORDER_OVERFLOW,
             f"{lost} messages were not recorded: the recorder queue "
             f"({self.queue_size} messages) was full",
             logged=self._failing is None,
+            # Stamped when the first was lost: the log lacks messages from then on, which replay
+            # takes as a recording gap (it audits the poses before it).
+            stamp=since or None,
         )
 
     def _flush(self) -> None:

@@ -130,8 +130,8 @@ class ReplayResult:
     unreadable_poses: int = 0
     out: Path | None = None
     gap_ns: int | None = None
-    """When the first recording gap began (Event ``recording_resumed``): the log lacks inputs
-    from then on, so poses after it cannot be recomputed as they were."""
+    """When the first recording gap began (Event ``recording_resumed`` or ``recorder_overflow``):
+    the log lacks inputs from then on, so poses after it cannot be recomputed as they were."""
 
 
 class MixedRuns(LogError):

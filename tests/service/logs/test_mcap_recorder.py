@@ -174,6 +174,7 @@ def test_overflow_is_counted_never_blocks_and_is_logged(tmp_path: Path) -> None:
     events = [decode(Event, r.payload) for r in read_all(rec.files[0], ["rlutf.Event"])]
     assert [e.code for e in events] == [EventCode.RECORDER_OVERFLOW]
     assert "95 messages" in events[0].message
+    assert events[0].stamp_ns == 6  # when the first was lost (its log time): a gap's start
     assert published == events
     assert len(read_all(rec.files[0], ["rlutf.Odometry"])) == 5
 

@@ -449,13 +449,16 @@ def test_an_audit_of_a_folder_names_its_unfinished_logs(
     assert f"not audited: {part}: this log is being recorded now" in err
 
 
+@pytest.mark.parametrize("code", ["recording_resumed", "recorder_overflow"])
 def test_an_audit_stops_at_a_recording_gap_and_says_so(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    code: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A log with a recording gap (the recorder could not write: the gap's inputs are not in
-    it, ``recording_resumed`` says when it began) audits every pose before the gap and names
-    those after it, not audited; without that Event the same log fails (a false alarm)."""
-    from schemas import Event, EventCode, encode
+    """A log with a recording gap (the recorder could not write, or its queue was full: the
+    gap's inputs are not in it, ``recording_resumed`` or ``recorder_overflow`` says when it
+    began) audits every pose before the gap and names those after it, not audited; without that
+    Event the same log fails (a false alarm; an overflow's Event was stamped when it was written,
+    after the gap, and such a log failed too)."""
+    from schemas import Event, encode
 
     inputs = simulated_inputs(seed=4, steps=30, beams=90)
     computed = replay([write_log(tmp_path / "all.mcap", inputs)])
@@ -477,7 +480,7 @@ def test_an_audit_stops_at_a_recording_gap_and_says_so(
     event = Event(
         stamp_ns=stamp,
         level="warning",
-        code=EventCode.RECORDING_RESUMED,
+        code=code,
         key="rlutf/service/demo",
         message="recording resumed after 0.4 s: 24 messages were not logged",
     )
