@@ -28,7 +28,8 @@ def cmd_catalog(args: argparse.Namespace) -> int:
             on.setdefault(state.map_id, []).append(state.robot_id)
         stored = list_maps(session, settings.prefix, args.timeout)
         if args.map_command == "list":
-            return _print_maps(stored, on, args.json)
+            shown = _print_maps(stored, on, args.json)
+            return shown if stored else _none_stored(session, settings.prefix)
         if args.map_id not in {m.map_id for m in stored}:
             raise CliError(
                 f"no storage holds map {args.map_id!r} (`rlutf map list` shows the stored maps)"
@@ -80,10 +81,29 @@ def _print_maps(stored: list[Any], on: dict[str, list[str]], as_json: bool) -> i
                 {1, 2, 3},
             )
         )
-    if not stored:
-        print("rlutf map list: no storage answered with a map", file=sys.stderr)
-        return EXIT_FAILURE
     return EXIT_OK
+
+
+def _none_stored(session: Any, prefix: str) -> int:
+    """No storage answered with a map. A store with no map answers nothing, as no store does:
+    with a service live (whose embedded store is empty, on a first day), an empty list (exit 0)
+    and how to put one; with none, exit 1 (the first ``map list`` of a new site said "no storage
+    answered", exit 1, as if the service were down)."""
+    from service.live.queries import live_instances
+
+    if live_instances(session, prefix):
+        print(
+            "no maps stored yet: put one with `rlutf map put FILE` or `rlutf map import "
+            "site.yaml --put`",
+            file=sys.stderr,
+        )
+        return EXIT_OK
+    print(
+        "rlutf map list: no storage answered with a map, and no rlutf service is live on "
+        f"prefix {prefix!r} (is `rlutf serve` running?)",
+        file=sys.stderr,
+    )
+    return EXIT_FAILURE
 
 
 def _size(n: int) -> str:
