@@ -237,6 +237,8 @@ class LocalizationService:
         if self._session is None:
             self._session = zenoh.open(service_config(s))
         session = self._session
+        # Before anything is declared or recorded: refuses a name another instance has.
+        self.membership.claim(session, self.keys, s.handover_timeout_s)
         self.outbox.start(session)
         self.out.attach(session)
         if not s.no_store:
