@@ -319,8 +319,12 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
         say(str(err))
         return EXIT_FAILURE
     names = ", ".join(p.name for p in host.processes)
+    # As a single process says it: a client listens on nothing robots can reach (a host in
+    # --mode client said "listening on tcp/[::]:7447", the default it never bound).
+    where = ", ".join(settings.listen) if settings.mode != "client" else "-"
+    connect = f", connecting to {', '.join(settings.connect)}" if settings.connect else ""
     say(f"ready: instance {settings.instance} with {len(host.processes)} processes ({names}), "
-        f"listening on {', '.join(settings.listen)}")  # fmt: skip
+        f"listening on {where}{connect}")  # fmt: skip
     if host.metrics is not None:
         say(f"metrics on http://{settings.metrics_addr}:{host.metrics.port}/metrics")
     try:

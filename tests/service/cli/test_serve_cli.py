@@ -108,3 +108,31 @@ def test_a_host_says_one_metrics_endpoint_its_own(tmp_path: Path) -> None:
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
+
+
+def test_a_host_in_client_mode_says_it_listens_on_nothing(tmp_path: Path) -> None:
+    """A host of processes in ``--mode client`` binds no port of the robots' (its router is
+    the one it connects to): its ready line said "listening on tcp/[::]:7447", where nothing
+    listened, and an operator pointed robots there."""
+    router = _serve(tmp_path / "a", "--workers", "0", "--instance", "a")
+    port = None
+    try:
+        said = _said_until(router, "ready:", timeout=300)
+        found = re.search(r"listening on tcp/127\.0\.0\.1:(\d+)", said)
+        assert found, said
+        port = found[1]
+        argv = [*(sys.executable, "-m", "service", "serve", "--mode", "client"), "--no-store"]
+        argv += ["-e", f"tcp/127.0.0.1:{port}", "--processes", "1", "--instance", "b"]
+        argv += ["--no-record", "--no-state"]
+        client = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+        try:
+            line = _said_until(client, "ready:", timeout=300)
+            assert "ready: instance b with 1 processes (b-p0)" in line, line
+            assert f"listening on -, connecting to tcp/127.0.0.1:{port}" in line, line
+            assert "7447" not in line, line
+        finally:
+            client.send_signal(signal.SIGINT)
+            assert client.wait(timeout=60) == 0
+    finally:
+        router.send_signal(signal.SIGINT)
+        assert router.wait(timeout=60) == 0
