@@ -7,6 +7,8 @@ import math
 import numpy as np
 from numba import njit
 
+from rlutf.mapchange import TOP
+
 #: Rows of the counts: marks of each kind, free passes, window masks and robot masks of each
 #: kind; of the times: first and last stamp of each kind.
 MARKS, FREE, WINDOWS, ROBOTS = 0, 2, 3, 5
@@ -26,8 +28,9 @@ def observe(
 
     Each return well short of the map's range marks its cell ``short`` (kind 0), each well
     beyond it marks the map wall's cell ``through`` (kind 1); every ``stride``-th beam counts
-    the cells it crossed as ``free`` up to ``tolerance`` before where it ended. Sums, ORs, min
-    and max: any order, same grid. Returns the beams marked short and through."""
+    the cells it crossed as ``free`` up to ``tolerance`` before where it ended. Sums (held at
+    ``TOP``), ORs, min and max: any order, same grid. Returns the beams marked short and
+    through."""
     tolerance, nudge, ox, oy, cell = reals[0], reals[1], reals[2], reals[3], reals[4]
     stride, nx, ny = ints[0], ints[1], ints[2]
     c0, s0 = math.cos(pose[2]), math.sin(pose[2])
@@ -49,7 +52,7 @@ def observe(
             while t < end:
                 ix = int(math.floor((sx + t * dx - ox) / cell))
                 iy = int(math.floor((sy + t * dy - oy) / cell))
-                if 0 <= ix < nx and 0 <= iy < ny:
+                if 0 <= ix < nx and 0 <= iy < ny and counts[FREE, iy * nx + ix] < TOP:
                     counts[FREE, iy * nx + ix] += 1
                 t += cell
         if m < c - tolerance:
@@ -65,7 +68,8 @@ def observe(
         if ix < 0 or ix >= nx or iy < 0 or iy >= ny:
             continue
         k = iy * nx + ix
-        counts[MARKS + kind, k] += 1
+        if counts[MARKS + kind, k] < TOP:
+            counts[MARKS + kind, k] += 1
         counts[WINDOWS + kind, k] |= window
         counts[ROBOTS + kind, k] |= robot
         times[FIRST + kind, k] = min(times[FIRST + kind, k], stamp)

@@ -41,6 +41,11 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SHORT, THROUGH = 0, 1
+#: The most a count holds: a map version's grid only ever adds, for months, and a busy cell
+#: passes 2^31 (a count that wrapped went negative: a place vanished from the report, or a cell
+#: seen free looked occupied); it stays here instead. A sum of counts that are never negative,
+#: held at the top, is the same in any order.
+TOP = 2**31 - 1
 _NEVER = np.iinfo(np.int64).max
 
 
@@ -242,7 +247,9 @@ class ChangeGrid:
                 f"{self.nx} x {self.ny} grid"
             )
         c = other.cells
-        self.counts[0:3, c] += other.counts[0:3]
+        # held at TOP, not wrapped
+        total = self.counts[0:3, c].astype(np.int64) + other.counts[0:3]
+        self.counts[0:3, c] = np.minimum(total, TOP)
         self.counts[3:7, c] |= other.counts[3:7]
         self.times[0:2, c] = np.minimum(self.times[0:2, c], other.times[0:2])
         self.times[2:4, c] = np.maximum(self.times[2:4, c], other.times[2:4])

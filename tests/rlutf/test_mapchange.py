@@ -1,6 +1,7 @@
 """Map-change evidence: what one scan marks, grids merged in any order, persistent places."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -92,3 +93,31 @@ def test_components_are_8_connected() -> None:
     cells = np.array([0, 11, 22, 40, 41, 99])
     groups = _components(cells, nx)
     assert [g.tolist() for g in groups] == [[0, 11, 22], [40, 41], [99]]
+
+
+def test_counts_saturate_rather_than_wrap_over_a_long_lived_map_version() -> None:
+    """A map version lives for months and its grid only ever adds: a busy cell's int32 count
+    passes 2^31 (a rack face that ten robots pass every minute, the cell a robot parks in with a
+    fast lidar: days, not years). A sum that wrapped turned the count negative and the place
+    vanished from the report (or a free count, negative, made a cell look occupied)."""
+    top = np.iinfo(np.int32).max
+    cast = np.full(36, 8.0)
+    angles = np.linspace(-0.2, 0.2, 36)
+    ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                  3.0 / np.cos(angles), cast / np.cos(angles))  # fmt: skip
+    seen = ChangeGrid(ROOM)
+    for k in range(30):
+        seen.add(ret, T0 + k * 1_000_000_000, "r1")
+    part = seen.snapshot()
+    # what another instance hands on, second after second: each payload within its limit
+    busy = part.counts.copy()
+    busy[0] = np.where(busy[0] > 0, 100_000_000, 0)
+    merged = ChangeGrid(ROOM)
+    for _ in range(25):  # 2.5e9 returns: past int32
+        merged.merge(replace(part, counts=busy))
+    assert merged.counts.min() >= 0
+    assert merged.marks[0].max() == top
+    merged.add(ret, T0 + 31_000_000_000, "r1")  # counted by the kernel: stays at the top
+    assert merged.counts.min() >= 0 and merged.marks[0].max() == top
+    (change,) = find_changes(merged)
+    assert change.kind == "added" and change.geometry.distance(Point(5.0, 3.0)) < 0.3
