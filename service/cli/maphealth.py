@@ -57,9 +57,9 @@ def cmd_health(args: argparse.Namespace) -> int:
     except LogError as err:
         print(f"rlutf map health: {err}", file=sys.stderr)
         return EXIT_USAGE
-    if found is None:
-        where = "no MapHealth recorded in the logs" if args.log else "no service answered"
-        print(f"rlutf map health: {where} for map {args.map_id!r}", file=sys.stderr)
+    if found is None or isinstance(found, str):
+        where = "no MapHealth recorded in the logs" if args.log else found
+        print(f"rlutf map health: {where}", file=sys.stderr)
         return EXIT_FAILURE
     health, world = found
     if args.json:
@@ -78,8 +78,15 @@ def cmd_health(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | None:
+def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | str:
+    """The map's MapHealth and (for ``--png``) its map; else why there is none.
+
+    A live service answers only for a map version it has counted scans of: before the first
+    well-localized scan on it (a new site, a new version put, robots not yet on it), nothing
+    answers, as when no service runs. Which one it is, is said (it read "no service answered"
+    while the service was running, and an operator went looking for a service that was up)."""
     from service.keys import Keys
+    from service.live.queries import live_instances
 
     settings, session = client(args)
     keys = Keys(settings.prefix)
@@ -90,7 +97,19 @@ def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | None
         world = None
         if health is not None and args.png is not None:
             world = _first(session.get(keys.map(args.map_id), timeout=args.timeout), Map)
-    return None if health is None else (health, world)
+        live = health is None and bool(live_instances(session, settings.prefix))
+    if health is not None:
+        return health, world
+    if live:
+        return (
+            f"no MapHealth for map {args.map_id!r} yet: the service is live but has counted no "
+            "scan of a well-localized robot on the map's current version (a new version starts "
+            "afresh); `rlutf robots` shows which robots are on which map"
+        )
+    return (
+        f"no service answered for map {args.map_id!r}, and no rlutf service is live on prefix "
+        f"{settings.prefix!r} (is `rlutf serve` running? use -e/--connect)"
+    )
 
 
 def _first(replies: Any, model: Any) -> dict[str, Any] | None:

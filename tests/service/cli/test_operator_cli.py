@@ -228,6 +228,21 @@ def test_commands_that_need_a_service_say_when_none_is_live(
             assert "-e/--connect" in err and "Traceback" not in err
 
 
+def test_map_health_before_any_evidence_says_the_service_is_live(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A map put, no robot on it yet: the service answers no MapHealth (it has counted no scan
+    # of the map). That read "no service answered", as if the service were down.
+    with running_bench(tmp_path) as bench:
+        bench.put_map("m1")
+        time.sleep(0.3)
+        code, out, err = _cli(capsys, "map", "health", "m1", "-e", bench.endpoint)
+        assert code == 1 and out == "", (out, err)
+        assert "no service answered" not in err and "live" in err and "'m1'" in err, err
+        code, _, err = _cli(capsys, "map", "health", "m1", "-e", bench.endpoint, "--prefix", "x")
+        assert code == 1 and "no rlutf service is live on prefix 'x'" in err, err
+
+
 def test_health_and_relocalize_read_as_text(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
