@@ -15,7 +15,10 @@ first evidence of it arrives (the map book holds the version the robots are on).
 The other instances' evidence arrives on a Zenoh callback thread, which only checks its key
 and size and hands the payload to a thread of the feed's own (:meth:`HealthFeed.declare`):
 decompressing, merging and building a report (a map's polygons, its first time) run there, not
-on the thread that delivers the bus's samples.
+on the thread that delivers the bus's samples. The workers' evidence goes there too: it comes
+with their outputs, on the thread that publishes the poses, and a report walks the map's grid
+and builds a polygon per change (a warehouse with 2000 pallets the map lacks: a second and
+more), which held back every robot's pose that came after it.
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ class HealthFeed:
         self.max_bytes = 64 << 20
         self.reports: Callable[[str], bool] = lambda key: True
         self.events: Limited | None = None
+        self._merging: Merging | None = None  # the feed's own thread, once declared
 
     def share_as(
         self,
@@ -112,16 +116,22 @@ class HealthFeed:
 
     def on_evidence(self, handed: Iterable[Handed]) -> None:
         """Merge evidence handed on by a worker; share it with the other instances; put and
-        record what is due."""
+        record what is due. Once :meth:`declare` d, merged and reported on the feed's own
+        thread: the caller publishes the poses."""
         handed = list(handed)
         if self.instance is not None and handed:
             self.publish(self.keys.mapevidence(self.instance), encode_evidence(handed))
-        self._merge(handed)
+        if self._merging is not None:
+            self._merging.own(handed)
+        else:
+            self._merge(handed)
 
     def declare(self, session: zenoh.Session) -> Merging:
         """Subscribe to the other instances' evidence (``{prefix}/service/*/mapevidence``) and
-        merge it on a thread of the feed's own. Returns what undeclares both."""
-        return Merging(self, session)
+        merge it, and this instance's own, on a thread of the feed's own. Returns what
+        undeclares both."""
+        self._merging = Merging(self, session)
+        return self._merging
 
     def check(self, sample: zenoh.Sample) -> bytes | None:
         """The payload of another instance's evidence to merge, or ``None`` (this instance's
@@ -137,28 +147,35 @@ class HealthFeed:
             return None
         return sample.payload.to_bytes()
 
-    def on_shared(self, payload: bytes) -> str | None:
+    def on_shared(self, payload: bytes, report: bool = True) -> str | None:
         """Merge evidence another instance shared (``{prefix}/service/{instance}/mapevidence``);
-        put and record what is due. Returns why the payload was refused, else ``None``."""
+        put and record what is due (unless not ``report``). Returns why the payload was
+        refused, else ``None``."""
         try:
             handed = decode_evidence(payload, self.max_bytes)
         except ValueError as err:
             return str(err)
-        return self._merge(handed)
+        return self._merge(handed, report)
 
-    def _merge(self, handed: list[Handed]) -> str | None:
+    def _merge(self, handed: list[Handed], report: bool = True) -> str | None:
         try:
             with self._lock:
                 self._register(handed)
                 self.engine.merge(handed)
-                now = self.clock()
-                due = self.engine.due(now, self.reports)
         except ValueError as err:  # a grid of another shape than this map's
             return str(err)
+        if report:
+            self.report_due()
+        return None
+
+    def report_due(self) -> None:
+        """Put and record the MapHealth of every map that is due."""
+        with self._lock:
+            now = self.clock()
+            due = self.engine.due(now, self.reports)
         for out in due:
             self.publish(out.key, out.payload)
             self.record(out.key, MAPHEALTH_SCHEMA, out.payload, now, out.stamp_ns)
-        return None
 
     def _register(self, handed: list[Handed]) -> None:
         for h in handed:
@@ -184,16 +201,19 @@ class HealthFeed:
 
 
 class Merging:
-    """The other instances' evidence: checked on Zenoh's callback thread, merged on our own.
+    """The evidence merged and reported on a thread of our own: the other instances' (checked
+    on Zenoh's callback thread) and this instance's workers' (:meth:`own`).
 
     The callback takes the payload out of the sample (the bus's buffer is not kept) and queues
     it, up to :data:`WAITING` payloads; one that does not fit is dropped with an Event (its
-    counts are lost to this instance's reports, and the Event says so).
+    counts are lost to this instance's reports, and the Event says so). This instance's own
+    evidence is never dropped: it waits for room. The thread merges all that waits, then
+    reports once, so a slow report does not let the queue grow.
     """
 
     def __init__(self, feed: HealthFeed, session: zenoh.Session) -> None:
         self._feed = feed
-        self._waiting: queue.Queue[tuple[str, bytes] | None] = queue.Queue(WAITING)
+        self._waiting: queue.Queue[tuple[str, bytes] | list[Handed] | None] = queue.Queue(WAITING)
         self._thread = threading.Thread(target=self._run, name="rlutf-evidence", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(feed.keys.mapevidence("*"), self._on_sample)
@@ -210,19 +230,44 @@ class Merging:
                 key, f"map evidence dropped: {WAITING} payloads already wait to be merged"
             )
 
+    def own(self, handed: list[Handed]) -> None:
+        """Merge and report this instance's evidence on the thread (waits for room)."""
+        self._waiting.put(handed)
+
     def _run(self) -> None:
-        while (item := self._waiting.get()) is not None:
-            key, payload = item
+        stop = False
+        while not stop:
+            batch = [self._waiting.get()]
+            while not self._waiting.empty():  # all that waits, then one report
+                batch.append(self._waiting.get_nowait())
+            for item in batch:
+                if item is None:
+                    stop = True
+                else:
+                    self._take(item)
             try:
-                problem = self._feed.on_shared(payload)
+                self._feed.report_due()
             except Exception:  # a bug here must not end the merging
-                log.exception("map evidence from %s", key)
-                continue
-            if problem is not None:
-                self._feed.refused(key, problem)
+                log.exception("map health report")
+
+    def _take(self, item: tuple[str, bytes] | list[Handed]) -> None:
+        try:
+            if isinstance(item, list):  # this instance's: merged as on_evidence did
+                self._feed._merge(item, report=False)
+                return
+            key, payload = item
+            problem = self._feed.on_shared(payload, report=False)
+        except Exception:  # a bug here must not end the merging
+            log.exception("map evidence")
+            return
+        if problem is not None:
+            self._feed.refused(key, problem)
 
     def undeclare(self) -> None:
-        """Stop the subscription, merge what already waits, stop the thread."""
+        """Stop the subscription, merge what already waits, stop the thread (evidence handed
+        on later is merged on the caller's thread)."""
         self._sub.undeclare()
+        if self._feed._merging is self:
+            self._feed._merging = None
         self._waiting.put(None)
         self._thread.join(5.0)

@@ -1,0 +1,63 @@
+"""The workers' map health evidence is merged and reported on the feed's own thread.
+
+It comes with their outputs, on the thread that publishes every robot's pose; a report walks
+the map's grid and builds a polygon per change (a second and more for a warehouse with
+thousands of pallets the map lacks), and was made right there, holding back the poses that
+came after it, once a second."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+from shapely.geometry import box
+
+from rlutf.map import Map as World
+from rlutf.mapchange import ChangeGrid, Returns
+from schemas import Map, encode
+from service.keys import Keys
+from service.live.healthfeed import HealthFeed
+from service.live.sessions import free_port, session_config
+from service.maphealth import Handed
+from service.maps.book import MapBook
+
+T0 = 1_700_000_000_000_000_000
+
+
+def test_a_report_is_made_on_the_feeds_thread_not_on_the_poses_thread() -> None:
+    world = World.from_shapely(box(0.0, 0.0, 10.0, 6.0))
+    payload = encode(
+        Map.model_validate({"map_id": "m1", "version": 1, "geometry": world.to_geojson()})
+    )
+    book = MapBook(10**8)
+    book.offer("m1", payload, T0)
+    reported = threading.Event()
+    puts: list[tuple[str, str]] = []
+
+    def publish(key: str, data: bytes) -> None:
+        puts.append((key, threading.current_thread().name))
+        if key == "rlutf/maphealth/m1":
+            reported.set()
+
+    feed = HealthFeed(Keys(), book, publish, lambda *record: None, time.time_ns)
+    feed.share_as("i1", 64 << 20, lambda key: True)
+    # an object at x = 5 the map lacks, seen from (2, 3) over 30 s
+    angles = np.linspace(-0.2, 0.2, 36)
+    ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                  3.0 / np.cos(angles), 8.0 / np.cos(angles))  # fmt: skip
+    loaded = book.get("m1")
+    assert loaded is not None and loaded.world is not None
+    grid = ChangeGrid(loaded.world)
+    for k in range(30):
+        grid.add(ret, T0 + k * 1_000_000_000, "r1")
+    config = session_config("peer", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with zenoh.open(config) as session:
+        merging = feed.declare(session)
+        feed.on_evidence([Handed("m1", 1, grid.snapshot())])  # as the poses' thread does
+        assert reported.wait(10.0)
+        merging.undeclare()
+    health = [thread for key, thread in puts if key == "rlutf/maphealth/m1"]
+    assert health and threading.current_thread().name not in health, puts
+    assert feed.engine.answer("m1") is not None
