@@ -58,7 +58,7 @@ def cmd_health(args: argparse.Namespace) -> int:
         print(f"rlutf map health: {err}", file=sys.stderr)
         return EXIT_USAGE
     if found is None or isinstance(found, str):
-        where = "no MapHealth recorded in the logs" if args.log else found
+        where = f"no MapHealth recorded in the logs for map {args.map_id!r}" if args.log else found
         print(f"rlutf map health: {where}", file=sys.stderr)
         return EXIT_FAILURE
     health, world = found

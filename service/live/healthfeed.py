@@ -23,6 +23,7 @@ more), which held back every robot's pose that came after it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import queue
@@ -200,6 +201,10 @@ class HealthFeed:
                     query.reply(key, payload, encoding=JSON)
 
 
+#: The token that wakes the merging thread for this instance's own evidence (kept aside).
+_OWN: tuple[str, bytes] = ("", b"")
+
+
 class Merging:
     """The evidence merged and reported on a thread of our own: the other instances' (checked
     on Zenoh's callback thread) and this instance's workers' (:meth:`own`).
@@ -207,13 +212,18 @@ class Merging:
     The callback takes the payload out of the sample (the bus's buffer is not kept) and queues
     it, up to :data:`WAITING` payloads; one that does not fit is dropped with an Event (its
     counts are lost to this instance's reports, and the Event says so). This instance's own
-    evidence is never dropped: it waits for room. The thread merges all that waits, then
-    reports once, so a slow report does not let the queue grow.
+    evidence is never dropped and never waits: it is kept aside (the thread that hands it on
+    publishes the poses, and a flood of other instances' payloads must not hold it up) and
+    merged first, before each payload of another instance, so what is kept aside is at most what
+    one payload's merge and one report let in. The thread merges all that waits, then reports
+    once, so a slow report does not let the queue grow.
     """
 
     def __init__(self, feed: HealthFeed, session: zenoh.Session) -> None:
         self._feed = feed
-        self._waiting: queue.Queue[tuple[str, bytes] | list[Handed] | None] = queue.Queue(WAITING)
+        self._waiting: queue.Queue[tuple[str, bytes] | None] = queue.Queue(WAITING)
+        self._own: list[list[Handed]] = []
+        self._own_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="rlutf-evidence", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(feed.keys.mapevidence("*"), self._on_sample)
@@ -231,8 +241,13 @@ class Merging:
             )
 
     def own(self, handed: list[Handed]) -> None:
-        """Merge and report this instance's evidence on the thread (waits for room)."""
-        self._waiting.put(handed)
+        """Merge and report this instance's evidence on the thread (never waits)."""
+        with self._own_lock:
+            self._own.append(handed)
+            first = len(self._own) == 1
+        if first:  # wake the thread; a full queue wakes it anyway, and own is taken first
+            with contextlib.suppress(queue.Full):
+                self._waiting.put_nowait(_OWN)
 
     def _run(self) -> None:
         stop = False
@@ -241,21 +256,29 @@ class Merging:
             while not self._waiting.empty():  # all that waits, then one report
                 batch.append(self._waiting.get_nowait())
             for item in batch:
+                self._take_own()
                 if item is None:
                     stop = True
-                else:
+                elif item is not _OWN:
                     self._take(item)
+            self._take_own()
             try:
                 self._feed.report_due()
             except Exception:  # a bug here must not end the merging
                 log.exception("map health report")
 
-    def _take(self, item: tuple[str, bytes] | list[Handed]) -> None:
+    def _take_own(self) -> None:
+        with self._own_lock:
+            aside, self._own = self._own, []
+        for handed in aside:
+            try:
+                self._feed._merge(handed, report=False)  # as on_evidence did
+            except Exception:  # a bug here must not end the merging
+                log.exception("map evidence")
+
+    def _take(self, item: tuple[str, bytes]) -> None:
+        key, payload = item
         try:
-            if isinstance(item, list):  # this instance's: merged as on_evidence did
-                self._feed._merge(item, report=False)
-                return
-            key, payload = item
             problem = self._feed.on_shared(payload, report=False)
         except Exception:  # a bug here must not end the merging
             log.exception("map evidence")

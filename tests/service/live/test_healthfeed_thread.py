@@ -7,6 +7,8 @@ came after it, once a second."""
 
 from __future__ import annotations
 
+import contextlib
+import queue
 import threading
 import time
 
@@ -61,3 +63,51 @@ def test_a_report_is_made_on_the_feeds_thread_not_on_the_poses_thread() -> None:
     health = [thread for key, thread in puts if key == "rlutf/maphealth/m1"]
     assert health and threading.current_thread().name not in health, puts
     assert feed.engine.answer("m1") is not None
+
+
+def test_own_evidence_never_waits_behind_a_flood_of_other_instances_payloads() -> None:
+    """The thread that hands this instance's evidence on publishes the poses: a queue full of
+    other instances' payloads (a flood on ``{prefix}/service/*/mapevidence``) must not hold it
+    up. Before, it waited for room in that queue; now it is kept aside and merged first."""
+    from service.live import healthfeed
+
+    world = World.from_shapely(box(0.0, 0.0, 10.0, 6.0))
+    payload = encode(
+        Map.model_validate({"map_id": "m1", "version": 1, "geometry": world.to_geojson()})
+    )
+    book = MapBook(10**8)
+    book.offer("m1", payload, T0)
+    feed = HealthFeed(Keys(), book, lambda key, data: None, lambda *record: None, time.time_ns)
+    feed.share_as("i1", 64 << 20, lambda key: True)
+    release = threading.Event()
+    shared = feed.on_shared
+
+    def slow(data: bytes, report: bool = True) -> str | None:  # each payload takes long
+        release.wait(10.0)
+        return shared(data, report)
+
+    feed.on_shared = slow  # type: ignore[method-assign, assignment]
+    loaded = book.get("m1")
+    assert loaded is not None and loaded.world is not None
+    grid = ChangeGrid(loaded.world)
+    angles = np.linspace(-0.2, 0.2, 36)
+    ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                  3.0 / np.cos(angles), 8.0 / np.cos(angles))  # fmt: skip
+    grid.add(ret, T0, "r1")
+    config = session_config("peer", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with zenoh.open(config) as session:
+        merging = feed.declare(session)
+        with contextlib.suppress(queue.Full):  # one being merged, then the queue full
+            for _ in range(healthfeed.WAITING + 2):
+                merging._waiting.put_nowait(("rlutf/service/x/mapevidence", b"{}"))
+        assert merging._waiting.full()
+        started = time.monotonic()
+        for _ in range(20):
+            feed.on_evidence([Handed("m1", 1, grid.snapshot())])
+        assert time.monotonic() - started < 1.0  # it waited 10 s per call before
+        release.set()
+        deadline = time.monotonic() + 10.0
+        while feed.engine.answer("m1") is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        merging.undeclare()
+    assert feed.engine.answer("m1") is not None  # own evidence merged all the same
