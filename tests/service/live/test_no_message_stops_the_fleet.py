@@ -377,10 +377,10 @@ def test_another_instances_evidence_is_merged_off_the_bus_thread_and_a_flood_is_
         release = threading.Event()
         threads: list[str] = []
 
-        def slow(payload: bytes) -> str | None:
+        def slow(payload: bytes, report: bool = True) -> str | None:
             threads.append(threading.current_thread().name)
             release.wait(10.0)
-            return merged(payload)
+            return merged(payload, report)
 
         monkeypatch.setattr(feed, "on_shared", slow)
         col = Collector()
