@@ -215,8 +215,7 @@ class Merging:
     evidence is never dropped and never waits: it is kept aside (the thread that hands it on
     publishes the poses, and a flood of other instances' payloads must not hold it up) and
     merged first, before each payload of another instance, so what is kept aside is at most what
-    one payload's merge and one report let in. The thread merges all that waits, then reports
-    once, so a slow report does not let the queue grow.
+    one payload's merge and one report let in.
     """
 
     def __init__(self, feed: HealthFeed, session: zenoh.Session) -> None:
@@ -250,22 +249,19 @@ class Merging:
                 self._waiting.put_nowait(_OWN)
 
     def _run(self) -> None:
-        stop = False
-        while not stop:
-            batch = [self._waiting.get()]
-            while not self._waiting.empty():  # all that waits, then one report
-                batch.append(self._waiting.get_nowait())
-            for item in batch:
-                self._take_own()
-                if item is None:
-                    stop = True
-                elif item is not _OWN:
-                    self._take(item)
+        # One item at a time: the queue stays the only buffer (a batch taken out of it would
+        # let as many more in). A report is built only when one is due (once a second a map),
+        # so asking after every item costs nothing more.
+        while (item := self._waiting.get()) is not None:
+            self._take_own()
+            if item is not _OWN:
+                self._take(item)
             self._take_own()
             try:
                 self._feed.report_due()
             except Exception:  # a bug here must not end the merging
                 log.exception("map health report")
+        self._take_own()
 
     def _take_own(self) -> None:
         with self._own_lock:
