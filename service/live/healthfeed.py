@@ -39,6 +39,7 @@ from service.evidence import decode_evidence, encode_evidence
 from service.keys import Keys
 from service.maphealth import Handed, MapHealthEngine
 from service.maps.book import MapBook
+from service.maps.store import room_for
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,9 @@ MAPHEALTH_SCHEMA = SCHEMA_NAMES[MapHealth]
 #: one a second, so a fleet of a few instances never fills it; a flood does, and what does not
 #: fit is dropped with an Event.
 WAITING = 32
+#: Bytes of those payloads at most (each may be up to ``max_map_bytes``, 64 MiB by default: 32
+#: of them were 2 GiB); one is always taken when none waits.
+WAITING_BYTES = 128 << 20
 JSON = zenoh.Encoding.APPLICATION_JSON
 
 Publish = Callable[[str, bytes], None]
@@ -223,6 +227,8 @@ class Merging:
         self._waiting: queue.Queue[tuple[str, bytes] | None] = queue.Queue(WAITING)
         self._own: list[list[Handed]] = []
         self._own_lock = threading.Lock()
+        self._bytes = 0  # of the other instances' payloads waiting
+        self._bytes_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="rlutf-evidence", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(feed.keys.mapevidence("*"), self._on_sample)
@@ -232,11 +238,20 @@ class Merging:
         if payload is None:
             return
         key = str(sample.key_expr)
-        try:
-            self._waiting.put_nowait((key, payload))
-        except queue.Full:
+        with self._bytes_lock:
+            waiting, held = self._waiting.qsize(), self._bytes
+            taken = room_for(waiting, held, len(payload), WAITING, WAITING_BYTES)
+            if taken:
+                try:
+                    self._waiting.put_nowait((key, payload))
+                    self._bytes += len(payload)
+                except queue.Full:  # own evidence's wake-up took the last place meanwhile
+                    taken = False
+        if not taken:
             self._feed.refused(
-                key, f"map evidence dropped: {WAITING} payloads already wait to be merged"
+                key,
+                f"map evidence dropped: {waiting} payloads ({held / 1e6:.1f} MB) already wait to "
+                "be merged",
             )
 
     def own(self, handed: list[Handed]) -> None:
@@ -274,6 +289,8 @@ class Merging:
 
     def _take(self, item: tuple[str, bytes]) -> None:
         key, payload = item
+        with self._bytes_lock:
+            self._bytes -= len(payload)
         try:
             problem = self._feed.on_shared(payload, report=False)
         except Exception:  # a bug here must not end the merging

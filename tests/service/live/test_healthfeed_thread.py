@@ -13,6 +13,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zenoh
 from shapely.geometry import box
 
@@ -111,3 +112,39 @@ def test_own_evidence_never_waits_behind_a_flood_of_other_instances_payloads() -
             time.sleep(0.05)
         merging.undeclare()
     assert feed.engine.answer("m1") is not None  # own evidence merged all the same
+
+
+def test_other_instances_payloads_wait_within_a_bound_in_bytes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each payload may be up to max_map_bytes (64 MiB), and 32 could wait: 2 GiB held by a
+    flood. The waiting payloads are bounded in bytes too; one is always taken when none waits."""
+    from service.live import healthfeed
+
+    monkeypatch.setattr(healthfeed, "WAITING_BYTES", 1500)
+    book = MapBook(10**8)
+    feed = HealthFeed(Keys(), book, lambda key, data: None, lambda *record: None, time.time_ns)
+    feed.share_as("i1", 64 << 20, lambda key: True)
+    refused: list[str] = []
+    feed.refused = lambda key, why: refused.append(why)  # type: ignore[method-assign]
+    release = threading.Event()
+    shared = feed.on_shared
+
+    def slow(data: bytes, report: bool = True) -> str | None:
+        release.wait(10.0)
+        return shared(data, report)
+
+    feed.on_shared = slow  # type: ignore[method-assign, assignment]
+    config = session_config("peer", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with zenoh.open(config) as session:
+        merging = feed.declare(session)
+        for i in range(4):  # 1 kB each: one merged (held up), one waits, the others do not fit
+            session.put("rlutf/service/x/mapevidence", bytes([i]) * 1000)
+            time.sleep(0.2)
+        deadline = time.monotonic() + 5.0
+        while len(refused) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        release.set()
+        merging.undeclare()
+    dropped = [why for why in refused if "dropped" in why]  # the others: merged, not evidence
+    assert dropped == ["map evidence dropped: 1 payloads (0.0 MB) already wait to be merged"] * 2
