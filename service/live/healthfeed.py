@@ -193,15 +193,18 @@ class HealthFeed:
                 self.engine.register_map(h.map_id, h.version, world)
 
     def on_query(self, query: zenoh.Query) -> None:
-        """Answer gets on ``{prefix}/maphealth/*`` with the current MapHealth of each map."""
+        """Answer gets on ``{prefix}/maphealth/*`` with the current MapHealth of each map asked
+        (only those: a report may walk a large map's grid, and a get of one map made one for
+        every map)."""
         with query:
             ke = query.key_expr
             with self._lock:
                 now = self.clock()
-                answers = [(m, self.engine.answer(m, now)) for m in self.engine.map_ids()]
-            for map_id, payload in answers:
-                key = self.keys.maphealth(map_id)
-                if payload is not None and ke.intersects(zenoh.KeyExpr(key)):
+                keys = [(m, self.keys.maphealth(m)) for m in self.engine.map_ids()]
+                asked = [(k, m) for m, k in keys if ke.intersects(zenoh.KeyExpr(k))]
+                answers = [(k, self.engine.answer(m, now)) for k, m in asked]
+            for key, payload in answers:
+                if payload is not None:
                     query.reply(key, payload, encoding=JSON)
 
 

@@ -148,3 +148,43 @@ def test_other_instances_payloads_wait_within_a_bound_in_bytes(
         merging.undeclare()
     dropped = [why for why in refused if "dropped" in why]  # the others: merged, not evidence
     assert dropped == ["map evidence dropped: 1 payloads (0.0 MB) already wait to be merged"] * 2
+
+
+def test_a_get_of_one_maps_health_makes_no_report_of_the_others() -> None:
+    """A report walks the map's grid (a second and more on a large map): a get of one map's
+    MapHealth made one for every map with evidence, on Zenoh's callback thread."""
+    book = MapBook(10**8)
+    grids = {}
+    for map_id in ("m1", "m2"):
+        world = World.from_shapely(box(0.0, 0.0, 10.0, 6.0))
+        payload = encode(
+            Map.model_validate({"map_id": map_id, "version": 1, "geometry": world.to_geojson()})
+        )
+        book.offer(map_id, payload, T0)
+        loaded = book.get(map_id)
+        assert loaded is not None and loaded.world is not None
+        grids[map_id] = ChangeGrid(loaded.world)
+    feed = HealthFeed(Keys(), book, lambda key, data: None, lambda *record: None, time.time_ns)
+    angles = np.linspace(-0.2, 0.2, 36)
+    ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                  3.0 / np.cos(angles), 8.0 / np.cos(angles))  # fmt: skip
+    for map_id, grid in grids.items():
+        grid.add(ret, T0, "r1")
+        feed.on_evidence([Handed(map_id, 1, grid.snapshot())])
+    made: list[str] = []
+    report = feed.engine._report
+
+    def counted(map_id: str, state: object) -> bytes:
+        made.append(map_id)
+        return report(map_id, state)  # type: ignore[arg-type]
+
+    feed.engine._report = counted  # type: ignore[method-assign, assignment]
+    for state in feed.engine._maps.values():
+        state.report = None  # nothing reported yet
+    config = session_config("peer", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with zenoh.open(config) as session:
+        queryable = session.declare_queryable("rlutf/maphealth/*", feed.on_query)
+        replies = [r.ok.key_expr for r in session.get("rlutf/maphealth/m1", timeout=2.0) if r.ok]
+        queryable.undeclare()
+    assert [str(k) for k in replies] == ["rlutf/maphealth/m1"]
+    assert made == ["m1"], made
