@@ -1,4 +1,4 @@
-"""Input files opened without a hang: only a regular file is read.
+"""Input files opened without a hang: only a regular file is read; and files replaced durably.
 
 A FIFO named where a log, a map or a settings file is expected blocked ``open`` until something
 wrote to it (``rlutf log info``, ``replay``, ``map import``, ``map show`` and ``map build`` hung
@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import os
 import stat
+import tempfile
 from pathlib import Path
 from typing import IO
 
@@ -97,3 +98,46 @@ def read_regular(path: Path | str, max_bytes: int | None = None) -> bytes:
 def too_large(path: Path | str, max_bytes: int) -> OSError:
     """The error of an input over ``max_bytes`` (its ``strerror`` names the size)."""
     return OSError(errno.EFBIG, f"larger than {max_bytes:,} bytes, the most read of it", str(path))
+
+
+# ---------------------------------------------------------------------------- replaced files
+# The embedded map store's maps and marks (service.maps.files) and the pose state
+# (service.cluster.posestate) are replaced so: the new content is written to a temporary file
+# beside the target, flushed to the disk, renamed over the target, and the folder itself flushed
+# (the rename is only durable once the folder's entry is): a crash leaves the old content or the
+# new, never half of either.
+
+
+def replace_durably(path: Path, data: bytes, prefix: str) -> None:
+    """Replace ``path`` with ``data`` atomically and durably.
+
+    Args:
+        path: the file; its folder must exist (it is not made: a folder gone, a volume
+            unmounted, is an error, never a new folder on the disk beneath the mount point).
+        data: the new content.
+        prefix: the temporary file's name starts with it (a dot: hidden from listings).
+
+    Raises:
+        OSError: the folder is missing or refuses the write (full, read-only); the target is
+            then as it was, and no temporary file is left.
+    """
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    sync_folder(path.parent)
+
+
+def sync_folder(folder: Path) -> None:
+    """Flush a folder's entries to the disk (a rename or an unlink in it is durable after)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

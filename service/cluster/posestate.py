@@ -33,7 +33,6 @@ import fcntl
 import json
 import logging
 import os
-import tempfile
 import threading
 import time
 from collections import deque
@@ -43,6 +42,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from schemas import EventCode, Odometry, PoseEstimate, SchemaError, decode
+from service.infile import replace_durably
 
 log = logging.getLogger(__name__)
 
@@ -439,22 +439,8 @@ class PoseState:
 
     def _replace(self, data: bytes) -> None:
         """Write atomically: a crash leaves the old file or the new one."""
-        fd, tmp = tempfile.mkstemp(prefix=f".{FILE_NAME}.", suffix=".tmp", dir=self.folder)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        replace_durably(self.path, data, f".{FILE_NAME}.")
         self._written_inode = self.path.stat().st_ino
-        dir_fd = os.open(self.folder, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
 
     def figures(self) -> dict[str, object]:
         """Figures for the health message."""

@@ -9,13 +9,13 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
 from schemas import valid_id
+from service.infile import replace_durably, sync_folder
 from service.maps.book import Held
 
 log = logging.getLogger(__name__)
@@ -118,20 +118,7 @@ class FileMapStore:
         """Write atomically: a crash leaves the old file or the new one."""
         path = self._path(map_id)
         with self._lock:
-            self._write(map_id, path, payload)
-
-    def _write(self, map_id: str, path: Path, data: bytes) -> None:
-        fd, tmp = tempfile.mkstemp(prefix=f".{map_id}.", suffix=".tmp", dir=self.root)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        self._sync_folder()
+            replace_durably(path, payload, f".{map_id}.")
 
     def _mark(self, map_id: str) -> Path:
         return self._path(map_id).with_name(f".{map_id}{REMOVED_SUFFIX}")
@@ -143,10 +130,10 @@ class FileMapStore:
         with self._lock:
             if held is not None:
                 mark = json.dumps({"version": held[0], "digest": held[1]}).encode()
-                self._write(map_id, self._mark(map_id), mark)
+                replace_durably(self._mark(map_id), mark, f".{map_id}.")
             if path.exists():
                 path.unlink(missing_ok=True)
-                self._sync_folder()
+                sync_folder(self.root)
 
     def removed(self) -> dict[str, Held]:
         """The versions of the maps removed and not put since (:meth:`delete`), by id."""
@@ -166,14 +153,7 @@ class FileMapStore:
             mark = self._mark(map_id)
             if mark.exists():
                 mark.unlink(missing_ok=True)
-                self._sync_folder()
-
-    def _sync_folder(self) -> None:
-        dir_fd = os.open(self.root, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+                sync_folder(self.root)
 
     def ids(self) -> list[str]:
         """Ids of the stored maps, sorted."""

@@ -30,7 +30,7 @@ ALLOWED: dict[str, set[str]] = {
     "prepared": set(),
     "engine": {"keys", "relocalization", "guard", "prepared", "maphealth"},
     "maps": {"keys", "yamlfile", "infile"},
-    "cluster": {"keys"},
+    "cluster": {"keys", "infile"},
     "logs": {
         "keys",
         "config",
