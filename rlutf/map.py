@@ -205,8 +205,9 @@ class MapLimits:
             )
 
 
-def _raw_extent(geometry: Mapping[str, Any]) -> tuple[tuple[float, float, float, float], int]:
-    """Bounds and vertex count of a GeoJSON mapping's positions, before any validation."""
+def raw_extent(geometry: Mapping[str, Any]) -> tuple[tuple[float, float, float, float], int]:
+    """Bounds and vertex count of a GeoJSON mapping's positions, before any validation: what
+    :meth:`MapLimits.check` is given for a map that is not built yet."""
     kind = geometry.get("type")
     coords = geometry.get("coordinates")
     polygons = [coords] if kind == "Polygon" else coords if kind == "MultiPolygon" else None
@@ -308,7 +309,7 @@ class Map:
             MapError: invalid, or over ``limits``.
         """
         if limits is not None:
-            limits.check(*_raw_extent(geometry))
+            limits.check(*raw_extent(geometry))
         return cls.from_shapely(geometry_from_geojson(geometry), cell_size=cell_size)
 
     @property

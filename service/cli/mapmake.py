@@ -68,17 +68,14 @@ def _within_limits(wire: dict[str, Any]) -> None:
     Raises:
         CliError: the figure, the setting and the value that takes it (exit 2).
     """
-    import shapely
-    from shapely.geometry import shape
-
     from rlutf.errors import MapError
+    from rlutf.map import raw_extent
     from service.cli.flags import checked_settings
     from service.config import Settings
 
     settings = checked_settings(lambda: Settings(mode="client", listen=[]))
-    geometry = shape(wire["geometry"])
-    x0, y0, x1, y1 = geometry.bounds
-    vertices = int(shapely.get_num_coordinates(geometry))
+    # The positions as the service counts them before it builds anything (Map.from_geojson).
+    (x0, y0, x1, y1), vertices = raw_extent(wire["geometry"])
     size = len(json.dumps(wire, separators=(",", ":")))
     try:
         settings.map_limits().check((x0, y0, x1, y1), vertices)
