@@ -10,8 +10,9 @@ from __future__ import annotations
 import json
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -147,26 +148,34 @@ def test_replay_without_keeping_the_poses_audits_alike(live: tuple[Path, int]) -
     )
 
 
-def test_cli_audit_passes_and_a_nudged_pose_fails(
-    live: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    log, _ = live
-    assert main(["replay", str(log), "--out", str(tmp_path / "ok.mcap"), "--quiet"]) == 0
-    assert "audit: passed" in capsys.readouterr().out
+def _tampered(
+    log: Path, tmp_path: Path, field: str, change: Callable[[Any], Any]
+) -> tuple[Path, dict[str, Any]]:
+    """A copy of ``log`` with ``field`` of its middle PoseEstimate changed, and that pose."""
     with LogFile(log) as lf:
         config = lf.config()
         records = list(lf.messages())
     poses = [i for i, r in enumerate(records) if r.schema_name == "rlutf.PoseEstimate"]
     k = poses[len(poses) // 2]
     data = json.loads(records[k].payload)
-    data["x"] += 1e-6
-    nudged = json.dumps(data, separators=(",", ":")).encode()
-    records[k] = Record(*records[k][:2], nudged, *records[k][3:])
+    data[field] = change(data.get(field))
+    changed = json.dumps(data, separators=(",", ":")).encode()
+    records[k] = Record(*records[k][:2], changed, *records[k][3:])
     tampered = write_log(
         tmp_path / "tampered.mcap",
         [r for r in records if r.schema_name.startswith("rlutf.")],
         config,
     )
+    return tampered, data
+
+
+def test_cli_audit_passes_and_a_nudged_pose_fails(
+    live: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log, _ = live
+    assert main(["replay", str(log), "--out", str(tmp_path / "ok.mcap"), "--quiet"]) == 0
+    assert "audit: passed" in capsys.readouterr().out
+    tampered, _ = _tampered(log, tmp_path, "x", lambda v: v + 1e-6)
     code = main(["replay", str(tampered), "--out", str(tmp_path / "t.mcap"), "--quiet"])
     out = capsys.readouterr().out
     assert code == 1 and "FAIL" in out and "audit: FAILED" in out
@@ -202,25 +211,12 @@ def test_cli_audit_fails_on_any_field_of_a_recorded_pose_changed(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     field: str,
-    change: object,
+    change: Callable[[Any], Any],
 ) -> None:
     """Every field of a recorded PoseEstimate is audited, not x, y, theta and status only: a
     pose moved to another map, or shown as surer than it was, passed as "audit: passed"."""
     log, _ = live
-    with LogFile(log) as lf:
-        config = lf.config()
-        records = list(lf.messages())
-    poses = [i for i, r in enumerate(records) if r.schema_name == "rlutf.PoseEstimate"]
-    k = poses[len(poses) // 2]
-    data = json.loads(records[k].payload)
-    data[field] = change(data.get(field))  # type: ignore[operator]
-    changed = json.dumps(data, separators=(",", ":")).encode()
-    records[k] = Record(*records[k][:2], changed, *records[k][3:])
-    tampered = write_log(
-        tmp_path / "tampered.mcap",
-        [r for r in records if r.schema_name.startswith("rlutf.")],
-        config,
-    )
+    tampered, data = _tampered(log, tmp_path, field, change)
     for jobs in ("1", "2"):  # one process, and the audit split by robot
         assert main(["replay", str(tampered), "--quiet", "--jobs", jobs]) == 1
         out = capsys.readouterr().out
