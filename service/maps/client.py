@@ -336,31 +336,36 @@ def _services_took(
     put: Put, key: str, services: int, verdicts: list[Event], deadline: float
 ) -> Put:
     """A put the store holds, and what the running services made of it: a service that holds a
-    newer version refuses it (``map_version_conflict``). The store and a service then disagree,
-    which happens after ``rlutf map remove``: the store forgets the map's version, the running
-    services keep their copy, so a put of version 1 is new to one and old to the other. Waits
-    until each live service has said (or the deadline: a service that already held this very
-    map says nothing)."""
+    newer version refuses it (``map_version_conflict``). The store keeps a removed map's version
+    (:mod:`service.maps.files`), so the two agree after ``rlutf map remove``; they can still
+    disagree where a service holds a version the store never had or lost (a store folder
+    replaced under a running fleet). Waits until each live service has said (or the deadline: a
+    service that already held this very map says nothing)."""
     while len(verdicts) < services and time.monotonic() < deadline:
         time.sleep(0.05)
     conflict = next((e for e in verdicts if e.code == EventCode.MAP_VERSION_CONFLICT), None)
     if conflict is None:
         return put
-    found = re.search(r"held version (\d+)", conflict.message)
+    held = held_named(conflict.message)
     fix = (
-        f"put it as version {int(found[1]) + 1} with --version {int(found[1]) + 1}"
-        if found
+        f"put it as version {held + 1} with --version {held + 1}"
+        if held is not None
         else "put it again with a --version above the one that service holds"
     )
     return Put(
         False,
         put.version,
         f"the store took {key} as version {put.version}, but a running service refused it "
-        f"({conflict.message}); it holds a version from before the map was removed (`rlutf map "
-        f"remove` leaves running services their copy until they restart): {fix}, which the "
+        f"({conflict.message}): it holds a newer version than the store did: {fix}, which the "
         "store and the services both take",
         new=True,
     )
+
+
+def _stores_own(ev: Event) -> bool:
+    """Whether a refusal on the map's key is the store's: a conflict is the store's only when it
+    names a removed version (:func:`service.maps.store.removed_conflict`)."""
+    return ev.code != EventCode.MAP_VERSION_CONFLICT or "that was removed" in ev.message
 
 
 def _unchanged(key: str, version: int, said: str, in_memory: bool) -> Put:
@@ -403,11 +408,15 @@ def _confirm(
     digest = content_digest(msg)
     deadline = time.monotonic() + timeout
     while True:
-        if refused and refused[0].code != EventCode.MAP_WRITE_FAILED:
-            return Put(False, None, f"the store did not take {key}: {refused[0].message}")
+        # A conflict is the store's only when it names a removed version (a running service's,
+        # on the same key, may come before the store has stored what it took: its refusal is
+        # _services_took's to say); the store's other refusals are said at once.
+        said_by_store = [e for e in refused if _stores_own(e)]
+        if said_by_store and said_by_store[0].code != EventCode.MAP_WRITE_FAILED:
+            return Put(False, None, f"the store did not take {key}: {said_by_store[0].message}")
         held, in_memory = held_reply(session, key, min(timeout, 2.0), unless=payload)
         if held is payload or (isinstance(held, Map) and content_digest(held) == digest):
-            if in_memory or refused:
+            if in_memory or said_by_store:
                 said = f"put {key} (version {msg.version}): taken, but {_NOT_WRITTEN}"
                 return Put(False, msg.version, said, new=True)
             said = f"put {key} (version {msg.version}, {len(payload)} bytes): stored"

@@ -344,3 +344,26 @@ def test_a_put_after_a_remove_must_be_newer_than_the_version_removed_everywhere(
     stored = _stored(bench)
     assert stored is not None and stored.version == 3
     assert not list(bench.store.glob(".m1.removed"))  # a newer version: the mark is gone
+
+
+def test_map_put_says_when_a_running_service_refuses_what_the_store_took(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The store and a running service can still disagree where the store lost what it held (its
+    folder replaced under a running fleet; here its file and its memory of version 3 dropped): a
+    put of version 1 is new to the store and old to the service, and `map put` says so, exit 1,
+    with the version both take."""
+    bench.put_map(version=3)
+    assert Collector().wait_for(
+        lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 3
+    )
+    storage = bench.service._storage
+    assert storage is not None
+    with storage._lock:  # the store's folder replaced: it holds nothing
+        storage._versions.clear()
+        (bench.store / "m1.json").unlink()
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(1, MOVED))
+    assert _put_cli(bench, path, "--version", "1") == 1
+    err = capsys.readouterr().err
+    assert "a running service refused it" in err and "--version 4" in err, err
