@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import socket
 import tomllib
 from pathlib import Path
@@ -33,7 +32,8 @@ from rlutf.localizer import LocalizerConfig
 from rlutf.map import MapLimits
 from schemas import ID_PATTERN
 from service.guard import Limits, Seconds
-from service.yamlfile import load_yaml, unique_keys
+from service.infile import read_regular
+from service.yamlfile import SETTINGS_MAX_BYTES, load_yaml, problem, unique_keys, where
 
 ZenohMode = Literal["router", "peer", "client"]
 
@@ -442,16 +442,20 @@ def _check_file(path: Path, suffix: str) -> None:
     """Parse the file as the source will, so that a bad one is named with its line."""
     kind = "YAML" if suffix in (".yaml", ".yml") else suffix[1:].upper()
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_regular(path, SETTINGS_MAX_BYTES).decode("utf-8")
         if kind == "JSON":
             data: Any = json.loads(text, object_pairs_hook=unique_keys)
         elif kind == "TOML":
             data = tomllib.loads(text)
         else:
             data = load_yaml(text, unique=True)
-    except (ValueError, RecursionError, yaml.YAMLError, OSError) as err:
+    except OSError as err:  # over SETTINGS_MAX_BYTES, or unreadable
         raise SettingsFileError(
-            f"settings file {path}{_where(err)}: not valid {kind} ({_problem(err)}); fix the "
+            f"settings file {path}: cannot read it ({problem(err)}); settings are a few kB"
+        ) from err
+    except (ValueError, RecursionError, yaml.YAMLError) as err:
+        raise SettingsFileError(
+            f"settings file {path}{where(err)}: not valid {kind} ({problem(err)}); fix the "
             "file, or leave out --settings and RLUTF_SETTINGS"
         ) from err
     if data is not None and not isinstance(data, dict):
@@ -459,32 +463,6 @@ def _check_file(path: Path, suffix: str) -> None:
             f"settings file {path}: holds a {type(data).__name__}, not settings; write one "
             "'name: value' per setting at the top level (see `rlutf config`)"
         )
-
-
-def _where(err: BaseException) -> str:
-    """``, line N`` of a parser's error, where the parser says."""
-    if isinstance(err, json.JSONDecodeError):
-        return f", line {err.lineno}"
-    mark = getattr(err, "problem_mark", None)  # yaml's MarkedYAMLError
-    if mark is not None:
-        return f", line {mark.line + 1}"
-    found = re.search(r"line (\d+)", str(err))  # tomllib: "... (at line 3, column 5)"
-    if found:
-        return f", line {found.group(1)}"
-    return ", at its end" if "end of document" in str(err) else ""
-
-
-def _problem(err: BaseException) -> str:
-    if isinstance(err, json.JSONDecodeError):
-        return err.msg
-    problem = getattr(err, "problem", None)  # yaml
-    if problem:
-        return str(problem)
-    if isinstance(err, UnicodeDecodeError):
-        return "not UTF-8 text"
-    if isinstance(err, OSError):
-        return err.strerror or str(err)
-    return re.sub(r"\s*\(at (line \d+, column \d+|end of document)\)", "", str(err).splitlines()[0])
 
 
 def load_settings(settings_file: Path | None = None, **overrides: Any) -> Settings:

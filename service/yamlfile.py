@@ -15,10 +15,15 @@ second silently winning (``record_dir`` set at the top of a long file and again 
 
 from __future__ import annotations
 
+import json
+import re
 from typing import Any, Final
 
 import yaml
 
+#: The most of a settings file that is read (settings are a few kB; a larger file is refused
+#: before it is read whole).
+SETTINGS_MAX_BYTES: Final = 16 << 20
 #: Values a document may hold, counting each alias as the values it repeats.
 MAX_VALUES: Final = 100_000
 
@@ -91,3 +96,30 @@ def load_yaml(text: str | bytes, unique: bool = False) -> Any:
         elif isinstance(value, list):
             stack.extend(value)
     return doc
+
+
+def where(err: BaseException) -> str:
+    """``, line N`` of a JSON, TOML or YAML parser's error, where the parser says."""
+    if isinstance(err, json.JSONDecodeError):
+        return f", line {err.lineno}"
+    mark = getattr(err, "problem_mark", None)  # yaml's MarkedYAMLError
+    if mark is not None:
+        return f", line {mark.line + 1}"
+    found = re.search(r"line (\d+)", str(err))  # tomllib: "... (at line 3, column 5)"
+    if found:
+        return f", line {found.group(1)}"
+    return ", at its end" if "end of document" in str(err) else ""
+
+
+def problem(err: BaseException) -> str:
+    """What a JSON, TOML or YAML parser (or the read before it) found wrong, in a phrase."""
+    if isinstance(err, json.JSONDecodeError):
+        return err.msg
+    problem = getattr(err, "problem", None)  # yaml
+    if problem:
+        return str(problem)
+    if isinstance(err, UnicodeDecodeError):
+        return "not UTF-8 text"
+    if isinstance(err, OSError):
+        return err.strerror or str(err)
+    return re.sub(r"\s*\(at (line \d+, column \d+|end of document)\)", "", str(err).splitlines()[0])

@@ -25,6 +25,7 @@ from rlutf.map import MapLimits
 from service.config import Settings
 from service.guard import Limits
 from service.infile import read_regular
+from service.yamlfile import SETTINGS_MAX_BYTES
 
 _DEFAULT_LIMITS = MapLimits(
     Settings.model_fields["max_map_area"].default,
@@ -91,10 +92,6 @@ def _merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
         else:
             base[key] = copy.deepcopy(value)
     return base
-
-
-#: The most of a settings file that is read (settings are a few kB).
-SETTINGS_MAX_BYTES = 16 << 20
 
 
 def read_settings_file(path: Path) -> dict[str, Any]:

@@ -23,7 +23,7 @@ ALLOWED: dict[str, set[str]] = {
     "cores": set(),
     "kernelcache": set(),
     "guard": {"keys", "maphealth"},
-    "config": {"guard", "cores", "yamlfile"},
+    "config": {"guard", "cores", "yamlfile", "infile"},
     "relocalization": set(),
     "maphealth": {"keys"},
     "evidence": {"maphealth"},

@@ -67,6 +67,8 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "dangling").symlink_to(tmp_path / "gone")
     (tmp_path / "folder").mkdir()
     os.mkfifo(tmp_path / "pipe.yaml")  # nothing writes to it: reading it would wait for ever
+    with open(tmp_path / "huge.yaml", "wb") as huge:  # 17 MiB of zeros, none on the disk
+        huge.truncate(17 << 20)
     return tmp_path
 
 
@@ -90,6 +92,8 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["config", "--settings", "folder"], 2, ["folder", "is not a regular file"])
     yield Bad(["config", "--settings", "pipe.yaml"], 2, ["pipe.yaml", "not a regular file"])
     yield Bad(["config", "--settings", "x.ini"], 2, ["x.ini", ".yaml"])
+    # read whole (twice: checked, then by the settings library) before it was refused
+    yield Bad(["config", "--settings", "huge.yaml"], 2, ["huge.yaml", "larger than 16,777,216"])
     # zenoh's own config file
     yield Bad(["pose", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2", "-c/--config"])
     yield Bad(["serve", "-c", "corrupt.json"], 2, ["corrupt.json", "line 2"])
