@@ -278,7 +278,8 @@ class Settings(BaseSettings):
         gt=0,
         description="Largest area of a map's bounding box, square metres: the wall index, the "
         "distance field and the relocalization grid cost memory in proportion to it (about "
-        "3 kB per square metre in each worker process whose robots use the map).",
+        "3 kB per square metre in each service process whose robots use the map, and map "
+        "health's evidence grid up to 1.5 kB more while map_health is on).",
     )
     max_map_vertices: int = Field(
         4_000_000,
