@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import urllib.request
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import GaugeMetricFamily, Metric
@@ -27,8 +28,25 @@ log = logging.getLogger(__name__)
 SCRAPE_TIMEOUT_S = 2.0
 
 
+def _fetch(port: int) -> str | None:
+    """The exposition of the process on ``port``, or ``None`` if it does not answer in time."""
+    try:
+        url = f"http://127.0.0.1:{port}/metrics"
+        with urllib.request.urlopen(url, timeout=SCRAPE_TIMEOUT_S) as reply:
+            return str(reply.read().decode())
+    except OSError as err:
+        log.debug("metrics of the process on port %d: %s", port, err)
+        return None
+
+
 class _Merged:
-    """A collector: the processes' families, merged by name."""
+    """A collector: the processes' families, merged by name (in the processes' order).
+
+    The processes are read at once, each on a thread of its own: read in turn, a process that
+    hung (stopped, or its GIL held) cost the scrape its whole timeout each, and a scrape of a
+    few such processes outlasted Prometheus's own timeout (10 s by default), which then saw
+    nothing of the processes that did answer.
+    """
 
     def __init__(self, ports: list[int]) -> None:
         self._ports = ports
@@ -36,13 +54,10 @@ class _Merged:
     def collect(self) -> Iterator[Metric]:
         merged: dict[str, Metric] = {}
         answered = 0
-        for port in self._ports:
-            try:
-                url = f"http://127.0.0.1:{port}/metrics"
-                with urllib.request.urlopen(url, timeout=SCRAPE_TIMEOUT_S) as reply:
-                    text = reply.read().decode()
-            except OSError as err:
-                log.debug("metrics of the process on port %d: %s", port, err)
+        with ThreadPoolExecutor(max_workers=max(len(self._ports), 1)) as pool:
+            texts = list(pool.map(_fetch, self._ports))
+        for text in texts:
+            if text is None:
                 continue
             answered += 1
             for family in text_string_to_metric_families(text):
