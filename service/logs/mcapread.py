@@ -16,16 +16,25 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
-from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.records import Channel, Chunk, ChunkIndex, McapRecord, Message, Schema
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, ChunkIndex, Message
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
 from service.infile import open_regular
 from service.logs.mcapchunks import inflated_size, unpack_chunk
 from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
+from service.logs.mcaporder import (
+    Declarations,
+    OffIndex,
+    Span,
+    SpanScan,
+    Triple,
+    Unordered,
+    chunk_span,
+    ordered,
+)
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -59,6 +68,18 @@ class DamagedLog(LogError):
             if path.name.endswith(".mcap.part")
             else f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
             f"short); salvage its complete chunks with: rlutf log recover {path} FIXED.mcap"
+        )
+        self.path = path
+
+
+class UnorderedLog(LogError):
+    """A log whose messages are too far out of log-time order to be put in order in bounded
+    memory (:mod:`service.logs.mcaporder`): sorted first, it is read."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(
+            f"{path}: {detail}. Sort it first, with the mcap CLI: mcap sort {path} -o SORTED.mcap "
+            f"(for a file without a chunk index, first: mcap recover {path} -o FIXED.mcap)"
         )
         self.path = path
 
@@ -151,15 +172,6 @@ def _lists_every_channel(summary: Summary) -> bool:
     return named <= listed
 
 
-def _unpacked(records: Iterable[McapRecord]) -> Iterator[McapRecord]:
-    """Records read with ``emit_chunks``, a chunk's own records in its place (bounded)."""
-    for record in records:
-        if isinstance(record, Chunk):
-            yield from unpack_chunk(record)
-        else:
-            yield record
-
-
 def _declared_chunk(index: ChunkIndex) -> Chunk:
     """A chunk with no data that declares the size its index says."""
     return Chunk(
@@ -193,8 +205,7 @@ class LogFile:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
-        self._ordered: bool | None = None  # messages in log-time order in the file; None: unknown
-        self._chunks_bounded = False  # every chunk checked against MAX_CHUNK_BYTES
+        self._scanned: tuple[list[Span], Declarations] | None = None  # see _scan_index
         try:
             self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
@@ -239,81 +250,85 @@ class LogFile:
         )
 
     def _scan_index(self, summary: Summary | None) -> _Index:
-        """Index a file whose summary lacks statistics, or channels, by reading it through once
-        in file order (a chunk at a time); the channels and schemas its summary does not list
-        (the MCAP spec leaves repeating them there to the writer) are added to it, so that the
-        indexed reads find them."""
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
+        """Index a file whose summary lacks statistics, channels or chunk indexes, by reading it
+        through once in file order (a chunk at a time): its messages' counts and times, the
+        spans to read them by in log-time order (:class:`~service.logs.mcaporder.SpanScan`), and
+        the channels and schemas its summary does not list (the MCAP spec leaves repeating them
+        there to the writer), which are added to it so that the indexed reads find them.
+
+        Raises:
+            DamagedLog: a record or chunk cannot be read.
+        """
+        declared = Declarations(*((summary.schemas, summary.channels) if summary else ()))
+        found: set[int] = set()  # the channels the file's records declare
         counts: dict[int, int] = {}
+        spans = SpanScan()
         start = end = None
-        ordered = True
         try:
             with open_regular(self.path) as stream:
                 reader = StreamReader(stream, emit_chunks=True, validate_crcs=True)
-                for record in _unpacked(reader.records):
-                    if isinstance(record, Schema):
-                        schemas[record.id] = record
-                    elif isinstance(record, Channel):
-                        channels[record.id] = record
-                    elif isinstance(record, Message):
-                        if record.channel_id not in channels:
+                at = len(MAGIC)
+                for record in reader.records:
+                    inner = unpack_chunk(record) if isinstance(record, Chunk) else [record]
+                    messages = [m for m in inner if isinstance(m, Message)]
+                    for item in inner:
+                        if not isinstance(item, Message):
+                            declared.add(item)
+                            if isinstance(item, Channel):
+                                found.add(item.id)
+                            continue
+                        if item.channel_id not in found:
                             raise McapError(
-                                f"a message on channel {record.channel_id}, which no Channel "
+                                f"a message on channel {item.channel_id}, which no Channel "
                                 "record before it declares"
                             )
-                        counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
-                        t = record.log_time
-                        ordered = ordered and (end is None or t >= end)
+                        counts[item.channel_id] = counts.get(item.channel_id, 0) + 1
+                        t = item.log_time
                         start = t if start is None else min(start, t)
                         end = t if end is None else max(end, t)
+                    spans.add(at, stream.tell(), messages)
+                    at = stream.tell()
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
-        self._ordered = ordered
-        self._chunks_bounded = True
+        self._scanned = spans.spans(), declared
         if summary is not None:
-            for i, schema in schemas.items():
+            for i, schema in declared.schemas.items():
                 summary.schemas.setdefault(i, schema)
-            for i, channel in channels.items():
+            for i, channel in declared.channels.items():
                 summary.channels.setdefault(i, channel)
-        found = {
-            i: (
-                c.topic,
-                schemas[c.schema_id].name if c.schema_id in schemas else "",
-                c.message_encoding,
-            )
+        names = {i: schema.name for i, schema in declared.schemas.items()}
+        channels = {i: declared.channels[i] for i in sorted(found)}
+        index = {
+            i: (c.topic, names.get(c.schema_id, ""), c.message_encoding)
             for i, c in channels.items()
         }
-        return _Index(found, counts, start, end)
+        return _Index(index, counts, start, end)
 
-    def _bound_chunks(self, chunks: Iterable[ChunkIndex]) -> None:
-        """Check that no chunk the library will decompress whole is past the bound, a piece at a
-        time (see :mod:`service.logs.mcapchunks`)."""
-        with open_regular(self.path) as stream:
-            for index in chunks:
-                inflated_size(_declared_chunk(index))  # refused before it is read
-                stream.seek(index.chunk_start_offset + 1 + 8)
-                inflated_size(Chunk.read(ReadDataStream(stream)))
-        self._chunks_bounded = True
-
-    def _iter(self, topics: list[str] | None) -> Iterator[Any]:
+    def _iter(self, topics: list[str] | None) -> Iterator[Triple]:
+        """Messages (on ``topics``, or all) in log-time order, read a bounded part at a time
+        (:func:`~service.logs.mcaporder.ordered`): by the chunk index if the file has one, else
+        by the spans a first reading found."""
         try:
             summary = self._reader.get_summary()
-            if summary is None or not summary.chunk_indexes:
-                # No chunk index to read by: the library would sort every message of the file
-                # in memory. A file already in log-time order is streamed as it is instead.
-                if self._ordered is None:
+            if summary is not None and summary.chunk_indexes:
+                for index in summary.chunk_indexes:
+                    inflated_size(_declared_chunk(index))  # refused before any is read
+                spans = [chunk_span(index) for index in summary.chunk_indexes]
+                declared = Declarations(summary.schemas, summary.channels)
+            else:
+                if self._scanned is None:
                     self._scan_index(summary)
-                if self._ordered:
-                    with open_regular(self.path) as stream:
-                        reader = NonSeekingReader(stream, validate_crcs=True)
-                        yield from reader.iter_messages(topics=topics, log_time_order=False)
-                    return
-            if not self._chunks_bounded and summary is not None:
-                self._bound_chunks(summary.chunk_indexes)
-            yield from self._reader.iter_messages(topics=topics, log_time_order=True)
+                assert self._scanned is not None
+                spans, scanned = self._scanned
+                declared = Declarations(scanned.schemas, scanned.channels)
+            with open_regular(self.path) as stream:
+                yield from ordered(stream, spans, declared, None if topics is None else set(topics))
         except LogError:
             raise
+        except Unordered as err:
+            raise UnorderedLog(self.path, str(err)) from err
+        except OffIndex as err:
+            raise DamagedLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
 
@@ -395,6 +410,8 @@ class LogFile:
 
         Raises:
             DamagedLog: a chunk fails its CRC or does not decompress.
+            UnorderedLog: its messages are too far out of order to be put in order in bounded
+                memory (refused before the first one).
         """
         topics = None
         if schema_names is not None:

@@ -1,0 +1,270 @@
+"""A log's messages in ``log_time`` order, with a bounded part of the log held at once.
+
+The ``mcap`` library puts a file's messages in order by sorting all of them in memory when the
+file has no chunk index (a crashed recording, or another tool's): 23 MB held to read 20 MB of
+messages a little out of order, 229 MB for a log ten times as long (1.6 and 1.5 MB here). With a
+chunk index it keeps every chunk whose messages overlap the next one's in time: a 0.5 MB file
+whose every chunk spans the whole log took 47 MB.
+
+Here a file is read as :class:`Span` s, each a stretch of it (a chunk, or about
+:data:`SPAN_BYTES` of consecutive records) with the times of its messages, from the chunk index
+or, for a file without one, from reading it through once (:class:`SpanScan`). Spans are opened
+in the order of their first message's time and their messages given once no span still unopened
+can hold an earlier one (:func:`ordered`), in the order the library gives: ``log_time``, then
+file order. A log in order, or nearly (a recorder's threads hand it messages a little out of
+order), holds a span or two; one whose spans overlap past :data:`MAX_OPEN_BYTES` is refused
+(:class:`Unordered`) before its first message, rather than read with no bound.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
+from typing import IO, Final, NamedTuple
+
+from mcap.records import Channel, Chunk, ChunkIndex, McapRecord, Message, Schema
+from mcap.stream_reader import StreamReader
+
+from service.logs.mcapchunks import MAX_CHUNK_BYTES, unpack_chunk
+
+#: Most bytes of messages held at once to put a file's messages in order (a span alone, bounded
+#: by :data:`~service.logs.mcapchunks.MAX_CHUNK_BYTES` as a chunk, is always read).
+MAX_OPEN_BYTES: Final = MAX_CHUNK_BYTES
+#: A span of a file without a chunk index is cut once it holds about this many bytes.
+SPAN_BYTES: Final = 1 << 20
+#: What holding a message costs besides its payload (its fields, the objects that hold it), bytes:
+#: about 340 measured for an empty one. A file of empty messages is bounded too.
+MESSAGE_COST: Final = 320
+
+Triple = tuple[Schema | None, Channel, Message]
+
+
+class Span(NamedTuple):
+    """A stretch of an MCAP file whose messages are read together.
+
+    Attributes:
+        offset: where its first record starts in the file, bytes.
+        end: where its last record ends, bytes.
+        start_ns: the earliest ``log_time`` of its messages.
+        end_ns: the latest.
+        size: what its messages cost held (:data:`MESSAGE_COST` each besides the payload), or a
+            chunk index's decompressed size, bytes.
+        channels: the channel ids of its messages, if known (a chunk index may list them).
+    """
+
+    offset: int
+    end: int
+    start_ns: int
+    end_ns: int
+    size: int
+    channels: frozenset[int] | None = None
+
+
+def chunk_span(index: ChunkIndex) -> Span:
+    """A chunk's span, as its index describes it."""
+    return Span(
+        index.chunk_start_offset,
+        index.chunk_start_offset + index.chunk_length,
+        index.message_start_time,
+        index.message_end_time,
+        index.uncompressed_size,
+        frozenset(index.message_index_offsets) or None,
+    )
+
+
+def _cost(message: Message) -> int:
+    return len(message.data) + MESSAGE_COST
+
+
+class Unordered(ValueError):
+    """Spans that overlap in time past the bound: the messages are too far out of order."""
+
+    def __init__(self, at_ns: int, held: int, limit: int) -> None:
+        super().__init__(
+            f"its messages are too far out of log-time order to be put in order a part at a time: "
+            f"at log time {at_ns} ns, {held:,} bytes of them overlap in time, past the {limit:,} "
+            "bytes rlutf holds at once (a log the service writes overlaps by a chunk or two)"
+        )
+        self.at_ns, self.held, self.limit = at_ns, held, limit
+
+
+class OffIndex(ValueError):
+    """A message outside the times its chunk's index declares: the index cannot be trusted."""
+
+    def __init__(self, span: Span, log_time: int) -> None:
+        super().__init__(
+            f"the chunk at byte {span.offset} holds a message at log time {log_time} ns, outside "
+            f"the times its index declares ({span.start_ns} to {span.end_ns} ns)"
+        )
+
+
+class Declarations:
+    """A file's schemas and channels by id: the first declaration of each (a summary's, if
+    given)."""
+
+    def __init__(
+        self,
+        schemas: Mapping[int, Schema] | None = None,
+        channels: Mapping[int, Channel] | None = None,
+    ) -> None:
+        self.schemas: dict[int, Schema] = dict(schemas or {})
+        self.channels: dict[int, Channel] = dict(channels or {})
+
+    def add(self, record: McapRecord) -> None:
+        """Take a Schema or Channel record (other records are left alone)."""
+        if isinstance(record, Schema):
+            self.schemas.setdefault(record.id, record)
+        elif isinstance(record, Channel):
+            self.channels.setdefault(record.id, record)
+
+    def triple(self, message: Message) -> Triple:
+        """A message with its schema and channel.
+
+        Raises:
+            ValueError: its channel, or the channel's schema, is not declared.
+        """
+        channel = self.channels.get(message.channel_id)
+        if channel is None:
+            raise ValueError(
+                f"a message on channel {message.channel_id}, which no Channel record declares"
+            )
+        if channel.schema_id == 0:
+            return None, channel, message
+        schema = self.schemas.get(channel.schema_id)
+        if schema is None:
+            raise ValueError(
+                f"channel {channel.id} ({channel.topic!r}) names schema {channel.schema_id}, "
+                "which no Schema record declares"
+            )
+        return schema, channel, message
+
+
+class SpanScan:
+    """The spans of a file read through in file order: records are handed in as they are read,
+    with where they lie, and cut into spans of about :data:`SPAN_BYTES` (:meth:`spans`).
+
+    Records without messages between two that have some are read again with their span, as long
+    as they are short; a long one (an attachment) ends the span before it.
+    """
+
+    def __init__(self) -> None:
+        self._done: list[Span] = []
+        self._open: Span | None = None
+
+    def add(self, offset: int, end: int, messages: Sequence[Message]) -> None:
+        """Take the record at ``[offset, end)`` of the file and the messages it holds (a chunk's,
+        or one message's)."""
+        times = [m.log_time for m in messages]
+        if not times:
+            return
+        size = sum(_cost(m) for m in messages)
+        span, self._open = self._open, None
+        if span is not None and offset - span.end > SPAN_BYTES:
+            self._done.append(span)
+            span = None
+        if span is None:
+            span = Span(offset, end, min(times), max(times), size)
+        else:
+            span = Span(
+                span.offset,
+                end,
+                min(span.start_ns, *times),
+                max(span.end_ns, *times),
+                span.size + size,
+            )
+        if span.size >= SPAN_BYTES or span.end - span.offset >= SPAN_BYTES:
+            self._done.append(span)
+        else:
+            self._open = span
+
+    def spans(self) -> list[Span]:
+        """Every span, in file order."""
+        if self._open is not None:
+            self._done.append(self._open)
+            self._open = None
+        return self._done
+
+
+def check_overlap(spans: Iterable[Span], limit: int | None = None) -> None:
+    """Refuse spans that would be held past ``limit`` at once (by default
+    :data:`MAX_OPEN_BYTES`), going by their declared times and sizes: before reading, so that a
+    log too far out of order fails at once, not after a replay of hours.
+
+    Raises:
+        Unordered: at the start of some span, it and the spans opened before it that end at or
+            after that time hold more than ``limit`` bytes.
+    """
+    limit = MAX_OPEN_BYTES if limit is None else limit
+    opened: list[tuple[int, int]] = []  # (end_ns, size) of the spans that may hold messages
+    held = 0
+    for span in sorted(spans, key=lambda s: (s.start_ns, s.offset)):
+        while opened and opened[0][0] < span.start_ns:
+            held -= heapq.heappop(opened)[1]
+        if held and held + span.size > limit:
+            raise Unordered(span.start_ns, held + span.size, limit)
+        heapq.heappush(opened, (span.end_ns, span.size))
+        held += span.size
+
+
+def span_records(stream: IO[bytes], span: Span) -> Iterator[McapRecord]:
+    """The records of a span, a chunk's own records in its place (each chunk bounded by
+    :func:`~service.logs.mcapchunks.unpack_chunk`)."""
+    stream.seek(span.offset)
+    for record in StreamReader(stream, skip_magic=True, emit_chunks=True).records:
+        if isinstance(record, Chunk):
+            yield from unpack_chunk(record)
+        else:
+            yield record
+        if stream.tell() >= span.end:
+            return
+
+
+def ordered(
+    stream: IO[bytes],
+    spans: Iterable[Span],
+    declared: Declarations,
+    topics: Collection[str] | None = None,
+    limit: int | None = None,
+) -> Iterator[Triple]:
+    """The messages of ``spans`` (on ``topics``, or all) in ``log_time`` order, file order among
+    equal times, each with its schema and channel.
+
+    Raises:
+        Unordered: the spans overlap past ``limit`` (by default :data:`MAX_OPEN_BYTES`).
+        OffIndex: a message outside its span's times: a chunk index that lies.
+        ValueError: a message on an undeclared channel, or a chunk past the bound.
+        Exception: whatever the ``mcap`` library raises on a damaged record.
+    """
+    limit = MAX_OPEN_BYTES if limit is None else limit
+
+    def wanted(span: Span) -> bool:
+        if topics is None or span.channels is None:
+            return True
+        known = (declared.channels.get(i) for i in span.channels)
+        return any(c is None or c.topic in topics for c in known)
+
+    chosen = [s for s in spans if wanted(s)]
+    check_overlap(chosen, limit)
+    heap: list[tuple[int, int, int, Triple]] = []
+    held = 0
+    for span in sorted(chosen, key=lambda s: (s.start_ns, s.offset)):
+        while heap and heap[0][:2] < (span.start_ns, span.offset):
+            item = heapq.heappop(heap)[3]
+            held -= _cost(item[2])
+            yield item
+        before = held
+        for i, record in enumerate(span_records(stream, span)):
+            if not isinstance(record, Message):
+                declared.add(record)
+                continue
+            if not span.start_ns <= record.log_time <= span.end_ns:
+                raise OffIndex(span, record.log_time)
+            triple = declared.triple(record)
+            if topics is not None and triple[1].topic not in topics:
+                continue
+            heapq.heappush(heap, (record.log_time, span.offset, i, triple))
+            held += _cost(record)
+        if before and held > limit:
+            raise Unordered(span.start_ns, held, limit)
+    while heap:
+        yield heapq.heappop(heap)[3]
