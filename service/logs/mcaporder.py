@@ -14,6 +14,9 @@ can hold an earlier one (:func:`ordered`), in the order the library gives: ``log
 file order. A log in order, or nearly (a recorder's threads hand it messages a little out of
 order), holds a span or two; one whose spans overlap past :data:`MAX_OPEN_BYTES` is refused
 (:class:`Unordered`) before its first message, rather than read with no bound.
+
+Schemas and channels are checked as they are declared (:class:`Declarations`): an id declared
+twice differently would give messages of one topic to another.
 """
 
 from __future__ import annotations
@@ -98,9 +101,24 @@ class OffIndex(ValueError):
         )
 
 
+class Redeclared(ValueError):
+    """A schema or channel id declared twice, differently."""
+
+
+def _about_channel(channel: Channel, schemas: Mapping[int, Schema]) -> str:
+    schema = schemas.get(channel.schema_id)
+    name = schema.name if schema is not None else f"schema id {channel.schema_id}"
+    return f"topic {channel.topic!r} ({name}, {channel.message_encoding})"
+
+
 class Declarations:
-    """A file's schemas and channels by id: the first declaration of each (a summary's, if
-    given)."""
+    """A file's schemas and channels by id, each declared once, or again the same.
+
+    The MCAP format allows one definition per id; a second one that differs in what a reader goes
+    by (a channel's topic, schema or encoding; a schema's name or encoding) is refused, as which
+    of the messages on that id belong to which cannot be told. Declarations from ``schemas`` and
+    ``channels`` (a summary's) are checked against as well.
+    """
 
     def __init__(
         self,
@@ -111,11 +129,27 @@ class Declarations:
         self.channels: dict[int, Channel] = dict(channels or {})
 
     def add(self, record: McapRecord) -> None:
-        """Take a Schema or Channel record (other records are left alone)."""
+        """Take a Schema or Channel record (other records are left alone).
+
+        Raises:
+            Redeclared: its id was declared before as something else.
+        """
         if isinstance(record, Schema):
-            self.schemas.setdefault(record.id, record)
+            known = self.schemas.setdefault(record.id, record)
+            if (known.name, known.encoding) != (record.name, record.encoding):
+                raise Redeclared(
+                    f"schema {record.id} is declared twice, as {known.name!r} ({known.encoding}) "
+                    f"and as {record.name!r} ({record.encoding})"
+                )
         elif isinstance(record, Channel):
-            self.channels.setdefault(record.id, record)
+            was = self.channels.setdefault(record.id, record)
+            fields = (was.topic, was.schema_id, was.message_encoding)
+            if fields != (record.topic, record.schema_id, record.message_encoding):
+                raise Redeclared(
+                    f"channel {record.id} is declared twice, as "
+                    f"{_about_channel(was, self.schemas)} and as "
+                    f"{_about_channel(record, self.schemas)}"
+                )
 
     def triple(self, message: Message) -> Triple:
         """A message with its schema and channel.
@@ -232,6 +266,7 @@ def ordered(
     Raises:
         Unordered: the spans overlap past ``limit`` (by default :data:`MAX_OPEN_BYTES`).
         OffIndex: a message outside its span's times: a chunk index that lies.
+        Redeclared: a schema or channel declared again differently.
         ValueError: a message on an undeclared channel, or a chunk past the bound.
         Exception: whatever the ``mcap`` library raises on a damaged record.
     """

@@ -28,6 +28,7 @@ from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_fr
 from service.logs.mcaporder import (
     Declarations,
     OffIndex,
+    Redeclared,
     Span,
     SpanScan,
     Triple,
@@ -80,6 +81,18 @@ class UnorderedLog(LogError):
         super().__init__(
             f"{path}: {detail}. Sort it first, with the mcap CLI: mcap sort {path} -o SORTED.mcap "
             f"(for a file without a chunk index, first: mcap recover {path} -o FIXED.mcap)"
+        )
+        self.path = path
+
+
+class RedeclaredLog(LogError):
+    """A log that declares a channel (or schema) id twice, differently: its messages on that id
+    cannot be told apart, so it is not read."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(
+            f"{path}: {detail}: which of its messages are on which cannot be told, so the file "
+            "is not read (MCAP allows one definition per id)"
         )
         self.path = path
 
@@ -257,6 +270,7 @@ class LogFile:
         there to the writer), which are added to it so that the indexed reads find them.
 
         Raises:
+            RedeclaredLog: a channel or schema id declared twice, differently.
             DamagedLog: a record or chunk cannot be read.
         """
         declared = Declarations(*((summary.schemas, summary.channels) if summary else ()))
@@ -288,6 +302,8 @@ class LogFile:
                         end = t if end is None else max(end, t)
                     spans.add(at, stream.tell(), messages)
                     at = stream.tell()
+        except Redeclared as err:
+            raise RedeclaredLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
         self._scanned = spans.spans(), declared
@@ -327,6 +343,8 @@ class LogFile:
             raise
         except Unordered as err:
             raise UnorderedLog(self.path, str(err)) from err
+        except Redeclared as err:
+            raise RedeclaredLog(self.path, str(err)) from err
         except OffIndex as err:
             raise DamagedLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
@@ -412,6 +430,7 @@ class LogFile:
             DamagedLog: a chunk fails its CRC or does not decompress.
             UnorderedLog: its messages are too far out of order to be put in order in bounded
                 memory (refused before the first one).
+            RedeclaredLog: a channel or schema id is declared twice, differently.
         """
         topics = None
         if schema_names is not None:

@@ -19,7 +19,7 @@ from mcaplog_fixtures import simulated_inputs, write_log
 
 from service.cli.main import main
 from service.logs.mcapfile import Record
-from service.logs.mcapread import LogFile
+from service.logs.mcapread import LogFile, RedeclaredLog, merged_messages
 from service.logs.replay import replay
 
 DEEP = b"[" * 100_000 + b"]" * 100_000
@@ -209,3 +209,83 @@ def test_a_log_whose_every_recorded_pose_is_unreadable_fails_its_audit(
         out, err = capsys.readouterr()
         assert "12 recorded poses are not valid PoseEstimates" in out + err
         assert "nothing to audit" not in out + err and "audit: FAILED" in out + err
+
+
+def _reusing_an_id(path: Path, what: str, **options: Any) -> Path:
+    """A file by the ``mcap`` library's writer whose ``what`` ("channel" or "schema") 1 is r1's
+    events for the first message, and r2's odometry for the second: a writer that numbers them
+    anew part way (as the library's does, by how many it has)."""
+    with open(path, "wb") as out:
+        writer = McapWriter(out, **options)
+        writer.start("another writer", "")
+        event = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
+        first = writer.register_channel("rlutf/robots/r1/events", "json", event)
+        writer.add_message(first, 1000, b'{"first": 1}', 1000)
+        vars(writer)[f"_Writer__{what}s"].clear()
+        odometry = writer.register_schema("rlutf.Odometry", "jsonschema", b"{}")
+        again = writer.register_channel("rlutf/robots/r2/odom", "json", odometry)
+        assert again == first if what == "channel" else odometry == event
+        writer.add_message(again, 2000, b'{"second": 2}', 2000)
+        writer.finish()
+    return path
+
+
+@pytest.mark.parametrize("what", ["channel", "schema"])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"index_types": IndexType.NONE, "use_statistics": False, "use_summary_offsets": False}
+        | {"repeat_channels": False, "repeat_schemas": False},
+        {"use_chunking": False},
+    ],
+    ids=["indexed", "no summary", "unchunked"],
+)
+def test_a_log_that_declares_an_id_twice_differently_is_refused(
+    options: dict[str, Any], what: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A channel declared again under its id for another topic and schema was merged: indexed,
+    both messages were read as r2's odometry (r1's event replayed as an Odometry); without a
+    summary, the messages were read as declared, but ``rlutf log info`` counted both as r2's
+    odometry. The MCAP format allows one definition per id, so which message is on which cannot
+    be told: the file is refused, naming the id and both declarations."""
+    path = _reusing_an_id(tmp_path / "reused.mcap", what, **options)
+    with pytest.raises(RedeclaredLog) as refused, LogFile(path) as log:
+        list(log.messages())
+    said = str(refused.value)
+    assert str(path) in said and f"{what} 1 is declared twice" in said, said
+    if what == "channel":
+        assert "rlutf/robots/r1/events" in said and "rlutf/robots/r2/odom" in said, said
+    assert "rlutf.Event" in said and "rlutf.Odometry" in said, said
+    for argv in (["log", "info", str(path)], ["replay", str(path), "--quiet", "--jobs", "1"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "declared twice" in err and "Traceback" not in err, err
+
+
+def test_logs_read_together_each_keep_their_own_channel_ids(tmp_path: Path) -> None:
+    """Channel ids are a file's own: two logs that both number their first channel 1, for other
+    topics, are read together with each message on its own file's topic."""
+    paths = []
+    for name, topic, t in (
+        ("a", "rlutf/robots/r1/events", 1000),
+        ("b", "rlutf/robots/r2/events", 1500),
+    ):
+        with open(tmp_path / f"{name}.mcap", "wb") as out:
+            writer = McapWriter(out)
+            writer.start("another writer", "")
+            schema = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
+            channel = writer.register_channel(topic, "json", schema)
+            assert channel == 1
+            for k in range(3):
+                writer.add_message(channel, t + 1000 * k, json.dumps({"from": name}).encode(), t)
+            writer.finish()
+        paths.append(tmp_path / f"{name}.mcap")
+    logs = [LogFile(p) for p in paths]
+    try:
+        read = [(r.topic, json.loads(r.payload)["from"]) for r in merged_messages(logs)]
+    finally:
+        for log in logs:
+            log.close()
+    a, b = ("rlutf/robots/r1/events", "a"), ("rlutf/robots/r2/events", "b")
+    assert read == [a, b, a, b, a, b]
