@@ -11,7 +11,8 @@ recordings into replay inputs and poses into rosbag2 recordings.
 Modules: :mod:`~service.ros2.names` (key expressions, liveliness tokens, namespaces to robots),
 :mod:`~service.ros2.attachment` (the 33-byte sample attachment), :mod:`~service.ros2.convert`
 (CDR to and from WIRE.md messages, with rosbags), :mod:`~service.ros2.frontdoor` (the live
-front door on a Zenoh session), :mod:`~service.ros2.bags` (rosbag2 in and out).
+front door on a Zenoh session), :mod:`~service.ros2.roster` (its robots, and their tokens and
+publishers), :mod:`~service.ros2.bags` (rosbag2 in and out).
 
 May import: ``rlutf``, ``schemas``, ``service.keys``, ``service.config``, ``service.maps``,
 ``service.logs`` and ``service.infile``; ``service.live`` and ``service.cli`` import it (the

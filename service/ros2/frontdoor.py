@@ -13,7 +13,8 @@ heartbeat, as rmw_zenoh declares it) and as the ``map`` -> ``odom`` transform on
 stamped ahead by the transform tolerance), and its quality (``localization_score``,
 ``deviation_range``) as a DiagnosticArray on the robot's ``diagnostics``, each sample with
 rmw_zenoh's attachment, on the key the robot's own distribution listens on. Liveliness tokens
-announce the node and its topics, so ``ros2 node list`` and ``ros2 topic list`` show them. AMCL's
+announce the node and its topics, so ``ros2 node list`` and ``ros2 topic list`` show them. The
+robots held, and the tokens and publishers of each, are :mod:`service.ros2.roster`'s. AMCL's
 ``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`;
 started without a map, the front door says at once what will be refused
 (:func:`no_map_warning`).
@@ -24,7 +25,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, Literal
 
@@ -36,14 +36,13 @@ from schemas import PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message, printable
 from service.ros2 import convert, names
-from service.ros2.attachment import Sequencer, gid_of
-from service.ros2.entities import declare_publisher, limit_message, no_map_warning, undeclare
+from service.ros2.entities import no_map_warning, undeclare
 from service.ros2.gate import OdometryGate
-from service.ros2.globalloc import EMPTY_SRV, SERVICE_QOS, GlobalLocalization
+from service.ros2.globalloc import GlobalLocalization
 from service.ros2.gridmaps import GridImports
-from service.ros2.names import Distro
+from service.ros2.roster import Limit, Publisher, Roster
 from service.ros2.statictf import Pose2, StaticFrames
-from service.ros2.trail import OdometryTrail, map_to_odom
+from service.ros2.trail import map_to_odom
 
 log = logging.getLogger(__name__)
 
@@ -51,35 +50,11 @@ Offer = Callable[[str, InputKind, bytes, Message, int], None]
 """Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
 Reject = Callable[[str | None, str, str, int], None]
 """Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
-Limit = Callable[[str, str, int], None]
-"""Report a namespace refused, ``max_robots`` held: key, why, receive time (ns)."""
 Clock = Callable[[], int]
-#: Least time between two ``robot_limit`` Events of the front door, ns.
-LIMIT_EVENT_NS = 1_000_000_000
 #: Scan frames with no tf_static link said in the log per robot (a robot's scans use one).
 WARNED_FRAMES = 4
 
 Leaf = Literal["scan", "odom", "initialpose", "tf"]
-
-
-@dataclass
-class _Publisher:
-    key: str
-    publisher: Any
-    sequencer: Sequencer
-
-
-@dataclass
-class _Robot:
-    robot_id: str
-    namespace: str
-    map_id: str | None
-    distro: Distro | None
-    forced: bool
-    odometry: OdometryTrail = field(default_factory=OdometryTrail)
-    publishers: dict[str, _Publisher] = field(default_factory=dict)
-    tokens: list[Any] = field(default_factory=list)
-    seen_ns: int = 0  # receive time of its latest input
 
 
 class Ros2FrontDoor:
@@ -117,18 +92,9 @@ class Ros2FrontDoor:
         self.clock = clock
         self.max_payload_bytes = max_payload_bytes
         self.max_robots = max_robots
-        self.on_limit = on_limit
-        self.idle_ns = idle_ns
-        self._last_sweep = -LIMIT_EVENT_NS
-        self.robots_refused = 0  # inputs of namespaces refused, max_robots held
-        self._last_limit = -LIMIT_EVENT_NS
-        self._robots: dict[str, _Robot] = {}
-        self._by_id: dict[str, _Robot] = {}
         self._lock = threading.Lock()
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
-        self._entity = 1  # entity ids of the tokens; 0 is the node
-        self._zid = ""
         overrides = {ns: r.robot_id for ns, r in settings.robots.items() if r.robot_id}
         self._overrides = overrides
         topics: dict[str, Leaf] = {
@@ -140,6 +106,8 @@ class Ros2FrontDoor:
         else:
             topics[settings.tf_topic] = "tf"
         self._topics = topics
+        subscribed = [(name, _EXPECTED[leaf], _QOS[leaf]) for name, leaf in topics.items()]
+        self.roster = Roster(settings, subscribed, max_robots, idle_ns, on_limit, self._forgotten)
         self._static: dict[str, StaticFrames] = {}
         self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
@@ -157,9 +125,11 @@ class Ros2FrontDoor:
         if warning is not None:
             log.warning("%s", warning)
         self._session = session
-        self._zid = str(session.zid())
-        liveliness = session.liveliness()
-        self._declared.append(liveliness.declare_token(names.node_token(s.domain_id, self._zid, 0)))
+        self.roster.start(session)
+        zid = str(session.zid())
+        self._declared.append(
+            session.liveliness().declare_token(names.node_token(s.domain_id, zid, 0))
+        )
         for name, leaf in self._topics.items():
             key = names.subscription_key(s.domain_id, name)
             self._declared.append(session.declare_subscriber(key, partial(self._on, leaf)))
@@ -193,28 +163,18 @@ class Ros2FrontDoor:
         self.globalloc.close()
         if self._flusher is not None:
             self._flusher.join(1.0)
-        with self._lock:
-            robots = list(self._robots.values())
-            self._robots.clear()
-            self._by_id.clear()
-        for r in robots:
-            for p in r.publishers.values():
-                undeclare(p.publisher)
-            for t in r.tokens:
-                undeclare(t)
+        self.roster.close()
         for d in reversed(self._declared):
             undeclare(d)
         self._declared.clear()
 
     def robots(self, most: int = 50) -> dict[str, str]:
         """Robot id to namespace of the ROS robots held, the first ``most`` by id."""
-        with self._lock:
-            held = sorted((r.robot_id, r.namespace) for r in self._robots.values())
-        return dict(held[:most])
+        return self.roster.held(most)
 
     def robots_count(self) -> int:
         """How many ROS robots are held."""
-        return len(self._robots)
+        return self.roster.count()
 
     # ------------------------------------------------------------------------- inputs
     def _on(self, leaf: Leaf, sample: zenoh.Sample) -> None:
@@ -248,19 +208,18 @@ class Ros2FrontDoor:
                 received,
             )
             return
-        if not self._room(dk.namespace, robot_id, key, received):
+        if not self.roster.room(dk.namespace, robot_id, key, received):
             return
         try:  # decoded first: input that is no message makes no robot
             messages = self._decode(dk.namespace, robot_id, raw, leaf)
         except SchemaError as err:
             self.reject(robot_id, key, str(err), received)
             return
-        robot = self._robot(robot_id, dk.namespace, dk.distro, received)
+        robot = self.roster.robot(robot_id, dk.namespace, dk.distro, received)
         for kind, msg in messages:
             if kind == "odom":
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
-                with self._lock:
-                    robot.odometry.add(msg.stamp_ns, pose)
+                self.roster.add_odometry(robot, msg.stamp_ns, pose)
             self.gate.put(robot_id, kind, convert.wire_json(msg), msg)
 
     def _on_static(self, sample: zenoh.Sample) -> None:
@@ -335,129 +294,23 @@ class Ros2FrontDoor:
             )
         return [("initialpose", convert.initial_pose(raw, map_id, s.global_frame))]
 
-    def _room(self, namespace: str, robot_id: str, key: str, received: int) -> bool:
-        """Whether a namespace's input may be taken: its robot is held, or fewer than
-        ``max_robots`` are; else it is refused, with an Event ``robot_limit`` a second."""
-        with self._lock:
-            if namespace in self._robots or len(self._robots) < self.max_robots:
-                return True
-            idle = []
-            if received - self._last_sweep >= LIMIT_EVENT_NS:  # a look at most once a second
-                self._last_sweep = received
-                gone = received - self.idle_ns
-                idle = [r.robot_id for r in self._robots.values() if r.seen_ns < gone]
-        for gone_id in idle:  # owned elsewhere, or never taken: this instance evicts no one
-            self.forget(gone_id)
-        with self._lock:
-            if len(self._robots) < self.max_robots:
-                return True
-            self.robots_refused += 1
-            say = received - self._last_limit >= LIMIT_EVENT_NS
-            if say:
-                self._last_limit = received
-        if say and self.on_limit is not None:
-            why = limit_message(robot_id, self.max_robots, self.robots_refused)
-            self.on_limit(key, why, received)
-        return False
-
     def forget(self, robot_id: str) -> None:
         """Drop a robot the service evicted: its tokens, publishers and held input go (its
         next input makes it anew)."""
-        with self._lock:
-            r = self._by_id.pop(robot_id, None)
-            if r is None:
-                return
-            self._robots.pop(r.namespace, None)
-            self._static.pop(r.namespace, None)
-            self._warned.pop(r.namespace, None)
-        self.gate.forget(robot_id)
-        for p in r.publishers.values():
-            undeclare(p.publisher)
-        for t in r.tokens:
-            undeclare(t)
+        self.roster.forget(robot_id)
 
-    def _robot(self, robot_id: str, namespace: str, distro: Distro, seen: int) -> _Robot:
+    def _forgotten(self, robot_id: str, namespace: str) -> None:
         with self._lock:
-            r = self._robots.get(namespace)
-            if r is not None:
-                r.seen_ns = seen
-                if not r.forced and r.distro != distro:
-                    log.info("ROS robot %s now uses %s key naming", robot_id, distro)
-                    self._redeclare(r, distro)
-                return r
-            over = self.settings.robot(namespace)
-            chosen = over.distro or self.settings.distro
-            forced = chosen != "auto"
-            r = _Robot(
-                robot_id,
-                namespace,
-                over.map_id or self.settings.map_id,
-                chosen if chosen != "auto" else distro,
-                forced,
-                seen_ns=seen,
-            )
-            self._robots[namespace] = r
-            self._by_id[robot_id] = r
-            self._declare(r)
-            return r
+            self._static.pop(namespace, None)
+            self._warned.pop(namespace, None)
+        self.gate.forget(robot_id)
 
     # ------------------------------------------------------------------------- outputs
-    def _declare(self, r: _Robot) -> None:
-        """Tokens of the robot's topics and its publishers (lock held)."""
-        session = self._session
-        if session is None or r.distro is None:
-            return
-        s = self.settings
-        qos = {
-            "scan": names.SENSOR_QOS,
-            "odom": names.ODOM_QOS,
-            "initialpose": names.INITIALPOSE_QOS,
-        }
-        entities: list[tuple[Literal["MP", "MS", "SS"], str, str, names.Qos]] = [
-            ("MS", name, _EXPECTED[leaf], qos.get(leaf, names.TF_QOS))
-            for name, leaf in self._topics.items()
-        ]
-        entities.append(("MP", s.pose_topic, convert.POSE_COV, names.AMCL_POSE_QOS))
-        if s.diagnostics_topic:
-            entities.append(
-                ("MP", s.diagnostics_topic, convert.DIAGNOSTIC_ARRAY, names.DIAGNOSTICS_QOS)
-            )
-        if s.publish_tf:
-            entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
-        if s.global_localization_service:
-            entities.append(("SS", s.global_localization_service, EMPTY_SRV, SERVICE_QOS))
-        liveliness = session.liveliness()
-        for kind, name, msgtype, q in entities:
-            topic = names.join_topic(r.namespace, name)
-            token = names.entity_token(
-                s.domain_id, self._zid, 0, self._entity, kind, topic, msgtype, r.distro, q
-            )
-            self._entity += 1
-            r.tokens.append(liveliness.declare_token(token))
-            if kind == "MP":
-                key = names.data_key(s.domain_id, topic, msgtype, r.distro)
-                r.publishers[msgtype] = _Publisher(
-                    key, declare_publisher(session, key, q), Sequencer(gid_of(token))
-                )
-
-    def _redeclare(self, r: _Robot, distro: Distro) -> None:
-        for p in r.publishers.values():
-            undeclare(p.publisher)
-        for t in r.tokens:
-            undeclare(t)
-        r.publishers.clear()
-        r.tokens.clear()
-        r.distro = distro
-        self._declare(r)
-
     def on_pose(self, robot_id: str, payload: bytes) -> None:
         """Publish a PoseEstimate of a ROS robot as ``amcl_pose`` and ``map`` -> ``odom``."""
-        with self._lock:
-            r = self._by_id.get(robot_id)
-            if r is None:
-                return  # a robot of the JSON front door
-            pubs = dict(r.publishers)
-            odom = None
+        pubs = self.roster.publishers(robot_id)
+        if pubs is None:
+            return  # a robot of the JSON front door
         try:
             pose = decode(PoseEstimate, payload, max_bytes=self.max_payload_bytes)
         except SchemaError:
@@ -470,8 +323,7 @@ class Ros2FrontDoor:
             self._put(pubs.get(convert.DIAGNOSTIC_ARRAY), convert.quality_diagnostics(pose), now)
         if not s.publish_tf:
             return
-        with self._lock:
-            odom = r.odometry.at(pose.stamp_ns)
+        odom = self.roster.odometry_at(robot_id, pose.stamp_ns)
         if odom is None:
             return  # no odometry yet: no map -> odom (AMCL waits for odom -> base too)
         map_odom = map_to_odom([pose.x, pose.y, pose.theta], odom)
@@ -483,7 +335,7 @@ class Ros2FrontDoor:
         )
 
     @staticmethod
-    def _put(pub: _Publisher | None, payload: bytes, now: int) -> None:
+    def _put(pub: Publisher | None, payload: bytes, now: int) -> None:
         if pub is None:
             return
         try:
@@ -492,6 +344,12 @@ class Ros2FrontDoor:
             log.warning("could not publish on %s", pub.key, exc_info=True)
 
 
+_QOS: dict[Leaf, names.Qos] = {
+    "scan": names.SENSOR_QOS,
+    "odom": names.ODOM_QOS,
+    "initialpose": names.INITIALPOSE_QOS,
+    "tf": names.TF_QOS,
+}
 _EXPECTED: dict[Leaf, str] = {
     "scan": convert.LASER_SCAN,
     "odom": convert.ODOMETRY,
