@@ -107,7 +107,9 @@ class Ros2FrontDoor:
             topics[settings.tf_topic] = "tf"
         self._topics = topics
         subscribed = [(name, _EXPECTED[leaf], _QOS[leaf]) for name, leaf in topics.items()]
-        self.roster = Roster(settings, subscribed, max_robots, idle_ns, on_limit, self._forgotten)
+        self.roster = Roster(
+            settings, subscribed, max_robots, idle_ns, on_limit, self._forgotten, self._publish
+        )
         self._static: dict[str, StaticFrames] = {}
         self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
@@ -307,10 +309,15 @@ class Ros2FrontDoor:
 
     # ------------------------------------------------------------------------- outputs
     def on_pose(self, robot_id: str, payload: bytes) -> None:
-        """Publish a PoseEstimate of a ROS robot as ``amcl_pose`` and ``map`` -> ``odom``."""
-        pubs = self.roster.publishers(robot_id)
-        if pubs is None:
-            return  # a robot of the JSON front door
+        """Publish a PoseEstimate of a ROS robot as ``amcl_pose`` and ``map`` -> ``odom``.
+
+        A robot whose publishers are not declared yet has its pose published once they are.
+        """
+        pubs = self.roster.publishers(robot_id, payload)
+        if pubs is not None:  # None: a robot of the JSON front door, or one still declared
+            self._publish(robot_id, payload, pubs)
+
+    def _publish(self, robot_id: str, payload: bytes, pubs: dict[str, Publisher]) -> None:
         try:
             pose = decode(PoseEstimate, payload, max_bytes=self.max_payload_bytes)
         except SchemaError:

@@ -6,12 +6,24 @@ liveliness tokens of its topics (``ros2 topic list``) and the publishers of its 
 ``max_robots`` are held: a new namespace past that is refused (an Event ``robot_limit`` a second)
 once those idle for ``idle_ns`` are dropped. A robot dropped (idle, or evicted by the service)
 loses its tokens and publishers; its next input makes it anew.
+
+Tokens and publishers are declared and undeclared on a thread of the roster's own, never in the
+Zenoh callback where a robot's first input arrives. zenoh-python forbids Zenoh calls in a
+callback ("may lead to deadlocks", its docs/concepts.rst, Callbacks), and a declaration can wait
+on the bus: it is sent with congestion control ``block``, so while one link's queue is full (a
+robot's Wi-Fi gone, its process stopped) a declaration that goes to that link waits until zenoh
+closes it (``block.wait_before_close``, 5 s; measured with zenoh-python 1.10.2). Made in the
+callback, under the roster's lock, such a wait stalled that subscriber's intake for every robot
+(and, its queue full, the link it reads) and the service's output thread (``on_pose``). A
+robot's poses that come before its publishers are declared wait, the latest one, and go out
+once they are, in order.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -33,6 +45,8 @@ Limit = Callable[[str, str, int], None]
 """Report a namespace refused, ``max_robots`` held: key, why, receive time (ns)."""
 Forgotten = Callable[[str, str], None]
 """Told of a robot dropped: robot id, namespace."""
+Send = Callable[[str, bytes, dict[str, "Publisher"]], None]
+"""Publish a robot's pose (robot id, PoseEstimate payload) with its publishers by type."""
 #: Least time between two ``robot_limit`` Events of the front door, ns.
 LIMIT_EVENT_NS = 1_000_000_000
 
@@ -50,6 +64,21 @@ class Publisher:
 
 
 @dataclass
+class Entities:
+    """What is declared on the bus for a robot: its publishers by message type, its tokens."""
+
+    publishers: dict[str, Publisher] = field(default_factory=dict)
+    tokens: list[Any] = field(default_factory=list)
+
+    def undeclare(self) -> None:
+        """Undeclare them all (each one that may be gone with its session too)."""
+        for p in self.publishers.values():
+            undeclare(p.publisher)
+        for t in self.tokens:
+            undeclare(t)
+
+
+@dataclass
 class Robot:
     """A ROS robot held: its namespace, id, map and key naming, and what is declared for it."""
 
@@ -59,9 +88,12 @@ class Robot:
     distro: Distro | None
     forced: bool
     odometry: OdometryTrail = field(default_factory=OdometryTrail)
-    publishers: dict[str, Publisher] = field(default_factory=dict)
-    tokens: list[Any] = field(default_factory=list)
+    entities: Entities = field(default_factory=Entities)
     seen_ns: int = 0  # receive time of its latest input
+    declared: Distro | None = None  # the naming its entities are declared with; None: not yet
+    gone: bool = False  # dropped: its entities are to go
+    queued: bool = False  # waits for the declaring thread
+    pending: bytes | None = None  # its latest pose, waiting for its publishers
 
 
 class Roster:
@@ -74,6 +106,7 @@ class Roster:
         idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
         on_limit: where a refusal is reported (at most once a second).
         forgotten: told of each robot dropped, after its entry goes.
+        send: publishes a pose that waited for its robot's publishers (on the roster's thread).
     """
 
     def __init__(
@@ -84,6 +117,7 @@ class Roster:
         idle_ns: int,
         on_limit: Limit | None,
         forgotten: Forgotten,
+        send: Send,
     ) -> None:
         self.settings = settings
         self.subscribed = list(subscribed)
@@ -91,29 +125,44 @@ class Roster:
         self.idle_ns = idle_ns
         self.on_limit = on_limit
         self.forgotten = forgotten
+        self.send = send
         self.robots_refused = 0  # inputs of namespaces refused, max_robots held
         self._last_sweep = -LIMIT_EVENT_NS
         self._last_limit = -LIMIT_EVENT_NS
         self._robots: dict[str, Robot] = {}
         self._by_id: dict[str, Robot] = {}
         self._lock = threading.Lock()
+        self._work = threading.Condition(self._lock)
+        self._queue: deque[Robot] = deque()  # robots whose entities are to change
+        self._closed = False
+        self._thread: threading.Thread | None = None
         self._session: zenoh.Session | None = None
         self._zid = ""
         self._entity = 1  # entity ids of the tokens; 0 is the node
 
     def start(self, session: zenoh.Session) -> None:
-        """Declare the robots' entities on ``session`` from now on."""
+        """Declare the robots' entities on ``session``, on the roster's thread."""
         self._session = session
         self._zid = str(session.zid())
+        self._thread = threading.Thread(target=self._run, name="rlutf-ros2-declare", daemon=True)
+        self._thread.start()
 
     def close(self) -> None:
         """Drop every robot, undeclaring its publishers and tokens."""
         with self._lock:
-            robots = list(self._robots.values())
+            self._closed = True
+            self._work.notify()
+        if self._thread is not None:
+            self._thread.join(1.0)  # a declaration stuck on the bus ends with the session
+        with self._lock:
+            robots = {id(r): r for r in [*self._robots.values(), *self._queue]}.values()
             self._robots.clear()
             self._by_id.clear()
+            self._queue.clear()
+            for r in robots:
+                r.gone = True
         for r in robots:
-            _undeclare_all(r)
+            r.entities.undeclare()
 
     def held(self, most: int = 50) -> dict[str, str]:
         """Robot id to namespace of the robots held, the first ``most`` by id."""
@@ -157,8 +206,9 @@ class Roster:
             if r is None:
                 return
             self._robots.pop(r.namespace, None)
+            r.gone = True
+            self._enqueue(r)
         self.forgotten(robot_id, r.namespace)
-        _undeclare_all(r)
 
     def robot(self, robot_id: str, namespace: str, distro: Distro, seen: int) -> Robot:
         """The robot of a namespace, made (and its entities declared) if new."""
@@ -168,7 +218,8 @@ class Roster:
                 r.seen_ns = seen
                 if not r.forced and r.distro != distro:
                     log.info("ROS robot %s now uses %s key naming", robot_id, distro)
-                    self._redeclare(r, distro)
+                    r.distro = distro
+                    self._enqueue(r)
                 return r
             over = self.settings.robot(namespace)
             chosen = over.distro or self.settings.distro
@@ -183,7 +234,7 @@ class Roster:
             )
             self._robots[namespace] = r
             self._by_id[robot_id] = r
-            self._declare(r)
+            self._enqueue(r)
             return r
 
     def add_odometry(self, robot: Robot, stamp_ns: int, pose: np.ndarray) -> None:
@@ -191,11 +242,20 @@ class Roster:
         with self._lock:
             robot.odometry.add(stamp_ns, pose)
 
-    def publishers(self, robot_id: str) -> dict[str, Publisher] | None:
-        """A robot's publishers by message type; ``None`` when it is not held here."""
+    def publishers(self, robot_id: str, pose: bytes) -> dict[str, Publisher] | None:
+        """A robot's publishers by message type, to publish ``pose`` with.
+
+        ``None`` when the robot is not held here, or when its publishers are not declared yet:
+        the pose then waits (the latest one) and goes to ``send`` once they are.
+        """
         with self._lock:
             r = self._by_id.get(robot_id)
-            return None if r is None else dict(r.publishers)
+            if r is None:
+                return None
+            if r.declared is None or r.declared != r.distro:
+                r.pending = pose
+                return None
+            return dict(r.entities.publishers)
 
     def odometry_at(self, robot_id: str, stamp_ns: int) -> np.ndarray | None:
         """A robot's odometry pose at a stamp; ``None`` with no reading (or no robot)."""
@@ -204,11 +264,57 @@ class Roster:
             return None if r is None else r.odometry.at(stamp_ns)
 
     # ------------------------------------------------------------------------- entities
-    def _declare(self, r: Robot) -> None:
-        """Tokens of the robot's topics and its publishers (lock held)."""
-        session = self._session
-        if session is None or r.distro is None:
+    def _enqueue(self, r: Robot) -> None:
+        """The roster's thread is to bring ``r``'s entities in line with it (lock held)."""
+        if not r.queued:
+            r.queued = True
+            self._queue.append(r)
+            self._work.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                while not self._queue and not self._closed:
+                    self._work.wait()
+                if self._closed:
+                    return
+                r = self._queue.popleft()
+                r.queued = False
+            try:
+                self._settle(r)
+            except Exception:  # the thread must go on with the next robot
+                log.exception("declaring the entities of ROS robot %s failed", r.robot_id)
+
+    def _settle(self, r: Robot) -> None:
+        """Undeclare what ``r`` has and declare what it needs; then send its waiting poses."""
+        with self._lock:
+            want = None if r.gone else r.distro
+            if want is not None and want == r.declared:  # its naming changed, and back
+                r.pending = None  # a newer pose goes out first, with the same publishers
+                return
+            old, r.entities, r.declared = r.entities, Entities(), None
+        old.undeclare()
+        if want is None or self._session is None:
             return
+        made = self._declare(r.namespace, want)
+        while True:
+            with self._lock:
+                if r.gone or r.distro != want or self._closed:  # changed meanwhile: queued again
+                    r.entities = Entities()
+                    break
+                r.entities = made
+                pose, r.pending = r.pending, None
+                if pose is None:
+                    r.declared = want  # from now on on_pose publishes with them itself
+                    return
+            # Poses that came meanwhile go out in order: a newer one waits until this is out.
+            self.send(r.robot_id, pose, dict(made.publishers))
+        made.undeclare()
+
+    def _declare(self, namespace: str, distro: Distro) -> Entities:
+        """The tokens of a robot's topics and its publishers, declared."""
+        session = self._session
+        assert session is not None
         s = self.settings
         entities: list[tuple[Literal["MP", "MS", "SS"], str, str, names.Qos]] = [
             ("MS", name, msgtype, qos) for name, msgtype, qos in self.subscribed
@@ -222,30 +328,22 @@ class Roster:
             entities.append(("MP", s.tf_topic, convert.TF_MESSAGE, names.TF_QOS))
         if s.global_localization_service:
             entities.append(("SS", s.global_localization_service, EMPTY_SRV, SERVICE_QOS))
+        made = Entities()
         liveliness = session.liveliness()
-        for kind, name, msgtype, q in entities:
-            topic = names.join_topic(r.namespace, name)
-            token = names.entity_token(
-                s.domain_id, self._zid, 0, self._entity, kind, topic, msgtype, r.distro, q
-            )
-            self._entity += 1
-            r.tokens.append(liveliness.declare_token(token))
-            if kind == "MP":
-                key = names.data_key(s.domain_id, topic, msgtype, r.distro)
-                r.publishers[msgtype] = Publisher(
-                    key, declare_publisher(session, key, q), Sequencer(gid_of(token))
+        try:
+            for kind, name, msgtype, q in entities:
+                topic = names.join_topic(namespace, name)
+                token = names.entity_token(
+                    s.domain_id, self._zid, 0, self._entity, kind, topic, msgtype, distro, q
                 )
-
-    def _redeclare(self, r: Robot, distro: Distro) -> None:
-        _undeclare_all(r)
-        r.publishers.clear()
-        r.tokens.clear()
-        r.distro = distro
-        self._declare(r)
-
-
-def _undeclare_all(r: Robot) -> None:
-    for p in r.publishers.values():
-        undeclare(p.publisher)
-    for t in r.tokens:
-        undeclare(t)
+                self._entity += 1
+                made.tokens.append(liveliness.declare_token(token))
+                if kind == "MP":
+                    key = names.data_key(s.domain_id, topic, msgtype, distro)
+                    made.publishers[msgtype] = Publisher(
+                        key, declare_publisher(session, key, q), Sequencer(gid_of(token))
+                    )
+        except BaseException:
+            made.undeclare()
+            raise
+        return made
