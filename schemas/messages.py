@@ -259,6 +259,10 @@ class EventCode:
     """A message's stamp is too far ahead of the service's clock to be trusted."""
     MAP_DELETED: Final = "map_deleted"
     """A DELETE on a map key: the store drops the map; robots on it keep their copy."""
+    FRAME_MISMATCH: Final = "frame_mismatch"
+    """A ROS 2 robot's input was taken, but its frames are not the ones the settings name (an
+    Odometry in another frame than ``ros2.odom_frame``): the poses are right, a transform the
+    service publishes for it is not; said once, and again when its frames change."""
     INTERNAL_ERROR: Final = "internal_error"
     """An input's update failed inside the service (a bug); it was not applied, and the robot's
     state is as before it."""

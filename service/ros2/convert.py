@@ -132,6 +132,16 @@ def odometry(raw: bytes) -> Odometry:
     Raises:
         SchemaError: malformed CDR, or a field the wire contract rejects.
     """
+    return odometry_in_frames(raw)[0]
+
+
+def odometry_in_frames(raw: bytes) -> tuple[Odometry, str, str]:
+    """A ``nav_msgs/msg/Odometry``'s pose as an Odometry, with its ``header.frame_id`` and its
+    ``child_frame_id`` (without a leading slash).
+
+    Raises:
+        SchemaError: malformed CDR, or a field the wire contract rejects.
+    """
     m = deserialize(raw, ODOMETRY)
     p = m.pose.pose
     data = {
@@ -140,7 +150,8 @@ def odometry(raw: bytes) -> Odometry:
         "y": float(p.position.y),
         "theta": yaw(p.orientation),
     }
-    return _validate(Odometry, data)  # type: ignore[no-any-return]
+    out: Odometry = _validate(Odometry, data)
+    return out, frame(m.header.frame_id), frame(m.child_frame_id)
 
 
 def odometry_from_tf(raw: bytes, odom_frame: str, base_frame: str) -> list[Odometry]:

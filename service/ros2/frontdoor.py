@@ -4,7 +4,9 @@ A Zenoh callback parses the key (topic, type, hash naming), maps the namespace t
 decodes and validates the CDR into a WIRE.md message and hands it to the service's ``offer``
 (the path JSON inputs take: ownership, recording as JSON, the robot's mailbox). Bad input (a
 malformed payload, a wrong type on a topic, a namespace that is not a robot id, an initial pose
-in another frame) is dropped with an Event through ``reject``; nothing else is touched.
+in another frame) is dropped with an Event through ``reject``; nothing else is touched. Odometry
+in other frames than the settings name is taken, and said through ``warn``
+(:mod:`service.ros2.frames`).
 
 Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
 transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
@@ -37,6 +39,7 @@ from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message, printable
 from service.ros2 import convert, names
 from service.ros2.entities import no_map_warning, undeclare
+from service.ros2.frames import OdometryFrames
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import GlobalLocalization
 from service.ros2.gridmaps import GridImports
@@ -50,6 +53,8 @@ Offer = Callable[[str, InputKind, bytes, Message, int], None]
 """Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
 Reject = Callable[[str | None, str, str, int], None]
 """Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
+Warn = Callable[[str, str, str, int], None]
+"""Report input taken that is not as the settings expect: robot, key, what, receive time (ns)."""
 Clock = Callable[[], int]
 #: Scan frames with no tf_static link said in the log per robot (a robot's scans use one).
 WARNED_FRAMES = 4
@@ -71,6 +76,8 @@ class Ros2FrontDoor:
             those with no input for ``idle_ns`` are dropped.
         on_limit: where such a refusal is reported (at most once a second).
         idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
+        warn: where input taken but not as the settings expect is reported (odometry in
+            another frame than ``odom_frame``: :mod:`service.ros2.frames`); by default the log.
     """
 
     def __init__(
@@ -84,11 +91,13 @@ class Ros2FrontDoor:
         max_robots: int = 10_000,
         on_limit: Limit | None = None,
         idle_ns: int = 3600 * 1_000_000_000,
+        warn: Warn | None = None,
     ) -> None:
         self.settings = settings
         self.keys = keys or Keys()
         self.offer = offer
         self.reject = reject
+        self.warn = warn or _log_warning
         self.clock = clock
         self.max_payload_bytes = max_payload_bytes
         self.max_robots = max_robots
@@ -112,6 +121,7 @@ class Ros2FrontDoor:
         )
         self._static: dict[str, StaticFrames] = {}
         self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
+        self.frames = OdometryFrames(settings.odom_frame, settings.base_frame)
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
         self.grids = GridImports(settings, reject, clock, self._put_map)
@@ -213,7 +223,7 @@ class Ros2FrontDoor:
         if not self.roster.room(dk.namespace, robot_id, key, received):
             return
         try:  # decoded first: input that is no message makes no robot
-            messages = self._decode(dk.namespace, robot_id, raw, leaf)
+            messages = self._decode(dk.namespace, robot_id, raw, leaf, key, received)
         except SchemaError as err:
             self.reject(robot_id, key, str(err), received)
             return
@@ -277,14 +287,17 @@ class Ros2FrontDoor:
             session.put(self.keys.map(map_id), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _decode(
-        self, namespace: str, robot_id: str, raw: bytes, leaf: Leaf
+        self, namespace: str, robot_id: str, raw: bytes, leaf: Leaf, key: str, received: int
     ) -> list[tuple[InputKind, Message]]:
         s = self.settings
         if leaf == "scan":
             offset_of = partial(self._laser_offset, namespace, robot_id)
             return [("scan", convert.laser_scan(raw, offset_of=offset_of))]
         if leaf == "odom":
-            return [("odom", convert.odometry(raw))]
+            odom, frame_id, child = convert.odometry_in_frames(raw)
+            if s.publish_tf:  # the frames name nothing else the service publishes
+                self._check_frames(namespace, robot_id, frame_id, child, key, received)
+            return [("odom", odom)]
         if leaf == "tf":
             found = convert.odometry_from_tf(raw, s.odom_frame, s.base_frame)
             return [("odom", m) for m in found]
@@ -296,6 +309,20 @@ class Ros2FrontDoor:
             )
         return [("initialpose", convert.initial_pose(raw, map_id, s.global_frame))]
 
+    def _check_frames(
+        self, namespace: str, robot_id: str, frame_id: str, child: str, key: str, received: int
+    ) -> None:
+        """Say an odometry whose frames make the ``map`` -> odom published wrong (taken all the
+        same: the poses are right)."""
+        offset = None
+        if child != self.settings.base_frame:
+            with self._lock:
+                static = self._static.get(namespace)
+            offset = None if static is None else static.offset(self.settings.base_frame, child)
+        warning = self.frames.check(robot_id, frame_id, child, offset)
+        if warning is not None:
+            self.warn(robot_id, key, warning, received)
+
     def forget(self, robot_id: str) -> None:
         """Drop a robot the service evicted: its tokens, publishers and held input go (its
         next input makes it anew)."""
@@ -306,6 +333,7 @@ class Ros2FrontDoor:
             self._static.pop(namespace, None)
             self._warned.pop(namespace, None)
         self.gate.forget(robot_id)
+        self.frames.forget(robot_id)
 
     # ------------------------------------------------------------------------- outputs
     def on_pose(self, robot_id: str, payload: bytes) -> None:
@@ -349,6 +377,10 @@ class Ros2FrontDoor:
             pub.publisher.put(payload, attachment=pub.sequencer.next(now))
         except zenoh.ZError:
             log.warning("could not publish on %s", pub.key, exc_info=True)
+
+
+def _log_warning(robot_id: str, key: str, message: str, received: int) -> None:
+    log.warning("%s (on %s)", message, printable(key))
 
 
 _QOS: dict[Leaf, names.Qos] = {

@@ -80,15 +80,17 @@ def scan_msg(
     )
 
 
-def odom_msg(pose: np.ndarray, stamp_ns: int) -> Any:
+def odom_msg(
+    pose: np.ndarray, stamp_ns: int, frame_id: str = "odom", child: str = "base_footprint"
+) -> Any:
     cov = np.zeros(36)
     twist = T["geometry_msgs/msg/Twist"](
         linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
         angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
     )
     return T["nav_msgs/msg/Odometry"](
-        header=header(stamp_ns, "odom"),
-        child_frame_id="base_footprint",
+        header=header(stamp_ns, frame_id),
+        child_frame_id=child,
         pose=T["geometry_msgs/msg/PoseWithCovariance"](
             pose=T["geometry_msgs/msg/Pose"](
                 position=T["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=0.0),
@@ -146,6 +148,7 @@ class RosRobot:
     odom_tf: bool = False
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     laser: np.ndarray | None = None  # the laser's pose in base_footprint, via base_link
+    frames: tuple[str, str] = ("odom", "base_footprint")  # its Odometry's frame and child
     step: int = 0
     seq: int = 0
     gid: bytes = b"\x07" * 16
@@ -176,7 +179,7 @@ class RosRobot:
             msg = tf_msg(p, self.stamp(i), "odom", "base_footprint")
             self.put("tf", "tf2_msgs/msg/TFMessage", msg)
         else:
-            self.put("odom", "nav_msgs/msg/Odometry", odom_msg(p, self.stamp(i)))
+            self.put("odom", "nav_msgs/msg/Odometry", odom_msg(p, self.stamp(i), *self.frames))
 
     def initial_pose(self) -> None:
         self.odom(0)

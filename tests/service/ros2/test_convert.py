@@ -58,6 +58,9 @@ def test_odometry_tf_and_initial_pose() -> None:
     raw = bytes(TS.serialize_cdr(odom_msg(pose, 42), "nav_msgs/msg/Odometry"))
     o = convert.odometry(raw)
     assert (o.stamp_ns, o.x, o.y) == (42, 1.0, -2.0) and o.theta == pytest.approx(2.5, abs=1e-12)
+    wheel = odom_msg(pose, 42, "/wheel_odom", "base_link")
+    raw_wheel = bytes(TS.serialize_cdr(wheel, "nav_msgs/msg/Odometry"))
+    assert convert.odometry_in_frames(raw_wheel) == (o, "wheel_odom", "base_link")
     tf = bytes(
         TS.serialize_cdr(tf_msg(pose, 7, "/odom", "base_footprint"), "tf2_msgs/msg/TFMessage")
     )
