@@ -14,7 +14,7 @@ from service.cli.flags import client
 def cmd_catalog(args: argparse.Namespace) -> int:
     """``rlutf map list`` and ``rlutf map remove ID``."""
     from schemas import valid_id
-    from service.live.robots import fetch_robots, merge_robots
+    from service.live.robots import fetch_robots
     from service.maps.catalog import list_maps, remove_map
 
     if args.map_command == "remove" and not valid_id(args.map_id):
@@ -23,9 +23,7 @@ def cmd_catalog(args: argparse.Namespace) -> int:
         )
     settings, session = client(args)
     with session:
-        on: dict[str, list[str]] = {}
-        for state in merge_robots(fetch_robots(session, settings.prefix, args.timeout)):
-            on.setdefault(state.map_id, []).append(state.robot_id)
+        on = _robots_on(fetch_robots(session, settings.prefix, args.timeout))
         stored = list_maps(session, settings.prefix, args.timeout)
         if args.map_command == "list":
             shown = _print_maps(stored, on, args.json)
@@ -47,6 +45,22 @@ def cmd_catalog(args: argparse.Namespace) -> int:
             )
     print(f"removed map {args.map_id} from {settings.prefix}/maps/{args.map_id}")
     return EXIT_OK
+
+
+def _robots_on(answers: list[Any]) -> dict[str, list[str]]:
+    """The robots on each map, by map id: those with a pose on it, and those placed on it (an
+    initial pose or a relocalize) that have no pose yet, which the service holds on that map all
+    the same (waiting for their first scan, or for scans with enough returns): counted with a
+    pose only, a map a robot had just been placed on was removed without ``--force``."""
+    from service.live.robots import merge_robots, merge_waiting
+
+    on: dict[str, list[str]] = {}
+    for state in merge_robots(answers):
+        on.setdefault(state.map_id, []).append(state.robot_id)
+    for waiting in merge_waiting(answers):
+        if waiting.map_id is not None:
+            on.setdefault(waiting.map_id, []).append(waiting.robot_id)
+    return {map_id: sorted(robots) for map_id, robots in on.items()}
 
 
 def _print_maps(stored: list[Any], on: dict[str, list[str]], as_json: bool) -> int:

@@ -68,7 +68,8 @@ def register(sub: Any) -> None:
         help="list the stored maps: id, version, size, and the robots on each",
         description="Ask every storage of {prefix}/maps/* and the live instances: one line per "
         "map with its version, payload size, extent (width x height of its bounding box) and "
-        "the robots localized on it. Exit 1 if no storage answers.",
+        "the robots on it (localized on it, or placed on it and waiting for their first "
+        "pose). Exit 1 if no storage answers.",
     )
     timeout_flag(ls, what="the storages' answers")
     ls.add_argument("--json", action="store_true", help="print one JSON array instead of text")
@@ -80,7 +81,8 @@ def register(sub: Any) -> None:
         description="Delete {prefix}/maps/ID from the storages (a Zenoh delete on the key) and "
         "check that none answers for it any more. Robots on the map keep the copy their "
         "service holds until it restarts; a new initial pose on it gets map_not_found. A map "
-        "that robots are on is removed only with --force.",
+        "that robots are on (with a pose, or placed on it with none yet) is removed only with "
+        "--force.",
     )
     rm.add_argument("map_id", metavar="ID", help="the map's id")
     rm.add_argument("--force", action="store_true", help="remove it even if robots are on it")

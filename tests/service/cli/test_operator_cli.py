@@ -305,6 +305,27 @@ def test_map_list_and_remove(bench: Bench, capsys: pytest.CaptureFixture[str]) -
     assert code == 0 and "no maps stored yet" in err and "rlutf map put" in err, err
 
 
+def test_map_list_and_remove_count_the_robots_placed_on_a_map_with_no_pose_yet(
+    bench: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot given an initial pose on a map and no scan since has no pose, yet the service
+    holds it on that map (it waits for its first scan): `map list` did not show it and `map
+    remove` took the map away without --force, so that its first scan ran on the service's copy
+    of a map no store held any more."""
+    e = bench.endpoint
+    bench.put_map("m1")
+    assert Collector().wait_for(lambda: bench.service.maps.get("m1") is not None)
+    bench.robot("r2", 2).initial_pose("m1")
+    assert Collector().wait_for(
+        lambda: [w.robot_id for w in bench.service.robot_view.waiting()] == ["r2"]
+    )
+    code, out, _ = _cli(capsys, "map", "list", "-e", e, "--json")
+    assert code == 0 and [(m["map_id"], m["robots"]) for m in json.loads(out)] == [("m1", ["r2"])]
+    code, _, err = _cli(capsys, "map", "remove", "m1", "-e", e)
+    assert code == 1 and "robots are on map 'm1': r2" in err and "--force" in err, err
+    assert (bench.store / "m1.json").exists()
+
+
 def test_map_put_with_timeout_0_is_put_unconfirmed_and_map_show_reads_paths_as_files(
     bench: Bench, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
