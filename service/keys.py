@@ -105,6 +105,16 @@ class Keys:
         """Key expression of every map."""
         return f"{self.prefix}/maps/*"
 
+    def map_version(self, map_id: str) -> str:
+        """Where the embedded map store answers the version it holds of map ``map_id``, or of
+        the one removed from it (:mod:`service.maps.store`)."""
+        return f"{self.prefix}/mapversions/{map_id}"
+
+    @property
+    def map_versions(self) -> str:
+        """Key expression of every map's version in the embedded store."""
+        return f"{self.prefix}/mapversions/*"
+
     def maphealth(self, map_id: str) -> str:
         """Where the MapHealth of map ``map_id`` is put and answered (WIRE.md v1.2)."""
         return f"{self.prefix}/maphealth/{map_id}"

@@ -27,9 +27,9 @@ from schemas import SCHEMA_NAMES, EventCode, Map
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
-from service.maps.book import LoadedMap, MapBook, MapRejected, VersionConflict
+from service.maps.book import Held, LoadedMap, MapBook, MapRejected, VersionConflict
 from service.maps.files import FileMapStore
-from service.maps.store import MapStorage, room_for
+from service.maps.store import MapStorage, room_for, stored_version
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,9 @@ class MapFeed:
         #: Whether the embedded store still has puts to store (the stored version of a map
         #: whose puts were dropped is fetched once it has none).
         self.store_busy: Callable[[], bool] = lambda: False
+        #: What the map store holds of a map this service does not hold (the version a put of
+        #: it must beat): the embedded store's own record, or the answer of the store on the bus.
+        self.store_holds: Callable[[str], Held | None] = self._ask_store
         self._session: zenoh.Session | None = None
         self._thread: threading.Thread | None = None
 
@@ -207,7 +210,15 @@ class MapFeed:
             ),
         )
         self.store_busy = storage.busy
+        self.store_holds = storage.held
         return storage
+
+    def _ask_store(self, map_id: str) -> Held | None:
+        """What the store on the bus holds of ``map_id`` (:func:`~service.maps.store.
+        stored_version`), for a service without one of its own."""
+        if self._session is None:
+            return None
+        return stored_version(self._session, self.keys, map_id, self.timeout_s)
 
     def need(self, map_id: str, robot: str) -> None:
         """Queue a fetch of ``map_id``, which ``robot`` waits for (one fetch queued per map)."""
@@ -294,13 +305,17 @@ class MapFeed:
                 return False
             self._global_event("error", EventCode.INVALID_MAP, key, str(err), self.clock())
             return False
+        # The version to beat of a map not held here is the store's (stored, or removed): a
+        # service started since held nothing to refuse an older put with. Asked with no lock
+        # held (a get on the bus waits); the map thread alone commits, so it stays true.
+        store = None if self.book.get(map_id) is not None else self.store_holds(map_id)
         # Order matters for replay: the map is recorded and reaches the shards at one instant
         # of the receive clock, before any input received after it.
         conflict: VersionConflict | None = None
         with self.dispatcher.lock:
             received = self.clock()
             try:
-                loaded = self.book.commit(map_id, payload, checked, received)
+                loaded = self.book.commit(map_id, payload, checked, received, store)
             except VersionConflict as err:
                 loaded, conflict = None, err
             if loaded is not None:

@@ -62,7 +62,7 @@ from service.live.stats import Stats
 from service.live.warmaside import warm_up_aside
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
-from service.maps.book import Held, MapBook
+from service.maps.book import MapBook
 from service.maps.files import FileMapStore
 from service.maps.store import MapStorage
 
@@ -110,7 +110,7 @@ class LocalizationService:
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
         self.maps = MapBook(  # with worker processes, this process only checks maps
-            settings.max_map_bytes, settings.map_limits(), self._store_holds, settings.workers != 0
+            settings.max_map_bytes, settings.map_limits(), isolated=settings.workers != 0
         )
         self.live: LiveView = make_live_view(settings, self.maps)  # Foxglove, or nothing
         self._own_session = session is None
@@ -475,10 +475,6 @@ class LocalizationService:
         return encode(
             self.stats.health(len(self._poses), self.dispatcher.dropped, extra, ready=self.ready)
         )
-
-    def _store_holds(self, map_id: str) -> Held | None:
-        """What the embedded store holds for a map (MapBook's version rule consults it)."""
-        return self._storage.held(map_id) if self._storage is not None else None
 
     def maps_held(self) -> list[str]:
         """Ids of the maps loaded."""

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
@@ -253,9 +252,6 @@ class MapBook:
     Args:
         max_bytes: the maps' size limit, bytes.
         limits: extent and vertex limits of a map.
-        held: what the map store holds for a map this book does not hold yet (the embedded
-            store's :meth:`~service.maps.store.MapStorage.held`), so that the service never
-            loads a version the store refused.
         isolated: validate maps in a process of their own (:class:`MapChecker`); the maps
             loaded then carry no :class:`~rlutf.map.Map`.
     """
@@ -264,11 +260,9 @@ class MapBook:
         self,
         max_bytes: int,
         limits: MapLimits | None = None,
-        held: Callable[[str], Held | None] | None = None,
         isolated: bool = False,
     ) -> None:
         self.checker = MapChecker(max_bytes, limits, isolated)
-        self._held = held or (lambda map_id: None)
         self._maps: dict[str, LoadedMap] = {}
 
     def get(self, map_id: str) -> LoadedMap | None:
@@ -279,8 +273,14 @@ class MapBook:
         """Ids of the maps held."""
         return list(self._maps)
 
-    def offer(self, map_id: str, payload: bytes, received_ns: int) -> LoadedMap | None:
+    def offer(
+        self, map_id: str, payload: bytes, received_ns: int, store: Held | None = None
+    ) -> LoadedMap | None:
         """Take a map payload received on ``{prefix}/maps/{map_id}``.
+
+        ``store``: what the map store holds for the map (its version, or the version removed
+        from it), the version to beat when this book holds none of the map, so that the service
+        never loads a version the store refused.
 
         Returns:
             The loaded map when it is new or newer than the one held; ``None`` for an echo of
@@ -290,20 +290,25 @@ class MapBook:
             VersionConflict: an older version, or the held version with other content.
             MapRejected: the payload is invalid.
         """
-        return self.commit(map_id, payload, self.check(map_id, payload), received_ns)
+        return self.commit(map_id, payload, self.check(map_id, payload), received_ns, store)
 
     def commit(
-        self, map_id: str, payload: bytes, checked: CheckedMap, received_ns: int
+        self,
+        map_id: str,
+        payload: bytes,
+        checked: CheckedMap,
+        received_ns: int,
+        store: Held | None = None,
     ) -> LoadedMap | None:
         """:meth:`offer` of a payload already :meth:`check`-ed (the costly part, which the
-        service runs before it takes the dispatcher's lock).
+        service runs before it takes the dispatcher's lock, as it asks the store for ``store``).
 
         Raises:
             VersionConflict: an older version, or the held version with other content.
         """
         version, digest, world = checked
         mine = self._maps.get(map_id)
-        held = (mine.version, mine.digest) if mine is not None else self._held(map_id)
+        held = (mine.version, mine.digest) if mine is not None else store
         verdict = put_verdict(held, version, digest)
         if verdict == "conflict":
             assert held is not None

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 
 import zenoh
+from pydantic import BaseModel, ConfigDict, Field
 
 from rlutf.map import MapLimits
 from service.keys import KeyError_, Keys
@@ -65,6 +66,36 @@ def removed_conflict(map_id: str, version: int, removed: int) -> str:
     )
 
 
+class StoredVersion(BaseModel):
+    """The store's answer on ``{prefix}/mapversions/{map_id}`` (WIRE.md): the version of a map
+    it holds, or of the one removed from it and not put since, which a put must beat."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    map_id: str = Field(description="The map.")
+    version: int = Field(description="The version held, or removed.")
+    digest: str = Field(description="SHA-256 of the canonical encoding of that version.")
+    removed: bool = Field(False, description="The map was removed (`rlutf map remove`).")
+
+
+def stored_version(session: zenoh.Session, keys: Keys, map_id: str, timeout: float) -> Held | None:
+    """What the map store on the bus holds for ``map_id`` (:class:`StoredVersion`; the highest
+    version if several stores answer), or ``None``: it holds nothing of it, or no store answers
+    (zenohd's storage manager, which applies no version rule, answers nothing there)."""
+    found: Held | None = None
+    for reply in session.get(keys.map_version(map_id), timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            answer = StoredVersion.model_validate_json(reply.ok.payload.to_bytes())
+        except ValueError:
+            log.warning("bad map version answer on %s", reply.ok.key_expr)
+            continue
+        if answer.map_id == map_id and (found is None or answer.version > found[0]):
+            found = (answer.version, answer.digest)
+    return found
+
+
 class MapStorage:
     """Serves a :class:`FileMapStore` on ``{prefix}/maps/**`` as a Zenoh storage.
 
@@ -78,7 +109,13 @@ class MapStorage:
     A map removed (``rlutf map remove``) leaves running services their copy and its version, so
     the store keeps the version removed (``.{map_id}.removed``): a later put must be newer than
     it, or be the removed version put back as it was, as for the services, and a refused one is
-    reported here (``on_conflict``), since a service restarted since would not know to.
+    reported here (``on_conflict``), since no service may hold the map to say so.
+
+    The services without this store (the other processes of ``rlutf serve --processes``, an
+    instance started with ``--no-store``) ask it what it holds of a map they do not hold before
+    they load a put of it (:func:`stored_version` on ``{prefix}/mapversions/{map_id}``), so that
+    they refuse what it refuses: one started after a newer version was stored, or after a
+    removal, held nothing to refuse an older put with, and loaded it.
 
     A newer version the disk refuses (full, read-only, the folder gone) is taken all the same
     and held in memory: every service on the bus loads a put as it sees it, so a store that did
@@ -158,6 +195,9 @@ class MapStorage:
         self._sub = session.declare_subscriber(keys.maps_storage, self._on_sample)
         self._queryable = session.declare_queryable(
             keys.maps_storage, self._on_query, complete=True
+        )
+        self._versions_queryable = session.declare_queryable(
+            keys.map_versions, self._on_version_query
         )
 
     def held(self, map_id: str) -> Held | None:
@@ -339,10 +379,27 @@ class MapStorage:
                     if payload is not None:
                         query.reply(key, payload, encoding=JSON)
 
+    def _on_version_query(self, query: zenoh.Query) -> None:
+        """Answer ``{prefix}/mapversions/*``: the version held of each map asked for, or the
+        version removed (:class:`StoredVersion`)."""
+        with query:
+            ke = query.key_expr
+            with self._lock:
+                held = [(m, h, False) for m, h in self._versions.items()]
+                held += [(m, h, True) for m, h in self._removed.items() if m not in self._versions]
+            for map_id, (version, digest), removed in held:
+                key = self.keys.map_version(map_id)
+                if ke.intersects(zenoh.KeyExpr(key)):
+                    answer = StoredVersion(
+                        map_id=map_id, version=version, digest=digest, removed=removed
+                    )
+                    query.reply(key, answer.model_dump_json().encode(), encoding=JSON)
+
     def close(self) -> None:
         """Stop serving (after the puts already received are stored)."""
         self._sub.undeclare()
         self._queryable.undeclare()
+        self._versions_queryable.undeclare()
         self._tasks.put(None)
         self._thread.join(10.0)
         self.store.release()

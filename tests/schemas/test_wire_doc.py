@@ -53,6 +53,14 @@ def test_keys_are_the_ones_the_service_uses() -> None:
         keys.robot("{robot}", "pose"),
         keys.robot("{robot}", "events"),
         keys.map("{map_id}"),
+        keys.map_version("{map_id}"),
     ):
         assert f"`{key}`" in TEXT, key
     assert "version 1.2" in TEXT and "`rlutf.run`" in TEXT and "`rlutf.config`" in TEXT
+
+
+def test_the_stored_version_example_is_what_the_store_answers() -> None:
+    from service.maps.store import StoredVersion
+
+    (text,) = [text for name, text in examples() if name == "StoredVersion"]
+    assert StoredVersion.model_validate_json(text).model_dump().keys() == json.loads(text).keys()

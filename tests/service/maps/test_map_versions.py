@@ -17,6 +17,8 @@ from shapely import affinity
 from rlutf.map import Map as World
 from schemas import Map, decode, encode
 from service.cli.main import main
+from service.config import Settings
+from service.live.node import LocalizationService
 from service.live.sessions import free_port
 from service.maps import store as store_module
 from service.maps.book import MapBook, MapChecker, VersionConflict, content_digest, put_verdict
@@ -64,11 +66,13 @@ def test_book_refuses_older_and_same_version_with_other_content() -> None:
 def test_book_consults_the_store_for_a_map_it_does_not_hold() -> None:
     """A service that never loaded a map still refuses a version its store refused."""
     store_holds = (3, content_digest(decode(Map, _payload(3))))
-    book = MapBook(10**8, held=lambda map_id: store_holds)
+    book = MapBook(10**8)
     with pytest.raises(VersionConflict, match="held version 3"):
-        book.offer("m1", _payload(1), 1)
+        book.offer("m1", _payload(1), 1, store_holds)
     assert book.get("m1") is None
-    assert book.offer("m1", _payload(3), 2) is not None  # what the store holds: loaded
+    assert book.offer("m1", _payload(3), 2, store_holds) is not None  # the store's: loaded
+    with pytest.raises(VersionConflict, match="held version 3"):  # the book's own now
+        book.offer("m1", _payload(2), 3)
 
 
 def _events(col: Collector) -> list[dict[str, Any]]:
@@ -306,7 +310,8 @@ def test_a_put_past_the_memory_the_store_holds_unwritten_is_not_taken(
         err = capsys.readouterr().err
         assert "the store did not take rlutf/maps/m1" in err, err
         assert "could not write it" in err and "put it again once it can write" in err, err
-        held = bench.service._store_holds("m1")
+        assert bench.service._storage is not None
+        held = bench.service._storage.held("m1")
         assert held is not None and held[0] == 1
     finally:
         bench.store.unlink()
@@ -367,3 +372,45 @@ def test_map_put_says_when_a_running_service_refuses_what_the_store_took(
     assert _put_cli(bench, path, "--version", "1") == 1
     err = capsys.readouterr().err
     assert "a running service refused it" in err and "--version 4" in err, err
+
+
+def test_a_process_without_the_store_refuses_what_the_store_refuses(bench: Bench) -> None:
+    """The processes of `rlutf serve --processes N` but the host's, and any service started
+    without a store, load the map puts they see. One that started after the store took version
+    5 of m1 and after `rlutf map remove` of m2 at version 2 held neither, so it loaded version 3
+    of m1 and version 1 of m2, which the store refused: the robots on it ran on other maps than
+    the store's (a restart of the store's process switched them back). Now it asks the store
+    what it holds (``{prefix}/mapversions/{map_id}``) for a map it does not hold, and refuses
+    the same puts; what the store takes, it loads."""
+    bench.put_map("m1", version=5)
+    bench.put_map("m2", version=2)
+    assert Collector().wait_for(lambda: _stored(bench, "m1") is not None)
+    assert Collector().wait_for(lambda: bench.service.maps.get("m2") is not None)
+    assert main(["map", "remove", "m2", "-e", bench.endpoint, "--force"]) == 0
+    other = LocalizationService(
+        Settings(
+            mode="client",
+            connect=[bench.endpoint],
+            no_store=True,
+            no_record=True,
+            no_state=True,
+            workers=0,
+            instance="second",
+            event_interval_s=0.0,
+        )
+    ).start()
+    try:
+        col = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", col)
+        bench.put_map("m1", version=3)  # older than the one stored
+        bench.put_map("m2", version=1)  # older than the one removed
+        # each refused twice: by the store's process and by the other one
+        assert col.wait_for(lambda: len(_conflicts(col)) >= 4), _events(col)
+        time.sleep(0.3)
+        assert other.maps.get("m1") is None and other.maps.get("m2") is None
+        bench.put_map("m2", version=2)  # the removed version as it was: taken everywhere
+        assert col.wait_for(lambda: (m := other.maps.get("m2")) is not None and m.version == 2)
+        assert _stored(bench, "m2") is not None
+        sub.undeclare()
+    finally:
+        other.close()
