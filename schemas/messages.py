@@ -227,6 +227,9 @@ class EventCode:
     meanwhile (also in the log, where replay audits the poses before the gap only)."""
     MAP_UPDATED: Final = "map_updated"
     """A newer map version replaced the one robots were localized on."""
+    MAP_UNCHANGED: Final = "map_unchanged"
+    """A map put of the very version a service holds, with the same content: nothing changed
+    (the tools that put maps wait for each running service's word on a put)."""
     RELOCALIZING: Final = "relocalizing"
     """A global relocalization of a robot started (on request or by itself when lost)."""
     RELOCALIZED: Final = "relocalized"

@@ -333,7 +333,16 @@ class MapFeed:
                 "error", EventCode.MAP_VERSION_CONFLICT, key, str(conflict), received
             )
             return True  # a version is held
-        if loaded is None:
+        if loaded is None:  # an echo of the version held
+            if number:  # a client's put, whose tool waits for each service's word on it
+                self._global_event(
+                    "info",
+                    EventCode.MAP_UNCHANGED,
+                    key,
+                    f"map {map_id} version {checked[0]} put: already held with this content, "
+                    "nothing changed",
+                    received,
+                )
             return True
         self._global_event(
             "info",

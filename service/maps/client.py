@@ -322,8 +322,8 @@ _REFUSALS = (
     EventCode.MAP_WRITE_FAILED,
     EventCode.MAP_VERSION_CONFLICT,
 )
-#: A running service's Events that say what it made of a map put.
-_VERDICTS = (EventCode.MAP_UPDATED, EventCode.MAP_VERSION_CONFLICT)
+#: A running service's Events that say what it made of a map put (unchanged: it held it).
+_VERDICTS = (EventCode.MAP_UPDATED, EventCode.MAP_VERSION_CONFLICT, EventCode.MAP_UNCHANGED)
 
 
 def _live_services(session: zenoh.Session, prefix: str, timeout: float) -> int:
@@ -339,12 +339,16 @@ def _services_took(
     newer version refuses it (``map_version_conflict``). The store keeps a removed map's version
     (:mod:`service.maps.files`), so the two agree after ``rlutf map remove``; they can still
     disagree where a service holds a version the store never had or lost (a store folder
-    replaced under a running fleet). Waits until each live service has said (or the deadline: a
-    service that already held this very map says nothing)."""
+    replaced under a running fleet). Waits until each live service has said (or the deadline); a
+    service that already held this very map (a map removed and put back as it was) says so
+    (``map_unchanged``): before, it said nothing, and the tool waited its whole timeout."""
     while len(verdicts) < services and time.monotonic() < deadline:
         time.sleep(0.05)
     conflict = next((e for e in verdicts if e.code == EventCode.MAP_VERSION_CONFLICT), None)
     if conflict is None:
+        if verdicts and all(e.code == EventCode.MAP_UNCHANGED for e in verdicts):
+            said = f"{put.said}; the running services already held it: nothing changed for them"
+            return Put(True, put.version, said, new=True)
         return put
     held = held_named(conflict.message)
     fix = (

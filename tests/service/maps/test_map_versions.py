@@ -414,3 +414,31 @@ def test_a_process_without_the_store_refuses_what_the_store_refuses(bench: Bench
         sub.undeclare()
     finally:
         other.close()
+
+
+def test_map_put_of_the_map_the_services_hold_ends_at_once(
+    bench: Bench, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A map removed from the store and put back as it was is new to the store and the very map
+    the running service holds: the service changed nothing and said nothing, so `map put` waited
+    its whole --timeout for its word. Now the service says so (Event map_unchanged, info) and
+    `map put` ends at once: stored, already held, exit 0."""
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/events", col)
+    bench.put_map(version=2)
+    assert col.wait_for(lambda: bench.service.maps.get("m1") is not None)
+    assert main(["map", "remove", "m1", "-e", bench.endpoint, "--force"]) == 0
+    capsys.readouterr()
+    path = tmp_path / "m1.json"
+    path.write_bytes(_payload(2))
+    started = time.monotonic()
+    code = main(["map", "put", str(path), "-e", bench.endpoint, "--version", "2", "--timeout", "8"])
+    took = time.monotonic() - started
+    out = capsys.readouterr().out
+    assert code == 0 and took < 4.0, (took, out)
+    assert "stored" in out and "already held" in out and "nothing changed" in out, out
+    assert _stored(bench) is not None
+    unchanged = [e for e in _events(col) if e["code"] == "map_unchanged"]
+    assert [(e["level"], e["key"]) for e in unchanged] == [("info", "rlutf/maps/m1")]
+    assert "version 2" in unchanged[0]["message"]
+    sub.undeclare()
