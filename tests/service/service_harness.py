@@ -27,6 +27,16 @@ from service.sim.wire import laser_scan
 JSON = zenoh.Encoding.APPLICATION_JSON
 
 
+def wait_until(pred: Callable[[], object], timeout: float = 10.0, every: float = 0.05) -> bool:
+    """Whether ``pred()`` came true within ``timeout`` seconds (looked at every ``every``)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(every)
+    return bool(pred())
+
+
 @dataclass
 class Collector:
     """Collects decoded JSON samples per key."""

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+from service_harness import wait_until
 
 from bench.bigmap import aisle_y, warehouse
 from bench.mapload import PeakRss, SteadyFleet, rss_mb, scan_payload, square_map, wavy_room
@@ -33,15 +34,6 @@ from service.maps.client import put_map
 pytestmark = pytest.mark.integration
 JSON = zenoh.Encoding.APPLICATION_JSON
 RACKS = (50, 40)  # 2,000 racks
-
-
-def _wait(pred: Any, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return bool(pred())
 
 
 def _service(folder: Path, workers: int, record: bool = False) -> LocalizationService:
@@ -117,7 +109,7 @@ def _drive(
     first = t0 + step * 100_000_000
     for pose in truth[1:]:
         last = send(pose)
-    _wait(lambda: any(p["stamp_ns"] == last for p in poses), 30.0)
+    wait_until(lambda: any(p["stamp_ns"] == last for p in poses), 30.0)
     sub.undeclare()
     return poses, first
 
@@ -139,7 +131,7 @@ def test_a_warehouse_of_thousands_of_racks_live_and_in_replay(
             assert put_map(client, "rlutf", path, None, "next", timeout=120.0) == 0
             assert "stored" in capsys.readouterr().out
             assert (tmp_path / "store" / "warehouse.json").read_bytes() == payload
-            assert _wait(lambda: service.maps.get("warehouse") is not None, 30.0)
+            assert wait_until(lambda: service.maps.get("warehouse") is not None, 30.0)
             assert not [e for e in events if e["code"] in ("invalid_map", "invalid_message")]
             steps = 40
             truth = np.column_stack(
@@ -182,7 +174,7 @@ def test_a_2km_square_is_refused_before_any_work_and_stalls_no_one(tmp_path: Pat
             events, sub = _events(client)
             t0 = time.monotonic()
             client.put("rlutf/maps/square", square_map("square", 2000.0), encoding=JSON)
-            assert _wait(lambda: any(e["code"] == "invalid_map" for e in events), 5.0)
+            assert wait_until(lambda: any(e["code"] == "invalid_map" for e in events), 5.0)
             refused_s = time.monotonic() - t0
             time.sleep(3.0)
             window = fleet.window(t0, t0 + 3.0)
@@ -218,7 +210,7 @@ def test_a_40000_vertex_map_is_built_off_the_other_robots_path(tmp_path: Path) -
                 encode(Map(map_id="wavy", version=1, geometry=room)),
                 encoding=JSON,
             )
-            assert _wait(lambda: service.maps.get("wavy") is not None, 10.0)
+            assert wait_until(lambda: service.maps.get("wavy") is not None, 10.0)
             truth = np.column_stack([0.05 * np.arange(20), np.zeros(20), np.zeros(20)])
             poses, first = _drive(client, "rover", "wavy", world, truth)
             window = fleet.window(t0, time.monotonic())
@@ -296,7 +288,7 @@ def test_a_map_built_from_a_real_log_live_and_in_replay(
             argv = ["map", "build", str(log), "--id", "intel", "--out", str(out), "--put"]
             assert main([*argv, "--connect", _endpoint(service)]) == 0
             assert "stored" in capsys.readouterr().out
-            assert _wait(lambda: service.maps.get("intel") is not None, 60.0)
+            assert wait_until(lambda: service.maps.get("intel") is not None, 60.0)
             payload = (tmp_path / "store" / "intel.json").read_bytes()
             carmen = read_carmen(log)
             poses: list[dict[str, Any]] = []
@@ -323,7 +315,7 @@ def test_a_map_built_from_a_real_log_live_and_in_replay(
                 _send_carmen(client, scan, stamp)
                 time.sleep(0.1)
             last = stamp
-            _wait(lambda: any(p["stamp_ns"] == last for p in poses), 60.0)
+            wait_until(lambda: any(p["stamp_ns"] == last for p in poses), 60.0)
             sub.undeclare()
     finally:
         service.close()

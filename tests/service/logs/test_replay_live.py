@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 import zenoh
 from mcaplog_fixtures import read_all, simulated_inputs, write_log
+from service_harness import wait_until
 
 from service.cli.main import main
 from service.config import Settings
@@ -34,15 +35,6 @@ pytestmark = pytest.mark.integration
 
 STEPS = 24
 BURST = range(10, 15)  # steps published back to back: the service drops scans
-
-
-def _wait(pred: object, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():  # type: ignore[operator]
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def record_live_run(folder: Path, workers: int) -> tuple[Path, int]:
@@ -67,7 +59,7 @@ def record_live_run(folder: Path, workers: int) -> tuple[Path, int]:
             if r.schema_name == "rlutf.LaserScan"
         }
         client.put(records[0].topic, records[0].payload)  # the map, into the embedded store
-        assert _wait(lambda: "m1" in service.maps_held(), 10.0)
+        assert wait_until(lambda: "m1" in service.maps_held(), 10.0)
         step_of = {
             r: (r.publish_time_ns - records[1].publish_time_ns) // 100_000_000 for r in records[1:]
         }
@@ -82,7 +74,7 @@ def record_live_run(folder: Path, workers: int) -> tuple[Path, int]:
             got = {robot: service._poses.get(robot, b"") for robot in last}
             return all(f'"stamp_ns":{last[robot]}'.encode() in p for robot, p in got.items())
 
-        assert _wait(done, 20.0), "the service did not answer the last scans"
+        assert wait_until(done, 20.0), "the service did not answer the last scans"
     finally:
         client.close()
         service.close()

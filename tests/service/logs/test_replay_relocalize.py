@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from mcaplog_fixtures import STEP_NS, T0, read_all, simulated_inputs
+from service_harness import wait_until
 
 from schemas import Region, Relocalize, encode
 from service.config import Settings
@@ -27,15 +28,6 @@ pytestmark = pytest.mark.integration
 
 STEPS = 24
 ROBOTS = ("r1", "r2")
-
-
-def _wait(pred: object, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():  # type: ignore[operator]
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def _requests() -> dict[int, list[Record]]:
@@ -78,7 +70,7 @@ def _record(folder: Path, workers: int) -> Path:
     try:
         records = simulated_inputs(ROBOTS, steps=STEPS, seed=31)
         client.put(records[0].topic, records[0].payload)  # the map, into the embedded store
-        assert _wait(lambda: "m1" in service.maps_held(), 10.0)
+        assert wait_until(lambda: "m1" in service.maps_held(), 10.0)
         requests = _requests()
 
         def answered(stamp: int) -> bool:
@@ -91,13 +83,15 @@ def _record(folder: Path, workers: int) -> Path:
             step = (r.publish_time_ns - T0) // STEP_NS
             if step != previous:
                 if previous == 1:  # worker processes take a while to start on a busy machine
-                    assert _wait(lambda: answered(T0 + STEP_NS), 30.0), "no first poses"
+                    assert wait_until(lambda: answered(T0 + STEP_NS), 30.0), "no first poses"
                 previous = step
                 time.sleep(0.08)
                 for q in requests.get(step, []):
                     client.put(q.topic, q.payload)
             client.put(r.topic, r.payload)
-        assert _wait(lambda: answered(T0 + STEPS * STEP_NS), 20.0), "no poses for the last scans"
+        assert wait_until(lambda: answered(T0 + STEPS * STEP_NS), 20.0), (
+            "no poses for the last scans"
+        )
     finally:
         client.close()
         service.close()

@@ -7,10 +7,9 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
-from service_harness import WORLD
+from service_harness import WORLD, wait_until
 
 from bench.bigmap import warehouse_payload
 from bench.mapload import square_map
@@ -41,15 +40,6 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _wait(cond: Callable[[], bool], timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
-
-
 def test_the_validating_process_ends_when_idle_and_comes_back_for_the_next_map() -> None:
     checker = MapChecker(1 << 26, LIMITS, isolated=True, idle_s=1.0)
     try:
@@ -60,7 +50,7 @@ def test_the_validating_process_ends_when_idle_and_comes_back_for_the_next_map()
         checked = checker.check("m1", payload)
         assert checked.version == 1 and checked.world is None
         assert checked.digest == content_digest(Map.model_validate_json(payload))
-        assert _wait(lambda: _gone(first), 5.0), "the idle validating process still runs"
+        assert wait_until(lambda: _gone(first), 5.0), "the idle validating process still runs"
         assert checker.process.pid is None
         # the next map starts a process again, and is validated the same way
         again = checker.check("m1", _small(version=2))
@@ -137,7 +127,7 @@ def test_a_killed_validating_process_rejects_its_map_only() -> None:
         thread = threading.Thread(target=check)
         thread.start()
         # killed while it decodes the map (its CPU time grows)
-        assert _wait(lambda: _cpu_s(pid) > busy, 20.0)
+        assert wait_until(lambda: _cpu_s(pid) > busy, 20.0)
         os.kill(pid, signal.SIGKILL)
         thread.join(30.0)
         assert len(errors) == 1 and "died" in str(errors[0]), errors

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import zenoh
 from ros_client import TS, RosListener, initialpose_msg, key
+from service_harness import wait_until
 
 from schemas import PoseEstimate, encode
 from service.config import Ros2Settings
@@ -78,15 +79,6 @@ def _pose(robot: str, stamp_ns: int) -> bytes:
     )
 
 
-def _wait(pred: Callable[[], Any], timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return bool(pred())
-
-
 def _stamps(listener: RosListener, k: str) -> list[int]:
     return [TS.deserialize_cdr(raw, POSE).header.stamp.nanosec for raw, _ in listener.on(k)]
 
@@ -115,12 +107,12 @@ def test_a_declaration_stalled_on_the_bus_holds_up_no_input_and_no_pose(
         try:
             time.sleep(0.3)
             d.initial_pose("/robot2")
-            assert _wait(lambda: d.tokens("robot2%amcl_pose"))
+            assert wait_until(lambda: d.tokens("robot2%amcl_pose"))
             d.initial_pose("/robot1")
             assert begun.wait(5.0)  # robot1's declaration has begun, and waits
             d.initial_pose("/robot2")
             # Every input is handed on, robot1's too, though its declaration has not ended.
-            assert _wait(lambda: len(d.offers) == 3), d.offers
+            assert wait_until(lambda: len(d.offers) == 3), d.offers
             assert sorted(d.offers) == [("robot1", "initialpose")] + [("robot2", "initialpose")] * 2
             # Poses: robot2's goes out; robot1's wait (the output thread does not), the latest.
             started = time.monotonic()
@@ -128,18 +120,18 @@ def test_a_declaration_stalled_on_the_bus_holds_up_no_input_and_no_pose(
             d.door.on_pose("robot1", _pose("robot1", 2))
             d.door.on_pose("robot2", _pose("robot2", 3))
             assert time.monotonic() - started < 1.0
-            assert _wait(lambda: _stamps(listener, pose2) == [3])
+            assert wait_until(lambda: _stamps(listener, pose2) == [3])
             assert _stamps(listener, pose1) == []
             assert not d.tokens("robot1%tf/")  # declared after amcl_pose's publisher
         finally:
             release.set()
         # Declared: robot1's tokens show, and its latest pose goes out (the first of its key).
-        assert _wait(lambda: d.tokens("robot1%tf/"))
-        assert _wait(lambda: _stamps(listener, pose1) == [2])
+        assert wait_until(lambda: d.tokens("robot1%tf/"))
+        assert wait_until(lambda: _stamps(listener, pose1) == [2])
         ((_, att),) = listener.on(pose1)
         assert att is not None and int.from_bytes(att[:8], "little") == 1
         d.door.on_pose("robot1", _pose("robot1", 4))
-        assert _wait(lambda: _stamps(listener, pose1) == [2, 4])
+        assert wait_until(lambda: _stamps(listener, pose1) == [2, 4])
         for s in subs:
             s.undeclare()
     assert threads == {"rlutf-ros2-declare"}
@@ -152,11 +144,11 @@ def test_a_robot_that_changes_key_naming_is_declared_anew() -> None:
         subs = [d.robot.declare_subscriber(k, listener) for k in (humble, jazzy)]
         time.sleep(0.3)
         d.initial_pose("/robot1", humble=True)
-        assert _wait(lambda: d.tokens("TypeHashNotSupported"))
+        assert wait_until(lambda: d.tokens("TypeHashNotSupported"))
         d.initial_pose("/robot1", humble=False)  # the robot now runs Jazzy
-        assert _wait(lambda: d.tokens("RIHS01") and not d.tokens("TypeHashNotSupported"))
+        assert wait_until(lambda: d.tokens("RIHS01") and not d.tokens("TypeHashNotSupported"))
         d.door.on_pose("robot1", _pose("robot1", 5))
-        assert _wait(lambda: _stamps(listener, jazzy) == [5])
+        assert wait_until(lambda: _stamps(listener, jazzy) == [5])
         assert _stamps(listener, humble) == []
         for s in subs:
             s.undeclare()

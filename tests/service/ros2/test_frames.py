@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 from ros_client import RosListener, RosRobot, key, pose_of_tf
-from service_harness import WORLD, Bench, Collector, running_bench
+from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
@@ -80,15 +80,6 @@ def _robot(bench: Bench, ns: str, seed: int, **kw: Any) -> RosRobot:
     return RosRobot(ns, WORLD, truth, bench.client, False, np.zeros(3), rng=rng, **kw)
 
 
-def _wait(pred: Any, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
-
-
 @pytest.mark.integration
 def test_odometry_in_another_frame_is_taken_and_said_once_per_robot(
     bench: Bench, caplog: pytest.LogCaptureFixture
@@ -127,9 +118,9 @@ def test_odometry_in_another_frame_is_taken_and_said_once_per_robot(
                 r.advance()
             time.sleep(0.03)
         # taken: robot1 is localized and its map -> odom goes out (for the frame set, 'odom')
-        assert _wait(lambda: len(listener.on(tf1)) >= 5)
+        assert wait_until(lambda: len(listener.on(tf1)) >= 5)
         assert pose_of_tf(listener.on(tf1)[-1][0])[1:3] == ("map", "odom")
-        assert _wait(lambda: mismatches("robot1") and mismatches("robot3"))
+        assert wait_until(lambda: mismatches("robot1") and mismatches("robot3"))
         time.sleep(0.5)
         (e1,) = mismatches("robot1")  # once, for 16 Odometry messages
         assert e1["level"] == "warning" and e1["key"].startswith("0/robot1/odom/")
@@ -140,7 +131,7 @@ def test_odometry_in_another_frame_is_taken_and_said_once_per_robot(
         # the robot's frame changes: said again
         robots[0].frames = ("odom2", "base_footprint")
         robots[0].advance()
-        assert _wait(lambda: len(mismatches("robot1")) == 2)
+        assert wait_until(lambda: len(mismatches("robot1")) == 2)
         assert "'odom2'" in mismatches("robot1")[1]["message"]
     lines = [r.getMessage() for r in caplog.records if "frame_mismatch" in r.getMessage()]
     assert any("robot1" in line and "wheel_odom" in line for line in lines), lines

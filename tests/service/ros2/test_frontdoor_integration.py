@@ -24,7 +24,7 @@ from ros_client import (
     scan_msg,
     yaw,
 )
-from service_harness import WORLD, Bench, Collector, running_bench
+from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.motion import compose
 from rlutf.sim import make_trajectory
@@ -93,15 +93,6 @@ def _drive(robots: list[RosRobot], steps: int, pause: float = 0.03) -> None:
         time.sleep(pause)
 
 
-def _wait(pred: object, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():  # type: ignore[operator]
-            return True
-        time.sleep(0.05)
-    return bool(pred())  # type: ignore[operator]
-
-
 def _last_pose_error(listener: RosListener, r: RosRobot, pose_key: str) -> tuple[int, float]:
     raw, _ = listener.on(pose_key)[-1]
     m = TS.deserialize_cdr(raw, POSE)
@@ -140,7 +131,7 @@ def test_two_namespaced_robots_humble_and_jazzy_keys(ros_bench: Bench) -> None:
     _start(bench, [r1, r2])
     _drive([r1, r2], 25)
     for r, (pose_key, tf_key) in outs.items():
-        assert _wait(lambda pk=pose_key: len(listener.on(pk)) >= 15), pose_key
+        assert wait_until(lambda pk=pose_key: len(listener.on(pk)) >= 15), pose_key
         _, err = _last_pose_error(listener, r, pose_key)
         assert err < 0.05, (r.namespace, err)
         _check_attachments(listener.on(pose_key))
@@ -213,7 +204,7 @@ def test_bad_ros_input_gets_an_event_and_loses_nothing_else(ros_bench: Bench) ->
     bench.client.put(key(0, "/a.b/scan", "sensor_msgs/msg/LaserScan", False), b"\x00\x01\x00\x00")
     time.sleep(0.3)
     _drive([r1, r2], 15)
-    assert _wait(lambda: len(listener.on(pose1)) >= 18 and len(listener.on(pose2)) >= 18)
+    assert wait_until(lambda: len(listener.on(pose1)) >= 18 and len(listener.on(pose2)) >= 18)
     ev1 = [e["message"] for e in events.on("rlutf/robots/robot1/events")]
     codes1 = [e["code"] for e in events.on("rlutf/robots/robot1/events")]
     assert any("malformed CDR" in m for m in ev1), ev1
@@ -245,7 +236,7 @@ def test_odometry_from_tf_and_no_namespace(ros_bench_tf: Bench) -> None:
     subs = [bench.client.declare_subscriber(k, listener) for k in (pose_key, tf_key)]
     _start(bench, [r])
     _drive([r], 20)
-    assert _wait(lambda: len(listener.on(pose_key)) >= 15)
+    assert wait_until(lambda: len(listener.on(pose_key)) >= 15)
     _, err = _last_pose_error(listener, r, pose_key)
     assert err < 0.05
     # the tf subscriber also hears the robot's own odom -> base; ours is map -> odom
@@ -286,7 +277,7 @@ def test_a_live_ros_run_is_recorded_as_json_and_replays_exactly(tmp_path: Path) 
             got = [TS.deserialize_cdr(raw, POSE).header.stamp for raw, _ in listener.on(pose_key)]
             return any(t.sec * 1_000_000_000 + t.nanosec == last for t in got)
 
-        assert _wait(answered), service.health()  # a worker starting may drop early scans
+        assert wait_until(answered), service.health()  # a worker starting may drop early scans
         sub.undeclare()
     finally:
         client.close()
@@ -341,13 +332,15 @@ def test_maps_from_an_occupancy_grid_topic(ros_bench_map: Bench) -> None:
     )
     bench.client.put(grid_key, b"\x00\x01\x00\x00broken")
     bench.client.put(grid_key, _grid_msg(time.time_ns()))
-    assert _wait(lambda: "m1" in bench.service.maps_held(), 20.0)
+    assert wait_until(lambda: "m1" in bench.service.maps_held(), 20.0)
     stored = json.loads((bench.store / "m1.json").read_text())
     ring = np.array(stored["geometry"]["coordinates"][0])
     assert np.allclose(ring.min(axis=0), [-0.9, -1.9], atol=0.06)  # inside the walls
     assert np.allclose(ring.max(axis=0), [3.9, 1.9], atol=0.06)
     assert len(stored["geometry"]["coordinates"]) == 2  # the box is a hole
-    assert _wait(lambda: any("map not imported" in e["message"] for e in events.on("rlutf/events")))
+    assert wait_until(
+        lambda: any("map not imported" in e["message"] for e in events.on("rlutf/events"))
+    )
     sub.undeclare()
 
 
@@ -361,7 +354,7 @@ def test_the_laser_pose_comes_from_tf_static(ros_bench: Bench) -> None:
     r.tf_static()
     _start(bench, [r])
     _drive([r], 20)
-    assert _wait(lambda: len(listener.on(pose_key)) >= 15)
+    assert wait_until(lambda: len(listener.on(pose_key)) >= 15)
     errors = []
     for raw, _ in listener.on(pose_key)[-5:]:
         m = TS.deserialize_cdr(raw, POSE)

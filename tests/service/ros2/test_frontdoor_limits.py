@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 from ros_client import TS, RosListener, RosRobot, header, key, quat, scan_msg
-from service_harness import WORLD, Bench, Collector, running_bench
+from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
@@ -53,15 +53,6 @@ def _tokens(bench: Bench) -> list[str]:
     return [str(r.ok.key_expr) for r in bench.client.liveliness().get("@ros2_lv/**", timeout=2.0)]
 
 
-def _wait(pred: Any, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
-
-
 def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
     small_bench: Bench,
 ) -> None:
@@ -73,7 +64,7 @@ def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
     # Garbage from 30 namespaces: Events, but no robot, token or publisher for any of them.
     for i in range(30):
         bench.client.put(key(0, f"/junk{i}/scan", SCAN, False), b"\x00\x01\x00\x00garbage")
-    assert _wait(lambda: len(events.on("rlutf/robots/junk29/events")) >= 1)
+    assert wait_until(lambda: len(events.on("rlutf/robots/junk29/events")) >= 1)
     assert _health(bench)["extra"]["ros2_robots"] == {}
     assert not [t for t in _tokens(bench) if "junk" in t]
     # Valid robots: three are held (max_robots), the others refused with robot_limit.
@@ -88,7 +79,7 @@ def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
         for r in robots:
             r.advance()
         time.sleep(0.05)
-    assert _wait(lambda: any(e["code"] == "robot_limit" for e in events.on("rlutf/events")))
+    assert wait_until(lambda: any(e["code"] == "robot_limit" for e in events.on("rlutf/events")))
     held = _health(bench)["extra"]["ros2_robots"]
     assert held == {"robot0": "/robot0", "robot1": "/robot1", "robot2": "/robot2"}
     assert not [t for t in _tokens(bench) if "robot5" in t]
@@ -97,7 +88,7 @@ def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
     for _ in range(5):
         robots[0].advance()
         time.sleep(0.05)
-    assert _wait(lambda: len(listener.on(pose0)) >= before + 4)
+    assert wait_until(lambda: len(listener.on(pose0)) >= before + 4)
     for s in [sub, *subs]:
         s.undeclare()
 
@@ -113,15 +104,15 @@ def test_an_evicted_ros_robot_leaves_the_front_door(tmp_path: Path) -> None:
         for _ in range(3):
             r.advance()
             time.sleep(0.05)
-        assert _wait(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
         assert [t for t in _tokens(bench) if "robot1" in t]
         # silent past robot_idle_s: evicted, and its tokens and publishers undeclared
-        assert _wait(lambda: _health(bench)["extra"]["ros2_robots"] == {}, timeout=15.0)
-        assert _wait(lambda: not [t for t in _tokens(bench) if "robot1" in t])
+        assert wait_until(lambda: _health(bench)["extra"]["ros2_robots"] == {}, timeout=15.0)
+        assert wait_until(lambda: not [t for t in _tokens(bench) if "robot1" in t])
         # it comes back with its next input
         r.initial_pose()
         r.advance()
-        assert _wait(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
 
 
 def test_ros_inputs_stamped_far_ahead_are_refused(tmp_path: Path) -> None:
@@ -139,7 +130,7 @@ def test_ros_inputs_stamped_far_ahead_are_refused(tmp_path: Path) -> None:
             ahead.advance()
             time.sleep(0.05)
         codes = lambda: [e["code"] for e in events.on("rlutf/robots/ahead/events")]  # noqa: E731
-        assert _wait(lambda: "stamp_rejected" in codes())
+        assert wait_until(lambda: "stamp_rejected" in codes())
         time.sleep(0.5)
         assert poses.on("rlutf/robots/ahead/pose") == []
         for s in subs:
@@ -162,7 +153,7 @@ def test_scans_in_ever_new_frames_log_a_bounded_number_of_lines(
             msg = scan_msg(WORLD, r.truth[r.step], r.stamp(r.step), rng, f"laser_{i}")
             r.put("scan", SCAN, msg)
             time.sleep(0.01)
-        assert _wait(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 60)
+        assert wait_until(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 60)
     said = [rec for rec in caplog.records if "tf_static" in rec.getMessage()]
     assert 1 <= len(said) <= 10, len(said)
 
@@ -211,7 +202,7 @@ def test_a_flood_of_grids_on_the_map_topic_is_imported_one_at_a_time(tmp_path: P
                 bench.client.put(grid_key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
             newest = stamps[-1] // 1_000_000  # the version of the last grid: it is imported
             held = lambda: bench.service.maps.get("m1")  # noqa: E731
-            assert _wait(lambda: (m := held()) is not None and m.version == newest, 60.0)
+            assert wait_until(lambda: (m := held()) is not None and m.version == newest, 60.0)
         finally:
             done.set()
             watcher.join()
@@ -234,14 +225,14 @@ def test_robots_the_service_does_not_hold_leave_the_front_door_when_idle(tmp_pat
             r = _robot(bench, f"/ahead{i}", i, t0=ahead)
             r.initial_pose()
             r.advance()
-        assert _wait(lambda: len(_health(bench)["extra"]["ros2_robots"]) == 2)
+        assert wait_until(lambda: len(_health(bench)["extra"]["ros2_robots"]) == 2)
         time.sleep(1.5)  # past robot_idle_s
         fresh = _robot(bench, "/fresh", 5)
         fresh.initial_pose()
         for _ in range(3):
             fresh.advance()
             time.sleep(0.05)
-        assert _wait(lambda: "fresh" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "fresh" in _health(bench)["extra"]["ros2_robots"])
         assert not any(e["code"] == "robot_limit" for e in events.on("rlutf/events"))
         sub.undeclare()
 
@@ -260,6 +251,6 @@ def test_a_frame_id_cannot_forge_a_line_of_the_service_log(
         r.odom(r.step)
         msg = scan_msg(WORLD, r.truth[r.step], r.stamp(r.step), np.random.default_rng(5), forged)
         r.put("scan", SCAN, msg)
-        assert _wait(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 1)
+        assert wait_until(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 1)
     said = [rec.getMessage() for rec in caplog.records if "tf_static" in rec.getMessage()]
     assert said and all("\n" not in m and "\x1b" not in m for m in said), said

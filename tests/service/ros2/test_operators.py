@@ -23,7 +23,7 @@ import pytest
 import zenoh
 import zenoh.ext
 from ros_client import TS, RosListener, RosRobot, key
-from service_harness import WORLD, Bench, Collector, running_bench
+from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
@@ -46,15 +46,6 @@ def _robot(bench: Bench, ns: str, seed: int) -> RosRobot:
     truth = make_trajectory(WORLD, rng, 200)
     origin = np.array([0.5, -0.7, 0.4])
     return RosRobot(ns, WORLD, truth, bench.client, False, origin, rng=rng)
-
-
-def _wait(pred: Any, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
 
 
 def _track(bench: Bench, r: RosRobot, steps: int) -> None:
@@ -112,7 +103,7 @@ def test_reinitialize_global_localization_from_a_ros_client(ros_bench: Bench) ->
     sub2 = bench.client.declare_subscriber("rlutf/robots/robot1/pose", json_poses)
     r1 = _robot(bench, "/robot1", 1)
     _track(bench, r1, 10)
-    assert _wait(lambda: len(json_poses.on("rlutf/robots/robot1/pose")) >= 5)
+    assert wait_until(lambda: len(json_poses.on("rlutf/robots/robot1/pose")) >= 5)
     # the service is in the ROS graph: `ros2 service list` would show it
     tokens = [str(r.ok.key_expr) for r in bench.client.liveliness().get("@ros2_lv/0/**") if r.ok]
     assert any(
@@ -142,8 +133,8 @@ def test_reinitialize_global_localization_from_a_ros_client(ros_bench: Bench) ->
         r1.advance()
         time.sleep(0.03)
     codes = lambda: [e["code"] for e in events.on("rlutf/robots/robot1/events")]  # noqa: E731
-    assert _wait(lambda: "relocalizing" in codes()), codes()
-    assert _wait(lambda: "relocalized" in codes(), 20.0), codes()
+    assert wait_until(lambda: "relocalizing" in codes()), codes()
+    assert wait_until(lambda: "relocalized" in codes(), 20.0), codes()
     sub.undeclare()
     sub2.undeclare()
 
@@ -167,7 +158,7 @@ def test_a_call_for_a_robot_without_a_map_is_refused(tmp_path: Path) -> None:
         )
         assert len(replies) == 1 and replies[0].err is not None
         assert "--ros-map" in replies[0].err.payload.to_string()
-        assert _wait(lambda: events.on("rlutf/robots/robot7/events"))
+        assert wait_until(lambda: events.on("rlutf/robots/robot7/events"))
         ev = events.on("rlutf/robots/robot7/events")[0]
         assert ev["code"] == "invalid_message" and "no map" in ev["message"]
         sub.undeclare()
@@ -203,7 +194,7 @@ def test_amcl_pose_has_rmw_zenohs_heartbeat_and_a_ros_subscriber_recovers(
     ros_sub = _ros_subscription(bench.client, pose_key, got)
     miss_listener = ros_sub.sample_miss_listener(misses.append)
     _track(bench, r1, 20)
-    assert _wait(lambda: len(got.on(pose_key)) >= 10)
+    assert wait_until(lambda: len(got.on(pose_key)) >= 10)
     time.sleep(1.2)  # a heartbeat period after the last pose
     # the heartbeat carries the publisher's last sequence number, sent while it changes
     assert heartbeats, "no sample-miss heartbeat on the amcl_pose publisher"
@@ -215,7 +206,7 @@ def test_amcl_pose_has_rmw_zenohs_heartbeat_and_a_ros_subscriber_recovers(
     # a subscriber that comes late recovers the last pose from the publisher's cache
     late = RosListener()
     late_sub = _ros_subscription(bench.client, pose_key, late)
-    assert _wait(lambda: late.on(pose_key), 5.0)
+    assert wait_until(lambda: late.on(pose_key), 5.0)
     recovered = TS.deserialize_cdr(late.on(pose_key)[-1][0], POSE)
     assert recovered.header.stamp == last.header.stamp
     miss_listener.undeclare()
