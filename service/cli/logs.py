@@ -325,9 +325,9 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_recover(args: argparse.Namespace) -> int:
     """``rlutf log recover``."""
-    from service.logs.logtools import recover
     from service.logs.mcapread import LogError
     from service.logs.runs import group_runs, log_files
+    from service.logs.salvage import recover
 
     try:
         broken_logs = log_files(args.broken, ".mcap.part")

@@ -4,8 +4,8 @@
 recorder protocol the live service holds) and ``mcaplog`` (the MCAP recorder), ``foxglove``
 (views of the logged messages), ``runs`` (which files belong to one run: ``rlutf.run``),
 ``replay`` and ``replayconfig`` (the engine over one run's inputs), ``audit`` and ``plots``
-(recorded against recomputed poses), ``logtools`` (``rlutf log info|recover``), ``mcapmaps``
-(scans with known poses, for ``rlutf map build``).
+(recorded against recomputed poses), ``logtools`` (``rlutf log info``), ``salvage`` (``rlutf log
+recover``), ``mcapmaps`` (scans with known poses, for ``rlutf map build``).
 
 May import: ``rlutf``, ``schemas``, ``service.keys``, ``service.config``, ``service.engine``,
 ``service.maps``, ``service.infile``. Not the cluster, the live service or the command line:

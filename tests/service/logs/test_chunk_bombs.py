@@ -31,9 +31,9 @@ from mcap.records import (
 )
 
 from service.cli.main import main
-from service.logs.logtools import recover
 from service.logs.mcapchunks import MAX_CHUNK_BYTES, ChunkTooLarge, inflated_size
 from service.logs.mcapread import DamagedLog, LogFile
+from service.logs.salvage import recover
 
 MAGIC = b"\x89MCAP0\r\n"
 PAD = MAX_CHUNK_BYTES + (1 << 20)  # bytes of JSON whitespace in the one message

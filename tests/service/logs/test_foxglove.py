@@ -30,10 +30,10 @@ from service.logs.foxglove import (
     embedded_dir,
     npm_schemas,
 )
-from service.logs.logtools import recover
 from service.logs.mcapfile import Record, schema_data
 from service.logs.mcaplog import McapRecorder
 from service.logs.replay import replay
+from service.logs.salvage import recover
 
 jsonschema = pytest.importorskip("jsonschema", reason="python jsonschema is not installed")
 

@@ -12,10 +12,11 @@ from mcap.reader import make_reader
 from mcaplog_fixtures import read_all, simulated_inputs
 
 from service.cli.main import main
-from service.logs.logtools import log_info, recover
+from service.logs.logtools import log_info
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import DamagedLog, LogFile, NotALog
 from service.logs.replay import replay
+from service.logs.salvage import recover
 
 CONFIG = {"prefix": "rlutf", "instance": "edge-1", "workers": 0}
 

@@ -16,7 +16,6 @@ from mcaplog_fixtures import read_all, simulated_inputs
 
 from schemas import SCHEMA_NAMES, Event, EventCode, decode
 from service.logs import mcaplog, recqueue
-from service.logs.logtools import recover
 from service.logs.mcapfile import (
     CONFIG_KEY,
     CONFIG_METADATA,
@@ -29,6 +28,7 @@ from service.logs.mcapfile import (
 from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
 from service.logs.runs import group_runs, run_tag
+from service.logs.salvage import recover
 
 CONFIG = {"prefix": "rlutf", "instance": "t1", "localizer": {"epsilon": 0.006}}
 REPO = Path(__file__).resolve().parents[3]
