@@ -145,7 +145,9 @@ def register(sub: Any) -> None:
         "record (rlutf.run included) of a truncated or damaged MCAP file, such as a .mcap.part "
         "left by a crash, into a new valid file. Several inputs, or an existing folder OUT: OUT "
         "is a folder (created if missing) that gets each one under its name without .part; the "
-        "recovered files are listed by run. Exit 2 if an input is not MCAP.",
+        "recovered files are listed by run. Exit 2 if an input is not MCAP, or declares a channel "
+        "or schema id twice (differently), or nothing could be recovered from it (after "
+        "recovering the others).",
     )
     rec.add_argument(
         "broken",
@@ -340,12 +342,14 @@ def cmd_recover(args: argparse.Namespace) -> int:
         outs = [args.out / p.name.removesuffix(".part") for p in broken_logs]
     else:
         writable(args.out, "OUT")
-    empty: list[Path] = []
+    empty: list[Path] = []  # outputs not written: nothing to salvage, or the input refused
     for broken, out in zip(broken_logs, outs, strict=True):
         try:
             report = recover(broken, out)
-        except LogError as err:
-            return _fail("log recover", err)
+        except LogError as err:  # this input is named; the others are recovered all the same
+            _fail("log recover", err)
+            empty.append(out)
+            continue
         except OSError as err:
             return _fail("log recover", ValueError(f"{err.filename}: {err.strerror or err}"))
         damaged = report.bad_chunks or report.lost_messages or report.resyncs

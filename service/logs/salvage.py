@@ -9,6 +9,11 @@ resumes at the next chunk that checks out (its CRC over its decompressed records
 record (:func:`next_readable`: found by trying each byte that is such a record's opcode), so one
 damaged record costs only itself; it stops where the file is cut short. A chunk that repeats an
 earlier one byte for byte (a copy written twice) is copied once.
+
+A file that declares a channel or schema id twice, differently, is refused, as the readers refuse
+it (:class:`~service.logs.mcapread.RedeclaredLog`): copied, the messages on that id would all be
+filed under its first declaration, and the output would read as a valid log with some messages
+on the wrong topic.
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ from mcap.writer import CompressionType, Writer
 
 from service.infile import open_regular
 from service.logs.mcapchunks import unpack_chunk
-from service.logs.mcapread import MAGIC, NotALog
+from service.logs.mcaporder import Declarations, Redeclared
+from service.logs.mcapread import MAGIC, NotALog, RedeclaredLog
 
 #: Opcodes of the records reading may resume at after an unreadable stretch.
 _CHUNK, _METADATA = 0x06, 0x0C
@@ -107,6 +113,7 @@ class _Copier:
         self.writer = writer
         self.report = report
         self.started = False
+        self.declared = Declarations()  # every declaration met, data section and summary
 
     def start(self, header: Header | None) -> None:
         if not self.started:
@@ -117,6 +124,12 @@ class _Copier:
             )
 
     def take(self, rec: Any) -> None:
+        """Copy a record (a schema or channel only the first time its id is met).
+
+        Raises:
+            Redeclared: a schema or channel id met before as something else.
+        """
+        self.declared.add(rec)
         r, w = self.report, self.writer
         if isinstance(rec, Schema) and rec.id not in r.schemas:
             r.schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
@@ -179,6 +192,8 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
                     copier.take(rec)
                 end = src.tell()
             break
+        except Redeclared:
+            raise
         except Exception as err:  # the cut, or garbage where a record should start
             problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
             resume = next_readable(src, end + 1, size)
@@ -197,6 +212,8 @@ def recover(src: Path, dst: Path) -> RecoverReport:
 
     Raises:
         NotALog: ``src`` is missing or not MCAP, or ``dst`` is ``src``.
+        RedeclaredLog: ``src`` declares a channel or schema id twice, differently (nothing is
+            written).
     """
     if dst.exists() and dst.resolve() == src.resolve():
         raise NotALog(f"{dst}: the output must not be the input")
@@ -215,7 +232,10 @@ def recover(src: Path, dst: Path) -> RecoverReport:
         try:
             with open(part, "wb") as out:
                 writer = Writer(out, compression=CompressionType.ZSTD)
-                _copy(stream, writer, report)
+                try:
+                    _copy(stream, writer, report)
+                except Redeclared as err:
+                    raise RedeclaredLog(src, str(err)) from err
                 writer.finish()
                 out.flush()
                 os.fsync(out.fileno())

@@ -21,6 +21,7 @@ from service.cli.main import main
 from service.logs.mcapfile import Record
 from service.logs.mcapread import LogFile, RedeclaredLog, merged_messages
 from service.logs.replay import replay
+from service.logs.salvage import recover
 
 DEEP = b"[" * 100_000 + b"]" * 100_000
 
@@ -230,15 +231,19 @@ def _reusing_an_id(path: Path, what: str, **options: Any) -> Path:
     return path
 
 
+NO_SUMMARY: dict[str, Any] = {
+    "index_types": IndexType.NONE,
+    "use_statistics": False,
+    "use_summary_offsets": False,
+    "repeat_channels": False,
+    "repeat_schemas": False,
+}
+
+
 @pytest.mark.parametrize("what", ["channel", "schema"])
 @pytest.mark.parametrize(
     "options",
-    [
-        {},
-        {"index_types": IndexType.NONE, "use_statistics": False, "use_summary_offsets": False}
-        | {"repeat_channels": False, "repeat_schemas": False},
-        {"use_chunking": False},
-    ],
+    [{}, NO_SUMMARY, {"use_chunking": False}],
     ids=["indexed", "no summary", "unchunked"],
 )
 def test_a_log_that_declares_an_id_twice_differently_is_refused(
@@ -261,6 +266,44 @@ def test_a_log_that_declares_an_id_twice_differently_is_refused(
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert "declared twice" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("what", ["channel", "schema"])
+@pytest.mark.parametrize(
+    ("options", "cut"),
+    [({}, False), (NO_SUMMARY, False), ({"use_chunking": False}, False), (NO_SUMMARY, True)],
+    ids=["indexed", "no summary", "unchunked", "cut short"],
+)
+def test_recover_refuses_a_log_that_declares_an_id_twice_differently(
+    options: dict[str, Any],
+    cut: bool,
+    what: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``rlutf log recover`` kept each id's first declaration and filed every later message under
+    it: the file the readers refuse came out as a valid log, r2's odometry on r1's events topic
+    (channel) or read as an rlutf.Event (schema). It is refused as the readers refuse it, nothing
+    is written, and other files given with it are recovered all the same."""
+    path = _reusing_an_id(tmp_path / "reused.mcap", what, **options)
+    if cut:  # a crash's .part: its footer half-written
+        whole = path.read_bytes()
+        path = tmp_path / "reused.mcap.part"
+        path.write_bytes(whole[:-20])
+    with pytest.raises(RedeclaredLog) as refused:
+        recover(path, tmp_path / "fixed.mcap")
+    said = str(refused.value)
+    assert str(path) in said and f"{what} 1 is declared twice" in said, said
+    assert "rlutf.Event" in said and "rlutf.Odometry" in said, said
+    assert not list(tmp_path.glob("fixed*")) and not list(tmp_path.glob(".fixed*"))
+    other = write_log(tmp_path / "other.mcap", simulated_inputs(seed=1, steps=2, beams=30))
+    out = tmp_path / "out"
+    assert main(["log", "recover", str(path), str(other), str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "declared twice" in err and str(path) in err and "Traceback" not in err, err
+    assert sorted(p.name for p in out.iterdir()) == ["other.mcap"]
+    with LogFile(out / "other.mcap") as log, LogFile(other) as original:
+        assert list(log.messages()) == list(original.messages())
 
 
 def test_logs_read_together_each_keep_their_own_channel_ids(tmp_path: Path) -> None:
