@@ -13,20 +13,16 @@ chunk decompresses to, a piece at a time, and stops past the bound; :func:`unpac
 from __future__ import annotations
 
 import io
-from pathlib import Path
 from typing import Final
 
 import lz4.frame  # type: ignore[import-untyped]
 import zstandard
 from mcap.records import Chunk, McapRecord
-from mcap.stream_reader import StreamReader, breakup_chunk
-
-from service.infile import open_regular
+from mcap.stream_reader import breakup_chunk
 
 #: Largest chunk read, bytes once decompressed.
 MAX_CHUNK_BYTES: Final = 512 * 1024 * 1024
 _PIECE: Final = 1 << 18
-_MAGIC: Final = b"\x89MCAP0\r\n"
 
 
 class ChunkTooLarge(ValueError):
@@ -83,29 +79,6 @@ def inflated_size(chunk: Chunk, limit: int = MAX_CHUNK_BYTES) -> int:
     if total > limit:
         raise ChunkTooLarge(total, limit, declared=False)
     return total
-
-
-def bound_file(path: Path) -> None:
-    """Check every chunk of an MCAP file against the bound before another reader (rosbags, which
-    decompresses a chunk whole as the ``mcap`` library does) reads it, a chunk at a time. A file
-    that is not MCAP, or whose records stop making sense, is left to that reader to name.
-
-    Raises:
-        ChunkTooLarge: a chunk past :data:`MAX_CHUNK_BYTES`.
-        OSError: the file cannot be opened, or is not a regular file.
-    """
-    with open_regular(path) as stream:
-        if stream.read(len(_MAGIC)) != _MAGIC:
-            return
-        stream.seek(0)
-        try:
-            for record in StreamReader(stream, emit_chunks=True).records:
-                if isinstance(record, Chunk):
-                    inflated_size(record)
-        except ChunkTooLarge:
-            raise
-        except Exception:  # damaged past here: the bag's reader says so in its own words
-            return
 
 
 def unpack_chunk(chunk: Chunk, limit: int = MAX_CHUNK_BYTES) -> list[McapRecord]:

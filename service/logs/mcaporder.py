@@ -25,10 +25,11 @@ import heapq
 from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from typing import IO, Final, NamedTuple
 
+from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, McapRecord, Message, Schema
-from mcap.stream_reader import StreamReader
 
 from service.logs.mcapchunks import MAX_CHUNK_BYTES, unpack_chunk
+from service.logs.mcaprecords import read_records
 
 #: Most bytes of messages held at once to put a file's messages in order (a span alone, bounded
 #: by :data:`~service.logs.mcapchunks.MAX_CHUNK_BYTES` as a chunk, is always read).
@@ -40,6 +41,8 @@ SPAN_BYTES: Final = 1 << 20
 MESSAGE_COST: Final = 320
 
 Triple = tuple[Schema | None, Channel, Message]
+#: The records whose messages and declarations are read (others are skipped, not read).
+MESSAGE_RECORDS: Final = frozenset({Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.CHUNK})
 
 
 class Span(NamedTuple):
@@ -241,16 +244,15 @@ def check_overlap(spans: Iterable[Span], limit: int | None = None) -> None:
 
 
 def span_records(stream: IO[bytes], span: Span) -> Iterator[McapRecord]:
-    """The records of a span, a chunk's own records in its place (each chunk bounded by
+    """The schemas, channels and messages of a span, a chunk's own records in its place (each
+    record bounded by :func:`~service.logs.mcaprecords.read_records`, each chunk by
     :func:`~service.logs.mcapchunks.unpack_chunk`)."""
     stream.seek(span.offset)
-    for record in StreamReader(stream, skip_magic=True, emit_chunks=True).records:
+    for _, record in read_records(stream, MESSAGE_RECORDS, end=span.end):
         if isinstance(record, Chunk):
             yield from unpack_chunk(record)
         else:
             yield record
-        if stream.tell() >= span.end:
-            return
 
 
 def ordered(

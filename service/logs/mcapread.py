@@ -1,7 +1,8 @@
 """Reading logs in the WIRE.md layout, with clear errors for files that are not complete.
 
 A file that does not end in the MCAP magic (cut short by a crash, or still being written as
-``.part``), or whose chunks fail their CRC or do not decompress, raises :class:`DamagedLog`,
+``.part``), or whose chunks fail their CRC or do not decompress, or whose records it reads are
+past the bound or unreadable (:mod:`service.logs.mcaprecords`), raises :class:`DamagedLog`,
 whose message says to run ``rlutf log recover``. Callers at the command line turn
 :class:`LogError` into an exit code; nothing here prints or exits.
 """
@@ -17,15 +18,14 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, ChunkIndex, Message
-from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
 from service.infile import open_regular
 from service.logs.mcapchunks import inflated_size, unpack_chunk
 from service.logs.mcapfile import CONFIG_KEY, CONFIG_METADATA, Record, config_from_metadata
 from service.logs.mcaporder import (
+    MESSAGE_RECORDS,
     Declarations,
     OffIndex,
     Redeclared,
@@ -35,6 +35,13 @@ from service.logs.mcaporder import (
     Unordered,
     chunk_span,
     ordered,
+)
+from service.logs.mcaprecords import (
+    RecordError,
+    read_header,
+    read_metadata,
+    read_records,
+    read_summary,
 )
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -185,6 +192,13 @@ def _lists_every_channel(summary: Summary) -> bool:
     return named <= listed
 
 
+def _unreadable(what: str, err: Exception) -> str:
+    """What went wrong reading a part of a file: a record's own words, or the library's error."""
+    if isinstance(err, RecordError):
+        return str(err)
+    return f"unreadable {what} ({type(err).__name__}: {err})"
+
+
 def _declared_chunk(index: ChunkIndex) -> Chunk:
     """A chunk with no data that declares the size its index says."""
     return Chunk(
@@ -219,6 +233,7 @@ class LogFile:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         self._scanned: tuple[list[Span], Declarations] | None = None  # see _scan_index
+        self._summary: Summary | None = None  # read once, by _check
         try:
             self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
@@ -236,13 +251,10 @@ class LogFile:
         self._stream.seek(-len(MAGIC), io.SEEK_END)
         if self._stream.tell() < len(MAGIC) or self._stream.read(len(MAGIC)) != MAGIC:
             raise DamagedLog(self.path, "the file does not end with the MCAP magic")
-        self._stream.seek(0)
-        self._reader = SeekingReader(self._stream, validate_crcs=True)
         try:
-            summary = self._reader.get_summary()
+            summary = self._summary = read_summary(self._stream)
         except Exception as err:  # the library raises many types on garbage
-            detail = f"unreadable summary ({type(err).__name__}: {err})"
-            raise DamagedLog(self.path, detail) from err
+            raise DamagedLog(self.path, _unreadable("summary", err)) from err
         if summary is None:
             return self._scan_index(None)
         names = {i: s.name for i, s in summary.schemas.items()}
@@ -280,9 +292,8 @@ class LogFile:
         start = end = None
         try:
             with open_regular(self.path) as stream:
-                reader = StreamReader(stream, emit_chunks=True, validate_crcs=True)
-                at = len(MAGIC)
-                for record in reader.records:
+                records = read_records(stream, MESSAGE_RECORDS, magic=True, data_crc=True)
+                for at, record in records:
                     inner = unpack_chunk(record) if isinstance(record, Chunk) else [record]
                     messages = [m for m in inner if isinstance(m, Message)]
                     for item in inner:
@@ -301,11 +312,10 @@ class LogFile:
                         start = t if start is None else min(start, t)
                         end = t if end is None else max(end, t)
                     spans.add(at, stream.tell(), messages)
-                    at = stream.tell()
         except Redeclared as err:
             raise RedeclaredLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
-            raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
+            raise DamagedLog(self.path, _unreadable("chunk", err)) from err
         self._scanned = spans.spans(), declared
         if summary is not None:
             for i, schema in declared.schemas.items():
@@ -325,7 +335,7 @@ class LogFile:
         (:func:`~service.logs.mcaporder.ordered`): by the chunk index if the file has one, else
         by the spans a first reading found."""
         try:
-            summary = self._reader.get_summary()
+            summary = self._summary
             if summary is not None and summary.chunk_indexes:
                 for index in summary.chunk_indexes:
                     inflated_size(_declared_chunk(index))  # refused before any is read
@@ -348,14 +358,14 @@ class LogFile:
         except OffIndex as err:
             raise DamagedLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
-            raise DamagedLog(self.path, f"unreadable chunk ({type(err).__name__}: {err})") from err
+            raise DamagedLog(self.path, _unreadable("chunk", err)) from err
 
     # ------------------------------------------------------------------ queries
     def library(self) -> str | None:
         """What wrote the file: its MCAP header's library (``rlutf 0.5.1``, say, for this service's
         logs: the version whose localizer computed its poses); ``None`` if unreadable."""
         try:
-            return str(self._reader.get_header().library)
+            return str(read_header(self._stream).library)
         except Exception:  # the library raises many types on garbage
             return None
 
@@ -386,19 +396,15 @@ class LogFile:
     def metadata(self) -> list[tuple[str, dict[str, str]]]:
         """Every metadata record, in file order."""
         try:
-            return [(m.name, dict(m.metadata)) for m in self._reader.iter_metadata()]
+            return [(m.name, dict(m.metadata)) for m in read_metadata(self._stream, self._summary)]
         except Exception as err:
-            raise DamagedLog(self.path, f"unreadable metadata ({type(err).__name__})") from err
+            raise DamagedLog(self.path, _unreadable("metadata", err)) from err
 
     def schemas(self) -> dict[str, bytes]:
         """Each schema's data by name (empty for a file without a summary)."""
-        try:
-            summary = self._reader.get_summary()
-        except Exception as err:
-            raise DamagedLog(self.path, f"unreadable summary ({type(err).__name__})") from err
-        if summary is None:
+        if self._summary is None:
             return {}
-        return {s.name: s.data for s in summary.schemas.values()}
+        return {s.name: s.data for s in self._summary.schemas.values()}
 
     def config(self) -> dict[str, Any] | None:
         """The last ``rlutf.config`` stored, if any.

@@ -1,7 +1,8 @@
 """``rlutf log recover``: a damaged or cut-short MCAP file copied into a new, complete one
 (:func:`recover`).
 
-Recovery reads the damaged file front to back with :class:`mcap.stream_reader.StreamReader` and
+Recovery reads the damaged file front to back, a record at a time within the bound of
+:func:`service.logs.mcaprecords.read_records` (a record past it is an unreadable one), and
 copies every record of every complete chunk (schemas, channels, messages) and every metadata and
 attachment record into a new, complete file. A chunk that fails its CRC or does not decompress
 is skipped and counted. Where a record is unreadable (a corrupted length, garbage), reading
@@ -21,37 +22,31 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from service.infile import open_regular
 from service.logs.mcapchunks import unpack_chunk
 from service.logs.mcaporder import Declarations, Redeclared
 from service.logs.mcapread import MAGIC, NotALog, RedeclaredLog
+from service.logs.mcaprecords import read_records, record_at
 
-#: Opcodes of the records reading may resume at after an unreadable stretch.
-_CHUNK, _METADATA = 0x06, 0x0C
+#: The opcodes of the records reading may resume at after an unreadable stretch: a chunk's or a
+#: metadata record's.
+_RESUMABLE = (b"\x06", b"\x0c")
 _SCAN_BLOCK = 1 << 20
 _METADATA_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 
 
-def _resumable(src: IO[bytes], at: int, size: int) -> bool:
+def _resumable(src: IO[bytes], at: int) -> bool:
     """Whether a chunk that checks out, or a metadata record, starts at ``at``."""
-    src.seek(at)
-    head = src.read(9)
-    if len(head) < 9:
-        return False
-    opcode, length = head[0], int.from_bytes(head[1:], "little")
-    if opcode not in (_CHUNK, _METADATA) or at + 9 + length > size or length < 8:
-        return False
-    src.seek(at)
     try:
-        record = next(iter(StreamReader(src, skip_magic=True, emit_chunks=True).records))
+        record = record_at(src, at)  # bounded: a length past the file or the bound is refused
         if isinstance(record, Chunk):
             unpack_chunk(record)
             return record.uncompressed_crc != 0  # a CRC was written: it is what checked out
@@ -60,15 +55,25 @@ def _resumable(src: IO[bytes], at: int, size: int) -> bool:
         return False
 
 
+def _candidates(block: bytes) -> Iterator[int]:
+    """Where ``block`` holds an opcode of :data:`_RESUMABLE`, in order (found at memchr speed: a
+    stretch of zeros, a sparse file's hole, costs little more than reading it)."""
+    ahead = {opcode: block.find(opcode) for opcode in _RESUMABLE}
+    while found := [(at, opcode) for opcode, at in ahead.items() if at >= 0]:
+        at, opcode = min(found)
+        yield at
+        ahead[opcode] = block.find(opcode, at + 1)
+
+
 def next_readable(src: IO[bytes], start: int, size: int) -> int | None:
     """The offset of the next record at or after ``start`` that reading may resume at."""
     pos = start
     while pos < size:
         src.seek(pos)
         block = src.read(_SCAN_BLOCK)
-        for i, byte in enumerate(block):
-            if byte in (_CHUNK, _METADATA) and _resumable(src, pos + i, size):
-                return pos + i
+        for at in _candidates(block):
+            if _resumable(src, pos + at):
+                return pos + at
         pos += len(block)
     return None
 
@@ -159,10 +164,9 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
     at, first = 0, True
     while True:
         src.seek(at)
-        reader = StreamReader(src, skip_magic=not first, emit_chunks=True)
         end = at if not first else len(MAGIC)
         try:
-            for rec in reader.records:
+            for _, rec in read_records(src, magic=first):
                 if isinstance(rec, Header):
                     copier.start(rec)
                     end = src.tell()

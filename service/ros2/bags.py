@@ -38,8 +38,9 @@ from schemas import (
 )
 from service.infile import not_a_file
 from service.keys import Keys
-from service.logs.mcapchunks import ChunkTooLarge, bound_file
+from service.logs.mcapchunks import ChunkTooLarge
 from service.logs.mcapfile import LogWriter, Record
+from service.logs.mcaprecords import RecordTooLarge, bound_file
 from service.ros2 import convert, names
 from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
@@ -109,9 +110,9 @@ def _reader(bag: Path) -> Iterator[Any]:
         if problem is not None:
             raise BagError(f"{path}: not a readable rosbag2 recording: {problem}")
         if path.name.endswith(".mcap") and path.is_file():
-            try:  # rosbags decompresses a chunk whole, to whatever size it says
+            try:  # rosbags reads a record whole, and decompresses a chunk whole, to any size
                 bound_file(path)
-            except (ChunkTooLarge, OSError) as err:
+            except (ChunkTooLarge, RecordTooLarge, OSError) as err:
                 raise BagError(f"{path}: not a readable rosbag2 recording: {err}") from err
     try:
         reader = AnyReader([bag], default_typestore=convert.typestore())

@@ -230,3 +230,30 @@ def test_a_rosbag2_mcap_with_a_chunk_past_the_bound_is_refused_before_rosbags_re
     finally:
         tracemalloc.stop()
     assert peak < 64 << 20, f"{peak:,} bytes held"
+
+
+def test_a_footer_that_starts_the_summary_at_a_chunk_is_bounded_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The ``mcap`` library reads a summary from where the footer says it starts up to the
+    footer, and breaks up a chunk it meets there whole: a footer pointing its summary at the
+    data section had ``LogFile`` decompress the chunk to 513 MiB before any bound was checked.
+    The summary's reader skips chunks."""
+    data, size = _zstd(content_size=True)
+    path = _bomb(tmp_path / "bomb.mcap", "zstd", data, size, indexed=False)
+    raw = bytearray(path.read_bytes())
+    footer_at = len(raw) - len(MAGIC) - 29
+    chunk_at = len(MAGIC) + len(_records(Header(profile="", library="a bomb")))
+    raw[footer_at + 9 : footer_at + 17] = chunk_at.to_bytes(8, "little")  # summary start
+    path.write_bytes(bytes(raw))
+    tracemalloc.start()
+    try:
+        with pytest.raises(DamagedLog, match="past the"), LogFile(path) as log:
+            sum(1 for _ in log.messages())
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 << 20, f"{peak:,} bytes held"
+    assert main(["log", "info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "past the" in err and "Traceback" not in err, err
