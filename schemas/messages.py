@@ -266,6 +266,11 @@ class EventCode:
     """A ROS 2 robot's input was taken, but its frames are not the ones the settings name (an
     Odometry in another frame than ``ros2.odom_frame``): the poses are right, a transform the
     service publishes for it is not; said once, and again when its frames change."""
+    ODOMETRY_NOT_FOUND: Final = "odometry_not_found"
+    """A ROS 2 robot whose odometry is read from tf (``ros2.odom_source = "tf"``) sends tf, but
+    for seconds no transform from ``ros2.odom_frame`` to ``ros2.base_frame``: it has no
+    odometry, and no ``map`` -> odom is published for it; the message names the frames seen.
+    Said once, and again when other frames are seen."""
     INTERNAL_ERROR: Final = "internal_error"
     """An input's update failed inside the service (a bug); it was not applied, and the robot's
     state is as before it."""

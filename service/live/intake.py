@@ -172,18 +172,19 @@ class Intake:
         self.svc.stats.add("rejected")
         self.svc._global_event("warning", EventCode.ROBOT_LIMIT, key, message, at)
 
-    def warn(self, robot: str, key: str, message: str, at: int) -> None:
-        """Input of a ROS robot taken, but not as the settings expect (its odometry's frames):
-        an Event ``frame_mismatch`` from the robot's owner, at most one per
-        ``event_interval_s`` (frames that change at every message are not an Event each)."""
+    def warn(self, robot: str, code: str, key: str, message: str, at: int) -> None:
+        """Input of a ROS robot not as the settings expect (its odometry's frames): an Event
+        ``code`` (``frame_mismatch``, ``odometry_not_found``) from the robot's owner, at most
+        one per ``event_interval_s`` and code (frames that change at every message are not an
+        Event each)."""
         svc = self.svc
         if not svc.ownership.owns(robot):
             return  # its owner says it
-        held = svc.gate.rejection(robot, EventCode.FRAME_MISMATCH, at)
+        held = svc.gate.rejection(robot, code, at)
         if held is None:
             return
         more = f" ({held} more like it since the last such Event)" if held else ""
-        svc._robot_event(robot, "warning", EventCode.FRAME_MISMATCH, key, message + more, at)
+        svc._robot_event(robot, "warning", code, key, message + more, at)
 
     def reject(self, robot: str | None, key: str, message: str, at: int) -> None:
         """Bad input from the ROS 2 front door: an Event, nothing else."""

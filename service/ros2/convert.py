@@ -162,10 +162,23 @@ def odometry_from_tf(raw: bytes, odom_frame: str, base_frame: str) -> list[Odome
     Raises:
         SchemaError: malformed CDR, or a wanted transform the wire contract rejects.
     """
+    return odometry_from_tf_in_frames(raw, odom_frame, base_frame)[0]
+
+
+def odometry_from_tf_in_frames(
+    raw: bytes, odom_frame: str, base_frame: str
+) -> tuple[list[Odometry], list[tuple[str, str]]]:
+    """The ``odom_frame`` -> ``base_frame`` transforms of a ``tf2_msgs/msg/TFMessage``, with
+    the frames ``(parent, child)`` of each transform it carries (without a leading slash).
+
+    Raises:
+        SchemaError: malformed CDR, or a wanted transform the wire contract rejects.
+    """
     m = deserialize(raw, TF_MESSAGE)
     out = []
-    for t in m.transforms:
-        if frame(t.header.frame_id) != odom_frame or frame(t.child_frame_id) != base_frame:
+    frames = [(frame(t.header.frame_id), frame(t.child_frame_id)) for t in m.transforms]
+    for t, (parent, child) in zip(m.transforms, frames, strict=True):
+        if parent != odom_frame or child != base_frame:
             continue
         tr = t.transform
         data = {
@@ -175,7 +188,7 @@ def odometry_from_tf(raw: bytes, odom_frame: str, base_frame: str) -> list[Odome
             "theta": yaw(tr.rotation),
         }
         out.append(_validate(Odometry, data))
-    return out
+    return out, frames
 
 
 def static_transforms(raw: bytes) -> list[tuple[str, str, tuple[float, float, float]]]:

@@ -5,8 +5,8 @@ decodes and validates the CDR into a WIRE.md message and hands it to the service
 (the path JSON inputs take: ownership, recording as JSON, the robot's mailbox). Bad input (a
 malformed payload, a wrong type on a topic, a namespace that is not a robot id, an initial pose
 in another frame) is dropped with an Event through ``reject``; nothing else is touched. Odometry
-in other frames than the settings name is taken, and said through ``warn``
-(:mod:`service.ros2.frames`).
+in other frames than the settings name is taken, and said through ``warn``; so is a robot whose
+tf carries its odometry under other frames, which is not found (:mod:`service.ros2.frames`).
 
 Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
 transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
@@ -34,12 +34,12 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
-from schemas import PoseEstimate, SchemaError, decode
+from schemas import EventCode, PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message, printable
 from service.ros2 import convert, names
 from service.ros2.entities import no_map_warning, undeclare
-from service.ros2.frames import OdometryFrames
+from service.ros2.frames import TF_ODOMETRY_WAIT_S, OdometryFrames, TfOdometryFrames
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import GlobalLocalization
 from service.ros2.gridmaps import GridImports
@@ -53,8 +53,9 @@ Offer = Callable[[str, InputKind, bytes, Message, int], None]
 """Hand a validated input on: robot, kind, JSON payload, message, receive time (ns)."""
 Reject = Callable[[str | None, str, str, int], None]
 """Report bad input: robot (``None`` if unknown), key, what is wrong, receive time (ns)."""
-Warn = Callable[[str, str, str, int], None]
-"""Report input taken that is not as the settings expect: robot, key, what, receive time (ns)."""
+Warn = Callable[[str, str, str, str, int], None]
+"""Report input that is not as the settings expect: robot, Event code, key, what, receive time
+(ns)."""
 Clock = Callable[[], int]
 #: Scan frames with no tf_static link said in the log per robot (a robot's scans use one).
 WARNED_FRAMES = 4
@@ -76,8 +77,9 @@ class Ros2FrontDoor:
             those with no input for ``idle_ns`` are dropped.
         on_limit: where such a refusal is reported (at most once a second).
         idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
-        warn: where input taken but not as the settings expect is reported (odometry in
-            another frame than ``odom_frame``: :mod:`service.ros2.frames`); by default the log.
+        warn: where input not as the settings expect is reported (odometry in another frame
+            than ``odom_frame``, odometry on tf not found: :mod:`service.ros2.frames`); by
+            default the log.
     """
 
     def __init__(
@@ -122,6 +124,12 @@ class Ros2FrontDoor:
         self._static: dict[str, StaticFrames] = {}
         self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
         self.frames = OdometryFrames(settings.odom_frame, settings.base_frame)
+        self.tf_frames = TfOdometryFrames(
+            settings.global_frame,
+            settings.odom_frame,
+            settings.base_frame,
+            int(TF_ODOMETRY_WAIT_S * 1e9),
+        )
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
         self.grids = GridImports(settings, reject, clock, self._put_map)
@@ -299,7 +307,10 @@ class Ros2FrontDoor:
                 self._check_frames(namespace, robot_id, frame_id, child, key, received)
             return [("odom", odom)]
         if leaf == "tf":
-            found = convert.odometry_from_tf(raw, s.odom_frame, s.base_frame)
+            found, frames = convert.odometry_from_tf_in_frames(raw, s.odom_frame, s.base_frame)
+            warning = self.tf_frames.check(robot_id, bool(found), frames, received)
+            if warning is not None:
+                self.warn(robot_id, EventCode.ODOMETRY_NOT_FOUND, key, warning, received)
             return [("odom", m) for m in found]
         map_id = s.robot(namespace).map_id or s.map_id
         if map_id is None:
@@ -321,7 +332,7 @@ class Ros2FrontDoor:
             offset = None if static is None else static.offset(self.settings.base_frame, child)
         warning = self.frames.check(robot_id, frame_id, child, offset)
         if warning is not None:
-            self.warn(robot_id, key, warning, received)
+            self.warn(robot_id, EventCode.FRAME_MISMATCH, key, warning, received)
 
     def forget(self, robot_id: str) -> None:
         """Drop a robot the service evicted: its tokens, publishers and held input go (its
@@ -334,6 +345,7 @@ class Ros2FrontDoor:
             self._warned.pop(namespace, None)
         self.gate.forget(robot_id)
         self.frames.forget(robot_id)
+        self.tf_frames.forget(robot_id)
 
     # ------------------------------------------------------------------------- outputs
     def on_pose(self, robot_id: str, payload: bytes) -> None:
@@ -379,8 +391,8 @@ class Ros2FrontDoor:
             log.warning("could not publish on %s", pub.key, exc_info=True)
 
 
-def _log_warning(robot_id: str, key: str, message: str, received: int) -> None:
-    log.warning("%s (on %s)", message, printable(key))
+def _log_warning(robot_id: str, code: str, key: str, message: str, received: int) -> None:
+    log.warning("%s: %s (on %s)", code, message, printable(key))
 
 
 _QOS: dict[Leaf, names.Qos] = {

@@ -148,7 +148,7 @@ class RosRobot:
     odom_tf: bool = False
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     laser: np.ndarray | None = None  # the laser's pose in base_footprint, via base_link
-    frames: tuple[str, str] = ("odom", "base_footprint")  # its Odometry's frame and child
+    frames: tuple[str, str] = ("odom", "base_footprint")  # its odometry's frame and child
     step: int = 0
     seq: int = 0
     gid: bytes = b"\x07" * 16
@@ -176,7 +176,7 @@ class RosRobot:
     def odom(self, i: int) -> None:
         p = self.odom_pose(i)
         if self.odom_tf:
-            msg = tf_msg(p, self.stamp(i), "odom", "base_footprint")
+            msg = tf_msg(p, self.stamp(i), *self.frames)
             self.put("tf", "tf2_msgs/msg/TFMessage", msg)
         else:
             self.put("odom", "nav_msgs/msg/Odometry", odom_msg(p, self.stamp(i), *self.frames))

@@ -66,6 +66,8 @@ def test_odometry_tf_and_initial_pose() -> None:
     )
     assert [m.x for m in convert.odometry_from_tf(tf, "odom", "base_footprint")] == [1.0]
     assert convert.odometry_from_tf(tf, "odom", "base_link") == []
+    found, frames = convert.odometry_from_tf_in_frames(tf, "odom", "base_link")
+    assert (found, frames) == ([], [("odom", "base_footprint")])
     ip = bytes(
         TS.serialize_cdr(initialpose_msg(pose, 9), "geometry_msgs/msg/PoseWithCovarianceStamped")
     )
