@@ -32,6 +32,11 @@ def replay_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--base-frame", default="base_footprint", help="base frame (default base_footprint)"
     )
+    g.add_argument(
+        "--odom-frame",
+        default="odom",
+        help="odometry frame: read with --odom-tf, written as map -> it (default odom)",
+    )
     g.add_argument("--robot", help="robot id (default: the scan topic's namespace, else 'robot')")
     g.add_argument(
         "--ros2-out", type=Path, metavar="BAG", help="also write the poses as a rosbag2 MCAP"
@@ -87,6 +92,7 @@ def topics(args: argparse.Namespace) -> Any:
         scan=args.scan_topic,
         odom=args.odom_topic,
         odom_tf=args.odom_tf,
+        odom_frame=args.odom_frame,
         base_frame=args.base_frame,
     )
 
@@ -129,4 +135,5 @@ def write_out(args: argparse.Namespace, result: Any, summary: Any) -> int:
         poses,
         result.odometry,
         {summary.robot: summary.namespace},
+        odom_frame=args.odom_frame,
     )

@@ -138,8 +138,13 @@ def report(
 
 
 def bag_report(summary: Any) -> str:
+    """What a bag's conversion read, left out and warns of (rich markup)."""
+    from rich.markup import escape
+
     counts = ", ".join(f"{n} {k}" for k, n in sorted(summary.counts.items()))
     text = f"bag: robot {summary.robot} ({summary.namespace}): {counts}"
     for why, n in summary.rejected.most_common(5):
         text += f"\n  rejected {n}: {why}"
+    for warning in summary.warnings:
+        text += f"\n[yellow]  warning: {escape(warning)}[/yellow]"
     return text

@@ -7,6 +7,8 @@ from the bag's ``tf_static``, when it has one) as the live front
 door converts them (:mod:`service.ros2.convert`) and written, with the map and an optional
 initial pose, as an MCAP log in the WIRE.md layout, ``log_time`` the bag's receive time. That
 log is an ordinary replay input: ``rlutf replay --ros2`` replays it with the service's engine.
+Odometry in other frames than the ones given is said in the summary's warnings
+(:mod:`service.ros2.bagframes`).
 
 Out: the poses of a replay as a rosbag2 MCAP (``amcl_pose`` and the ``map`` -> ``odom`` on
 ``tf``, per robot namespace), which ``ros2 bag play`` and Foxglove open.
@@ -18,7 +20,7 @@ import bisect
 import contextlib
 import logging
 from collections import Counter
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -42,6 +44,7 @@ from service.logs.mcapchunks import ChunkTooLarge
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcaprecords import RecordTooLarge, bound_file
 from service.ros2 import convert, names
+from service.ros2.bagframes import BagOdometryFrames
 from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
 
@@ -89,12 +92,13 @@ class BagTopics:
 
 @dataclass
 class BagSummary:
-    """What a conversion read and left out."""
+    """What a conversion read and left out, and what is wrong with the bag's frames."""
 
     robot: str
     namespace: str
     counts: Counter[str] = field(default_factory=Counter)
     rejected: Counter[str] = field(default_factory=Counter)
+    warnings: list[str] = field(default_factory=list)
     first_ns: int = 0
     last_ns: int = 0
 
@@ -194,6 +198,9 @@ def bag_inputs(
         static_topic: "tf_static",  # the laser's pose in the base frame
     }
     frames = StaticFrames()
+    odometry_frames = BagOdometryFrames(
+        odom_topic, topics.odom_tf, topics.global_frame, topics.odom_frame, topics.base_frame
+    )
     with _reader(bag) as reader:
         present = {c.topic for c in reader.connections}
         for t in (topics.scan, odom_topic):
@@ -218,7 +225,11 @@ def bag_inputs(
                     for parent, child, pose in convert.static_transforms(bytes(raw)):
                         frames.add(parent, child, pose)
                     continue
-                msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, frames)
+                msgs: Sequence[LaserScan | Odometry | InitialPose]
+                if kind == "odom":
+                    msgs = _odometry(conn.msgtype, bytes(raw), topics, odometry_frames)
+                else:
+                    msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, frames)
             except SchemaError as err:
                 summary.rejected[f"{conn.topic}: {str(err)[:120]}"] += 1
                 continue
@@ -235,6 +246,7 @@ def bag_inputs(
                 summary.counts[type(m).__name__] += 1
             summary.last_ns = t_ns
         writer.finish()
+    summary.warnings = odometry_frames.warnings(frames)
     if not summary.counts["LaserScan"]:
         raise BagError(f"{bag}: no valid scan on {topics.scan}")
     if not summary.counts["initialpose"] and not summary.counts["InitialPose"]:
@@ -246,18 +258,27 @@ def bag_inputs(
 
 def _convert(
     kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics, frames: StaticFrames
-) -> list[LaserScan | Odometry | InitialPose]:
+) -> list[LaserScan | InitialPose]:
     if kind == "scan":
         _expect(msgtype, convert.LASER_SCAN)
         return [convert.laser_scan(raw, offset_of=partial(frames.offset, topics.base_frame))]
-    if kind == "initialpose":
-        _expect(msgtype, convert.POSE_COV)
-        return [convert.initial_pose(raw, map_id, topics.global_frame)]
+    _expect(msgtype, convert.POSE_COV)
+    return [convert.initial_pose(raw, map_id, topics.global_frame)]
+
+
+def _odometry(
+    msgtype: str, raw: bytes, topics: BagTopics, seen: BagOdometryFrames
+) -> list[Odometry]:
+    """A message of the odometry's topic as Odometry, its frames counted in ``seen``."""
     if topics.odom_tf:
         _expect(msgtype, convert.TF_MESSAGE)
-        return list(convert.odometry_from_tf(raw, topics.odom_frame, topics.base_frame))
+        found, pairs = convert.odometry_from_tf_in_frames(raw, topics.odom_frame, topics.base_frame)
+        seen.add(len(found), pairs)
+        return found
     _expect(msgtype, convert.ODOMETRY)
-    return [convert.odometry(raw)]
+    odom, frame_id, child = convert.odometry_in_frames(raw)
+    seen.add(1, [(frame_id, child)])
+    return [odom]
 
 
 def _expect(got: str, want: str) -> None:

@@ -83,7 +83,7 @@ class OdometryFrames:
         frame_id, child = frame_id[:FRAME_CHARS], child_frame_id[:FRAME_CHARS]
         wrong_odom = frame_id if frame_id != self.odom_frame else None
         wrong_child = None
-        if child != self.base_frame and child_offset is not None and _displaced(child_offset):
+        if child != self.base_frame and child_offset is not None and displaced(child_offset):
             wrong_child = child
         state = (wrong_odom, wrong_child)
         with self._lock:
@@ -128,7 +128,8 @@ class OdometryFrames:
         )
 
 
-def _displaced(offset: Pose2) -> bool:
+def displaced(offset: Pose2) -> bool:
+    """Whether a pose in the plane is not the identity (beyond tf_static's float noise)."""
     x, y, yaw = offset
     return abs(x) > _TINY_M or abs(y) > _TINY_M or abs(math.remainder(yaw, math.tau)) > _TINY_RAD
 

@@ -1,0 +1,122 @@
+"""Whether a bag's odometry is in the frames the ``map`` -> odom written for it names.
+
+``rlutf replay BAG --ros2 --ros2-out OUT`` writes ``map`` -> ``--odom-frame`` on ``tf``: the
+estimated pose of ``--base-frame`` composed with the inverse of the bag's odometry. A bag whose
+``nav_msgs/Odometry`` is in another frame (``wheel_odom``) is replayed right, but that transform
+names a frame the bag's tf tree lacks, so the tree written does not connect; one whose odometry
+is of a child frame that the bag's ``tf_static`` puts elsewhere in the plane than the base frame
+gives a ``map`` -> odom off by that offset (the live front door says both:
+:mod:`service.ros2.frames`). With the odometry read from ``tf`` (``--odom-tf``), a bag whose tf
+carries it under other frames (``wheel_odom`` -> ``base_footprint``) has none at all: it is
+replayed without odometry and no ``map`` -> odom is written. Each is a warning in the tool's
+output, naming the frames seen and the flag to give.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from service.keys import printable
+from service.ros2.frames import FRAME_CHARS, PAIRS_KEPT, Pair, displaced
+from service.ros2.statictf import StaticFrames
+
+
+class BagOdometryFrames:
+    """The frames of a bag's odometry, counted, and the warnings they call for.
+
+    Args:
+        topic: the odometry's topic (``Odometry``, or ``tf`` with ``odom_tf``).
+        odom_tf: whether the odometry is ``odom_frame`` -> ``base_frame`` on ``tf``.
+        global_frame: the parent frame of the ``map`` -> odom written.
+        odom_frame: its child, the odometry's frame (``--odom-frame``).
+        base_frame: the frame whose pose is estimated (``--base-frame``).
+        kept: distinct ``(parent, child)`` counted at most (a bag's frame ids are any text).
+    """
+
+    def __init__(
+        self,
+        topic: str,
+        odom_tf: bool,
+        global_frame: str,
+        odom_frame: str,
+        base_frame: str,
+        kept: int = PAIRS_KEPT,
+    ) -> None:
+        self.topic = topic
+        self.odom_tf = odom_tf
+        self.global_frame = global_frame
+        self.odom_frame = odom_frame
+        self.base_frame = base_frame
+        self.kept = kept
+        self.found = 0
+        self.seen: dict[Pair, int] = {}  # in the order first seen
+
+    def add(self, found: int, frames: Iterable[Pair]) -> None:
+        """One message of the odometry's topic: the odometry readings it gave and its frames
+        (an Odometry's ``header.frame_id`` and ``child_frame_id``; a TFMessage's transforms)."""
+        self.found += found
+        skipped = {(self.global_frame, self.odom_frame), (self.odom_frame, self.base_frame)}
+        for parent, child in frames:
+            pair = (parent[:FRAME_CHARS], child[:FRAME_CHARS])
+            if self.odom_tf and pair in skipped:
+                continue  # the odometry itself, or a map -> odom recorded with it
+            if pair in self.seen:
+                self.seen[pair] += 1
+            elif len(self.seen) < self.kept:
+                self.seen[pair] = 1
+
+    def warnings(self, static: StaticFrames) -> list[str]:
+        """What is wrong with the frames seen, one line each (``static``: the bag's tf_static)."""
+        if self.odom_tf:
+            return [] if self.found or not self.seen else [self._missing()]
+        out = []
+        others: dict[str, int] = {}
+        for (parent, _c), n in self.seen.items():
+            if parent != self.odom_frame:
+                others[parent] = others.get(parent, 0) + n
+        if others:
+            out.append(self._other_frame(others))
+        for _p, child in self.seen:
+            offset = None if child == self.base_frame else static.offset(self.base_frame, child)
+            if offset is not None and displaced(offset):
+                out.append(self._displaced_child(child, offset))
+                break
+        return out
+
+    def _listed(self, counts: dict[str, int]) -> str:
+        return ", ".join(f"'{printable(f)}' ({n} messages)" for f, n in counts.items())
+
+    def _other_frame(self, others: dict[str, int]) -> str:
+        odom, seen = self.odom_frame, self._listed(others)
+        first = printable(next(iter(others)))
+        return (
+            f"the odometry on {printable(self.topic)} is in frame {seen}, not '{odom}' "
+            f"(--odom-frame): its poses are right, but the {self.global_frame} -> {odom} "
+            f"written with --ros2-out names a frame the bag's tf tree lacks, so it does not "
+            f"connect. Give --odom-frame {first}"
+        )
+
+    def _displaced_child(self, child: str, offset: tuple[float, float, float]) -> str:
+        x, y, yaw = offset
+        child_, base = printable(child), self.base_frame
+        return (
+            f"the odometry on {printable(self.topic)} is of frame '{child_}', not '{base}' "
+            f"(--base-frame), and the bag's tf_static puts '{child_}' at x {x:.3f} m, y "
+            f"{y:.3f} m, yaw {yaw:.3f} rad from '{base}': the {self.global_frame} -> "
+            f"{self.odom_frame} written with --ros2-out is off by that offset. Give "
+            f"--base-frame {child_}"
+        )
+
+    def _missing(self) -> str:
+        odom, base = self.odom_frame, self.base_frame
+        seen = ", ".join(
+            f"{printable(p)} -> {printable(c)} ({n} times)" for (p, c), n in self.seen.items()
+        )
+        fixes = [f"--base-frame {printable(c)}" for p, c in self.seen if p == odom]
+        fixes += [f"--odom-frame {printable(p)}" for p, c in self.seen if c == base]
+        fix = f" Give {' or '.join(fixes)}" if fixes else ""
+        return (
+            f"no odometry: {printable(self.topic)} carries {seen}, but no {odom} -> {base} "
+            f"(--odom-frame -> --base-frame): the bag is replayed without odometry, and no "
+            f"{self.global_frame} -> {odom} is written with --ros2-out.{fix}"
+        )
