@@ -230,6 +230,9 @@ class EventCode:
     MAP_UNCHANGED: Final = "map_unchanged"
     """A map put of the very version a service holds, with the same content: nothing changed
     (the tools that put maps wait for each running service's word on a put)."""
+    MAP_UNCONFIRMED: Final = "map_unconfirmed"
+    """A map put not loaded because the store did not say it holds it in time (it had many big
+    puts to store first): the service loads what the store holds once they are stored."""
     RELOCALIZING: Final = "relocalizing"
     """A global relocalization of a robot started (on request or by itself when lost)."""
     RELOCALIZED: Final = "relocalized"

@@ -10,6 +10,9 @@ A map of real size takes a second or more to check, and a client may put maps fa
 most one a second, counting the puts since the last); once the puts that waited are done, the
 service fetches the stored version of every map it dropped a put of, so that it ends on what the
 store holds, as if it had seen every put.
+
+A put is loaded once the map store holds it (:mod:`service.maps.confirmation`), so that no
+service runs robots on a version the store refused or dropped.
 """
 
 from __future__ import annotations
@@ -27,9 +30,18 @@ from schemas import SCHEMA_NAMES, EventCode, Map
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.logs.recording import Recorder
-from service.maps.book import Held, LoadedMap, MapBook, MapRejected, VersionConflict
+from service.maps.book import (
+    CheckedMap,
+    Held,
+    LoadedMap,
+    MapBook,
+    MapRejected,
+    VersionConflict,
+    put_verdict,
+)
+from service.maps.confirmation import CONFIRM_S, StoreWord, await_store
 from service.maps.files import FileMapStore
-from service.maps.store import MapStorage, room_for, stored_version
+from service.maps.store import MapStorage, StoredVersion, room_for, stored_version
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +99,9 @@ class MapFeed:
         self.timeout_s = timeout_s
         self._global_event = global_event
         self._robot_event = robot_event
-        # (kind, map id, payload or robot, an offer's arrival number and the version held then)
-        self._tasks: queue.Queue[tuple[str, str, bytes, int, int] | None] = queue.Queue()
+        # (kind, map id, payload or robot, an offer's arrival number, the version held then, and
+        # its arrival time, monotonic)
+        self._tasks: queue.Queue[tuple[str, str, bytes, int, int, float] | None] = queue.Queue()
         self._fetching: dict[str, float] = {}
         self._lock = threading.Lock()
         self._waiting = 0  # offers queued, not yet checked
@@ -102,9 +115,9 @@ class MapFeed:
         #: Whether the embedded store still has puts to store (the stored version of a map
         #: whose puts were dropped is fetched once it has none).
         self.store_busy: Callable[[], bool] = lambda: False
-        #: What the map store holds of a map this service does not hold (the version a put of
-        #: it must beat): the embedded store's own record, or the answer of the store on the bus.
-        self.store_holds: Callable[[str], Held | None] = self._ask_store
+        #: What the map store holds of a map (the version a put must beat, and whether it has
+        #: puts of it to store yet): the embedded store's own answer, or the store's on the bus.
+        self.store_holds: Callable[[str], StoredVersion | None] = self._ask_store
         self._session: zenoh.Session | None = None
         self._thread: threading.Thread | None = None
 
@@ -146,7 +159,7 @@ class MapFeed:
                 self._last_put[map_id] = self._puts
                 held = self.book.get(map_id)
                 version = -1 if held is None else held.version
-                self._tasks.put(("offer", map_id, payload, self._puts, version))
+                self._tasks.put(("offer", map_id, payload, self._puts, version, time.monotonic()))
                 return
             follow = map_id in self._stale or len(self._stale) < MAX_STALE
             if follow:
@@ -210,10 +223,10 @@ class MapFeed:
             ),
         )
         self.store_busy = storage.busy
-        self.store_holds = storage.held
+        self.store_holds = storage.answer
         return storage
 
-    def _ask_store(self, map_id: str) -> Held | None:
+    def _ask_store(self, map_id: str) -> StoredVersion | None:
         """What the store on the bus holds of ``map_id`` (:func:`~service.maps.store.
         stored_version`), for a service without one of its own."""
         if self._session is None:
@@ -226,7 +239,7 @@ class MapFeed:
             if map_id in self._fetches:
                 return
             self._fetches.add(map_id)
-        self._tasks.put(("fetch", map_id, robot.encode(), 0, -1))
+        self._tasks.put(("fetch", map_id, robot.encode(), 0, -1, 0.0))
 
     def _run(self) -> None:
         while True:
@@ -237,10 +250,10 @@ class MapFeed:
                 continue
             if task is None:
                 return
-            kind, map_id, payload, number, held_then = task
+            kind, map_id, payload, number, held_then, arrived = task
             try:
                 if kind == "offer":
-                    self._offer(map_id, payload, number=number, held_then=held_then)
+                    self._offer(map_id, payload, number=number, held_then=held_then, at=arrived)
                 else:
                     with self._lock:
                         self._fetches.discard(map_id)
@@ -273,8 +286,17 @@ class MapFeed:
                 log.exception("fetching map %s after dropped puts failed", map_id)
 
     def _refresh(self, map_id: str) -> None:
+        """Load what the store holds of ``map_id``, once it has no put of it left to store."""
         if self._session is None:
             return
+        answer = self.store_holds(map_id)
+        if answer is not None:
+            if answer.pending:  # looked at again once they are stored
+                with self._lock:
+                    self._stale.add(map_id)
+                return
+            if answer.removed or answer.held in (None, self._held(map_id)):
+                return  # nothing to fetch, or what is held here already
         for reply in self._session.get(self.keys.map(map_id), timeout=self.timeout_s):
             if reply.ok is not None:
                 self._offer(map_id, reply.ok.payload.to_bytes(), quiet=True)
@@ -286,14 +308,17 @@ class MapFeed:
         quiet: bool = False,
         number: int = 0,
         held_then: int = -1,
+        at: float = 0.0,
     ) -> bool:
-        """Check a map put, load it if it is newer; ``quiet``: a stored version fetched again,
-        which is no client's put (an older one than held is no conflict to report).
+        """Check a map, load it if it is newer; ``quiet``: a stored version fetched again, which
+        is no client's put (an older one than held is no conflict to report).
 
-        ``number``: the put's arrival number; ``held_then``: the version this service held
-        when it arrived (-1: none). A put newer than that, which conflicts now only because a
-        newer put of the map came after it (and the store, say, stored that one first), was
-        superseded, not refused: no conflict is reported for it."""
+        ``number``: a put's arrival number (0: a map fetched from the storage); ``held_then``:
+        the version this service held when it arrived (-1: none); ``at``: when it arrived
+        (monotonic). A put is loaded once the store holds it (:meth:`_store_word`). A put newer
+        than ``held_then``, which conflicts now only because a newer put of the map came after
+        it (and the store, say, stored that one first), was superseded, not refused: no conflict
+        is reported for it."""
         key = self.keys.map(map_id)
         # Validated first, with no lock held: a big map takes a while, and the robots' inputs
         # go through the dispatcher's lock.
@@ -305,10 +330,15 @@ class MapFeed:
                 return False
             self._global_event("error", EventCode.INVALID_MAP, key, str(err), self.clock())
             return False
-        # The version to beat of a map not held here is the store's (stored, or removed): a
-        # service started since held nothing to refuse an older put with. Asked with no lock
-        # held (a get on the bus waits); the map thread alone commits, so it stays true.
-        store = None if self.book.get(map_id) is not None else self.store_holds(map_id)
+        # The store's word on a put new here, asked with no lock held (a get on the bus waits);
+        # the map thread alone commits, so what it said holds when the put is committed.
+        store = None
+        if number and put_verdict(self._held(map_id), checked.version, checked.digest) == "new":
+            word = self._store_word(map_id, checked, at)
+            if word.word in ("dropped", "unconfirmed"):
+                self._not_loaded(map_id, checked, word)
+                return False
+            store = None if word.answer is None else word.answer.held
         # Order matters for replay: the map is recorded and reaches the shards at one instant
         # of the receive clock, before any input received after it.
         conflict: VersionConflict | None = None
@@ -324,7 +354,7 @@ class MapFeed:
         self.dispatcher.flush()
         with self._lock:
             later = bool(number) and self._last_put.get(map_id, number) > number
-        superseded = later and checked[0] > held_then
+        superseded = later and checked.version > held_then
         if conflict is not None and (quiet or superseded):
             log.info("%s: %s", "superseded" if superseded else "not newer", conflict)
             return True
@@ -339,8 +369,8 @@ class MapFeed:
                     "info",
                     EventCode.MAP_UNCHANGED,
                     key,
-                    f"map {map_id} version {checked[0]} put: already held with this content, "
-                    "nothing changed",
+                    f"map {map_id} version {checked.version} put: already held with this "
+                    "content, nothing changed",
                     received,
                 )
             return True
@@ -352,6 +382,41 @@ class MapFeed:
             received,
         )
         return True
+
+    def _held(self, map_id: str) -> Held | None:
+        """The version of ``map_id`` loaded here and its digest, if any."""
+        mine = self.book.get(map_id)
+        return None if mine is None else (mine.version, mine.digest)
+
+    def _store_word(self, map_id: str, checked: CheckedMap, at: float) -> StoreWord:
+        """What the store made of a put of ``map_id`` that arrived at ``at`` (it is still taking
+        it while its answers say it has puts of the map to store)."""
+        return await_store(lambda: self.store_holds(map_id), checked.version, checked.digest, at)
+
+    def _not_loaded(self, map_id: str, checked: CheckedMap, word: StoreWord) -> None:
+        """A put the store did not take (dropped under a flood; it said so), or did not say it
+        took within :data:`~service.maps.confirmation.CONFIRM_S`: not loaded; what the store
+        holds is loaded once it has no put of the map left to store."""
+        answer = word.answer
+        assert answer is not None
+        with self._lock:
+            if map_id in self._stale or len(self._stale) < MAX_STALE:
+                self._stale.add(map_id)
+        held = "nothing" if answer.version is None else f"version {answer.version}"
+        if word.word == "dropped":
+            log.info("map %s version %d put not loaded: the store dropped it (holds %s)",
+                     map_id, checked.version, held)  # fmt: skip
+            return
+        self._global_event(
+            "warning",
+            EventCode.MAP_UNCONFIRMED,
+            self.keys.map(map_id),
+            f"map {map_id} version {checked.version} put not loaded: the store did not say it "
+            f"holds it within {CONFIRM_S:g} s (it holds {held}, {answer.pending} put(s) of the "
+            "map wait to be stored there); this service loads what the store holds once they "
+            "are stored",
+            self.clock(),
+        )
 
     def _record(self, loaded: LoadedMap) -> None:
         self.recorder.record(

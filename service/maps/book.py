@@ -279,7 +279,7 @@ class MapBook:
         """Take a map payload received on ``{prefix}/maps/{map_id}``.
 
         ``store``: what the map store holds for the map (its version, or the version removed
-        from it), the version to beat when this book holds none of the map, so that the service
+        from it), a version to beat as well as the one this book holds, so that the service
         never loads a version the store refused.
 
         Returns:
@@ -308,13 +308,12 @@ class MapBook:
         """
         version, digest, world = checked
         mine = self._maps.get(map_id)
-        held = (mine.version, mine.digest) if mine is not None else store
-        verdict = put_verdict(held, version, digest)
-        if verdict == "conflict":
-            assert held is not None
-            raise VersionConflict(map_id, version, held[0])
-        if verdict == "echo" and mine is not None:
-            return None
+        own = (mine.version, mine.digest) if mine is not None else None
+        for held in (store, own):
+            if held is not None and put_verdict(held, version, digest) == "conflict":
+                raise VersionConflict(map_id, version, held[0])
+        if own == (version, digest):
+            return None  # an echo of the version held
         loaded = LoadedMap(map_id, version, bytes(payload), world, received_ns, digest)
         self._maps[map_id] = loaded
         return loaded

@@ -20,6 +20,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
 from rlutf.map import MapLimits
+from schemas import valid_id
 from service.keys import KeyError_, Keys
 from service.maps.book import (
     Held,
@@ -68,21 +69,32 @@ def removed_conflict(map_id: str, version: int, removed: int) -> str:
 
 class StoredVersion(BaseModel):
     """The store's answer on ``{prefix}/mapversions/{map_id}`` (WIRE.md): the version of a map
-    it holds, or of the one removed from it and not put since, which a put must beat."""
+    it holds, or of the one removed from it and not put since, which a put must beat, and how
+    many puts of the map it took and has not stored yet."""
 
     model_config = ConfigDict(extra="ignore", frozen=True)
 
     map_id: str = Field(description="The map.")
-    version: int = Field(description="The version held, or removed.")
-    digest: str = Field(description="SHA-256 of the canonical encoding of that version.")
+    version: int | None = Field(description="The version held, or removed; null: neither.")
+    digest: str | None = Field(description="SHA-256 of the canonical encoding of that version.")
     removed: bool = Field(False, description="The map was removed (`rlutf map remove`).")
+    pending: int = Field(0, ge=0, description="Puts of the map taken and not stored yet.")
+
+    @property
+    def held(self) -> Held | None:
+        """The version to beat and its digest, if any."""
+        if self.version is None or self.digest is None:
+            return None
+        return self.version, self.digest
 
 
-def stored_version(session: zenoh.Session, keys: Keys, map_id: str, timeout: float) -> Held | None:
-    """What the map store on the bus holds for ``map_id`` (:class:`StoredVersion`; the highest
-    version if several stores answer), or ``None``: it holds nothing of it, or no store answers
-    (zenohd's storage manager, which applies no version rule, answers nothing there)."""
-    found: Held | None = None
+def stored_version(
+    session: zenoh.Session, keys: Keys, map_id: str, timeout: float
+) -> StoredVersion | None:
+    """What the map store on the bus holds of ``map_id`` (the highest version if several stores
+    answer), or ``None``: no store answers (zenohd's storage manager, which applies no version
+    rule, answers nothing there; the embedded store answers for every map asked by its id)."""
+    found: StoredVersion | None = None
     for reply in session.get(keys.map_version(map_id), timeout=timeout):
         if reply.ok is None:
             continue
@@ -91,9 +103,17 @@ def stored_version(session: zenoh.Session, keys: Keys, map_id: str, timeout: flo
         except ValueError:
             log.warning("bad map version answer on %s", reply.ok.key_expr)
             continue
-        if answer.map_id == map_id and (found is None or answer.version > found[0]):
-            found = (answer.version, answer.digest)
+        if answer.map_id == map_id and (found is None or _beyond(answer, found)):
+            found = answer
     return found
+
+
+def _beyond(answer: StoredVersion, other: StoredVersion) -> bool:
+    """Whether ``answer`` says more than ``other``: a higher version, or as high, more pending."""
+    mine, theirs = answer.version, other.version
+    if mine != theirs:
+        return theirs is None or (mine is not None and mine > theirs)
+    return answer.pending > other.pending
 
 
 class MapStorage:
@@ -111,11 +131,12 @@ class MapStorage:
     it, or be the removed version put back as it was, as for the services, and a refused one is
     reported here (``on_conflict``), since no service may hold the map to say so.
 
-    The services without this store (the other processes of ``rlutf serve --processes``, an
-    instance started with ``--no-store``) ask it what it holds of a map they do not hold before
-    they load a put of it (:func:`stored_version` on ``{prefix}/mapversions/{map_id}``), so that
-    they refuse what it refuses: one started after a newer version was stored, or after a
-    removal, held nothing to refuse an older put with, and loaded it.
+    Every service loads a put once this store holds it (:meth:`answer`; the services without
+    it, the other processes of ``rlutf serve --processes`` and an instance started with
+    ``--no-store``, ask :func:`stored_version` on ``{prefix}/mapversions/{map_id}``), and refuses
+    what it refuses: a service without it that loaded the puts it saw loaded those this store
+    dropped under a flood, and one started after a newer version was stored, or after a
+    removal, held nothing to refuse an older put with.
 
     A newer version the disk refuses (full, read-only, the folder gone) is taken all the same
     and held in memory: every service on the bus loads a put as it sees it, so a store that did
@@ -173,11 +194,16 @@ class MapStorage:
         # Maps taken but not on disk yet: map id -> (payload, monotonic time of the first refusal)
         self._unwritten: dict[str, tuple[bytes, float]] = {}
         self._pending = 0  # puts queued or being stored
+        self._pending_maps: dict[str, int] = {}  # the same, by map
         self._queued_bytes = 0
-        self._queue_lock = threading.Lock()  # not _lock, which a file write holds
+        self._queue_lock = threading.Lock()
         self.forward = forward
         self._forwarded = zenoh.KeyExpr(keys.maps)
         self._versions: dict[str, Held] = {}
+        # Held while the store's thread changes what it holds, never across a file write: the
+        # Zenoh callbacks that answer gets read under it (the services ask for versions all the
+        # time), and one that waited on a write held up the router's other links. The store's
+        # thread alone changes what it holds, so it reads it without the lock.
         self._lock = threading.Lock()
         store.claim()  # the versions held below are this process's to keep
         # Maps removed (`rlutf map remove`): running services keep their copy, so a put must be
@@ -206,6 +232,23 @@ class MapStorage:
         with self._lock:
             return self._versions.get(map_id) or self._removed.get(map_id)
 
+    def answer(self, map_id: str) -> StoredVersion:
+        """What this store holds of ``map_id`` (:class:`StoredVersion`): asked before a service
+        loads a put, and answered on ``{prefix}/mapversions/{map_id}``."""
+        with self._queue_lock:
+            pending = self._pending_maps.get(map_id, 0)
+        with self._lock:
+            stored = self._versions.get(map_id)
+            held = stored or self._removed.get(map_id)
+        version, digest = held if held is not None else (None, None)
+        return StoredVersion(
+            map_id=map_id,
+            version=version,
+            digest=digest,
+            removed=stored is None and held is not None,
+            pending=pending,
+        )
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if (
             self._take(sample)
@@ -232,6 +275,7 @@ class MapStorage:
             held = self._queued_bytes / 1e6
             if not dropped:
                 self._pending += 1
+                self._pending_maps[map_id] = self._pending_maps.get(map_id, 0) + 1
                 self._queued_bytes += size
                 self._tasks.put_nowait((key, map_id, payload))
         if dropped:
@@ -265,6 +309,9 @@ class MapStorage:
                 with self._queue_lock:
                     self._pending -= 1
                     self._queued_bytes -= 0 if task[2] is None else len(task[2])
+                    left = self._pending_maps.pop(task[1]) - 1
+                    if left:
+                        self._pending_maps[task[1]] = left
             del task  # the payload is not kept while the thread waits
         self._write_held()
 
@@ -274,31 +321,32 @@ class MapStorage:
             return sorted(self._unwritten)
 
     def _write_held(self) -> None:
-        """Try again to write the maps held in memory only."""
-        with self._lock:
-            for map_id, (payload, since) in list(self._unwritten.items()):
-                try:
-                    self.store.put(map_id, payload)
-                except OSError as err:
-                    log.debug("map %s still not written: %s", map_id, err)
-                    continue
+        """Try again to write the maps held in memory only (on the store's thread)."""
+        for map_id, (payload, since) in list(self._unwritten.items()):
+            try:
+                self.store.put(map_id, payload)
+            except OSError as err:
+                log.debug("map %s still not written: %s", map_id, err)
+                continue
+            with self._lock:
                 del self._unwritten[map_id]
-                version = self._versions[map_id][0]
-                self.on_written(
-                    self.keys.map(map_id),
-                    f"map {map_id} version {version} written to the store after "
-                    f"{time.monotonic() - since:.0f} s held in memory only",
-                )
+            version = self._versions[map_id][0]
+            self.on_written(
+                self.keys.map(map_id),
+                f"map {map_id} version {version} written to the store after "
+                f"{time.monotonic() - since:.0f} s held in memory only",
+            )
 
     def _apply(self, key: str, map_id: str, payload: bytes | None) -> None:
+        """Store a put or a removal (on the store's thread)."""
         if payload is None:  # `rlutf map remove`: an operator's choice
+            held = self._versions.get(map_id) or self._removed.get(map_id)
+            try:
+                self.store.delete(map_id, held)
+            except OSError as err:
+                self.on_error(key, f"could not remove map {map_id}: {err}")
+                return
             with self._lock:
-                held = self._versions.get(map_id) or self._removed.get(map_id)
-                try:
-                    self.store.delete(map_id, held)
-                except OSError as err:
-                    self.on_error(key, f"could not remove map {map_id}: {err}")
-                    return
                 self._versions.pop(map_id, None)
                 self._unwritten.pop(map_id, None)
                 if held is not None:
@@ -309,36 +357,37 @@ class MapStorage:
             version, digest, _ = self.checker.check(map_id, payload)
         except MapRejected:
             return  # the service's map subscriber reports it
+        held = self._versions.get(map_id)
+        removed = None if held is not None else self._removed.get(map_id)
+        verdict = put_verdict(held or removed, version, digest)
+        if removed is not None and verdict != "conflict":
+            verdict = "new"  # the removed version put back as it was, or a newer one
+        if verdict != "new":
+            if removed is not None:  # no running service may know of the removal
+                self.on_conflict(key, removed_conflict(map_id, version, removed[0]))
+            elif held is not None and verdict == "conflict":
+                log.info("%s", VersionConflict(map_id, version, held[0]))
+            return
+        try:
+            self.store.put(map_id, payload)
+        except OSError as err:  # a full disk: held in memory, written when it can be
+            self._hold_unwritten(key, map_id, payload, (version, digest), err)
+            return
         with self._lock:
-            held = self._versions.get(map_id)
-            removed = None if held is not None else self._removed.get(map_id)
-            verdict = put_verdict(held or removed, version, digest)
-            if removed is not None and verdict != "conflict":
-                verdict = "new"  # the removed version put back as it was, or a newer one
-            if verdict != "new":
-                if removed is not None:  # no running service may know of the removal
-                    self.on_conflict(key, removed_conflict(map_id, version, removed[0]))
-                elif held is not None and verdict == "conflict":
-                    log.info("%s", VersionConflict(map_id, version, held[0]))
-                return
-            try:
-                self.store.put(map_id, payload)
-            except OSError as err:  # a full disk: held in memory, written when it can be
-                self._hold_unwritten(key, map_id, payload, (version, digest), err)
-                return
             self._unwritten.pop(map_id, None)  # an older version waiting is superseded
             self._versions[map_id] = (version, digest)
-            if self._removed.pop(map_id, None) is not None:
-                try:
-                    self.store.unmark(map_id)
-                except OSError as err:  # the mark stays: its version is older than this one's
-                    log.warning("map %s: removal mark left: %s", map_id, err)
+            unmark = self._removed.pop(map_id, None) is not None
+        if unmark:
+            try:
+                self.store.unmark(map_id)
+            except OSError as err:  # the mark stays: its version is older than this one's
+                log.warning("map %s: removal mark left: %s", map_id, err)
 
     def _hold_unwritten(
         self, key: str, map_id: str, payload: bytes, held: Held, err: OSError
     ) -> None:
         """A newer version the disk refused: held in memory (within :data:`UNWRITTEN_BYTES`),
-        or, past that, not taken. Called with ``_lock`` held."""
+        or, past that, not taken (on the store's thread)."""
         waiting = sum(len(p) for m, (p, _) in self._unwritten.items() if m != map_id)
         if waiting + len(payload) > UNWRITTEN_BYTES:
             self.on_drop(
@@ -349,8 +398,9 @@ class MapStorage:
             )
             return
         since = self._unwritten.get(map_id, (b"", time.monotonic()))[1]
-        self._unwritten[map_id] = (payload, since)
-        self._versions[map_id] = held
+        with self._lock:
+            self._unwritten[map_id] = (payload, since)
+            self._versions[map_id] = held
         self.on_unwritten(
             key,
             f"map {map_id} version {held[0]} taken but not written: the store could not write "
@@ -380,20 +430,24 @@ class MapStorage:
                         query.reply(key, payload, encoding=JSON)
 
     def _on_version_query(self, query: zenoh.Query) -> None:
-        """Answer ``{prefix}/mapversions/*``: the version held of each map asked for, or the
-        version removed (:class:`StoredVersion`)."""
+        """Answer ``{prefix}/mapversions/*``: for each map asked for that this store holds,
+        removed or has puts of to store, and for a map asked by its id in any case, what it
+        holds of it (:class:`StoredVersion`; nothing held: a null version). A service that asks
+        before it loads a put so tells a store that dropped the put from no store at all."""
         with query:
             ke = query.key_expr
+            asked = str(ke).rpartition("/")[2]
+            with self._queue_lock:
+                known = set(self._pending_maps)
             with self._lock:
-                held = [(m, h, False) for m, h in self._versions.items()]
-                held += [(m, h, True) for m, h in self._removed.items() if m not in self._versions]
-            for map_id, (version, digest), removed in held:
+                known |= set(self._versions) | set(self._removed)
+            if valid_id(asked) and str(ke) == self.keys.map_version(asked):
+                known.add(asked)
+            for map_id in sorted(known):
                 key = self.keys.map_version(map_id)
                 if ke.intersects(zenoh.KeyExpr(key)):
-                    answer = StoredVersion(
-                        map_id=map_id, version=version, digest=digest, removed=removed
-                    )
-                    query.reply(key, answer.model_dump_json().encode(), encoding=JSON)
+                    answer = self.answer(map_id).model_dump_json().encode()
+                    query.reply(key, answer, encoding=JSON)
 
     def close(self) -> None:
         """Stop serving (after the puts already received are stored)."""

@@ -17,11 +17,13 @@ from typing import Any
 
 import pytest
 import zenoh
-from service_harness import JSON, WORLD, Collector, running_bench
+from service_harness import JSON, WORLD, Bench, Collector, running_bench
 
 from schemas import Map, encode
+from service.config import Settings
 from service.keys import Keys
 from service.live import mapfeed
+from service.live.node import LocalizationService
 from service.live.sessions import session_config
 from service.maps import store as store_module
 from service.maps.book import MapBook, MapChecker
@@ -174,3 +176,74 @@ def test_the_service_never_loads_a_put_its_store_dropped(
     assert held[0] == max(v for v, queued in taken if queued), taken
     assert "map_dropped" in codes
     assert mine.version == held[0]  # ... and the service is on the store's version
+
+
+def _storeless(bench: Bench, instance: str = "second") -> LocalizationService:
+    """A service without a store on ``bench``'s bus, as the processes of `rlutf serve
+    --processes N` but the host's, or an instance started with --no-store."""
+    settings = Settings(
+        mode="client",
+        connect=[bench.endpoint],
+        no_store=True,
+        no_record=True,
+        no_state=True,
+        workers=0,
+        instance=instance,
+        event_interval_s=0.0,
+    )
+    return LocalizationService(settings).start()
+
+
+def test_a_process_without_the_store_never_loads_a_put_the_store_dropped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The processes of `rlutf serve --processes N` but the host's load the puts they see off
+    the bus, not through the store. Under a flood the store dropped the last puts and held
+    version 3, while such a process loaded version 12: its robots ran on a map the store never
+    held, and a restart switched them back. Now it loads a put once the store holds it, and
+    ends on the store's version."""
+    monkeypatch.setattr(store_module, "_QUEUED", 2)
+    monkeypatch.setattr(mapfeed, "MAX_WAITING", PUTS)  # it takes every put itself
+    burst_in = threading.Event()
+    taken: list[tuple[int, bool]] = []
+    take = MapStorage._take
+
+    def counted(self: MapStorage, sample: zenoh.Sample) -> bool:
+        queued = False
+        try:
+            queued = take(self, sample)
+            return queued
+        finally:
+            taken.append((json.loads(sample.payload.to_bytes())["version"], queued))
+            if len(taken) >= PUTS:
+                burst_in.set()
+
+    monkeypatch.setattr(MapStorage, "_take", counted)
+    check = MapChecker.check
+
+    def held_back(self: MapChecker, map_id: str, payload: bytes) -> Any:
+        burst_in.wait(30.0)
+        return check(self, map_id, payload)
+
+    monkeypatch.setattr(MapChecker, "check", held_back)
+    with running_bench(tmp_path) as bench:
+        other = _storeless(bench)
+        try:
+            events, sub = _flood(bench.client)
+            storage = bench.service._storage
+            assert storage is not None
+            assert burst_in.wait(30.0), len(taken)
+
+            def settled() -> bool:
+                held, mine = storage.held("m1"), other.maps.get("m1")
+                return not storage.busy() and held is not None and mine is not None
+
+            assert events.wait_for(settled, timeout=30.0)
+            time.sleep(1.5)  # anything left to load
+            held, mine = storage.held("m1"), other.maps.get("m1")
+            sub.undeclare()
+        finally:
+            other.close()
+    assert held is not None and mine is not None
+    assert [v for v, queued in taken if not queued], taken  # the store dropped puts ...
+    assert mine.version == held[0], (mine.version, held, taken)  # ... and it is on the store's

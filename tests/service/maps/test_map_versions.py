@@ -296,7 +296,9 @@ def test_a_put_past_the_memory_the_store_holds_unwritten_is_not_taken(
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Maps the disk refuses are held in memory within a budget: past it, not taken."""
+    """Maps the disk refuses are held in memory within a budget: past it, not taken, and the
+    service beside the store does not load it either (it did: the store had handed the put on
+    when it took it, before it found it could not hold it)."""
     monkeypatch.setattr(store_module, "UNWRITTEN_BYTES", 10)
     bench.put_map(version=1)
     assert Collector().wait_for(lambda: (s := _stored(bench)) is not None and s.version == 1)
@@ -313,6 +315,9 @@ def test_a_put_past_the_memory_the_store_holds_unwritten_is_not_taken(
         assert bench.service._storage is not None
         held = bench.service._storage.held("m1")
         assert held is not None and held[0] == 1
+        time.sleep(0.3)  # anything left to load
+        mine = bench.service.maps.get("m1")
+        assert mine is not None and mine.version == 1
     finally:
         bench.store.unlink()
         aside.rename(bench.store)
