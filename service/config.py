@@ -304,7 +304,10 @@ class Settings(BaseSettings):
         description="Robot ids an instance holds at once; inputs for more get robot_limit.",
     )
     event_interval_s: Seconds = Field(
-        1.0, ge=0, description="Least time between two events of one code for one robot."
+        1.0,
+        ge=0,
+        description="Least time between two events of one code for one robot, or for puts of "
+        "one map.",
     )
     handover_timeout_s: Seconds = Field(
         1.0,

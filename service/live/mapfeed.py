@@ -12,7 +12,9 @@ service fetches the stored version of every map it dropped a put of, so that it 
 store holds, as if it had seen every put.
 
 A put is loaded once the map store holds it (:mod:`service.maps.confirmation`), so that no
-service runs robots on a version the store refused or dropped.
+service runs robots on a version the store refused or dropped. The Events said once per put
+(``map_unchanged``, ``map_version_conflict``, ``invalid_map``, ``map_unconfirmed``) go out at most
+once per map and code every ``event_interval_s`` (:class:`~service.live.throttle.EventThrottle`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import zenoh
 from schemas import SCHEMA_NAMES, EventCode, Map
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
+from service.live.throttle import EventThrottle
 from service.logs.recording import Recorder
 from service.maps.book import (
     CheckedMap,
@@ -78,6 +81,8 @@ class MapFeed:
         timeout_s: timeout of a map get.
         global_event: reports a bad map or key.
         robot_event: reports a map no storage has.
+        event_interval_s: least time between two Events of one code about one map put
+            (``event_interval_s``).
     """
 
     def __init__(
@@ -90,6 +95,7 @@ class MapFeed:
         timeout_s: float,
         global_event: GlobalEvent,
         robot_event: RobotEvent,
+        event_interval_s: float = 1.0,
     ) -> None:
         self.keys = keys
         self.book = book
@@ -99,6 +105,8 @@ class MapFeed:
         self.timeout_s = timeout_s
         self._global_event = global_event
         self._robot_event = robot_event
+        #: The Events said once per put: one per map and code per interval.
+        self.throttle = EventThrottle(event_interval_s, global_event)
         # (kind, map id, payload or robot, an offer's arrival number, the version held then, and
         # its arrival time, monotonic)
         self._tasks: queue.Queue[tuple[str, str, bytes, int, int, float] | None] = queue.Queue()
@@ -243,8 +251,11 @@ class MapFeed:
 
     def _run(self) -> None:
         while True:
+            due = self.throttle.flush()  # the Events held back whose interval is over
+            if self._stale:
+                due = CATCH_UP_S if due is None else min(due, CATCH_UP_S)
             try:
-                task = self._tasks.get(timeout=CATCH_UP_S if self._stale else None)
+                task = self._tasks.get(timeout=due)
             except queue.Empty:
                 self._catch_up()
                 continue
@@ -328,7 +339,7 @@ class MapFeed:
             if quiet:
                 log.warning("the stored map %s is not valid: %s", map_id, err)
                 return False
-            self._global_event("error", EventCode.INVALID_MAP, key, str(err), self.clock())
+            self.throttle.say(map_id, "error", EventCode.INVALID_MAP, key, str(err), self.clock())
             return False
         # The store's word on a put new here, asked with no lock held (a get on the bus waits);
         # the map thread alone commits, so what it said holds when the put is committed.
@@ -359,13 +370,14 @@ class MapFeed:
             log.info("%s: %s", "superseded" if superseded else "not newer", conflict)
             return True
         if conflict is not None:
-            self._global_event(
-                "error", EventCode.MAP_VERSION_CONFLICT, key, str(conflict), received
+            self.throttle.say(
+                map_id, "error", EventCode.MAP_VERSION_CONFLICT, key, str(conflict), received
             )
             return True  # a version is held
         if loaded is None:  # an echo of the version held
             if number:  # a client's put, whose tool waits for each service's word on it
-                self._global_event(
+                self.throttle.say(
+                    map_id,
                     "info",
                     EventCode.MAP_UNCHANGED,
                     key,
@@ -391,7 +403,14 @@ class MapFeed:
     def _store_word(self, map_id: str, checked: CheckedMap, at: float) -> StoreWord:
         """What the store made of a put of ``map_id`` that arrived at ``at`` (it is still taking
         it while its answers say it has puts of the map to store)."""
-        return await_store(lambda: self.store_holds(map_id), checked.version, checked.digest, at)
+
+        def pause(seconds: float) -> None:
+            self.throttle.flush()  # a tool waits for the Events held back
+            time.sleep(seconds)
+
+        return await_store(
+            lambda: self.store_holds(map_id), checked.version, checked.digest, at, pause=pause
+        )
 
     def _not_loaded(self, map_id: str, checked: CheckedMap, word: StoreWord) -> None:
         """A put the store did not take (dropped under a flood; it said so), or did not say it
@@ -407,7 +426,8 @@ class MapFeed:
             log.info("map %s version %d put not loaded: the store dropped it (holds %s)",
                      map_id, checked.version, held)  # fmt: skip
             return
-        self._global_event(
+        self.throttle.say(
+            map_id,
             "warning",
             EventCode.MAP_UNCONFIRMED,
             self.keys.map(map_id),

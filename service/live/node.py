@@ -158,6 +158,7 @@ class LocalizationService:
             settings.map_timeout_s,
             self._global_event,
             self._robot_event,
+            settings.event_interval_s,
         )
         self.membership = Membership(settings.instance)
         self.ownership = Ownership(

@@ -341,7 +341,13 @@ def _services_took(
     disagree where a service holds a version the store never had or lost (a store folder
     replaced under a running fleet). Waits until each live service has said (or the deadline); a
     service that already held this very map (a map removed and put back as it was) says so
-    (``map_unchanged``): before, it said nothing, and the tool waited its whole timeout."""
+    (``map_unchanged``): before, it said nothing, and the tool waited its whole timeout.
+
+    A service says ``map_unchanged`` and ``map_version_conflict`` once per map every
+    ``event_interval_s`` (:mod:`service.live.throttle`); one held back goes out when the
+    interval ends, so the word on this put comes then at the latest. Words are told apart by
+    the map's key and the code, not by put: other clients' puts of the map at the same time
+    count too, as they did before."""
     while len(verdicts) < services and time.monotonic() < deadline:
         time.sleep(0.05)
     conflict = next((e for e in verdicts if e.code == EventCode.MAP_VERSION_CONFLICT), None)

@@ -10,6 +10,7 @@ Here the check is slowed down so that a few small maps are a flood.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from pathlib import Path
@@ -247,3 +248,38 @@ def test_a_process_without_the_store_never_loads_a_put_the_store_dropped(
     assert held is not None and mine is not None
     assert [v for v, queued in taken if not queued], taken  # the store dropped puts ...
     assert mine.version == held[0], (mine.version, held, taken)  # ... and it is on the store's
+
+
+def test_a_flood_of_the_same_put_is_not_a_flood_of_events(tmp_path: Path) -> None:
+    """Every service said map_unchanged for each put of the map it holds, and
+    map_version_conflict for each put it refuses: a tool in a loop (or a hostile peer) made an
+    Event per put from every process. Now each goes out at most once per map and code every
+    event_interval_s, and the last one held back at the end of it, counting the others."""
+    with running_bench(tmp_path, event_interval_s=1.0) as bench:
+        events = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", events)
+        bench.client.put("rlutf/maps/m1", _payload(3), encoding=JSON)
+        assert events.wait_for(lambda: bench.service.maps.get("m1") is not None)
+        for _ in range(PUTS):  # a put checked before the next comes: none is dropped
+            bench.client.put("rlutf/maps/m1", _payload(3), encoding=JSON)  # the map held
+            bench.client.put("rlutf/maps/m1", _payload(2), encoding=JSON)  # an older version
+            time.sleep(0.05)
+
+        def said(code: str) -> list[str]:
+            return [e["message"] for e in events.on("rlutf/events") if e["code"] == code]
+
+        assert events.wait_for(
+            lambda: (
+                any("more like it" in m for m in said("map_unchanged"))
+                and any("more like it" in m for m in said("map_version_conflict"))
+            ),
+            timeout=10.0,
+        ), events.on("rlutf/events")
+        time.sleep(1.5)  # anything more it would say
+        sub.undeclare()
+    assert "map_dropped" not in [e["code"] for e in events.on("rlutf/events")]
+    for code in ("map_unchanged", "map_version_conflict"):
+        first, *later = said(code)  # PUTS of each before
+        assert "more like it" not in first and 1 <= len(later) <= 2, later  # 1 s or a bit more
+        held = [re.search(r"\((\d+) more like it since the last such Event\)$", m) for m in later]
+        assert sum(1 + (int(h[1]) if h else 0) for h in held) == PUTS - 1, later  # each counted

@@ -447,3 +447,35 @@ def test_map_put_of_the_map_the_services_hold_ends_at_once(
     assert [(e["level"], e["key"]) for e in unchanged] == [("info", "rlutf/maps/m1")]
     assert "version 2" in unchanged[0]["message"]
     sub.undeclare()
+
+
+def test_map_put_gets_its_word_when_the_services_hold_back_their_events(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A service says map_unchanged (and map_version_conflict) at most once per map every
+    event_interval_s. `map put` right after another put of the map gets the Event for its put
+    when the interval ends, in one that counts the others held back: not at its --timeout, which
+    it waited without the service's word."""
+    with running_bench(tmp_path, event_interval_s=3.0) as bench:
+        col = Collector()
+        sub = bench.client.declare_subscriber("rlutf/events", col)
+        bench.put_map(version=2)
+        assert col.wait_for(lambda: bench.service.maps.get("m1") is not None)
+        remove = ["map", "remove", "m1", "-e", bench.endpoint, "--force"]
+        assert main(remove) == 0
+        bench.put_map(version=2)  # put back by someone else: the service's word goes out
+        unchanged = lambda: [e for e in _events(col) if e["code"] == "map_unchanged"]  # noqa: E731
+        assert col.wait_for(lambda: len(unchanged()) == 1)
+        said = time.monotonic()
+        assert main(remove) == 0
+        capsys.readouterr()
+        path = tmp_path / "m1.json"
+        path.write_bytes(_payload(2))
+        argv = ["map", "put", str(path), "-e", bench.endpoint, "--version", "2", "--timeout", "8"]
+        code = main(argv)
+        ended = time.monotonic()
+        out = capsys.readouterr().out
+        assert code == 0 and "already held" in out, out
+        assert ended - said < 3.0 + 1.5, ended - said  # at the end of the interval
+        assert len(unchanged()) == 2
+        sub.undeclare()
