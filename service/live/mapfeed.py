@@ -110,6 +110,7 @@ class MapFeed:
         # (kind, map id, payload or robot, an offer's arrival number, the version held then, and
         # its arrival time, monotonic)
         self._tasks: queue.Queue[tuple[str, str, bytes, int, int, float] | None] = queue.Queue()
+        self._woken = False  # a "wake" task is queued (an Event held back, from the store)
         self._fetching: dict[str, float] = {}
         self._lock = threading.Lock()
         self._waiting = 0  # offers queued, not yet checked
@@ -226,13 +227,27 @@ class MapFeed:
             on_written=lambda key, msg: report(
                 "map_write_resumed", "warning", EventCode.MAP_WRITE_RESUMED, key, msg
             ),
-            on_conflict=lambda key, msg: report(
-                "store_conflict", "error", EventCode.MAP_VERSION_CONFLICT, key, msg
-            ),
+            on_conflict=self._store_conflict,
         )
         self.store_busy = storage.busy
         self.store_holds = storage.answer
         return storage
+
+    def _store_conflict(self, key: str, message: str) -> None:
+        """The embedded store refused a put not newer than a removed version: said per map, as
+        the service's own refusals are (one every ``event_interval_s``, the last held back said
+        at its end: `rlutf map put` waits for it). Before, one a second for every map at once: a
+        second refused put within the second waited out the tool's timeout, "no storage
+        answered". The map thread is woken to say one held back when its interval ends."""
+        map_id = self.keys.parse_map_key(key) or key
+        self.throttle.say(
+            map_id, "error", EventCode.MAP_VERSION_CONFLICT, key, message, self.clock()
+        )
+        with self._lock:
+            if self._woken:  # one wake queued at most, whatever the flood of refused puts
+                return
+            self._woken = True
+        self._tasks.put(("wake", map_id, b"", 0, -1, 0.0))
 
     def _ask_store(self, map_id: str) -> StoredVersion | None:
         """What the store on the bus holds of ``map_id`` (:func:`~service.maps.store.
@@ -262,6 +277,10 @@ class MapFeed:
             if task is None:
                 return
             kind, map_id, payload, number, held_then, arrived = task
+            if kind == "wake":  # an Event held back: flushed when its interval ends
+                with self._lock:
+                    self._woken = False
+                continue
             try:
                 if kind == "offer":
                     self._offer(map_id, payload, number=number, held_then=held_then, at=arrived)

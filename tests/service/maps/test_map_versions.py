@@ -479,3 +479,27 @@ def test_map_put_gets_its_word_when_the_services_hold_back_their_events(
         assert ended - said < 3.0 + 1.5, ended - said  # at the end of the interval
         assert len(unchanged()) == 2
         sub.undeclare()
+
+
+def test_a_second_refused_put_after_a_remove_is_refused_too_not_unanswered(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The store's own refusal of a put not newer than a removed version went out at most once a
+    second for every map at once (the service's default ``event_interval_s``): an operator's
+    second `rlutf map put --version 1` right after the first waited its whole timeout and said no
+    storage answered. Now the store's refusals are held back per map and the one held back goes
+    out at the end of the interval: the second put gets its refusal too."""
+    with running_bench(tmp_path, event_interval_s=1.0) as bench:
+        bench.put_map(version=2)
+        assert Collector().wait_for(
+            lambda: (m := bench.service.maps.get("m1")) is not None and m.version == 2
+        )
+        assert main(["map", "remove", "m1", "-e", bench.endpoint, "--force"]) == 0
+        path = tmp_path / "m1.json"
+        path.write_bytes(_payload(1, MOVED))
+        for _ in range(2):
+            capsys.readouterr()
+            assert _put_cli(bench, path, "--version", "1") == 1
+            err = capsys.readouterr().err
+            assert "not newer than version 2 that was removed" in err, err
+        assert _stored(bench) is None
