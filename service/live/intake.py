@@ -24,6 +24,10 @@ from service.ros2.frontdoor import Ros2FrontDoor
 
 #: Robot keys the intake keeps split at most (a fleet uses a few per robot).
 KEYS_SPLIT = 8192
+#: Robot keys declared to Zenoh at most (:meth:`Intake.declare_keys`): a few per robot of a fleet
+#: of 1,000; past it (ids invented without end) keys are taken in undeclared, until the split keys
+#: start again.
+KEYS_DECLARED = 4096
 #: Inputs that are an operator's request, answered each time (`rlutf initialpose` waits for it).
 REQUESTS = frozenset(("initialpose", "relocalize"))
 
@@ -62,6 +66,41 @@ class Intake:
         # Robot keys already split (robot, leaf): every sample of a fleet is on one of a few
         # keys per robot, and splitting and checking the id was a tenth of the intake's time.
         self._split: dict[str, tuple[str, str]] = {}
+        self._session: zenoh.Session | None = None
+        self._declared: list[zenoh.KeyExpr] = []
+
+    def declare_keys(self, session: zenoh.Session) -> None:
+        """Declare each robot key to Zenoh as its first sample comes in (:data:`KEYS_DECLARED` at
+        most), from the thread that drains the input channel (never from a Zenoh callback).
+
+        Zenoh keeps a sample's route (the subscribers it goes to) only for a key some session of
+        its process declared; for any other key it matches the key against every declared one,
+        for every sample. A service process declares a few keys per robot it publishes for
+        (poses, Events), so that matching grows with the fleet: in the second process of a host
+        it was a third of its Zenoh threads' CPU at 200 robots (0.066 against 0.037 ms a scan
+        with the keys declared; BENCHMARKS.md, "Where the service's CPU goes by code"). In the
+        host, the router, the same holds for robots that put on their keys without declaring
+        a publisher.
+        """
+        self._session = session
+
+    def _declare(self, key: str) -> None:
+        if self._session is None or len(self._declared) >= KEYS_DECLARED:
+            return
+        try:
+            self._declared.append(self._session.declare_keyexpr(key))
+        except zenoh.ZError:  # the session closing: nothing to keep a route for
+            self._session = None
+
+    def _undeclare_all(self) -> None:
+        session, declared, self._declared = self._session, self._declared, []
+        if session is None:
+            return
+        for expr in declared:
+            try:
+                session.undeclare(expr)
+            except zenoh.ZError:
+                return
 
     def on_robot_sample(self, sample: zenoh.Sample) -> None:
         """Subscriber callback on `{prefix}/robots/*/{leaf}`: check, then hand to the owner."""
@@ -84,7 +123,9 @@ class Intake:
                 return
             if len(self._split) >= KEYS_SPLIT:  # ids invented without end: start again
                 self._split.clear()
+                self._undeclare_all()
             self._split[key] = parsed
+            self._declare(key)
         robot, leaf = parsed
         limit = svc.settings.max_payload_bytes
         if leaf == "pose":  # every instance follows every pose, for handovers

@@ -275,6 +275,8 @@ class LocalizationService:
             self.mapfeed.need(r.pose.map_id, r.pose.robot_id)
         # Follow the fleet first and join last, so robots that move here can be seeded.
         # One subscription for every robot key, in arrival order (service.live.loop.Inputs).
+        if s.intake == "loop":  # its keys declared from the loop's thread (not a callback)
+            self.intake.declare_keys(session)
         self.inputs.start(session, self.keys.robots_inputs)
         self.keywatch.start(session, self.stats)  # Events for keys nothing else takes
         if self.ros2 is not None:
