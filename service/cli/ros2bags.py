@@ -125,8 +125,9 @@ def bag_to_log(args: argparse.Namespace, bag: Path, log_path: Path) -> Any:
         raise ValueError(str(err)) from err
 
 
-def write_out(args: argparse.Namespace, result: Any, summary: Any) -> int:
-    """Write the replay's poses to ``--ros2-out``; returns the number of messages."""
+def write_out(args: argparse.Namespace, result: Any, summary: Any) -> tuple[int, int]:
+    """Write the replay's poses to ``--ros2-out``; returns the numbers of ``amcl_pose`` and
+    ``tf`` messages."""
     from service.ros2.bags import write_pose_bag
 
     poses = {robot: [p.payload for p in recs] for robot, recs in result.recomputed.items()}

@@ -96,12 +96,11 @@ def report(
         from service.cli.ros2bags import write_out
 
         try:
-            written = write_out(args, result, summary)
+            poses, transforms = write_out(args, result, summary)
         except Exception as err:  # rosbags' writer raises its own errors
             raise ValueError(f"{args.ros2_out}: {err}") from err
-        console.print(
-            f"wrote {written} ROS 2 messages (amcl_pose, tf) -> {args.ros2_out}", soft_wrap=True
-        )
+        tf = f"{transforms} tf" if transforms else "no tf (no odometry at the poses' stamps)"
+        console.print(f"wrote {poses} amcl_pose, {tf} -> {args.ros2_out}", soft_wrap=True)
     if args.plot is not None:
         from service.logs.plots import plot_all
 

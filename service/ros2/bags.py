@@ -313,7 +313,7 @@ def write_pose_bag(
     global_frame: str = "map",
     odom_frame: str = "odom",
     transform_tolerance_s: float = 0.0,
-) -> int:
+) -> tuple[int, int]:
     """Write poses as a rosbag2 MCAP folder: ``amcl_pose`` and ``map`` -> ``odom`` per robot.
 
     Args:
@@ -324,12 +324,13 @@ def write_pose_bag(
         transform_tolerance_s: how far ahead ``map`` -> ``odom`` is stamped.
 
     Returns:
-        The number of messages written.
+        The numbers of ``amcl_pose`` and of ``tf`` messages written (a pose with no odometry
+        reading at its stamp gets no ``map`` -> ``odom``).
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = convert.typestore()
-    written = 0
+    written = transforms = 0
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for robot, payloads in poses.items():
             ns = namespaces.get(robot, f"/{robot}")
@@ -352,8 +353,8 @@ def write_pose_bag(
                     m_o = map_to_odom([pose.x, pose.y, pose.theta], odom)
                     raw = convert.transform(m_o, pose.stamp_ns + ahead, global_frame, odom_frame)
                     writer.write(tc, pose.stamp_ns, raw)
-                    written += 1
-    return written
+                    transforms += 1
+    return written, transforms
 
 
 def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[ScanAtPose]:
