@@ -240,8 +240,11 @@ class MapFeed:
         second refused put within the second waited out the tool's timeout, "no storage
         answered". The map thread is woken to say one held back when its interval ends."""
         map_id = self.keys.parse_map_key(key) or key
+        # A subject of its own: held back with the service's own conflicts on the map (the same
+        # code), the last of them replaced the store's, and the tool never saw the store's word.
+        subject = f"store {map_id}"
         self.throttle.say(
-            map_id, "error", EventCode.MAP_VERSION_CONFLICT, key, message, self.clock()
+            subject, "error", EventCode.MAP_VERSION_CONFLICT, key, message, self.clock()
         )
         with self._lock:
             if self._woken:  # one wake queued at most, whatever the flood of refused puts
