@@ -179,3 +179,21 @@ def running_bench(tmp_path: Path, **kw: Any) -> Iterator[Bench]:
     finally:
         client.close()
         service.close()
+
+
+def storeless_service(
+    bench: Bench, instance: str = "second", **settings: Any
+) -> LocalizationService:
+    """A second service on ``bench``'s bus, a client of it with no store, log or pose state: as
+    the processes of `rlutf serve --processes N` but the host's, or an instance started with
+    --no-store. Started; the caller closes it."""
+    base: dict[str, Any] = {
+        "mode": "client",
+        "connect": [bench.endpoint],
+        "no_store": True,
+        "no_record": True,
+        "no_state": True,
+        "workers": 0,
+        "instance": instance,
+    }
+    return LocalizationService(Settings(**(base | settings))).start()

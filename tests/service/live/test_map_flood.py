@@ -18,13 +18,18 @@ from typing import Any
 
 import pytest
 import zenoh
-from service_harness import JSON, WORLD, Bench, Collector, running_bench
+from service_harness import (
+    JSON,
+    WORLD,
+    Collector,
+    running_bench,
+    storeless_service,
+    wait_until,
+)
 
 from schemas import Map, encode
-from service.config import Settings
 from service.keys import Keys
 from service.live import mapfeed
-from service.live.node import LocalizationService
 from service.live.sessions import session_config
 from service.maps import store as store_module
 from service.maps.book import MapBook, MapChecker
@@ -118,17 +123,12 @@ def test_the_service_drops_map_puts_it_cannot_check_in_time_then_loads_the_store
     assert "map_version_conflict" not in codes and "invalid_map" not in codes
 
 
-def test_the_service_never_loads_a_put_its_store_dropped(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # The store holds fewer waiting puts than the service would: without the puts reaching the
-    # service through its store, the service took puts the store dropped, and ended on a version
-    # the store never held (seen in the campaign: the service on 228, the store on 217).
-    monkeypatch.setattr(store_module, "_QUEUED", 2)
-    # The store's first check waits until every put of the burst has reached the store, so it
-    # drops the last ones however loaded the machine is (a check slowed by a fixed time, 0.2 s
-    # then 1 s, let a CI run beside other work spread the burst over more than one check, and
-    # the store took the last put).
+def _hold_checks_until_the_burst_is_in(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bool]]:
+    """The store's first check waits until every put of the burst has reached the store, so it
+    drops the last ones however loaded the machine is (a check slowed by a fixed time, 0.2 s
+    then 1 s, let a CI run beside other work spread the burst over more than one check, and
+    the store took the last put). Returns ``(version, queued)`` of each put, in the order the
+    store took them."""
     burst_in = threading.Event()
     taken: list[tuple[int, bool]] = []  # (version, queued) in the order the store took them
     take = MapStorage._take
@@ -154,11 +154,22 @@ def test_the_service_never_loads_a_put_its_store_dropped(
         return check(self, map_id, payload)
 
     monkeypatch.setattr(MapChecker, "check", held_back)
+    return taken
+
+
+def test_the_service_never_loads_a_put_its_store_dropped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The store holds fewer waiting puts than the service would: without the puts reaching the
+    # service through its store, the service took puts the store dropped, and ended on a version
+    # the store never held (seen in the campaign: the service on 228, the store on 217).
+    monkeypatch.setattr(store_module, "_QUEUED", 2)
+    taken = _hold_checks_until_the_burst_is_in(monkeypatch)
     with running_bench(tmp_path) as bench:
         events, sub = _flood(bench.client)
         storage = bench.service._storage
         assert storage is not None
-        assert burst_in.wait(30.0), len(taken)
+        assert wait_until(lambda: len(taken) >= PUTS, 30.0), len(taken)
 
         def settled() -> bool:
             held, mine = storage.held("m1"), bench.service.maps.get("m1")
@@ -179,22 +190,6 @@ def test_the_service_never_loads_a_put_its_store_dropped(
     assert mine.version == held[0]  # ... and the service is on the store's version
 
 
-def _storeless(bench: Bench, instance: str = "second") -> LocalizationService:
-    """A service without a store on ``bench``'s bus, as the processes of `rlutf serve
-    --processes N` but the host's, or an instance started with --no-store."""
-    settings = Settings(
-        mode="client",
-        connect=[bench.endpoint],
-        no_store=True,
-        no_record=True,
-        no_state=True,
-        workers=0,
-        instance=instance,
-        event_interval_s=0.0,
-    )
-    return LocalizationService(settings).start()
-
-
 def test_a_process_without_the_store_never_loads_a_put_the_store_dropped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -205,35 +200,14 @@ def test_a_process_without_the_store_never_loads_a_put_the_store_dropped(
     ends on the store's version."""
     monkeypatch.setattr(store_module, "_QUEUED", 2)
     monkeypatch.setattr(mapfeed, "MAX_WAITING", PUTS)  # it takes every put itself
-    burst_in = threading.Event()
-    taken: list[tuple[int, bool]] = []
-    take = MapStorage._take
-
-    def counted(self: MapStorage, sample: zenoh.Sample) -> bool:
-        queued = False
-        try:
-            queued = take(self, sample)
-            return queued
-        finally:
-            taken.append((json.loads(sample.payload.to_bytes())["version"], queued))
-            if len(taken) >= PUTS:
-                burst_in.set()
-
-    monkeypatch.setattr(MapStorage, "_take", counted)
-    check = MapChecker.check
-
-    def held_back(self: MapChecker, map_id: str, payload: bytes) -> Any:
-        burst_in.wait(30.0)
-        return check(self, map_id, payload)
-
-    monkeypatch.setattr(MapChecker, "check", held_back)
+    taken = _hold_checks_until_the_burst_is_in(monkeypatch)
     with running_bench(tmp_path) as bench:
-        other = _storeless(bench)
+        other = storeless_service(bench, event_interval_s=0.0)
         try:
             events, sub = _flood(bench.client)
             storage = bench.service._storage
             assert storage is not None
-            assert burst_in.wait(30.0), len(taken)
+            assert wait_until(lambda: len(taken) >= PUTS, 30.0), len(taken)
 
             def settled() -> bool:
                 held, mine = storage.held("m1"), other.maps.get("m1")

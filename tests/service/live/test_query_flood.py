@@ -14,11 +14,9 @@ from typing import Any
 
 import pytest
 import zenoh
-from service_harness import running_bench
+from service_harness import running_bench, storeless_service
 
 import service.maphealth
-from service.config import Settings
-from service.live.node import LocalizationService
 from service.live.robots import RobotView
 
 pytestmark = pytest.mark.integration
@@ -43,17 +41,7 @@ def test_a_flood_of_map_health_gets_makes_a_report_at_most_once_a_second(
 
     monkeypatch.setattr(service.maphealth, "find_changes", counted)
     with running_bench(tmp_path, instance="a") as bench:
-        other = LocalizationService(
-            Settings(
-                mode="client",
-                connect=[bench.endpoint],
-                no_store=True,
-                no_record=True,
-                no_state=True,
-                workers=0,
-                instance="b",
-            )
-        ).start()
+        other = storeless_service(bench, "b")
         try:
             bench.put_map()
             time.sleep(0.5)

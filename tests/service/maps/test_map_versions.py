@@ -11,14 +11,12 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from service_harness import WORLD, Bench, Collector, running_bench
+from service_harness import WORLD, Bench, Collector, running_bench, storeless_service
 from shapely import affinity
 
 from rlutf.map import Map as World
 from schemas import Map, decode, encode
 from service.cli.main import main
-from service.config import Settings
-from service.live.node import LocalizationService
 from service.live.sessions import free_port
 from service.maps import store as store_module
 from service.maps.book import MapBook, MapChecker, VersionConflict, content_digest, put_verdict
@@ -392,18 +390,7 @@ def test_a_process_without_the_store_refuses_what_the_store_refuses(bench: Bench
     assert Collector().wait_for(lambda: _stored(bench, "m1") is not None)
     assert Collector().wait_for(lambda: bench.service.maps.get("m2") is not None)
     assert main(["map", "remove", "m2", "-e", bench.endpoint, "--force"]) == 0
-    other = LocalizationService(
-        Settings(
-            mode="client",
-            connect=[bench.endpoint],
-            no_store=True,
-            no_record=True,
-            no_state=True,
-            workers=0,
-            instance="second",
-            event_interval_s=0.0,
-        )
-    ).start()
+    other = storeless_service(bench, event_interval_s=0.0)
     try:
         col = Collector()
         sub = bench.client.declare_subscriber("rlutf/events", col)
