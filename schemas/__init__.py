@@ -18,6 +18,13 @@ from schemas._types import (
     WireModel,
     valid_id,
 )
+from schemas.answers import (
+    RobotsAnswer,
+    RobotState,
+    StoredVersion,
+    WaitingRobot,
+    encode_answer,
+)
 from schemas.codec import DEFAULT_MAX_BYTES, Payload, decode, encode, to_jsonable
 from schemas.errors import (
     EncodeError,
@@ -88,11 +95,16 @@ __all__ = [
     "Position",
     "Region",
     "Relocalize",
+    "RobotState",
+    "RobotsAnswer",
     "SchemaError",
     "SensorOffset",
+    "StoredVersion",
+    "WaitingRobot",
     "WireModel",
     "decode",
     "encode",
+    "encode_answer",
     "json_schema",
     "schema_name",
     "to_jsonable",

@@ -11,6 +11,7 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from schemas._types import WireModel
+from schemas.answers import RobotsAnswer, StoredVersion
 from schemas.maphealth import MapHealth
 from schemas.messages import (
     Event,
@@ -36,9 +37,12 @@ SCHEMA_NAMES: Final[MappingProxyType[type[WireModel], str]] = MappingProxyType(
         Event: "rlutf.Event",
         MapHealth: "rlutf.MapHealth",
         Health: "rlutf.Health",
+        StoredVersion: "rlutf.StoredVersion",
+        RobotsAnswer: "rlutf.RobotsAnswer",
     }
 )
-"""Schema name of every top-level message; all but Health are logged to MCAP."""
+"""Schema name of every top-level message; all but the answers to queries (Health,
+StoredVersion, RobotsAnswer) are logged to MCAP."""
 
 MODELS_BY_SCHEMA_NAME: Final[MappingProxyType[str, type[WireModel]]] = MappingProxyType(
     {name: model for model, name in SCHEMA_NAMES.items()}

@@ -14,15 +14,9 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from schemas import Event, EventCode, Health, PoseEstimate
+from schemas import Event, EventCode, Health, PoseEstimate, RobotState, WaitingRobot
 from service.keys import printable
-from service.live.robots import (
-    NO_RETURNS,
-    NO_SCAN_YET,
-    RobotState,
-    WaitingRobot,
-    one_sigma,
-)
+from service.live.robots import NO_RETURNS, NO_SCAN_YET, one_sigma
 
 if TYPE_CHECKING:
     from rich.console import Console

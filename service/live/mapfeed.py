@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from schemas import SCHEMA_NAMES, EventCode, Map
+from schemas import SCHEMA_NAMES, EventCode, Map, StoredVersion
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
 from service.live.throttle import EventThrottle
@@ -44,7 +44,7 @@ from service.maps.book import (
 )
 from service.maps.confirmation import CONFIRM_S, StoreWord, await_store
 from service.maps.files import FileMapStore
-from service.maps.store import MapStorage, StoredVersion, room_for, stored_version
+from service.maps.store import MapStorage, room_for, stored_version
 
 log = logging.getLogger(__name__)
 

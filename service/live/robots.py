@@ -4,21 +4,11 @@ The service keeps the latest PoseEstimate payload of every robot it holds; per p
 :meth:`RobotView.published` adds only when it was published and the scan's latency (one small
 tuple in a dict). The payloads are decoded when someone asks, not per pose.
 
-Answer (JSON, :class:`RobotsAnswer`)::
-
-    {"instance": "rlutf-a", "stamp_ns": 1732300000123456789,
-     "robots": [{"robot_id": "r1", "map_id": "warehouse-1", "status": "tracking",
-                 "x": 1.02, "y": 2.01, "theta": 0.003, "age_s": 0.04,
-                 "latency_ms": 3.1, "owner": "rlutf-a",
-                 "localization_score": 0.98, "deviation_range": 0.004}]}
-
-``age_s`` is the instance's clock now minus when the latest pose was published; ``age_s`` and
-``latency_ms`` are ``null`` for a pose this instance holds but did not publish (a seed).
-``sigma_xy_m`` and ``sigma_theta_rad`` are the pose's 1-sigma uncertainty (from its covariance).
-``waiting`` lists the robots that send scans but have no pose yet (no initial pose, or a map
-not loaded), with the age of the latest such scan's Event, and those given an initial pose that
-have sent no scan since (``no_scan_yet``, aged from the initial pose): at most
-:data:`MAX_WAITING`, the longest silent forgotten first.
+The answer is a :class:`~schemas.answers.RobotsAnswer` (docs/wire.md, RobotsAnswer): every
+robot held with its latest pose and, up to :data:`MAX_WAITING` (the longest silent forgotten
+first), the robots that send scans but have no pose yet (no initial pose, or a map not loaded),
+aged from the latest such scan's Event, and those given an initial pose that have sent no scan
+since (``no_scan_yet``, aged from the initial pose).
 """
 
 from __future__ import annotations
@@ -30,9 +20,17 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import NamedTuple
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import PoseEstimate, SchemaError, decode, encode
+from schemas import (
+    PoseEstimate,
+    RobotsAnswer,
+    RobotState,
+    SchemaError,
+    WaitingRobot,
+    decode,
+    encode,
+    encode_answer,
+)
 from service.keys import NO_RETURNS_MESSAGE, Keys
 
 log = logging.getLogger(__name__)
@@ -45,67 +43,6 @@ def robots_key(prefix: str, instance: str) -> str:
     return f"{prefix}/service/{instance}/robots"
 
 
-class RobotState(BaseModel):
-    """One robot as an instance sees it."""
-
-    model_config = ConfigDict(extra="ignore", frozen=True)
-
-    robot_id: str = Field(description="Robot id.")
-    map_id: str = Field(description="Map of the latest pose.")
-    status: str = Field(description="Status of the latest pose: tracking, corrected or lost.")
-    x: float = Field(description="Latest pose, metres.")
-    y: float = Field(description="Latest pose, metres.")
-    theta: float = Field(description="Latest pose, radians.")
-    age_s: float | None = Field(
-        None, description="Seconds since the latest pose was published (instance's clock)."
-    )
-    latency_ms: float | None = Field(
-        None, description="Latest pose's scan receipt to publication, milliseconds."
-    )
-    owner: str = Field(description="The instance holding the robot.")
-    localization_score: float | None = Field(
-        None, description="Latest pose's localization score, 0 to 1 (null: the pose has none)."
-    )
-    deviation_range: float | None = Field(
-        None, description="Latest pose's 95 % deviation range, metres (null: the pose has none)."
-    )
-    sigma_xy_m: float | None = Field(
-        None, description="1-sigma position uncertainty (the covariance's larger axis), metres."
-    )
-    sigma_theta_rad: float | None = Field(None, description="1-sigma heading uncertainty, rad.")
-
-
-class WaitingRobot(BaseModel):
-    """A robot that sends scans but has no pose yet."""
-
-    model_config = ConfigDict(extra="ignore", frozen=True)
-
-    robot_id: str = Field(description="Robot id.")
-    reason: str = Field(
-        description="Why: the Event code not_initialized or map_not_found, no_scan_yet (an "
-        "initial pose taken in, no scan since) or no_returns (its scans have too few returns "
-        "to give a pose)."
-    )
-    age_s: float = Field(description="Seconds since the latest such Event (instance's clock).")
-    owner: str = Field(description="The instance holding the robot.")
-    map_id: str | None = Field(
-        None, description="The map of the robot's latest initial pose, if it was given one."
-    )
-
-
-class RobotsAnswer(BaseModel):
-    """What ``{prefix}/service/{instance}/robots`` answers."""
-
-    model_config = ConfigDict(extra="ignore", frozen=True)
-
-    instance: str = Field(description="The answering instance.")
-    stamp_ns: int = Field(description="When the answer was made, ns since the Unix epoch.")
-    robots: list[RobotState] = Field(default_factory=list, description="By robot id.")
-    waiting: list[WaitingRobot] = Field(
-        default_factory=list, description="Robots with scans but no pose yet, by robot id."
-    )
-
-
 def one_sigma(covariance: Sequence[float] | None) -> tuple[float | None, float | None]:
     """1-sigma uncertainty of a row-major 3x3 covariance (x, y, theta): the larger semi-axis of
     the position's 1-sigma ellipse (metres) and the heading's (radians); ``None`` without one."""
@@ -114,7 +51,13 @@ def one_sigma(covariance: Sequence[float] | None) -> tuple[float | None, float |
     xx, xy, yy, tt = covariance[0], covariance[1], covariance[4], covariance[8]
     half = (xx + yy) / 2
     largest = half + math.sqrt(max(((xx - yy) / 2) ** 2 + xy * xy, 0.0))
-    return math.sqrt(max(largest, 0.0)), math.sqrt(max(tt, 0.0))
+    return _finite(math.sqrt(max(largest, 0.0))), _finite(math.sqrt(max(tt, 0.0)))
+
+
+def _finite(value: float) -> float | None:
+    """``value``, or ``None`` for an infinity (variances near the end of the float range
+    overflow): RobotState refuses infinities, and the answer always wrote ``null`` for one."""
+    return value if math.isfinite(value) else None
 
 
 #: How the status lost reads in an encoded PoseEstimate (compact JSON, as :func:`schemas.encode`
@@ -333,12 +276,13 @@ class RobotView:
         last = self._answer
         if last is not None and last[1] == generation and 0 <= now - last[0] < ANSWER_REUSE_NS:
             return last[2]
-        made = (
+        made = encode_answer(
             RobotsAnswer(
-                instance=self.instance, stamp_ns=now, robots=self.states(), waiting=self.waiting()
+                instance=self.instance,
+                stamp_ns=now,
+                robots=tuple(self.states()),
+                waiting=tuple(self.waiting()),
             )
-            .model_dump_json()
-            .encode()
         )
         self._answer = (now, generation, made)
         return made

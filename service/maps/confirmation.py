@@ -4,7 +4,7 @@ Every service process sees a map put on the bus, and so does the store: under a 
 the store drops some (``map_dropped``: :mod:`service.maps.store`). A service that loaded the
 puts it saw loaded those too, and its robots ran on a map version the store never held, until a
 restart switched them back. So a service asks the store what it holds of the map
-(:class:`~service.maps.store.StoredVersion`) after a put that is new to it, and waits for its
+(:class:`~schemas.answers.StoredVersion`) after a put that is new to it, and waits for its
 word (:func:`await_store`): the store holds the put (load it), holds a version the put cannot
 beat (refused, or superseded by a later put), or has no put of the map left to store and does
 not hold this one (it dropped it). A store that answers nothing is no store with a version rule
@@ -17,8 +17,8 @@ import time
 from collections.abc import Callable
 from typing import Literal, NamedTuple
 
+from schemas import StoredVersion
 from service.maps.book import put_verdict
-from service.maps.store import StoredVersion
 
 #: Seconds a service waits at most for the store's word on a put (the store may have many big
 #: puts to check before it); past them, the put is not loaded now, and the service loads what

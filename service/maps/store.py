@@ -17,10 +17,9 @@ import time
 from collections.abc import Callable
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
 
 from rlutf.map import MapLimits
-from schemas import valid_id
+from schemas import StoredVersion, encode_answer, valid_id
 from service.keys import KeyError_, Keys
 from service.maps.book import (
     Held,
@@ -65,27 +64,6 @@ def removed_conflict(map_id: str, version: int, removed: int) -> str:
         "removed (`rlutf map remove`), which running services may still hold; nothing changed "
         f"(put version {removed + 1} or later: rlutf map put --version next)"
     )
-
-
-class StoredVersion(BaseModel):
-    """The store's answer on ``{prefix}/mapversions/{map_id}`` (WIRE.md): the version of a map
-    it holds, or of the one removed from it and not put since, which a put must beat, and how
-    many puts of the map it took and has not stored yet."""
-
-    model_config = ConfigDict(extra="ignore", frozen=True)
-
-    map_id: str = Field(description="The map.")
-    version: int | None = Field(description="The version held, or removed; null: neither.")
-    digest: str | None = Field(description="SHA-256 of the canonical encoding of that version.")
-    removed: bool = Field(False, description="The map was removed (`rlutf map remove`).")
-    pending: int = Field(0, ge=0, description="Puts of the map taken and not stored yet.")
-
-    @property
-    def held(self) -> Held | None:
-        """The version to beat and its digest, if any."""
-        if self.version is None or self.digest is None:
-            return None
-        return self.version, self.digest
 
 
 def stored_version(
@@ -446,7 +424,7 @@ class MapStorage:
             for map_id in sorted(known):
                 key = self.keys.map_version(map_id)
                 if ke.intersects(zenoh.KeyExpr(key)):
-                    answer = self.answer(map_id).model_dump_json().encode()
+                    answer = encode_answer(self.answer(map_id))
                     query.reply(key, answer, encoding=JSON)
 
     def close(self) -> None:

@@ -22,6 +22,8 @@ from schemas import (
     Odometry,
     PoseEstimate,
     Relocalize,
+    RobotsAnswer,
+    StoredVersion,
     json_schema,
     schema_name,
 )
@@ -37,6 +39,8 @@ MCAP_SCHEMA_NAMES = {
     "rlutf.Event",
     "rlutf.MapHealth",  # v1.2
 }
+#: Answered on a query, never logged.
+ANSWER_SCHEMA_NAMES = {"rlutf.Health", "rlutf.StoredVersion", "rlutf.RobotsAnswer"}
 
 
 def _walk(node: Any) -> list[Any]:
@@ -51,10 +55,10 @@ def _walk(node: Any) -> list[Any]:
 
 
 def test_schema_names_are_the_wire_md_ones() -> None:
-    assert set(SCHEMA_NAMES.values()) == MCAP_SCHEMA_NAMES | {"rlutf.Health"}
+    assert set(SCHEMA_NAMES.values()) == MCAP_SCHEMA_NAMES | ANSWER_SCHEMA_NAMES
     assert schema_name(LaserScan) == "rlutf.LaserScan"
     models = (LaserScan, Odometry, InitialPose, Relocalize, PoseEstimate, Map, Event, Health)
-    for model in (*models, schemas.MapHealth):
+    for model in (*models, schemas.MapHealth, StoredVersion, RobotsAnswer):
         assert SCHEMA_NAMES[model] == f"rlutf.{model.__name__}"
         assert MODELS_BY_SCHEMA_NAME[SCHEMA_NAMES[model]] is model
     with pytest.raises(KeyError):

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from schemas import SCHEMA_NAMES, decode
+from schemas import SCHEMA_NAMES, StoredVersion, decode
 from service.keys import Keys
+from service.live.robots import robots_key
 
 WIRE = Path(__file__).resolve().parents[2] / "docs" / "wire.md"
 TEXT = WIRE.read_text(encoding="utf-8")
@@ -54,13 +55,13 @@ def test_keys_are_the_ones_the_service_uses() -> None:
         keys.robot("{robot}", "events"),
         keys.map("{map_id}"),
         keys.map_version("{map_id}"),
+        keys.health("{instance}"),
+        robots_key("{prefix}", "{instance}"),
     ):
         assert f"`{key}`" in TEXT, key
     assert "version 1.2" in TEXT and "`rlutf.run`" in TEXT and "`rlutf.config`" in TEXT
 
 
 def test_the_stored_version_example_is_what_the_store_answers() -> None:
-    from service.maps.store import StoredVersion
-
     (text,) = [text for name, text in examples() if name == "StoredVersion"]
     assert StoredVersion.model_validate_json(text).model_dump().keys() == json.loads(text).keys()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from rlutf.localizer import LocalizeResult
-from schemas import Event, PoseEstimate
+from schemas import Event, PoseEstimate, RobotState, WaitingRobot
 from service.cli.present import (
     age,
     event_line,
@@ -19,7 +19,6 @@ from service.cli.present import (
     robots_table,
 )
 from service.engine import _unfit
-from service.live.robots import RobotState, WaitingRobot
 
 
 def _state(robot: str, age_s: float | None, owner: str, x: float = 0.0) -> RobotState:

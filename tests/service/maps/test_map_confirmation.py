@@ -12,13 +12,13 @@ import pytest
 import zenoh
 from service_harness import JSON, WORLD, wait_until
 
-from schemas import Map, encode
+from schemas import Map, StoredVersion, encode
 from service.keys import Keys
 from service.live.sessions import session_config
 from service.maps.book import MapChecker
 from service.maps.confirmation import await_store, store_word
 from service.maps.files import FileMapStore
-from service.maps.store import MapStorage, StoredVersion, stored_version
+from service.maps.store import MapStorage, stored_version
 
 
 def _payload(version: int) -> bytes:
