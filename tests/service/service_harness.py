@@ -150,6 +150,28 @@ class Bench:
         return sim_robot(robot_id, self.world, seed, self.client, steps)
 
 
+def drive(bench: Bench, robot_ids: list[str], steps: int) -> dict[str, dict[str, Any]]:
+    """Put map m1, place each robot on it and feed it ``steps`` scans, until each one's last
+    pose is out; the last pose each robot got (decoded JSON), by robot id."""
+    col = Collector()
+    sub = bench.client.declare_subscriber("rlutf/robots/*/pose", col)
+    bench.put_map()
+    time.sleep(0.3)
+    robots = [bench.robot(r, seed) for seed, r in enumerate(robot_ids, 1)]
+    for r in robots:
+        r.initial_pose("m1")
+    time.sleep(0.3)
+    for _ in range(steps):
+        for r in robots:
+            r.advance()
+        time.sleep(0.03)
+    for r in robots:
+        key, last = f"rlutf/robots/{r.robot_id}/pose", r.stamp(r.step)
+        assert col.wait_for(lambda k=key, s=last: any(p["stamp_ns"] == s for p in col.on(k)))
+    sub.undeclare()
+    return {r.robot_id: col.on(f"rlutf/robots/{r.robot_id}/pose")[-1] for r in robots}
+
+
 WORLD = make_building(np.random.default_rng(11))
 
 

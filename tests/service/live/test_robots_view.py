@@ -7,7 +7,7 @@ import math
 import time
 
 import pytest
-from service_harness import Bench, Collector
+from service_harness import Bench, Collector, drive
 
 from schemas import Event, RobotsAnswer, RobotState, WaitingRobot, encode
 from service.live.robots import (
@@ -19,27 +19,6 @@ from service.live.robots import (
 )
 
 pytestmark = pytest.mark.integration
-
-
-def drive(bench: Bench, robot_ids: list[str], steps: int) -> dict[str, dict]:
-    """Feed each robot ``steps`` scans; the last pose each robot got, by robot id."""
-    col = Collector()
-    sub = bench.client.declare_subscriber("rlutf/robots/*/pose", col)
-    bench.put_map()
-    time.sleep(0.3)
-    robots = [bench.robot(r, seed) for seed, r in enumerate(robot_ids, 1)]
-    for r in robots:
-        r.initial_pose("m1")
-    time.sleep(0.3)
-    for _ in range(steps):
-        for r in robots:
-            r.advance()
-        time.sleep(0.03)
-    for r in robots:
-        key, last = f"rlutf/robots/{r.robot_id}/pose", r.stamp(r.step)
-        assert col.wait_for(lambda k=key, s=last: any(p["stamp_ns"] == s for p in col.on(k)))
-    sub.undeclare()
-    return {r.robot_id: col.on(f"rlutf/robots/{r.robot_id}/pose")[-1] for r in robots}
 
 
 def ask(bench: Bench, key: str) -> list[dict]:
