@@ -44,7 +44,7 @@ from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import GlobalLocalization
 from service.ros2.gridmaps import GridImports
 from service.ros2.roster import Limit, Publisher, Roster
-from service.ros2.statictf import Pose2, StaticFrames
+from service.ros2.statictf import StaticTrees
 from service.ros2.trail import map_to_odom
 
 log = logging.getLogger(__name__)
@@ -57,8 +57,6 @@ Warn = Callable[[str, str, str, str, int], None]
 """Report input that is not as the settings expect: robot, Event code, key, what, receive time
 (ns)."""
 Clock = Callable[[], int]
-#: Scan frames with no tf_static link said in the log per robot (a robot's scans use one).
-WARNED_FRAMES = 4
 
 Leaf = Literal["scan", "odom", "initialpose", "tf"]
 
@@ -103,7 +101,6 @@ class Ros2FrontDoor:
         self.clock = clock
         self.max_payload_bytes = max_payload_bytes
         self.max_robots = max_robots
-        self._lock = threading.Lock()
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         overrides = {ns: r.robot_id for ns, r in settings.robots.items() if r.robot_id}
@@ -121,8 +118,7 @@ class Ros2FrontDoor:
         self.roster = Roster(
             settings, subscribed, max_robots, idle_ns, on_limit, self._forgotten, self._publish
         )
-        self._static: dict[str, StaticFrames] = {}
-        self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
+        self.statics = StaticTrees(settings.base_frame, max_robots)  # the robots' tf_static
         self.frames = OdometryFrames(settings.odom_frame, settings.base_frame)
         self.tf_frames = TfOdometryFrames(
             settings.global_frame,
@@ -130,7 +126,6 @@ class Ros2FrontDoor:
             settings.base_frame,
             int(TF_ODOMETRY_WAIT_S * 1e9),
         )
-        self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
         self.grids = GridImports(settings, reject, clock, self._put_map)
         self.globalloc = GlobalLocalization(settings, self.gate.put, reject, clock, overrides)
@@ -254,39 +249,12 @@ class Ros2FrontDoor:
         except SchemaError as err:
             self.reject(None, key, str(err), self.clock())
             return
-        with self._lock:
-            frames = self._static.get(dk.namespace)
-            if frames is None:
-                if len(self._static) >= self.max_robots:  # namespaces invented without end
-                    return
-                frames = self._static[dk.namespace] = StaticFrames()
-        for parent, child, pose in found:
-            frames.add(parent, child, pose)
+        self.statics.add(dk.namespace, found)
 
-    def _laser_offset(self, namespace: str, robot_id: str, frame_id: str) -> Pose2:
-        """The laser's pose in the base frame, from the robot's tf_static (zero if unknown)."""
-        base = self.settings.base_frame
-        with self._lock:
-            frames = self._static.get(namespace)
-        found = frames.offset(base, frame_id) if frames is not None else None
-        if found is None:
-            found = (0.0, 0.0, 0.0)
-            if frame_id.lstrip("/") not in ("", base):
-                self.laser_at_base += 1
-                with self._lock:  # said once per robot and frame, for a few frames a robot
-                    warned = self._warned.setdefault(namespace, set())
-                    say = frame_id not in warned and len(warned) < WARNED_FRAMES
-                    if say:
-                        warned.add(frame_id)
-                if say:
-                    log.warning(
-                        "robot %s: no %s -> %s on tf_static yet; the laser is taken at the base%s",
-                        robot_id,
-                        base,
-                        printable(frame_id),  # the robot's text: no forged log line
-                        "" if len(warned) < WARNED_FRAMES else " (its further frames not said)",
-                    )
-        return found
+    @property
+    def laser_at_base(self) -> int:
+        """Scans whose frame the robot's tf_static does not link to the base."""
+        return self.statics.laser_at_base
 
     def _put_map(self, map_id: str, payload: bytes) -> None:
         session = self._session
@@ -299,7 +267,7 @@ class Ros2FrontDoor:
     ) -> list[tuple[InputKind, Message]]:
         s = self.settings
         if leaf == "scan":
-            offset_of = partial(self._laser_offset, namespace, robot_id)
+            offset_of = partial(self.statics.laser_offset, namespace, robot_id)
             return [("scan", convert.laser_scan(raw, offset_of=offset_of))]
         if leaf == "odom":
             odom, frame_id, child = convert.odometry_in_frames(raw)
@@ -327,9 +295,7 @@ class Ros2FrontDoor:
         same: the poses are right)."""
         offset = None
         if child != self.settings.base_frame:
-            with self._lock:
-                static = self._static.get(namespace)
-            offset = None if static is None else static.offset(self.settings.base_frame, child)
+            offset = self.statics.offset(namespace, child)
         warning = self.frames.check(robot_id, frame_id, child, offset)
         if warning is not None:
             self.warn(robot_id, EventCode.FRAME_MISMATCH, key, warning, received)
@@ -340,9 +306,7 @@ class Ros2FrontDoor:
         self.roster.forget(robot_id)
 
     def _forgotten(self, robot_id: str, namespace: str) -> None:
-        with self._lock:
-            self._static.pop(namespace, None)
-            self._warned.pop(namespace, None)
+        self.statics.forget(namespace)
         self.gate.forget(robot_id)
         self.frames.forget(robot_id)
         self.tf_frames.forget(robot_id)
