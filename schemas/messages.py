@@ -270,10 +270,12 @@ class EventCode:
     Odometry in another frame than ``ros2.odom_frame``): the poses are right, a transform the
     service publishes for it is not; said once, and again when its frames change."""
     ODOMETRY_NOT_FOUND: Final = "odometry_not_found"
-    """A ROS 2 robot whose odometry is read from tf (``ros2.odom_source = "tf"``) sends tf, but
-    for seconds no transform from ``ros2.odom_frame`` to ``ros2.base_frame``: it has no
-    odometry, and no ``map`` -> odom is published for it; the message names the frames seen.
-    Said once, and again when other frames are seen."""
+    """A ROS 2 robot has no odometry where the settings read it, and no ``map`` -> odom is
+    published for it: read from tf (``ros2.odom_source = "tf"``), it sends tf but for seconds no
+    transform from ``ros2.odom_frame`` to ``ros2.base_frame`` (the message names the frames
+    seen); read as ``nav_msgs/Odometry`` (``"odom"``), its scans come for seconds with none on
+    ``ros2.odom_topic`` (the message names the topic, and says to read tf when its tf carries the
+    odometry). Said once, and again when other frames are seen."""
     INTERNAL_ERROR: Final = "internal_error"
     """An input's update failed inside the service (a bug); it was not applied, and the robot's
     state is as before it."""

@@ -475,6 +475,7 @@ class LocalizationService:
             extra["ros2_scans_held"] = self.ros2.gate.held_count  # waited for odometry
             extra["ros2_scans_held_timed_out"] = self.ros2.gate.timed_out
             extra["ros2_scans_laser_at_base"] = self.ros2.laser_at_base  # no tf_static link
+            extra["ros2_robots_without_odometry"] = self.ros2.robots_without_odometry()
         return encode(
             self.stats.health(len(self._poses), self.dispatcher.dropped, extra, ready=self.ready)
         )

@@ -191,6 +191,17 @@ def odometry_from_tf_in_frames(
     return out, frames
 
 
+def tf_frames(raw: bytes) -> list[tuple[str, str]]:
+    """The frames ``(parent, child)`` of each transform of a ``tf2_msgs/msg/TFMessage``
+    (without a leading slash); the transforms themselves are not read.
+
+    Raises:
+        CdrError: malformed CDR.
+    """
+    m = deserialize(raw, TF_MESSAGE)
+    return [(frame(t.header.frame_id), frame(t.child_frame_id)) for t in m.transforms]
+
+
 def static_transforms(raw: bytes) -> list[tuple[str, str, tuple[float, float, float]]]:
     """The transforms of a ``tf2_msgs/msg/TFMessage``: ``(parent, child, (x, y, yaw))``.
 

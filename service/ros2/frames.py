@@ -138,6 +138,25 @@ Pair = tuple[str, str]
 """A transform's frames: ``(parent, child)``."""
 
 
+def odometry_like(
+    pairs: Iterable[Pair], global_frame: str, odom_frame: str, base_frame: str
+) -> Pair | None:
+    """The transform of ``pairs`` most like a robot's odometry, frame ids cut to
+    :data:`FRAME_CHARS`: ``odom_frame`` -> ``base_frame`` itself, else the first from
+    ``odom_frame`` (``odom`` -> ``base_link``) or to ``base_frame`` (``wheel_odom`` ->
+    ``base_footprint``); ``None`` if none is (``global_frame`` -> ``odom_frame`` is not the
+    robot's)."""
+    best = None
+    for parent, child in pairs:
+        pair = (parent[:FRAME_CHARS], child[:FRAME_CHARS])
+        if pair == (odom_frame, base_frame):
+            return pair
+        near = parent == odom_frame or child == base_frame
+        if best is None and near and pair != (global_frame, odom_frame):
+            best = pair
+    return best
+
+
 @dataclass
 class _Missing:
     """A robot whose tf has carried transforms, none of them its odometry, since ``since_ns``."""
@@ -219,6 +238,11 @@ class TfOdometryFrames:
         """Drop what is remembered of a robot (its next tf is checked anew)."""
         with self._lock:
             self._missing.pop(robot_id, None)
+
+    def said(self) -> int:
+        """How many robots have been said to have no odometry, and still have none."""
+        with self._lock:
+            return sum(1 for m in self._missing.values() if m.said)
 
     def _missing_odometry(self, robot_id: str, seen: list[Pair], waited_ns: int) -> str:
         (global_, odom), base = self.ours, self.base_frame

@@ -6,7 +6,8 @@ decodes and validates the CDR into a WIRE.md message and hands it to the service
 malformed payload, a wrong type on a topic, a namespace that is not a robot id, an initial pose
 in another frame) is dropped with an Event through ``reject``; nothing else is touched. Odometry
 in other frames than the settings name is taken, and said through ``warn``; so is a robot whose
-tf carries its odometry under other frames, which is not found (:mod:`service.ros2.frames`).
+tf carries its odometry under other frames, which is not found (:mod:`service.ros2.frames`), and
+one whose scans come but no Odometry (:mod:`service.ros2.odomwatch`).
 
 Each pose the engine computes for a ROS robot goes out as ``amcl_pose`` (reliable,
 transient-local, depth 1: an advanced publisher with a one-sample cache and a sample-miss
@@ -43,6 +44,7 @@ from service.ros2.frames import TF_ODOMETRY_WAIT_S, OdometryFrames, TfOdometryFr
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import GlobalLocalization
 from service.ros2.gridmaps import GridImports
+from service.ros2.odomwatch import odometry_watch
 from service.ros2.roster import Limit, Publisher, Roster
 from service.ros2.statictf import StaticTrees
 from service.ros2.trail import map_to_odom
@@ -76,8 +78,8 @@ class Ros2FrontDoor:
         on_limit: where such a refusal is reported (at most once a second).
         idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
         warn: where input not as the settings expect is reported (odometry in another frame
-            than ``odom_frame``, odometry on tf not found: :mod:`service.ros2.frames`); by
-            default the log.
+            than ``odom_frame``, odometry on tf not found: :mod:`service.ros2.frames`; scans
+            with no odometry: :mod:`service.ros2.odomwatch`); by default the log.
     """
 
     def __init__(
@@ -127,6 +129,7 @@ class Ros2FrontDoor:
             int(TF_ODOMETRY_WAIT_S * 1e9),
         )
         self.gate = OdometryGate(offer, clock, int(settings.odom_wait_s * 1e9))
+        self.odometry_watch = odometry_watch(settings, clock, max_payload_bytes)
         self.grids = GridImports(settings, reject, clock, self._put_map)
         self.globalloc = GlobalLocalization(settings, self.gate.put, reject, clock, overrides)
         self._stop = threading.Event()
@@ -162,6 +165,7 @@ class Ros2FrontDoor:
                     )
                 )
         self.globalloc.start(session)
+        self.odometry_watch.start(session)
         self._flusher = threading.Thread(target=self._flush, name="rlutf-ros2-gate", daemon=True)
         self._flusher.start()
         log.info("ROS 2 front door on domain %d: %s", s.domain_id, ", ".join(self._topics))
@@ -176,6 +180,7 @@ class Ros2FrontDoor:
         self._stop.set()
         self.grids.close()
         self.globalloc.close()
+        self.odometry_watch.close()
         if self._flusher is not None:
             self._flusher.join(1.0)
         self.roster.close()
@@ -190,6 +195,10 @@ class Ros2FrontDoor:
     def robots_count(self) -> int:
         """How many ROS robots are held."""
         return self.roster.count()
+
+    def robots_without_odometry(self) -> int:
+        """How many ROS robots have been said to have no odometry, and still have none."""
+        return self.odometry_watch.said() + self.tf_frames.said()
 
     # ------------------------------------------------------------------------- inputs
     def _on(self, leaf: Leaf, sample: zenoh.Sample) -> None:
@@ -235,6 +244,11 @@ class Ros2FrontDoor:
             if kind == "odom":
                 pose = np.array([msg.x, msg.y, msg.theta])  # type: ignore[union-attr]
                 self.roster.add_odometry(robot, msg.stamp_ns, pose)
+                self.odometry_watch.odometry(robot_id)
+            elif kind == "scan":
+                warning = self.odometry_watch.scan(robot_id, dk.namespace, received)
+                if warning is not None:
+                    self.warn(robot_id, EventCode.ODOMETRY_NOT_FOUND, key, warning, received)
             self.gate.put(robot_id, kind, convert.wire_json(msg), msg)
 
     def _on_static(self, sample: zenoh.Sample) -> None:
@@ -310,6 +324,7 @@ class Ros2FrontDoor:
         self.gate.forget(robot_id)
         self.frames.forget(robot_id)
         self.tf_frames.forget(robot_id)
+        self.odometry_watch.forget(robot_id)
 
     # ------------------------------------------------------------------------- outputs
     def on_pose(self, robot_id: str, payload: bytes) -> None:

@@ -37,6 +37,12 @@ def wait_until(pred: Callable[[], object], timeout: float = 10.0, every: float =
     return bool(pred())
 
 
+def health(client: zenoh.Session) -> dict[str, Any]:
+    """The Health message of the service ``client`` reaches (the first to answer)."""
+    reply = next(iter(client.get("rlutf/service/*/health", timeout=2.0)))
+    return json.loads(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
+
+
 @dataclass
 class Collector:
     """Collects decoded JSON samples per key."""

@@ -10,6 +10,7 @@ import math
 import struct
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -222,6 +223,28 @@ class RosListener:
     def on(self, k: str) -> list[tuple[bytes, bytes | None]]:
         with self.lock:
             return list(self.samples.get(k, []))
+
+
+def drive(
+    robots: Sequence[RosRobot],
+    steps: int,
+    pause: float = 0.05,
+    until: Callable[[], object] = lambda: False,
+) -> None:
+    """Each robot's next odometry and scan, ``steps`` times ``pause`` apart, or until
+    ``until()``."""
+    for _ in range(steps):
+        for r in robots:
+            r.advance()
+        time.sleep(pause)
+        if until():
+            return
+
+
+def others_transforms(listener: RosListener, robot: RosRobot, k: str) -> list[tuple[str, str]]:
+    """The frames ``(parent, child)`` of the transforms on ``k`` that ``robot`` did not publish
+    (the service's ``map`` -> ``odom``)."""
+    return [pose_of_tf(raw)[1:3] for raw, att in listener.on(k) if att and att[17:] != robot.gid]
 
 
 def pose_of_tf(raw: bytes) -> tuple[int, str, str, np.ndarray]:

@@ -8,7 +8,6 @@ service's clock are refused as JSON ones are (``max_stamp_ahead_s``).
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -20,7 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 from ros_client import TS, RosListener, RosRobot, header, key, quat, scan_msg
-from service_harness import WORLD, Bench, Collector, running_bench, wait_until
+from service_harness import WORLD, Bench, Collector, health, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
@@ -44,11 +43,6 @@ def _robot(bench: Bench, ns: str, seed: int, **kw: Any) -> RosRobot:
     return RosRobot(ns, WORLD, truth, bench.client, False, np.zeros(3), rng=rng, **kw)
 
 
-def _health(bench: Bench) -> dict[str, Any]:
-    reply = next(iter(bench.client.get("rlutf/service/*/health", timeout=2.0)))
-    return json.loads(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
-
-
 def _tokens(bench: Bench) -> list[str]:
     return [str(r.ok.key_expr) for r in bench.client.liveliness().get("@ros2_lv/**", timeout=2.0)]
 
@@ -65,7 +59,7 @@ def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
     for i in range(30):
         bench.client.put(key(0, f"/junk{i}/scan", SCAN, False), b"\x00\x01\x00\x00garbage")
     assert wait_until(lambda: len(events.on("rlutf/robots/junk29/events")) >= 1)
-    assert _health(bench)["extra"]["ros2_robots"] == {}
+    assert health(bench.client)["extra"]["ros2_robots"] == {}
     assert not [t for t in _tokens(bench) if "junk" in t]
     # Valid robots: three are held (max_robots), the others refused with robot_limit.
     robots = [_robot(bench, f"/robot{i}", i) for i in range(6)]
@@ -80,7 +74,7 @@ def test_malformed_cdr_makes_no_robot_and_robots_stay_within_max_robots(
             r.advance()
         time.sleep(0.05)
     assert wait_until(lambda: any(e["code"] == "robot_limit" for e in events.on("rlutf/events")))
-    held = _health(bench)["extra"]["ros2_robots"]
+    held = health(bench.client)["extra"]["ros2_robots"]
     assert held == {"robot0": "/robot0", "robot1": "/robot1", "robot2": "/robot2"}
     assert not [t for t in _tokens(bench) if "robot5" in t]
     # the robots held go on
@@ -104,15 +98,15 @@ def test_an_evicted_ros_robot_leaves_the_front_door(tmp_path: Path) -> None:
         for _ in range(3):
             r.advance()
             time.sleep(0.05)
-        assert wait_until(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "robot1" in health(bench.client)["extra"]["ros2_robots"])
         assert [t for t in _tokens(bench) if "robot1" in t]
         # silent past robot_idle_s: evicted, and its tokens and publishers undeclared
-        assert wait_until(lambda: _health(bench)["extra"]["ros2_robots"] == {}, timeout=15.0)
+        assert wait_until(lambda: health(bench.client)["extra"]["ros2_robots"] == {}, timeout=15.0)
         assert wait_until(lambda: not [t for t in _tokens(bench) if "robot1" in t])
         # it comes back with its next input
         r.initial_pose()
         r.advance()
-        assert wait_until(lambda: "robot1" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "robot1" in health(bench.client)["extra"]["ros2_robots"])
 
 
 def test_ros_inputs_stamped_far_ahead_are_refused(tmp_path: Path) -> None:
@@ -153,7 +147,7 @@ def test_scans_in_ever_new_frames_log_a_bounded_number_of_lines(
             msg = scan_msg(WORLD, r.truth[r.step], r.stamp(r.step), rng, f"laser_{i}")
             r.put("scan", SCAN, msg)
             time.sleep(0.01)
-        assert wait_until(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 60)
+        assert wait_until(lambda: health(bench.client)["extra"]["ros2_scans_laser_at_base"] >= 60)
     said = [rec for rec in caplog.records if "tf_static" in rec.getMessage()]
     assert 1 <= len(said) <= 10, len(said)
 
@@ -225,14 +219,14 @@ def test_robots_the_service_does_not_hold_leave_the_front_door_when_idle(tmp_pat
             r = _robot(bench, f"/ahead{i}", i, t0=ahead)
             r.initial_pose()
             r.advance()
-        assert wait_until(lambda: len(_health(bench)["extra"]["ros2_robots"]) == 2)
+        assert wait_until(lambda: len(health(bench.client)["extra"]["ros2_robots"]) == 2)
         time.sleep(1.5)  # past robot_idle_s
         fresh = _robot(bench, "/fresh", 5)
         fresh.initial_pose()
         for _ in range(3):
             fresh.advance()
             time.sleep(0.05)
-        assert wait_until(lambda: "fresh" in _health(bench)["extra"]["ros2_robots"])
+        assert wait_until(lambda: "fresh" in health(bench.client)["extra"]["ros2_robots"])
         assert not any(e["code"] == "robot_limit" for e in events.on("rlutf/events"))
         sub.undeclare()
 
@@ -251,6 +245,6 @@ def test_a_frame_id_cannot_forge_a_line_of_the_service_log(
         r.odom(r.step)
         msg = scan_msg(WORLD, r.truth[r.step], r.stamp(r.step), np.random.default_rng(5), forged)
         r.put("scan", SCAN, msg)
-        assert wait_until(lambda: _health(bench)["extra"]["ros2_scans_laser_at_base"] >= 1)
+        assert wait_until(lambda: health(bench.client)["extra"]["ros2_scans_laser_at_base"] >= 1)
     said = [rec.getMessage() for rec in caplog.records if "tf_static" in rec.getMessage()]
     assert said and all("\n" not in m and "\x1b" not in m for m in said), said

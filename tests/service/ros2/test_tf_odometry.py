@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_client import RosListener, RosRobot, key, pose_of_tf
+from ros_client import RosListener, RosRobot, drive, key, others_transforms
 from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
@@ -129,23 +129,15 @@ def test_odometry_on_tf_in_other_frames_is_said_once_per_robot(
         return [e for e in said if e["code"] == "odometry_not_found"]
 
     def ours(r: RosRobot, k: str) -> list[tuple[str, str]]:  # map -> odom from the service
-        return [pose_of_tf(raw)[1:3] for raw, att in listener.on(k) if att and att[17:] != r.gid]
-
-    def drive(steps: int, until: Any = lambda: False) -> None:
-        for _ in range(steps):
-            for r in robots:
-                r.advance()
-            time.sleep(0.05)
-            if until():
-                return
+        return others_transforms(listener, r, k)
 
     with caplog.at_level(logging.WARNING):
         for r in robots:
             r.initial_pose()
         # tf for more than the 2 s a robot's odometry may be missing (said as tf comes)
-        drive(100, until=lambda: not_found("robot1") and not_found("robot2"))
+        drive(robots, 100, until=lambda: not_found("robot1") and not_found("robot2"))
         assert not_found("robot1") and not_found("robot2")
-        drive(5)
+        drive(robots, 5)
         time.sleep(0.3)
         (e1,) = not_found("robot1")  # once, for 35 tf messages
         assert e1["level"] == "warning" and e1["key"].startswith("0/robot1/tf/")
@@ -160,12 +152,12 @@ def test_odometry_on_tf_in_other_frames_is_said_once_per_robot(
         assert ours(robots[0], tf_keys[0]) == []
         # robot2 sends other frames: said again
         robots[1].frames = ("odom2", "base_footprint")
-        drive(2)
+        drive(robots, 2)
         assert wait_until(lambda: len(not_found("robot2")) == 2)
         assert "odom2 -> base_footprint" in not_found("robot2")[1]["message"]
         # robot1 is set right: its map -> odom goes out, and nothing more is said
         robots[0].frames = ("odom", "base_footprint")
-        drive(5)
+        drive(robots, 5)
         assert wait_until(lambda: len(ours(robots[0], tf_keys[0])) >= 2)
         assert len(not_found("robot1")) == 1
     lines = [r.getMessage() for r in caplog.records if "odometry_not_found" in r.getMessage()]
