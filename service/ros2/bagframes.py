@@ -8,17 +8,26 @@ is of a child frame that the bag's ``tf_static`` puts elsewhere in the plane tha
 gives a ``map`` -> odom off by that offset (the live front door says both:
 :mod:`service.ros2.frames`). With the odometry read from ``tf`` (``--odom-tf``), a bag whose tf
 carries it under other frames (``wheel_odom`` -> ``base_footprint``) has none at all: it is
-replayed without odometry and no ``map`` -> odom is written. Each is a warning in the tool's
-output, naming the frames seen and the flag to give.
+replayed without odometry and no ``map`` -> odom is written; so is one whose odometry's topic
+carries no odometry at all. Each is a warning in the tool's output, naming the frames seen and
+the flag to give. A bag without the odometry's topic is refused, naming the flag to give: another
+Odometry topic it has, or ``--odom-tf`` when its tf carries the odometry (as the live front door
+says of a robot with no Odometry: :mod:`service.ros2.odomwatch`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
+from itertools import islice
 
+from schemas import SchemaError
 from service.keys import printable
-from service.ros2.frames import FRAME_CHARS, PAIRS_KEPT, Pair, displaced
+from service.ros2 import convert
+from service.ros2.frames import FRAME_CHARS, PAIRS_KEPT, Pair, displaced, odometry_like
 from service.ros2.statictf import StaticFrames
+
+#: Messages of a bag's tf looked at for its odometry when the odometry's topic is missing.
+TF_LOOKED_AT = 1000
 
 
 class BagOdometryFrames:
@@ -67,8 +76,10 @@ class BagOdometryFrames:
 
     def warnings(self, static: StaticFrames) -> list[str]:
         """What is wrong with the frames seen, one line each (``static``: the bag's tf_static)."""
+        if not self.found:
+            return [self._missing()]
         if self.odom_tf:
-            return [] if self.found or not self.seen else [self._missing()]
+            return []
         out = []
         others: dict[str, int] = {}
         for (parent, _c), n in self.seen.items():
@@ -82,6 +93,48 @@ class BagOdometryFrames:
                 out.append(self._displaced_child(child, offset))
                 break
         return out
+
+    def no_topic(self, types: Mapping[str, str], tf: str, tf_messages: Iterable[bytes]) -> str:
+        """What to give when the bag has no topic ``topic``: another Odometry topic it has, or
+        ``--odom-tf`` when its ``tf`` carries the odometry (in its first :data:`TF_LOOKED_AT`
+        messages, ``tf_messages``, read only then).
+
+        Args:
+            types: the bag's topics and their types.
+            tf: the tf topic ``--odom-tf`` reads (the one in the scan's namespace).
+            tf_messages: the CDR of its messages.
+        """
+        listed = ", ".join(f"{printable(t)} ({ty})" for t, ty in sorted(types.items()))
+        odometry = sorted(t for t, ty in types.items() if ty == convert.ODOMETRY)
+        fixes = [f"--odom-topic {printable(t)}" for t in odometry]
+        if self.odom_tf:
+            fixes = [f"{f} without --odom-tf" for f in fixes]
+        elif types.get(tf) == convert.TF_MESSAGE:
+            found = self._on_tf(islice(tf_messages, TF_LOOKED_AT))
+            if found is not None:
+                fixes.insert(0, self._tf_flags(tf, found))
+        fix = f". Give {', or '.join(fixes)}" if fixes else ", and no odometry elsewhere"
+        return f"no topic {printable(self.topic)} to read the odometry from (topics: {listed}){fix}"
+
+    def _on_tf(self, messages: Iterable[bytes]) -> Pair | None:
+        best = None
+        for raw in messages:
+            try:
+                pairs = convert.tf_frames(raw)
+            except SchemaError:
+                continue
+            found = odometry_like(pairs, self.global_frame, self.odom_frame, self.base_frame)
+            if found == (self.odom_frame, self.base_frame):
+                return found
+            best = best or found
+        return best
+
+    def _tf_flags(self, tf: str, found: Pair) -> str:
+        parent, child = printable(found[0]), printable(found[1])
+        flags = "--odom-tf"
+        flags += f" --odom-frame {parent}" if found[0] != self.odom_frame else ""
+        flags += f" --base-frame {child}" if found[1] != self.base_frame else ""
+        return f"{flags} ({printable(tf)} carries {parent} -> {child})"
 
     def _listed(self, counts: dict[str, int]) -> str:
         return ", ".join(f"'{printable(f)}' ({n} messages)" for f, n in counts.items())
@@ -109,14 +162,21 @@ class BagOdometryFrames:
 
     def _missing(self) -> str:
         odom, base = self.odom_frame, self.base_frame
+        without = (
+            f"the bag is replayed without odometry, and no {self.global_frame} -> {odom} is "
+            "written with --ros2-out"
+        )
+        topic = printable(self.topic)
+        if not self.odom_tf:
+            return f"no odometry: {topic} carries no valid nav_msgs/Odometry: {without}"
         seen = ", ".join(
             f"{printable(p)} -> {printable(c)} ({n} times)" for (p, c), n in self.seen.items()
         )
         fixes = [f"--base-frame {printable(c)}" for p, c in self.seen if p == odom]
         fixes += [f"--odom-frame {printable(p)}" for p, c in self.seen if c == base]
         fix = f" Give {' or '.join(fixes)}" if fixes else ""
+        carries = f"carries {seen}, but" if seen else "carries"
         return (
-            f"no odometry: {printable(self.topic)} carries {seen}, but no {odom} -> {base} "
-            f"(--odom-frame -> --base-frame): the bag is replayed without odometry, and no "
-            f"{self.global_frame} -> {odom} is written with --ros2-out.{fix}"
+            f"no odometry: {topic} {carries} no {odom} -> {base} (--odom-frame -> --base-frame): "
+            f"{without}.{fix}"
         )

@@ -203,9 +203,14 @@ def bag_inputs(
     )
     with _reader(bag) as reader:
         present = {c.topic for c in reader.connections}
-        for t in (topics.scan, odom_topic):
-            if t not in present:
-                raise BagError(f"{bag}: no topic {t} (topics: {', '.join(sorted(present))})")
+        if topics.scan not in present:
+            raise BagError(f"{bag}: no topic {topics.scan} (topics: {', '.join(sorted(present))})")
+        if odom_topic not in present:
+            types = {c.topic: c.msgtype for c in reader.connections}
+            tf = topics.tf or topics.in_namespace("tf")
+            tf_messages = (bytes(raw) for _c, _t, raw in _on_topic(reader, tf))
+            said = odometry_frames.no_topic(types, tf, tf_messages)
+            raise BagError(f"{bag}: {said}")
         conns = [c for c in reader.connections if c.topic in wanted]
         writer = LogWriter(out, None)
         if config is not None:

@@ -26,19 +26,24 @@ TF = "tf2_msgs/msg/TFMessage"
 ODOM = "nav_msgs/msg/Odometry"
 
 
-def _bag(path: Path, frames: tuple[str, str], on_tf: bool) -> np.ndarray:
-    """A bag of ``/scan`` and odometry in ``frames`` (on ``/tf``, or ``/odom``); the truth."""
+def _bag(
+    path: Path, frames: tuple[str, str], on_tf: bool, topic: str = "", steps: int = STEPS
+) -> np.ndarray:
+    """A bag of ``/scan`` and odometry in ``frames`` (on ``/tf``, or ``/odom``; or on ``topic``)
+    in its first ``steps`` steps; the truth."""
     rng = np.random.default_rng(3)
     truth = make_trajectory(WORLD, rng, STEPS)
     origin = np.array([2.0, -1.0, 0.7])
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         sc = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=TS)
-        oc = w.add_connection("/tf" if on_tf else "/odom", TF if on_tf else ODOM, typestore=TS)
+        topic = topic or ("/tf" if on_tf else "/odom")
+        oc = w.add_connection(topic, TF if on_tf else ODOM, typestore=TS)
         for i in range(STEPS):
             t = T0 + i * 100_000_000
             odom = relative(origin, truth[i])
             m = tf_msg(odom, t, *frames) if on_tf else odom_msg(odom, t, *frames)
-            w.write(oc, t, TS.serialize_cdr(m, oc.msgtype))
+            if i < steps:
+                w.write(oc, t, TS.serialize_cdr(m, oc.msgtype))
             scan = scan_msg(WORLD, truth[i], t + 5_000_000, rng)
             w.write(sc, t + 5_000_000, TS.serialize_cdr(scan, "sensor_msgs/msg/LaserScan"))
     return truth
@@ -97,6 +102,55 @@ def test_no_odometry_on_tf_in_the_frames_given_is_said(
     assert {(t.header.frame_id, t.child_frame_id) for t in written} == {("map", "wheel_odom")}
 
 
+def test_a_bag_without_the_odometrys_topic_names_the_flag_to_give(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def refused(bag: Path, *flags: str) -> str:
+        m1 = tmp_path / "m1.json"
+        m1.write_text(json.dumps({"map_id": "m1", "version": 1, "geometry": WORLD.to_geojson()}))
+        args = ["replay", str(bag), "--ros2", "--map", str(m1), "--initial-pose=1,1,0"]
+        assert main([*args, "--quiet", "--out", str(tmp_path / "poses.mcap"), *flags]) == 2
+        return " ".join(capsys.readouterr().err.split())
+
+    # the odometry on tf only (odom -> base_footprint): --odom-tf, which then replays with it
+    truth = _bag(tmp_path / "tf", ("odom", "base_footprint"), on_tf=True)
+    said = refused(tmp_path / "tf")
+    for part in (
+        "no topic /odom to read the odometry from",
+        "(topics: /scan (sensor_msgs/msg/LaserScan), /tf (tf2_msgs/msg/TFMessage))",
+        "Give --odom-tf (/tf carries odom -> base_footprint)",
+    ):
+        assert part in said, said
+    assert len(_replay(tmp_path, tmp_path / "tf", truth, "--odom-tf")) == STEPS
+    # odom -> base_link: --odom-tf with the base frame it names
+    _bag(tmp_path / "link", ("odom", "base_link"), on_tf=True)
+    said = refused(tmp_path / "link")
+    assert "Give --odom-tf --base-frame base_link (/tf carries odom -> base_link)" in said, said
+    # an Odometry on another topic: that topic
+    _bag(tmp_path / "wheel", ("odom", "base_footprint"), on_tf=False, topic="/wheel/odometry")
+    said = refused(tmp_path / "wheel")
+    assert "Give --odom-topic /wheel/odometry" in said and "--odom-tf" not in said, said
+    # --odom-tf on a bag whose odometry is an Odometry
+    _bag(tmp_path / "odom", ("odom", "base_footprint"), on_tf=False)
+    said = refused(tmp_path / "odom", "--odom-tf")
+    assert "no topic /tf to read the odometry from" in said
+    assert "Give --odom-topic /odom without --odom-tf" in said, said
+    # a tf with no odometry on it, and no Odometry: nothing to give
+    _bag(tmp_path / "none", ("base_link", "laser"), on_tf=True)
+    said = refused(tmp_path / "none")
+    assert said.endswith("and no odometry elsewhere"), said
+
+
+def test_an_odometry_topic_with_no_odometry_is_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    truth = _bag(tmp_path / "bag", ("odom", "base_footprint"), on_tf=False, steps=0)
+    assert _replay(tmp_path, tmp_path / "bag", truth) == []
+    out = " ".join(capsys.readouterr().out.split())
+    assert "warning: no odometry: /odom carries no valid nav_msgs/Odometry" in out, out
+    assert "no map -> odom is written with --ros2-out" in out
+
+
 def test_the_frames_seen_alone() -> None:
     static = StaticFrames()
     static.add("base_footprint", "base_link", (0.0, 0.0, 0.0))  # above: the same in the plane
@@ -113,7 +167,8 @@ def test_the_frames_seen_alone() -> None:
     # on tf: the odometry found, or a map -> odom recorded beside it, are not other frames
     t = BagOdometryFrames("/tf", True, "map", "odom", "base_footprint")
     t.add(0, [("map", "odom")])
-    assert t.warnings(static) == []
+    (said,) = t.warnings(static)  # no odometry, and no other frames to name
+    assert said.startswith("no odometry: /tf carries no odom -> base_footprint"), said
     t.add(0, [("odom", "base_link")])
     (said,) = t.warnings(static)
     assert "odom -> base_link (1 times)" in said and "Give --base-frame base_link" in said
