@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import socket
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,6 +25,14 @@ log = logging.getLogger(__name__)
 TX_QUEUE_BATCHES = 16
 #: Their priorities: robots' inputs (``data``) and the service's poses (``data_high``).
 TX_QUEUE_PRIORITIES = ("data", "data_high")
+#: Zenoh's runtimes in a service process (its ``ZENOH_RUNTIME`` environment variable, unless set):
+#: the runtime that accepts links handed over to the one that receives on them. A link's socket
+#: is watched by the runtime that accepted it, so by default each batch a robot or another
+#: process of the host sends wakes two threads, the acceptor's (its readiness) and a receiving
+#: one: at 200 robots the host's acceptor thread woke 2,000 times a second and took 0.013 ms of
+#: CPU a scan, which the handover saves without the receiving threads taking more (BENCHMARKS.md,
+#: "Zenoh's runtimes in a service process").
+SERVICE_RUNTIME = "(acc: (handover: rx))"
 
 
 def session_config(
@@ -122,7 +131,13 @@ def service_config(settings: Settings) -> zenoh.Config:
     """The service's own zenoh configuration (:func:`zenoh_config`), with a warning when the
     settings' zenoh file leaves a link's send queue for data shorter than
     :data:`TX_QUEUE_BATCHES` batches: with such a file, a router under load drops robots' samples
-    where the service cannot count them (see :func:`session_config`)."""
+    where the service cannot count them (see :func:`session_config`).
+
+    Zenoh's runtimes are the process's, read from ``ZENOH_RUNTIME`` when its first session opens:
+    unless the environment sets it, this sets :data:`SERVICE_RUNTIME` for the service (and the
+    processes a host starts, which inherit it); in a process that already opened a session it
+    changes nothing."""
+    os.environ.setdefault("ZENOH_RUNTIME", SERVICE_RUNTIME)
     cfg = zenoh_config(settings)
     short = short_queues(cfg) if settings.zenoh_config is not None else []
     if short:
