@@ -26,13 +26,15 @@ TX_QUEUE_BATCHES = 16
 #: Their priorities: robots' inputs (``data``) and the service's poses (``data_high``).
 TX_QUEUE_PRIORITIES = ("data", "data_high")
 #: Zenoh's runtimes in a service process (its ``ZENOH_RUNTIME`` environment variable, unless set):
-#: the runtime that accepts links handed over to the one that receives on them. A link's socket
-#: is watched by the runtime that accepted it, so by default each batch a robot or another
-#: process of the host sends wakes two threads, the acceptor's (its readiness) and a receiving
-#: one: at 200 robots the host's acceptor thread woke 2,000 times a second and took 0.013 ms of
-#: CPU a scan, which the handover saves without the receiving threads taking more (BENCHMARKS.md,
-#: "Zenoh's runtimes in a service process").
-SERVICE_RUNTIME = "(acc: (handover: rx))"
+#: the runtimes that accept links and receive on them handed over to the application's, with two
+#: threads, as in Zenoh's own example of the variable (``zenoh_runtime::ZRuntime``). A link's
+#: socket is watched by the runtime that opened or accepted it (the acceptor's in a router, the
+#: application's in a client), and by default each batch that arrives wakes that runtime's
+#: thread and then a receiving one: at 200 robots, 2,000 wake-ups a second of the host's
+#: acceptor thread (0.013 ms of CPU a scan) and as many of the other process's application
+#: thread. With one runtime for all three, one thread wakes (BENCHMARKS.md, "Zenoh's runtimes in
+#: a service process").
+SERVICE_RUNTIME = "(rx: (handover: app), acc: (handover: app), app: (worker_threads: 2))"
 
 
 def session_config(
