@@ -59,6 +59,7 @@ from service.live.robots import PLACING, RobotView, robots_key
 from service.live.sessions import service_config
 from service.live.shards import Done
 from service.live.stats import Stats
+from service.live.supervise import worker_lost
 from service.live.warmaside import warm_up_aside
 from service.live.worker import Entry
 from service.logs.recording import NullRecorder, Recorder
@@ -75,12 +76,6 @@ SCHEMA_OF_LEAF = {
     "relocalize": SCHEMA_NAMES[Relocalize],
     "pose": SCHEMA_NAMES[PoseEstimate],
     "events": SCHEMA_NAMES[Event],
-}
-#: Events counted in health, by how their code reads in an encoded Event.
-COUNTED_EVENTS = {
-    f'"code":"{EventCode.RELOCALIZING}"'.encode(): "relocalizations",
-    f'"code":"{EventCode.RELOCALIZED}"'.encode(): "relocalized",
-    f'"code":"{EventCode.AMBIGUOUS}"'.encode(): "ambiguous",
 }
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -388,17 +383,8 @@ class LocalizationService:
         )
 
     def _on_worker_lost(self, index: int, code: int | None, robots: list[str]) -> None:
-        more = f" and {len(robots) - 10} more" if len(robots) > 10 else ""
-        shown = ", ".join(robots[:10]) + more
-        self._global_event(
-            "error",
-            EventCode.WORKER_LOST,
-            self.keys.service(self.settings.instance),
-            f"worker process {index} died (exit code {code}); a new one is starting; "
-            f"{len(robots)} robots re-seeded from their last published poses"
-            + (f" ({shown})" if robots else "")
-            + "; the scans it had not answered are dropped",
-        )
+        about = self.keys.service(self.settings.instance)
+        self._global_event("error", EventCode.WORKER_LOST, about, worker_lost(index, code, robots))
 
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
@@ -446,9 +432,7 @@ class LocalizationService:
                 now = self.clock()
                 self.recorder.record(out.key, EVENT_SCHEMA, out.payload, now, out.stamp_ns)
                 self.robot_view.event(done.robot, out.payload, now)
-                for code, counter in COUNTED_EVENTS.items():
-                    if code in out.payload:
-                        self.stats.add(counter)
+                self.stats.count_event(out.payload)
 
     # ------------------------------------------------------------------------ queries
     def health(self) -> bytes:

@@ -9,10 +9,16 @@ from typing import Protocol
 
 import numpy as np
 
-from schemas import Health, LatencyPercentiles
+from schemas import EventCode, Health, LatencyPercentiles
 
 #: Latest latencies kept for the percentiles.
 _WINDOW = 10_000
+#: Events counted in health, by how their code reads in an encoded Event.
+COUNTED_EVENTS = {
+    f'"code":"{EventCode.RELOCALIZING}"'.encode(): "relocalizations",
+    f'"code":"{EventCode.RELOCALIZED}"'.encode(): "relocalized",
+    f'"code":"{EventCode.AMBIGUOUS}"'.encode(): "ambiguous",
+}
 
 
 class Timings(Protocol):
@@ -61,6 +67,12 @@ class Stats:
         """Increase a counter."""
         with self._lock:
             setattr(self, name, getattr(self, name) + n)
+
+    def count_event(self, payload: bytes) -> None:
+        """Count an encoded Event of a robot, if it is one of :data:`COUNTED_EVENTS`."""
+        for code, counter in COUNTED_EVENTS.items():
+            if code in payload:
+                self.add(counter)
 
     def latency(self, end_to_end_ms: float) -> None:
         """Record one scan's time from receipt to its pose being published."""

@@ -28,6 +28,19 @@ from service.live.worker import Entry
 ODOM_KEPT = 64
 
 
+def worker_lost(index: int, code: int | None, robots: list[str]) -> str:
+    """What the Event ``worker_lost`` says of worker process ``index`` that died with exit
+    ``code`` and the ``robots`` re-seeded (the first ten named)."""
+    more = f" and {len(robots) - 10} more" if len(robots) > 10 else ""
+    shown = ", ".join(robots[:10]) + more
+    return (
+        f"worker process {index} died (exit code {code}); a new one is starting; "
+        f"{len(robots)} robots re-seeded from their last published poses"
+        + (f" ({shown})" if robots else "")
+        + "; the scans it had not answered are dropped"
+    )
+
+
 @dataclass
 class History:
     """A robot's recent inputs and its last published pose, kept by the dispatcher."""
