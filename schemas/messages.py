@@ -276,6 +276,10 @@ class EventCode:
     seen); read as ``nav_msgs/Odometry`` (``"odom"``), its scans come for seconds with none on
     ``ros2.odom_topic`` (the message names the topic, and says to read tf when its tf carries the
     odometry). Said once, and again when other frames are seen."""
+    INSTANCE_NAME_TAKEN: Final = "instance_name_taken"
+    """Another running instance has this instance's name and claimed it first (two of one name
+    started together, or met when a network partition healed): this instance stops (exit 1);
+    the message says what it did meanwhile and how to name it."""
     INTERNAL_ERROR: Final = "internal_error"
     """An input's update failed inside the service (a bug); it was not applied, and the robot's
     state is as before it."""

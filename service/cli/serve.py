@@ -120,6 +120,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
+    from service.cluster.names import NameTaken
     from service.live.heapdumps import install_from_env
     from service.live.node import LocalizationService
     from service.live.worker import tune_gc
@@ -202,7 +203,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
-    except RuntimeError as err:  # a worker process could not start
+    except RuntimeError as err:  # a worker process could not start, or the name is taken
+        if isinstance(err, NameTaken):  # after its worker processes started: stop them
+            service.close()
         print(f"rlutf serve: {err}", file=sys.stderr)
         return EXIT_FAILURE
     ready = (
@@ -231,7 +234,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
         service.wait(stop)
     finally:
         service.close()
-    return EXIT_OK
+    return _name_kept(service.name_claim.lost)
+
+
+def _name_kept(lost: str | None) -> int:
+    """The exit code of a service that stopped: 1, said on stderr, if it stopped because another
+    instance of its name claimed the name first (service.cluster.names)."""
+    if lost is None:
+        return EXIT_OK
+    print(f"rlutf serve: {lost}", file=sys.stderr, flush=True)
+    return EXIT_FAILURE
 
 
 def follow_host(host_pid: int, stop: threading.Event) -> None:
@@ -331,7 +343,7 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
         host.wait(stop)
     finally:
         host.close()
-    return EXIT_OK
+    return _name_kept(host.service.name_claim.lost)  # its process 0's name: the host's
 
 
 def _layout_fits(command: str, settings: Any) -> bool:

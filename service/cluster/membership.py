@@ -28,15 +28,6 @@ from service.keys import Keys
 
 log = logging.getLogger(__name__)
 
-#: Seconds a starting instance waits for a live token of its own name to go before it refuses
-#: to start: a restarted instance's previous run may still be leaving (a host's process stops
-#: within a second of its host's death; a session nobody closed goes at Zenoh's lease, 10 s).
-NAME_WAIT_S = 12.0
-
-
-class NameTaken(RuntimeError):
-    """Another live instance has this instance's name (its liveliness token is declared)."""
-
 
 def rendezvous_weight(member: str, robot: str) -> int:
     """The weight of ``member`` for ``robot``: a stable 64-bit hash of both names.
@@ -89,28 +80,6 @@ class Membership:
         self._lock = threading.Lock()
         self._sub: Any = None
         self._head = ""
-
-    def claim(
-        self, session: zenoh.Session, keys: Keys, timeout: float, wait: float = NAME_WAIT_S
-    ) -> None:
-        """Make sure no live instance has this instance's name, before this one declares
-        anything: two of one name each own the same robots (each counts the other's token as
-        its own) and answer every one of their scans twice, and their Health and robot views
-        answer beside each other's under one name.
-
-        Raises:
-            NameTaken: a token of this name is still live after ``wait`` seconds.
-        """
-        self._head = keys.service("")
-        deadline = time.monotonic() + wait
-        while self.instance in self._tokens(session, keys, timeout):
-            if time.monotonic() >= deadline:
-                raise NameTaken(
-                    f"an instance named {self.instance} is live on {keys.service(self.instance)}"
-                    f" (still after {wait:.0f} s): each instance needs a name of its own "
-                    "(--instance; a host's processes are named INSTANCE-p0, INSTANCE-p1, ...)"
-                )
-            time.sleep(0.2)
 
     def start(self, session: zenoh.Session, keys: Keys, timeout: float) -> None:
         """Learn the live members, then follow their tokens on ``{prefix}/service/*``.

@@ -234,7 +234,9 @@ class Host:
         from service.logs.recording import make_recorder
 
         self.processes.append(_Process(own.instance, [], {}))
-        self.service = LocalizationService(own, recorder=make_recorder(own))
+        # Told of the host's stop; and when another instance takes its name, it sets it.
+        stop = self._stop_requested
+        self.service = LocalizationService(own, recorder=make_recorder(own), stop=stop)
         # It compiles the localizer's kernels on a first start after an install (or loads
         # them); the others start once it is ready and load them from numba's cache, instead
         # of all compiling the same kernels at once.

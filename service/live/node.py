@@ -37,6 +37,7 @@ from schemas import (
     encode,
 )
 from service.cluster.membership import Membership, fetch_last_pose, fetch_poses
+from service.cluster.names import NameClaim
 from service.cluster.ownership import Ownership
 from service.cluster.posestate import NullPoseState, PoseKeeper, PoseState
 from service.config import Settings
@@ -88,7 +89,8 @@ class LocalizationService:
         recorder: where to record; ``None`` records nothing.
         session: an open Zenoh session to use (tests); by default one from the settings.
         stop: set when the service is told to stop (the CLI's signal handler), before
-            :meth:`close` runs: a worker process the same signal ended is not replaced.
+            :meth:`close` runs: a worker process the same signal ended is not replaced. The
+            service sets it itself when another instance takes its name (:meth:`wait` returns).
     """
 
     def __init__(
@@ -122,6 +124,8 @@ class LocalizationService:
         self._on_drop = self.out.on_drop
         self.ready = False
         self.intake = Intake(self)
+        self.stopping = stop if stop is not None else threading.Event()  # also: name lost
+        self.name_claim = NameClaim(settings.instance, self.keys, self._name_taken)
         self._token: Any = None
         self._storage: MapStorage | None = None
         self.dispatcher = Dispatcher(
@@ -140,7 +144,7 @@ class LocalizationService:
             map_health=settings.map_health,
             loop=settings.intake == "loop",
             poses=self.out,
-            stop=stop,
+            stop=self.stopping,
         )
         on_sample, wait_s = self.intake.on_robot_sample, settings.intake_wait_s
         self.inputs = Inputs(on_sample, self.dispatcher.loop, settings.intake, self.out, wait_s)
@@ -234,7 +238,7 @@ class LocalizationService:
             self._session = zenoh.open(service_config(s))
         session = self._session
         # Before anything is declared or recorded: refuses a name another instance has.
-        self.membership.claim(session, self.keys, s.handover_timeout_s)
+        self.name_claim.take(session, s.handover_timeout_s)
         self.outbox.start(session)
         self.out.attach(session)
         if not s.no_store:
@@ -287,6 +291,7 @@ class LocalizationService:
             for pose in {p.map_id: p for p in known.values()}.values():  # load the maps now
                 self.mapfeed.need(pose.map_id, pose.robot_id)
             time.sleep(s.join_warmup_s)
+        self.name_claim.confirm()  # one of this name claimed it first, seen since: no start
         self._token = session.liveliness().declare_token(self.keys.service(s.instance))
         self.ownership.grace_until = time.monotonic() + s.join_grace_s if joining else 0.0
         self.ownership.ready = True
@@ -310,6 +315,7 @@ class LocalizationService:
             self.ros2.close()
         self.ownership.close()
         self.membership.close()
+        self.name_claim.close()  # after the member token: the name is given up last
         self.mapfeed.close()
         for d in reversed(self._declared):
             try:
@@ -386,6 +392,15 @@ class LocalizationService:
         about = self.keys.service(self.settings.instance)
         self._global_event("error", EventCode.WORKER_LOST, about, worker_lost(index, code, robots))
 
+    def _name_taken(self, message: str) -> None:
+        """Another instance of this name claimed it first (seen after the start): this one
+        takes no more input, says what it did and stops (service.cluster.names)."""
+        self.ownership.ready = False  # its robots are the other's: no input taken from now on
+        did = f"it localized {self.stats.processed} scans since it started, {len(self._poses)}"
+        about, code = self.keys.service(self.settings.instance), EventCode.INSTANCE_NAME_TAKEN
+        self._global_event("error", code, about, f"{message}; {did} robots")
+        self.stopping.set()
+
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
         self.robot_view.forget(robot)
@@ -451,6 +466,7 @@ class LocalizationService:
             **self.ownership.figures(),
             **self.posestate.figures(),
             **self.gate.figures(),
+            **self.name_claim.figures(),  # the claim: this process's session id
             "robots_evicted": self.sweeper.evicted,
         }
         if self.ros2 is not None:
@@ -480,5 +496,5 @@ class LocalizationService:
         system now and then (:mod:`service.live.memory`).
         """
         trimmer = HeapTrimmer()
-        while not stop.wait(1.0):
+        while not stop.wait(1.0) and not self.stopping.is_set():  # name lost: stopping
             trimmer.maybe()
