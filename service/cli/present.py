@@ -279,7 +279,7 @@ def unfinished(
     tools do not read, unless a copy recovered from one is among ``files`` (``rlutf log
     recover`` names it as the log's final name); returns how many a crash left and how many are
     being recorded."""
-    from service.logs.mcapread import left_unfinished, part_message
+    from service.logs.partfile import left_unfinished, part_message
     from service.logs.runs import unfinished_logs
 
     given = {f.name for f in files}

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import heapq
 import io
-import time
 from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +42,7 @@ from service.logs.mcaprecords import (
     read_records,
     read_summary,
 )
+from service.logs.partfile import part_message
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -102,48 +102,6 @@ class RedeclaredLog(LogError):
             "is not read (MCAP allows one definition per id)"
         )
         self.path = path
-
-
-#: A ``.mcap.part`` modified this recently is taken to be still recorded, seconds.
-RECENT_S = 60.0
-
-
-def _age(path: Path, now: float | None = None) -> float | None:
-    try:
-        return (time.time() if now is None else now) - path.stat().st_mtime
-    except OSError:
-        return None
-
-
-def left_unfinished(path: Path, now: float | None = None) -> bool:
-    """Whether a ``.mcap.part`` was left by a recorder that crashed or was killed (not written
-    for :data:`RECENT_S`), rather than being recorded now."""
-    age = _age(path, now)
-    return age is not None and age >= RECENT_S
-
-
-def part_message(path: Path, now: float | None = None) -> str:
-    """What a ``.mcap.part`` file is and how to read it now.
-
-    The recorder writes a log as ``NAME.mcap.part`` and renames it ``NAME.mcap`` when it is
-    finished (rotation or a stop); until then it has no summary, and its last chunk may be
-    half-written. Its complete chunks (flushed at least every second) can be copied out.
-    """
-    age = _age(path, now)
-    state = (
-        f"is being recorded now (last written {age:.0f} s ago)"
-        if age is not None and age < RECENT_S
-        else "was left unfinished (its recorder crashed or was killed)"
-        if age is not None
-        else "is unfinished"
-    )
-    final = path.name.removesuffix(".part")
-    return (
-        f"{path}: this log {state}: a .mcap.part file has no index until the service finishes "
-        f"it (at rotation, record_max_seconds, or when it stops) and renames it {final}. "
-        f"To read it now, copy its complete chunks: rlutf log recover {path} COPY.mcap "
-        "(the file being recorded is not touched), then use COPY.mcap"
-    )
 
 
 class ChannelInfo(NamedTuple):
