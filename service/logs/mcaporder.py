@@ -8,7 +8,10 @@ whose every chunk spans the whole log took 47 MB.
 
 Here a file is read as :class:`Span` s, each a stretch of it (a chunk, or about
 :data:`SPAN_BYTES` of consecutive records) with the times of its messages, from the chunk index
-or, for a file without one, from reading it through once (:class:`SpanScan`). Spans are opened
+or, for a file without one, from reading it through once (:class:`SpanScan`); beside a chunk
+index, the messages outside the chunks it lists (written outside chunks, or in chunks it leaves
+out, which the library's indexed reader never reads) are found by reading the stretches between
+them (:func:`unindexed_spans`). Spans are opened
 in the order of their first message's time and their messages given once no span still unopened
 can hold an earlier one (:func:`ordered`), in the order the library gives: ``log_time``, then
 file order. A log in order, or nearly (a recorder's threads hand it messages a little out of
@@ -26,7 +29,7 @@ from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from typing import IO, Final, NamedTuple
 
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, ChunkIndex, McapRecord, Message, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, McapRecord, Message, Schema
 
 from service.logs.mcapchunks import MAX_CHUNK_BYTES, unpack_chunk
 from service.logs.mcaprecords import read_records
@@ -214,12 +217,64 @@ class SpanScan:
         else:
             self._open = span
 
-    def spans(self) -> list[Span]:
-        """Every span, in file order."""
+    def cut(self) -> None:
+        """End the open span: the next record starts another."""
         if self._open is not None:
             self._done.append(self._open)
             self._open = None
+
+    def spans(self) -> list[Span]:
+        """Every span, in file order."""
+        self.cut()
         return self._done
+
+
+class Overlap(ValueError):
+    """A record outside the indexed chunks that runs into one: the chunk index cannot be
+    trusted."""
+
+
+def unindexed_spans(
+    stream: IO[bytes], indexed: Sequence[Span], declared: Declarations, start: int
+) -> list[Span]:
+    """The spans of a file's messages outside the chunks its chunk index lists: messages written
+    outside chunks (MCAP allows them beside indexed chunks, and the ``mcap`` library's indexed
+    reader never reads them) and chunks the index leaves out. Found by reading the stretches of
+    the data section between the indexed chunks (from ``start``, after the header, to the data
+    end record) a record at a time, each bounded as :func:`span_records` bounds it; the others
+    there (message indexes, metadata, attachments) are skipped unread. Schemas and channels
+    declared there are added to ``declared``.
+
+    Raises:
+        Overlap: a record there runs into an indexed chunk.
+        Redeclared: a schema or channel declared again differently.
+        Exception: as :func:`span_records`.
+    """
+    scan = SpanScan()
+    wanted = MESSAGE_RECORDS | {Opcode.DATA_END}
+    chunks = sorted(indexed, key=lambda s: s.offset)
+    at = start
+    for k in range(len(chunks) + 1):
+        until = chunks[k].offset if k < len(chunks) else None
+        if until is None or until > at:
+            stream.seek(at)
+            for offset, record in read_records(stream, wanted, end=until):
+                if isinstance(record, DataEnd):
+                    return scan.spans()
+                if until is not None and stream.tell() > until:
+                    raise Overlap(
+                        f"the record at byte {offset} runs into the chunk at byte {until} that "
+                        "the chunk index lists"
+                    )
+                inner = unpack_chunk(record) if isinstance(record, Chunk) else [record]
+                for item in inner:
+                    if not isinstance(item, Message):
+                        declared.add(item)
+                scan.add(offset, stream.tell(), [m for m in inner if isinstance(m, Message)])
+        scan.cut()  # a span never spans an indexed chunk: it would be read twice
+        if until is not None:
+            at = max(at, chunks[k].end)
+    return scan.spans()
 
 
 def check_overlap(spans: Iterable[Span], limit: int | None = None) -> None:

@@ -5,6 +5,11 @@ A file that does not end in the MCAP magic (cut short by a crash, or still being
 past the bound or unreadable (:mod:`service.logs.mcaprecords`), raises :class:`DamagedLog`,
 whose message says to run ``rlutf log recover``. Callers at the command line turn
 :class:`LogError` into an exit code; nothing here prints or exits.
+
+Every message is read or counted: those outside the chunks a chunk index lists are read in
+order with the others (:func:`~service.logs.mcaporder.unindexed_spans`), and those on channels
+without a schema, whose content cannot be told, are counted per topic as they are met
+(:meth:`LogFile.read_counts`), for an audit to say it could not read them.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from service.logs.mcaporder import (
     MESSAGE_RECORDS,
     Declarations,
     OffIndex,
+    Overlap,
     Redeclared,
     Span,
     SpanScan,
@@ -34,6 +40,7 @@ from service.logs.mcaporder import (
     Unordered,
     chunk_span,
     ordered,
+    unindexed_spans,
 )
 from service.logs.mcaprecords import (
     RecordError,
@@ -139,7 +146,9 @@ def map_topic(topic: str) -> tuple[str, str] | None:
 
 def _lists_every_channel(summary: Summary) -> bool:
     """Whether a summary lists every channel its statistics and chunk indexes name (and some
-    channel if it counts messages): a writer may leave them out of it (``repeat_channels``)."""
+    channel if it counts messages), and the schema of every channel it lists: a writer may
+    leave them out of it (``repeat_channels``, ``repeat_schemas``), and a channel whose schema
+    it leaves out would be taken for one without a schema."""
     listed = set(summary.channels)
     stats = summary.statistics
     named = set(stats.channel_message_counts) if stats is not None else set()
@@ -147,7 +156,8 @@ def _lists_every_channel(summary: Summary) -> bool:
         named.update(chunk.message_index_offsets)
     if stats is not None and stats.message_count > 0 and not listed:
         return False
-    return named <= listed
+    schemas = {c.schema_id for c in summary.channels.values()} - {0}
+    return named <= listed and schemas <= set(summary.schemas)
 
 
 def _unreadable(what: str, err: Exception) -> str:
@@ -192,6 +202,9 @@ class LogFile:
         self.path = Path(path)
         self._scanned: tuple[list[Span], Declarations] | None = None  # see _scan_index
         self._summary: Summary | None = None  # read once, by _check
+        self._unindexed: list[Span] | None = None  # messages outside the indexed chunks
+        self._read: dict[tuple[str, str], int] = {}  # see read_counts
+        self._read_schemas: set[str] | None = set()  # None: all
         try:
             self._stream: IO[bytes] = open_regular(self.path)  # closed in close()
         except OSError as err:
@@ -299,6 +312,10 @@ class LogFile:
                     inflated_size(_declared_chunk(index))  # refused before any is read
                 spans = [chunk_span(index) for index in summary.chunk_indexes]
                 declared = Declarations(summary.schemas, summary.channels)
+                if self._unindexed is None:
+                    with open_regular(self.path) as stream:
+                        self._unindexed = unindexed_spans(stream, spans, declared, len(MAGIC))
+                spans += self._unindexed
             else:
                 if self._scanned is None:
                     self._scan_index(summary)
@@ -313,7 +330,7 @@ class LogFile:
             raise UnorderedLog(self.path, str(err)) from err
         except Redeclared as err:
             raise RedeclaredLog(self.path, str(err)) from err
-        except OffIndex as err:
+        except (OffIndex, Overlap) as err:
             raise DamagedLog(self.path, str(err)) from err
         except Exception as err:  # CRC mismatch, zstd error, short read ...
             raise DamagedLog(self.path, _unreadable("chunk", err)) from err
@@ -387,6 +404,9 @@ class LogFile:
     def messages(self, schema_names: Collection[str] | None = None) -> Iterator[Record]:
         """Messages in ``log_time`` order (file order among equal times).
 
+        Messages on channels without a schema are read too, and counted, not given (unless
+        ``schema_names`` is ``None``): what they hold cannot be told (:meth:`read_counts`).
+
         Args:
             schema_names: only channels with these schema names (all if ``None``).
 
@@ -396,16 +416,41 @@ class LogFile:
                 memory (refused before the first one).
             RedeclaredLog: a channel or schema id is declared twice, differently.
         """
+        read: dict[tuple[str, str], int] = {}
         topics = None
         if schema_names is not None:
-            topics = sorted({c.topic for c in self.channels() if c.schema_name in schema_names})
-            if not topics:
-                return
-        for schema, channel, message in self._iter(topics):
-            name = schema.name if schema is not None else ""
-            if schema_names is not None and name not in schema_names:
-                continue
-            yield Record(channel.topic, name, message.data, message.log_time, message.publish_time)
+            wanted = {*schema_names, ""}
+            topics = sorted({c.topic for c in self.channels() if c.schema_name in wanted})
+        if topics != []:
+            for schema, channel, message in self._iter(topics):
+                name = schema.name if schema is not None else ""
+                key = (channel.topic, name)
+                if schema_names is not None and name not in schema_names:
+                    if not name:
+                        read[key] = read.get(key, 0) + 1
+                    continue
+                read[key] = read.get(key, 0) + 1
+                yield Record(
+                    channel.topic, name, message.data, message.log_time, message.publish_time
+                )
+        covered = None if schema_names is None else {*schema_names, ""}
+        self._tally(covered, read)
+
+    def _tally(self, covered: set[str] | None, read: dict[tuple[str, str], int]) -> None:
+        """Keep what a reading through of the schemas ``covered`` (all: ``None``) read."""
+        if covered is None:
+            self._read, self._read_schemas = dict(read), None
+            return
+        kept = {k: n for k, n in self._read.items() if k[1] not in covered}
+        self._read = kept | read
+        if self._read_schemas is not None:
+            self._read_schemas |= covered
+
+    def read_counts(self) -> tuple[dict[tuple[str, str], int], set[str] | None]:
+        """The messages read per topic and schema name (``""``: a channel without a schema) by
+        the last reading through of :meth:`messages` for each schema, and the schema names
+        those cover (``None``: every one). Empty until one has been read through."""
+        return dict(self._read), None if self._read_schemas is None else set(self._read_schemas)
 
     def close(self) -> None:
         """Close the file."""

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcap.writer import Writer as McapLibWriter
 
 from rlutf.map import Map as World
 from rlutf.sim import LidarModel, make_building, simulate_scan
@@ -57,6 +58,27 @@ def simulated_inputs(
         )
         plan = replace(plan, robots=robots)
     return list(fleet_records(JsonWire(plan, Keys(prefix)), steps, T0, STEP_NS))
+
+
+def add_outside_chunks(
+    writer: McapLibWriter, channel: int, log_time: int, data: bytes, publish_time: int
+) -> None:
+    """Write a message with the ``mcap`` library's chunked writer outside any chunk, as MCAP
+    allows beside indexed chunks (after the chunk in progress, which is closed first)."""
+    writer.flush()
+    builder = writer._Writer__chunk_builder  # type: ignore[attr-defined]
+    writer._Writer__chunk_builder = None  # type: ignore[attr-defined]
+    try:
+        writer.add_message(channel, log_time, data, publish_time)
+    finally:
+        writer._Writer__chunk_builder = builder  # type: ignore[attr-defined]
+
+
+def unindex_last_chunk(writer: McapLibWriter) -> None:
+    """Close the ``mcap`` library writer's chunk in progress and leave it out of the file's chunk
+    index, as a writer that loses track of a chunk (or a hand that removes its index) would."""
+    writer.flush()
+    writer._Writer__chunk_indices.pop()  # type: ignore[attr-defined]
 
 
 def write_log(

@@ -120,6 +120,12 @@ def test_a_log_whose_summary_lists_no_channels_is_read_and_audited(
     # and without statistics either: read through
     nostats = _rewrite(recorded, tmp_path / "nostats.mcap", 1.0, use_statistics=False, **bare)
     assert main(["replay", str(nostats), "--quiet", "--jobs", "1"]) == 1
+    # its channels listed but not their schemas: every channel was taken for one without a
+    # schema, and the log for another tool's ("not an rlutf log", exit 2)
+    noschemas = _rewrite(recorded, tmp_path / "noschemas.mcap", repeat_schemas=False)
+    with LogFile(recorded) as a, LogFile(noschemas) as b:
+        assert b.channels() == a.channels()
+    assert main(["replay", str(noschemas), "--quiet", "--jobs", "1"]) == 0
 
 
 @pytest.mark.parametrize(
@@ -332,3 +338,25 @@ def test_logs_read_together_each_keep_their_own_channel_ids(tmp_path: Path) -> N
             log.close()
     a, b = ("rlutf/robots/r1/events", "a"), ("rlutf/robots/r2/events", "b")
     assert read == [a, b, a, b, a, b]
+
+
+def test_messages_on_channels_without_a_schema_are_counted_not_given(tmp_path: Path) -> None:
+    """What a channel without a schema holds cannot be told: a reader of some schemas does not
+    get its messages, but counts them per topic (an audit says it could not read them)."""
+    path = tmp_path / "bare.mcap"
+    with open(path, "wb") as out:
+        writer = McapWriter(out)
+        writer.start("another writer", "")
+        schema = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
+        events = writer.register_channel("rlutf/robots/r1/events", "json", schema)
+        bare = writer.register_channel("rlutf/robots/r2/scan", "json", 0)
+        for t in range(5):
+            writer.add_message(events if t % 2 else bare, t, b"{}", t)
+        writer.finish()
+    with LogFile(path) as log:
+        assert log.read_counts() == ({}, set())  # nothing read yet
+        assert [r.topic for r in log.messages({"rlutf.Event"})] == ["rlutf/robots/r1/events"] * 2
+        counts = {("rlutf/robots/r1/events", "rlutf.Event"): 2, ("rlutf/robots/r2/scan", ""): 3}
+        assert log.read_counts() == (counts, {"rlutf.Event", ""})
+        assert [r.schema_name for r in log.messages()].count("") == 3
+        assert log.read_counts() == (counts, None)

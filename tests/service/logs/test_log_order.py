@@ -18,6 +18,7 @@ from mcap.reader import make_reader
 from mcap.records import Footer
 from mcap.writer import IndexType
 from mcap.writer import Writer as McapWriter
+from mcaplog_fixtures import add_outside_chunks, unindex_last_chunk
 
 from service.cli.main import main
 from service.logs import mcaporder
@@ -34,6 +35,10 @@ LAYOUTS: dict[str, dict[str, Any]] = {
         "repeat_schemas": False,
     },
     "unchunked": {"use_chunking": False},
+    # indexed chunks and, beside them, every third message outside any chunk
+    "outside chunks": {"outside": 3},
+    # every other chunk left out of the chunk index
+    "unindexed chunks": {"unindexed": 2},
 }
 PAYLOAD = json.dumps({"pad": "x" * 2000}).encode()
 
@@ -41,8 +46,10 @@ PAYLOAD = json.dumps({"pad": "x" * 2000}).encode()
 def _write(path: Path, times: list[int], layout: str, chunk_size: int = 200_000) -> Path:
     """A file by the ``mcap`` library's writer with a message at each of ``times``, in that order,
     on two channels in turn; each message's payload says where it is in the file."""
+    options = dict(LAYOUTS[layout])
+    outside, unindexed = options.pop("outside", 0), options.pop("unindexed", 0)
     with open(path, "wb") as out:
-        writer = McapWriter(out, chunk_size=chunk_size, **LAYOUTS[layout])
+        writer = McapWriter(out, chunk_size=chunk_size, **options)
         writer.start("another writer", "")
         schema = writer.register_schema("rlutf.Event", "jsonschema", b"{}")
         channels = [
@@ -50,7 +57,12 @@ def _write(path: Path, times: list[int], layout: str, chunk_size: int = 200_000)
         ]
         for i, t in enumerate(times):
             payload = PAYLOAD if len(times) > 1000 else json.dumps({"at": i}).encode()
-            writer.add_message(channels[i % 2], t, payload, t)
+            if outside and i % outside == 0:
+                add_outside_chunks(writer, channels[i % 2], t, payload, t)
+            else:
+                writer.add_message(channels[i % 2], t, payload, t)
+            if unindexed and i % (unindexed * 40) == 0:
+                unindex_last_chunk(writer)
         writer.finish()
     return path
 
@@ -72,12 +84,15 @@ def _blocks_reversed(n: int, block: int) -> list[int]:
     return [1000 + i for b in range(0, n, block) for i in reversed(range(b, min(n, b + block)))]
 
 
-@pytest.mark.parametrize("layout", ["no summary", "unchunked"])
+@pytest.mark.parametrize(
+    "layout", ["no summary", "unchunked", "outside chunks", "unindexed chunks"]
+)
 def test_a_log_without_a_chunk_index_out_of_order_is_read_holding_a_few_spans(
     layout: str, tmp_path: Path
 ) -> None:
     """20 MB of messages, each hundred written backwards: 23 MB held before, 1.6 MB now (and for
-    ten times as many, 229 MB before, 1.5 MB now)."""
+    ten times as many, 229 MB before, 1.5 MB now). So are those outside the indexed chunks of a
+    file with a chunk index (which were not read at all)."""
     times = _blocks_reversed(10_000, 100)
     read, peak = _peak_reading(_write(tmp_path / "late.mcap", times, layout))
     assert read == sorted(times)
