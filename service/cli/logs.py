@@ -6,7 +6,9 @@ Exit codes:
   audit; recover: something was salvaged);
 * ``1``: the audit failed (a recorded pose of any run was not reproduced within the tolerance);
 * ``2``: an input is missing, not MCAP, truncated or damaged (the message says to run
-  ``rlutf log recover``), or the arguments or configuration are invalid. Given several
+  ``rlutf log recover``), or the arguments or configuration are invalid; or (replay) the
+  audit is incomplete: records of a run were not read (channels without a schema, what a
+  salvage lost, files of the run not given: ``service.logs.completeness``). Given several
   files, replay names each unreadable file or run and audits the others first; an audit
   that failed then still exits 1.
 
@@ -47,9 +49,12 @@ def register(sub: Any) -> None:
         "come: the memory it takes does not grow with the run). Scans the live service "
         "dropped under load (scan_dropped events) are dropped again. Prints a table per run "
         "and, for several runs, one line per run. Exit 1 when a recorded pose of any run "
-        "deviates beyond the tolerance, 2 when an input cannot be read (a file with no "
-        "rlutf message in it, such as a rosbag2 recording given without --ros2, is named "
-        "with the command that reads it).",
+        "deviates beyond the tolerance or a file does not hold what its recorder listed in it "
+        "(rlutf.manifest), 2 when an input cannot be read (a file with no rlutf message in "
+        "it, such as a rosbag2 recording given without --ros2, is named with the command that "
+        "reads it) or a run cannot be read whole (audit: incomplete: messages on channels "
+        "without a schema, what rlutf log recover could not salvage, files of the run not "
+        "given; each named).",
     )
     replay.add_argument(
         "inputs",
@@ -127,7 +132,9 @@ def register(sub: Any) -> None:
     info = lsub.add_parser(
         "info",
         help="channels, counts, time range, robots, maps",
-        description="Describe logs. One file: its run, channels, time range, robots, maps. "
+        description="Describe logs. One file: its run, channels, time range, robots, maps, "
+        "and what of it cannot be read (messages on channels without a schema, what a salvage "
+        "lost) or differs from what its recorder listed in it (rlutf.manifest). "
         "Several files (e.g. logs/*.mcap): grouped by run (metadata rlutf.run; files without "
         "it form one run), per run its files in sequence order, time range, robots and maps; "
         'with --json an object {"runs": [...], "unreadable": [...]}. Exit 2 if a file cannot '
@@ -143,7 +150,9 @@ def register(sub: Any) -> None:
         help="repair a log cut short by a crash",
         description="Copy every complete chunk (schemas, channels, messages) and every metadata "
         "record (rlutf.run included) of a truncated or damaged MCAP file, such as a .mcap.part "
-        "left by a crash, into a new valid file. Several inputs, or an existing folder OUT: OUT "
+        "left by a crash, into a new valid file, with an rlutf.recovered metadata record that "
+        "says what it could not copy (rlutf replay and rlutf log info read it). Several inputs, "
+        "or an existing folder OUT: OUT "
         "is a folder (created if missing) that gets each one under its name without .part; the "
         "recovered files are listed by run. Exit 2 if an input is not MCAP, or declares a channel "
         "or schema id twice (differently), or nothing could be recovered from it (after "
@@ -210,7 +219,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def _replay_runs(args: argparse.Namespace) -> int:
     from service.cli.runaudit import replay_one, report
-    from service.logs.audit import UNREADABLE, render_verdicts, run_verdict, verdict_line
+    from service.logs.audit import (
+        INCOMPLETE,
+        UNREADABLE,
+        render_verdicts,
+        run_verdict,
+        verdict_line,
+    )
     from service.logs.mcapread import LogError
     from service.logs.replayconfig import ReplayConfigError
     from service.logs.runs import group_runs, log_files, run_outputs
@@ -258,11 +273,6 @@ def _replay_runs(args: argparse.Namespace) -> int:
             if len(runs) > 1:
                 console.rule(f"run {k} of {len(runs)}: {run.label}")
                 console.print(f"files: {' '.join(str(f) for f in run.files)}")
-            if run.missing:
-                console.print(
-                    f"[yellow]run {run.run_id}: file(s) {', '.join(map(str, run.missing))} "
-                    "of the run not given: poses after a missing file may not reproduce[/yellow]"
-                )
             label = "replaying" if len(runs) == 1 else f"replaying run {k}/{len(runs)}"
             try:
                 result = replay_one(args, run.files, out if args.kept else None, label)
@@ -288,7 +298,7 @@ def _replay_runs(args: argparse.Namespace) -> int:
         console.print(verdict_line(verdicts, len(unreadable) + crashed, recording))
     if any(v.result == "FAILED" for v in verdicts):
         return EXIT_AUDIT_FAILED
-    if unreadable or crashed or any(v.result == UNREADABLE for v in verdicts):
+    if unreadable or crashed or any(v.result in (UNREADABLE, INCOMPLETE) for v in verdicts):
         return EXIT_BAD_INPUT
     return EXIT_OK
 

@@ -79,6 +79,8 @@ def report(
 ) -> Any:
     """Print one run's replay and audit (run ``k`` of ``n`` = ``place``); its line for the
     final summary."""
+    from rich.markup import escape
+
     from service.logs import audit
 
     k, n = place
@@ -111,29 +113,51 @@ def report(
     tol_rad = args.heading_tolerance if args.heading_tolerance is not None else tol_m
     audits = audit.audit_match(result.match)
     poses = result.match.recorded_total
+    whole = result.completeness
     if (gap := audit.gap_note(audits, result.gap_ns)) is not None:
         console.print(f"[yellow]{gap}[/yellow]", soft_wrap=True)
-    if not audits and not result.unreadable_poses:
+    empty = not audits and not result.unreadable_poses
+    for kind, text in whole.notes():
+        if kind != "note" or not empty:  # a note qualifies an audit: none, none to qualify
+            colour = {"altered": "red", "incomplete": "bold yellow"}.get(kind, "yellow")
+            console.print(f"[{colour}]{escape(text)}[/{colour}]", soft_wrap=True)
+    if empty and not whole.incomplete and not whole.altered:
         console.print("no recorded poses in the input: nothing to audit")
         return audit.run_verdict(run, out, 0, poses, "nothing to audit")
-    if not audits:  # every recorded pose is unreadable: none could be checked
+    affected = whole.affected() if whole.incomplete else frozenset()
+    marked = {a.robot for a in audits} if affected is None else affected
+    if audits:
+        audit.render(audits, tol_m, tol_rad, console, args.strict, heading, marked)
+    elif result.unreadable_poses:  # every recorded pose is unreadable: none could be checked
         console.print(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates, and no "
             "other pose was recorded: none could be checked[/red]"
         )
-        console.print("audit: [bold red]FAILED[/bold red]")
-        return audit.run_verdict(run, out, 0, poses, "FAILED")
-    audit.render(audits, tol_m, tol_rad, console, args.strict, heading)
-    ok = audit.all_passed(audits, tol_m, tol_rad, args.strict) and result.unreadable_poses == 0
-    if result.unreadable_poses:
+    failed = [
+        a for a in audits if a.robot not in marked and not a.passed(tol_m, tol_rad, args.strict)
+    ]
+    if result.unreadable_poses and audits:
         console.print(
             f"[red]{result.unreadable_poses} recorded poses are not valid PoseEstimates[/red]"
         )
-    console.print("audit: [green]passed[/green]" if ok else "audit: [bold red]FAILED[/bold red]")
-    note = None if ok else audit.version_note(run.files)
-    if note is not None:
-        console.print(f"[yellow]{note}[/yellow]")
-    return audit.run_verdict(run, out, len(audits), poses, "passed" if ok else "FAILED")
+    if failed or whole.altered or result.unreadable_poses:
+        verdict = "FAILED"
+        console.print("audit: [bold red]FAILED[/bold red]")
+        note = audit.version_note(run.files) if failed else None
+        if note is not None:
+            console.print(f"[yellow]{note}[/yellow]")
+    elif whole.incomplete:
+        verdict = audit.INCOMPLETE
+        console.print(
+            "audit: [bold yellow]incomplete[/bold yellow]: records of the log were not read "
+            "(above), so the audit can neither pass it nor find it altered"
+            + ("; the other robots passed" if len(marked) < len(audits) else ""),
+            soft_wrap=True,
+        )
+    else:
+        verdict = "passed"
+        console.print("audit: [green]passed[/green]")
+    return audit.run_verdict(run, out, len(audits), poses, verdict)
 
 
 def bag_report(summary: Any) -> str:

@@ -4,7 +4,8 @@
 ``mcapchunks`` and ``mcaporder``: records, chunks and order, each within a bound),
 ``recording`` (the recorder protocol the live service holds) and ``mcaplog`` (the MCAP
 recorder), ``foxglove`` (views of the logged messages), ``runs`` (which files belong to one
-run: ``rlutf.run``), ``partfile`` (unfinished ``.mcap.part`` logs),
+run: ``rlutf.run``), ``partfile`` (unfinished ``.mcap.part`` logs), ``manifest`` (the records
+``rlutf.manifest`` and ``rlutf.recovered``), ``completeness`` (what of a run was not read),
 ``replay`` and ``replayconfig`` (the engine over one run's inputs), ``audit`` and ``plots``
 (recorded against recomputed poses), ``logtools`` (``rlutf log info``), ``salvage`` (``rlutf log
 recover``), ``mcapmaps`` (scans with known poses, for ``rlutf map build``).

@@ -25,7 +25,7 @@ Where the log holds no poses at all there is nothing to audit.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -47,6 +47,9 @@ last recorded one was "unverified", however early: a log with all of one robot's
 deleted (or all from some hour on) audited as passed."""
 UNREADABLE = "unreadable"
 """A run's result when one of its files could not be read."""
+INCOMPLETE = "incomplete"
+"""A run's result when records of it were not read (:mod:`service.logs.completeness`): no
+alarm, and no pass either."""
 
 
 @dataclass(frozen=True)
@@ -168,8 +171,10 @@ def render(
     console: Console,
     strict: bool = False,
     heading: str = "Audit",
+    incomplete: Collection[str] = (),
 ) -> None:
-    """Print the per-robot table, titled ``heading`` (e.g. which run)."""
+    """Print the per-robot table, titled ``heading`` (e.g. which run); the robots
+    ``incomplete`` (whose records were not all read) are marked so, whatever their poses."""
     table = Table(
         title=f"{heading}: recorded vs recomputed poses (tolerance {tolerance_m:g} m, "
         f"{tolerance_rad:g} rad)"
@@ -189,8 +194,10 @@ def render(
         "result",
     ):
         table.add_column(name, justify="left" if name == "robot" else "right")
+    table.columns[-1].min_width = len("incomplete") if incomplete else None
     for a in audits:
         ok = a.passed(tolerance_m, tolerance_rad, strict)
+        result = "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]"
         table.add_row(
             a.robot,
             str(a.matched),
@@ -203,7 +210,7 @@ def render(
             f"{a.rms_translation:.3g}",
             f"{a.max_heading:.3g}",
             f"{a.rms_heading:.3g}",
-            "[green]ok[/green]" if ok else "[bold red]FAIL[/bold red]",
+            "[yellow]incomplete[/yellow]" if a.robot in incomplete else result,
         )
     console.print(table)
     for a in audits:
@@ -227,7 +234,8 @@ class RunVerdict:
         files: its files.
         robots: robots audited.
         poses: recorded poses compared.
-        result: ``passed``, ``FAILED``, ``nothing to audit`` or :data:`UNREADABLE`.
+        result: ``passed``, ``FAILED``, ``nothing to audit``, :data:`INCOMPLETE` or
+            :data:`UNREADABLE`.
         out: the run's replay output.
     """
 
@@ -243,7 +251,8 @@ class RunVerdict:
 def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int, recording: int = 0) -> str:
     """The last line of an audit over several runs (or files); ``recording``: unfinished logs
     of the folders given that are being recorded now (not audited, not a fault)."""
-    counts = {r: sum(v.result == r for v in verdicts) for r in ("passed", "FAILED", UNREADABLE)}
+    kinds = ("passed", "FAILED", UNREADABLE, INCOMPLETE)
+    counts = {r: sum(v.result == r for v in verdicts) for r in kinds}
     empty = len(verdicts) - sum(counts.values())
     later = f"; {recording} log(s) being recorded, not audited" if recording else ""
     if counts["FAILED"]:
@@ -251,11 +260,15 @@ def verdict_line(verdicts: Sequence[RunVerdict], unreadable_files: int, recordin
             f"audit: [bold red]FAILED[/bold red] ({counts['FAILED']} of {len(verdicts)} runs)"
             + later
         )
-    if counts[UNREADABLE] or unreadable_files:
+    if counts[UNREADABLE] or unreadable_files or counts[INCOMPLETE]:
+        parts = [f"{counts[INCOMPLETE]} run(s) not read whole"] if counts[INCOMPLETE] else []
+        if counts[UNREADABLE] or unreadable_files:
+            parts.append(
+                f"{counts[UNREADABLE]} run(s) and {unreadable_files} file(s) could not be read"
+            )
         return (
-            f"audit: [bold red]incomplete[/bold red]: {counts[UNREADABLE]} run(s) and "
-            f"{unreadable_files} file(s) could not be read; {counts['passed']} run(s) passed"
-            + later
+            f"audit: [bold red]incomplete[/bold red]: {'; '.join(parts)}; "
+            f"{counts['passed']} run(s) passed" + later
         )
     if not counts["passed"]:
         return f"audit: nothing to audit in {len(verdicts)} runs" + later

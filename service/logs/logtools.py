@@ -8,14 +8,16 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
+from service.logs.completeness import Completeness, FileCheck, check_file, completeness
 from service.logs.mcapread import (
     ChannelInfo,
     LogError,
@@ -45,6 +47,9 @@ class LogInfo:
     foreign: str | None = None
     """Why the file is no rlutf log (:func:`service.logs.runs.foreign`: a rosbag2 recording,
     another tool's MCAP), with the command that reads it; ``None`` for an rlutf log."""
+    check: FileCheck | None = field(default=None, repr=False)
+    """What it holds that could not be read, and how it compares with its ``rlutf.manifest``
+    (:mod:`service.logs.completeness`)."""
 
     @property
     def messages(self) -> int:
@@ -52,17 +57,30 @@ class LogInfo:
         return sum(c.messages for c in self.channels)
 
     def to_json(self) -> dict[str, Any]:
-        """JSON-ready data (``rlutf log info --json``)."""
-        data = asdict(self)
+        """JSON-ready data (``rlutf log info --json``): with ``unread`` (messages per topic on
+        channels without a schema), ``recovered`` (its ``rlutf.recovered`` records) and
+        ``manifest`` (``null`` without one, else ``{"last", "differs": [[topic, schema, listed,
+        read], ...]}``)."""
+        check = self.check
+        data = asdict(replace(self, check=None))
+        del data["check"]
         data["channels"] = [c._asdict() for c in self.channels]
         data["messages"] = self.messages
+        data["unread"] = dict(check.unread) if check is not None else {}
+        data["recovered"] = [r.to_metadata() for r in check.recovered] if check else []
+        manifest = check.manifest if check is not None else None
+        data["manifest"] = None
+        if check is not None and manifest is not None:
+            data["manifest"] = {"last": manifest.last, "differs": [list(d) for d in check.differs]}
         return data
 
 
 def log_info(path: Path) -> LogInfo:
     """Channels, counts, time range, robots, maps and configuration of a log.
 
-    Every chunk is read (and its CRC checked), so a damaged file is reported. ``run`` is the
+    Every chunk is read (and its CRC checked), so a damaged file is reported, and so are the
+    messages it holds that cannot be read (on channels without a schema) and how it compares
+    with its ``rlutf.manifest`` (``check``). ``run`` is the
     file's ``rlutf.run`` metadata. A file the recorder opened after rotating starts with the
     maps recorded before it, at their original ``log_time``: those are counted in
     ``carried_maps`` and left out of ``time_range``, which spans the file's own messages.
@@ -116,6 +134,7 @@ def log_info(path: Path) -> LogInfo:
             carried,
             lf.library(),
             foreign(lf),
+            check_file(lf, tag),
         )
 
 
@@ -181,6 +200,17 @@ def render_info(info: LogInfo, console: Console) -> None:
         console.print(f"map {map_id}: version(s) {', '.join(map(str, versions))}")
     if info.foreign is not None:
         console.print(f"[yellow]{info.foreign}[/yellow]", soft_wrap=True)
+    if info.check is not None:
+        tag = RunTag.from_metadata(info.run) if info.run is not None else None
+        _render_notes(completeness([info.check], [tag]), console, run=False)
+
+
+def _render_notes(whole: Completeness, console: Console, run: bool = True) -> None:
+    """What the files hold that was not read, or not what their manifests list (and, with
+    ``run``, the run's files not given)."""
+    for kind, text in whole.notes(run):
+        colour = {"altered": "red", "incomplete": "bold yellow"}.get(kind, "yellow")
+        console.print(f"[{colour}]{escape(text)}[/{colour}]", soft_wrap=True)
 
 
 @dataclass
@@ -209,6 +239,13 @@ class RunInfo:
         return dict(sorted(out.items()))
 
     @property
+    def completeness(self) -> Completeness:
+        """What the run's files hold that was not read, how they compare with their
+        manifests, and the run's files not given."""
+        checks = [f.check or FileCheck(Path(f.path), None) for f in self.files]
+        return completeness(checks, self.run.tags)
+
+    @property
     def maps(self) -> dict[str, list[int]]:
         """Versions per map id over the files."""
         out: dict[str, set[int]] = defaultdict(set)
@@ -225,6 +262,8 @@ class RunInfo:
             "instance": self.run.instance,
             "started_ns": first.started_ns if first is not None else None,
             "missing_files": self.run.missing,
+            "skipped_files": self.run.skipped,
+            "notes": [{"kind": k, "text": t} for k, t in self.completeness.notes()],
             "time_range": self.time_range,
             "messages": sum(f.messages for f in self.files),
             "robots": self.robots,
@@ -277,10 +316,6 @@ def render_runs(runs: Sequence[RunInfo], console: Console) -> None:
         if span is not None:
             start, end = span
             console.print(f"time: {_when(start)} .. {_when(end)}  ({(end - start) / 1e9:.3f} s)")
-        if run.missing:
-            console.print(
-                f"[yellow]file(s) {', '.join(map(str, run.missing))} of the run not given[/yellow]"
-            )
         table = Table(title=f"files of run {k}")
         for name in ("file #", "file", "bytes", "messages", "from", "to", "carried maps"):
             table.add_column(name, justify="left" if name == "file" else "right")
@@ -299,6 +334,7 @@ def render_runs(runs: Sequence[RunInfo], console: Console) -> None:
         _render_robots(info.robots, console, f"robots of run {k}")
         for map_id, versions in info.maps.items():
             console.print(f"map {map_id}: version(s) {', '.join(map(str, versions))}")
+        _render_notes(info.completeness, console)
 
 
 def _render_robots(robots: dict[str, dict[str, int]], console: Console, title: str) -> None:

@@ -23,6 +23,7 @@ from functools import cache
 from importlib import metadata, resources
 from typing import IO, Any, NamedTuple
 
+from service.logs.manifest import MANIFEST_METADATA, Manifest
 from service.logs.mcapwriter import McapWriter
 
 MESSAGE_ENCODING = "json"
@@ -142,6 +143,11 @@ class LogWriter:
         """Messages written."""
         return sum(self._writer.counts.values())
 
+    def counts(self) -> dict[tuple[str, str], int]:
+        """Messages written per topic and schema name."""
+        written = self._writer.counts
+        return {key: written.get(channel, 0) for key, channel in self._channels.items()}
+
     def _channel(self, topic: str, schema_name: str) -> int:
         key = (topic, schema_name)
         channel = self._channels.get(key)
@@ -191,6 +197,14 @@ class LogWriter:
         """Store one metadata record."""
         self._writer.add_metadata(name, dict(data))
         self.dirty = True
+
+    def write_manifest(self, run_id: str, sequence: int, last: bool) -> None:
+        """Close the open chunk, then store the ``rlutf.manifest`` of everything written (see
+        :mod:`service.logs.manifest`): the last record before :meth:`finish`, so that a file
+        cut short before its end has none rather than one that lists messages it lost."""
+        self.flush()
+        manifest = Manifest.of(self, run_id, sequence, last)
+        self.write_metadata(MANIFEST_METADATA, manifest.to_metadata())
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the stream (no fsync)."""

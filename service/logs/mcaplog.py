@@ -28,8 +28,12 @@ messages the gap holds, and the run's file numbers skip one there, so the log to
 Every file also holds the ``rlutf.run`` metadata (:mod:`service.logs.runs`): the recorder's run id
 (new for every recorder, that is every start of the service), the instance, when the recorder
 started and the file's sequence number within the run (0, 1, 2 ... as files rotate; the number
-in the file name counts from 1 and skips names already taken), so the log tools can tell which
-files of a folder belong together.
+in the file name counts from 1 and skips names already taken) and the number of the file opened
+before it (``follows``), so the log tools can tell which files of a folder belong together, and
+which numbers are recording gaps rather than files left out. As it finishes a file it writes the
+``rlutf.manifest`` metadata (:mod:`service.logs.manifest`): the file's messages per topic and
+whether the run ended with it; a run that stops with no file open (the last one rotated) ends
+with a file of its maps alone, so that the run's end is in its files.
 """
 
 from __future__ import annotations
@@ -76,6 +80,8 @@ class _OpenFile(NamedTuple):
     stream: IO[bytes]
     writer: LogWriter
     opened: float  # time.monotonic()
+    sequence: int = 0  # within the run
+    follows: int | None = None  # the run's file opened before it
 
 
 class McapRecorder:
@@ -129,6 +135,7 @@ class McapRecorder:
         self._file: _OpenFile | None = None
         self._sequence = 0
         self._opened = 0  # files opened: the next file's sequence number within the run
+        self._previous: int | None = None  # the sequence number of the file opened last
         self.run_id = new_run_id()
         """This recorder's run (``rlutf.run`` metadata of every file it writes)."""
         self.started_ns = time.time_ns()
@@ -233,7 +240,7 @@ class McapRecorder:
         try:
             if self._unreported:
                 self._report_overflow()
-            self._finish()
+            self._end_run()
         except Exception:
             self.errors += 1
             log.exception("finishing the log failed")
@@ -280,13 +287,14 @@ class McapRecorder:
         """A write failed: the file is left as it is (an empty one removed), and no file is
         opened for :data:`RETRY_S`; the first failure of a series is logged and reported."""
         self.errors += 1
-        part = self._file.part if self._file is not None else None
+        f = self._file
         self._abandon()
-        if part is not None:
+        if f is not None:
             with contextlib.suppress(OSError):
-                if part.stat().st_size == 0:
-                    part.unlink()
+                if f.part.stat().st_size == 0:
+                    f.part.unlink()
                     self._sequence -= 1  # its number goes to the next file that opens
+                    self._previous = f.follows  # and the run's next file follows the one before
         self._retry_at = time.monotonic() + RETRY_S
         if self._failing is not None:
             log.debug("recording failed again", exc_info=True)
@@ -352,11 +360,19 @@ class McapRecorder:
         """The open file's writer; a new file if none is open, whose first own message is
         logged at ``first_ns``."""
         if self._file is None:
-            self._file = self._open()
+            self._file = self._open()._replace(sequence=self._opened, follows=self._previous)
             writer = self._file.writer
             if self._config is not None:
                 writer.write_config(self._config)
-            tag = RunTag(self.run_id, self.instance or "", self.started_ns, self._opened, first_ns)
+            tag = RunTag(
+                self.run_id,
+                self.instance or "",
+                self.started_ns,
+                self._opened,
+                first_ns,
+                self._previous,
+            )
+            self._previous = self._opened
             self._opened += 1
             writer.write_metadata(RUN_METADATA, tag.to_metadata())
             writer.write_all(self._maps.values())
@@ -411,7 +427,14 @@ class McapRecorder:
         if f.stream.tell() >= self.max_bytes or time.monotonic() - f.opened >= self.max_seconds:
             self._finish()
 
-    def _finish(self) -> None:
+    def _end_run(self) -> None:
+        """Finish the open file as the run's last; with none open (the last one rotated, no
+        message since), a file of the run's maps alone says where the run ended."""
+        if self._file is None and self.files and self._failing is None:
+            self._writer(time.time_ns())
+        self._finish(last=True)
+
+    def _finish(self, last: bool = False) -> None:
         f = self._file
         if f is None:
             return
@@ -419,6 +442,7 @@ class McapRecorder:
             self._resumed()  # the gap is marked in the file before it is finished
         self._file = None
         try:
+            f.writer.write_manifest(self.run_id, f.sequence, last)
             f.writer.finish()
             f.stream.flush()
             os.fsync(f.stream.fileno())

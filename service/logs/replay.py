@@ -47,6 +47,7 @@ from schemas import (
 )
 from service.engine import FleetEngine
 from service.keys import Keys
+from service.logs.completeness import Completeness, check_run
 from service.logs.dropped import EVENT_SCHEMA, dropped_scans
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
@@ -129,6 +130,8 @@ class ReplayResult:
     rejected: int = 0
     unreadable_poses: int = 0
     out: Path | None = None
+    completeness: Completeness = field(default_factory=Completeness)
+    """What of the inputs was not read, and how they compare with their manifests."""
     gap_ns: int | None = None
     """When the first recording gap began (Event ``recording_resumed`` or ``recorder_overflow``):
     the log lacks inputs from then on, so poses after it cannot be recomputed as they were."""
@@ -420,10 +423,11 @@ def replay(
         try:
             converter = FoxgloveConverter() if foxglove else None
             writer = LogWriter(stream, converter, chunk_size) if stream is not None else None
+            run_id = new_run_id()
             if writer is not None:
                 writer.write_config(config.settings)
                 tag = RunTag(
-                    new_run_id(),
+                    run_id,
                     REPLAY_INSTANCE,
                     time.time_ns(),
                     0,
@@ -449,7 +453,9 @@ def replay(
                     progress(1)
             run.finish_health(last_ns)
             result.match.end_ns = last_ns
+            result.completeness = check_run(logs)
             if writer is not None and stream is not None:
+                writer.write_manifest(run_id, 0, last=True)
                 writer.finish()
                 stream.flush()
                 os.fsync(stream.fileno())

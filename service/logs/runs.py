@@ -45,6 +45,9 @@ class RunTag:
         sequence: the file's number within the run, from 0.
         opened_ns: ``log_time`` of the file's first own message (``None``: not recorded);
             maps logged before it were carried over from the run's earlier files.
+        follows: the sequence number of the run's file opened before this one (``None``: the
+            first file, or not recorded); the numbers between were taken by no file (the
+            recorder skips one where it could not write: a recording gap).
         extra: any other keys of the record (e.g. ``replayed_run``).
     """
 
@@ -53,6 +56,7 @@ class RunTag:
     started_ns: int
     sequence: int
     opened_ns: int | None = None
+    follows: int | None = None
     extra: tuple[tuple[str, str], ...] = ()
 
     def to_metadata(self) -> dict[str, str]:
@@ -65,6 +69,8 @@ class RunTag:
         }
         if self.opened_ns is not None:
             data["opened_ns"] = str(self.opened_ns)
+        if self.follows is not None:
+            data["follows"] = str(self.follows)
         data.update(self.extra)
         return data
 
@@ -78,11 +84,12 @@ class RunTag:
             started = int(data.get("started_ns", "0"))
             sequence = int(data.get("sequence", "0"))
             opened = int(data["opened_ns"]) if "opened_ns" in data else None
+            follows = int(data["follows"]) if "follows" in data else None
         except ValueError:
             return None
-        known = {"run_id", "instance", "started_ns", "sequence", "opened_ns"}
+        known = {"run_id", "instance", "started_ns", "sequence", "opened_ns", "follows"}
         extra = tuple(sorted((k, v) for k, v in data.items() if k not in known))
-        return cls(run_id, data.get("instance", ""), started, sequence, opened, extra)
+        return cls(run_id, data.get("instance", ""), started, sequence, opened, follows, extra)
 
 
 def new_run_id() -> str:
@@ -130,11 +137,26 @@ class LogRun:
 
     @property
     def missing(self) -> list[int]:
-        """Sequence numbers absent between 0 and the highest given (files not passed in)."""
+        """Sequence numbers absent between 0 and the highest given (files not passed in), but
+        for those the recorder took for no file (:attr:`skipped`)."""
         seen = {t.sequence for t in self.tags if t is not None}
         if not seen:
             return []
-        return [n for n in range(max(seen) + 1) if n not in seen]
+        skipped = set(self.skipped)
+        return [n for n in range(max(seen) + 1) if n not in seen and n not in skipped]
+
+    @property
+    def skipped(self) -> list[int]:
+        """Sequence numbers a file given says the recorder took for no file (``follows``):
+        recording gaps, where it could not write."""
+        seen = {t.sequence for t in self.tags if t is not None}
+        gaps = {
+            n
+            for t in self.tags
+            if t is not None and t.follows is not None
+            for n in range(t.follows + 1, t.sequence)
+        }
+        return sorted(gaps - seen)
 
     @property
     def short_label(self) -> str:

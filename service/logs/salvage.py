@@ -11,6 +11,12 @@ record (:func:`next_readable`: found by trying each byte that is such a record's
 damaged record costs only itself; it stops where the file is cut short. A chunk that repeats an
 earlier one byte for byte (a copy written twice) is copied once.
 
+The copy ends with an ``rlutf.recovered`` metadata record (:mod:`service.logs.manifest`) that
+says what it lacks: the damaged chunks, unreadable stretches and messages whose channel record
+was lost, and where the input was cut short; a channel whose schema record was lost is copied
+without a schema. Readers of the copy count and name both, so that an audit of it never passes
+over what it could not read.
+
 A file that declares a channel or schema id twice, differently, is refused, as the readers refuse
 it (:class:`~service.logs.mcapread.RedeclaredLog`): copied, the messages on that id would all be
 filed under its first declaration, and the output would read as a valid log with some messages
@@ -31,6 +37,7 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Me
 from mcap.writer import CompressionType, Writer
 
 from service.infile import open_regular
+from service.logs.manifest import RECOVERED_METADATA, Recovered
 from service.logs.mcapchunks import unpack_chunk
 from service.logs.mcaporder import Declarations, Redeclared
 from service.logs.mcapread import MAGIC, NotALog, RedeclaredLog
@@ -211,6 +218,18 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
     copier.start(None)
 
 
+def _record(src: Path, report: RecoverReport) -> Recovered:
+    """What the copy lacks, for its readers (:mod:`service.logs.manifest`)."""
+    return Recovered(
+        src.name,
+        report.complete,
+        None if report.complete else report.stopped_at,
+        report.bad_chunks,
+        report.resyncs,
+        report.lost_messages,
+    )
+
+
 def recover(src: Path, dst: Path) -> RecoverReport:
     """Copy everything readable of ``src`` into a new complete log ``dst``.
 
@@ -240,6 +259,7 @@ def recover(src: Path, dst: Path) -> RecoverReport:
                     _copy(stream, writer, report)
                 except Redeclared as err:
                     raise RedeclaredLog(src, str(err)) from err
+                writer.add_metadata(RECOVERED_METADATA, _record(src, report).to_metadata())
                 writer.finish()
                 out.flush()
                 os.fsync(out.fileno())

@@ -158,6 +158,7 @@ def merge(results: Sequence[ReplayResult]) -> ReplayResult:
     first = results[0]
     match = PoseMatch(first.gap_ns)
     merged = ReplayResult(first.config, match=match, keep=False, gap_ns=first.gap_ns)
+    merged.completeness = first.completeness  # each share read every file whole
     for r in results:
         match.merge(r.match)
         merged.inputs += r.inputs

@@ -14,6 +14,7 @@ from rlutf.map import Map as World
 from rlutf.sim import LidarModel, make_building, simulate_scan
 from service.keys import Keys
 from service.logs.mcapfile import LogWriter, Record
+from service.logs.mcaplog import McapRecorder
 from service.logs.mcapread import LogFile
 from service.sim.plan import FleetSpec, plan_fleet
 from service.sim.wire import JsonWire, fleet_records
@@ -58,6 +59,41 @@ def simulated_inputs(
         )
         plan = replace(plan, robots=robots)
     return list(fleet_records(JsonWire(plan, Keys(prefix)), steps, T0, STEP_NS))
+
+
+def record_with_poses(
+    folder: Path,
+    scratch: Path,
+    inputs: Sequence[Record],
+    tamper: Callable[[str, int, bytes], bytes] | None = None,
+    **recorder: Any,
+) -> McapRecorder:
+    """``inputs`` and the poses the engine computes for them, recorded by the service's own
+    recorder into ``folder`` as the live service records them (a pose at its scan's receive
+    time); ``tamper(robot, k, payload)`` may change robot's ``k``-th pose. ``scratch`` takes
+    the inputs' log the poses are computed from."""
+    from service.logs.replay import replay
+
+    computed = replay([write_log(scratch / "inputs.mcap", inputs)])
+    received = {
+        (r.topic.split("/")[2], r.publish_time_ns): r.log_time_ns
+        for r in inputs
+        if r.schema_name == "rlutf.LaserScan"
+    }
+    poses = []
+    for robot, records in computed.recomputed.items():
+        for k, p in enumerate(records):
+            payload = p.payload if tamper is None else tamper(robot, k, p.payload)
+            at = received[(robot, p.stamp_ns)]
+            poses.append(
+                Record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", payload, at, p.stamp_ns)
+            )
+    rec = McapRecorder(folder, **recorder)
+    rec.set_config(computed.config.settings)
+    for r in sorted([*inputs, *poses], key=lambda r: r.log_time_ns):
+        rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
+    rec.close()
+    return rec
 
 
 def add_outside_chunks(

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
-from mcaplog_fixtures import read_all, simulated_inputs, write_log
+from mcaplog_fixtures import read_all, record_with_poses, simulated_inputs, write_log
 from numpy.random import default_rng as rng
 
 from rlutf.sim import make_building
@@ -47,30 +47,19 @@ def record_run(
         r._replace(log_time_ns=r.log_time_ns + shift)
         for r in simulated_inputs(seed=k, steps=12, beams=90, world=make_building(rng(100 + k)))
     ]
-    computed = replay([write_log(tmp / f"inputs-{k}.mcap", inputs)])
-    received = {
-        (r.topic.split("/")[2], r.publish_time_ns): r.log_time_ns
-        for r in inputs
-        if r.schema_name == "rlutf.LaserScan"
-    }
-    poses = []
-    for robot, records in computed.recomputed.items():
-        for i, p in enumerate(records):
-            payload = p.payload
-            if tamper and i == 5:
-                data = json.loads(payload)
-                data["x"] += 0.25
-                payload = json.dumps(data).encode()
-            at = received[(robot, p.stamp_ns)]
-            poses.append(
-                Record(f"rlutf/robots/{robot}/pose", "rlutf.PoseEstimate", payload, at, p.stamp_ns)
-            )
-    rec = McapRecorder(folder, instance="demo", max_bytes=max_bytes, chunk_size=4096)
-    rec.set_config(computed.config.settings)
-    for r in sorted([*inputs, *poses], key=lambda r: r.log_time_ns):
-        rec.record(r.topic, r.schema_name, r.payload, r.log_time_ns, r.publish_time_ns)
-    rec.close()
-    return rec
+
+    def moved(robot: str, i: int, payload: bytes) -> bytes:
+        if not tamper or i != 5:
+            return payload
+        data = json.loads(payload)
+        data["x"] += 0.25
+        return json.dumps(data).encode()
+
+    scratch = tmp / f"inputs-{k}"
+    scratch.mkdir(exist_ok=True)
+    return record_with_poses(
+        folder, scratch, inputs, moved, instance="demo", max_bytes=max_bytes, chunk_size=4096
+    )
 
 
 @pytest.fixture(scope="module")
