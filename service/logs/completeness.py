@@ -32,7 +32,7 @@ Nothing here makes an audit pass that would fail without it.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from service.logs.manifest import MANIFEST_METADATA, RECOVERED_METADATA, Manifest, Recovered
@@ -54,7 +54,8 @@ class FileCheck:
         sequence: its number within its run (``None``: no ``rlutf.run``).
         unread: ``(topic, messages)`` on channels without a schema, as read.
         recovered: its ``rlutf.recovered`` records (one per salvage it went through).
-        manifest: its ``rlutf.manifest`` (``None``: none that names its run and number).
+        manifest: its ``rlutf.manifest`` (``None``: none that names its run and number),
+            without the messages it lists (a run of weeks has thousands of files).
         differs: ``(topic, schema, listed, read)`` where the manifest and the file disagree.
     """
 
@@ -117,6 +118,8 @@ def check_file(log: LogFile, tag: RunTag | None) -> FileCheck:
             if listed.get(key, 0) != read.get(key, 0)
         ]
     sequence = tag.sequence if tag is not None else None
+    if manifest is not None:  # what it lists is held against the file: only that is kept
+        manifest = replace(manifest, messages=())
     return FileCheck(log.path, sequence, unread, recovered, manifest, tuple(differs))
 
 
@@ -179,18 +182,33 @@ class Completeness:
         """What to tell of the run (of its files alone, without ``run``: its files not given
         and its recording gaps left out), each ``(kind, text)``: ``altered`` (the audit fails),
         ``incomplete`` (it cannot pass) or ``note`` (it stands, qualified)."""
-        out = [("altered", _altered(f)) for f in self.altered]
-        for f in self.files:
-            if f.unread:
-                out.append(("incomplete", _unread(f)))
-            out += [(_kind(r), _salvaged(f.path, r)) for r in f.recovered if _said(r)]
+        altered, unread = self.altered, [f for f in self.files if f.unread]
+        salvaged = [(f, r) for f in self.files for r in f.recovered if _said(r)]
+        out = [("altered", _altered(f)) for f in altered[:SHOWN]]
+        if len(altered) > SHOWN:
+            more = len(altered) - SHOWN
+            out.append(("altered", f"{more} more file(s) do not hold what their manifest lists"))
+        out += [("incomplete", _unread(f)) for f in unread[:SHOWN]]
+        if len(unread) > SHOWN:
+            lost = sum(n for f in unread[SHOWN:] for _, n in f.unread)
+            out.append(
+                (
+                    "incomplete",
+                    f"{len(unread) - SHOWN} more file(s) hold {lost} message(s) on channels "
+                    "without a schema, not read",
+                )
+            )
+        out += [(_kind(r), _salvaged(f.path, r)) for f, r in salvaged[:SHOWN]]
+        if len(salvaged) > SHOWN:
+            kind = "incomplete" if any(r.lost_inside for _, r in salvaged[SHOWN:]) else "note"
+            more = len(salvaged) - SHOWN
+            out.append((kind, f"{more} more file(s) salvaged by rlutf log recover lack records"))
         return out + (self._sequence_notes() if run else []) + self._manifest_notes()
 
     def _sequence_notes(self) -> list[tuple[str, str]]:
-        numbers = ", ".join
         out = []
         if self.missing:
-            text = f"file(s) {numbers(map(str, self.missing))} of the run are not given"
+            text = f"file(s) {_numbers(self.missing)} of the run are not given"
             if self.checked:
                 out.append(("incomplete", f"{text}: give every file of the run (its log folder)"))
             else:
@@ -199,7 +217,7 @@ class Completeness:
             out.append(
                 (
                     "note",
-                    f"file number(s) {numbers(map(str, self.skipped))} of the run were taken by "
+                    f"file number(s) {_numbers(self.skipped)} of the run were taken by "
                     "no file: recording gaps (the recorder could not write)",
                 )
             )
@@ -240,6 +258,10 @@ class Completeness:
         if any(not r.complete for r in f.recovered):
             return "salvaged"
         return "unfinished" if self.checked else "older"
+
+
+def _numbers(numbers: Sequence[int]) -> str:
+    return ", ".join(map(str, numbers[:SHOWN])) + _more(len(numbers))
 
 
 def _more(n: int) -> str:

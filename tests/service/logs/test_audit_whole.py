@@ -28,7 +28,7 @@ from mcaplog_fixtures import (
 from service_harness import wait_until
 
 from service.cli.main import main
-from service.logs.completeness import check_run
+from service.logs.completeness import SHOWN, Completeness, FileCheck, check_run
 from service.logs.manifest import MANIFEST_METADATA, RECOVERED_METADATA, Manifest, Recovered
 from service.logs.mcapchunks import unpack_chunk
 from service.logs.mcaplog import McapRecorder
@@ -387,3 +387,17 @@ def test_the_records_read_back_as_written_and_say_a_loss_when_malformed() -> Non
     whole = Recovered("x.mcap.part", True, None, 0, 0, 0)
     assert not Recovered.from_metadata(whole.to_metadata()).lost_inside
     assert Recovered.from_metadata(whole.to_metadata() | {"bad_chunks": "many"}).lost_inside
+
+
+def test_what_a_run_of_many_files_lacks_is_said_in_a_bounded_number_of_lines() -> None:
+    """A run of weeks has thousands of files: a note per file would bury the verdict."""
+    files = tuple(
+        FileCheck(Path(f"f{k}.mcap"), k + 1, unread=(("rlutf/robots/r1/scan", 2),))
+        for k in range(1000)
+    )
+    whole = Completeness(files, missing=(0,), checked=True)
+    notes = whole.notes()
+    assert len(notes) <= SHOWN + 3
+    assert any("994 more file(s) hold 1988 message(s)" in text for _, text in notes)
+    assert whole.incomplete and whole.affected() is None  # a file not given: any robot
+    assert Completeness(files[:2]).affected() == frozenset({"r1"})
