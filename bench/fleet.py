@@ -36,13 +36,17 @@ SECTION = "fleet"
 BEAMS = 360
 
 
-def thread_rows(by_thread: dict[str, dict[str, float]]) -> list[str]:
-    """Markdown rows: CPU ms per scan sent by process and thread, largest first."""
+def thread_rows(
+    by_thread: dict[str, dict[str, float]], switches: dict[str, dict[str, float]]
+) -> list[str]:
+    """Markdown rows: CPU ms and context switches per scan sent by process and thread, the
+    costliest first."""
     rows = []
     for process, table in by_thread.items():
+        counts = switches.get(process, {})
         for name, ms in sorted(table.items(), key=lambda item: -item[1]):
             if ms >= 0.005:
-                rows.append(f"| {process} | {name} | {ms:.3f} |")
+                rows.append(f"| {process} | {name} | {ms:.3f} | {counts.get(name, 0.0):.2f} |")
     return rows
 
 
@@ -126,6 +130,7 @@ def render(
     workers, processes = serve_layout(workers, processes)
     rows = []
     by_thread: dict[str, dict[str, float]] = {}
+    switches: dict[str, dict[str, float]] = {}
     held = met = 0
     load = os.getloadavg()[0]
     need: list[tuple[float, int, float, float]] = []
@@ -138,6 +143,7 @@ def render(
         r = run_size(n, duration, record, workers, serve_flags=serve, threads=threads, beams=BEAMS)
         alone.append((n, update, r["cpu_main"] + r["cpu_workers"]))
         by_thread = r["threads"] or by_thread
+        switches = r["switches"] or switches
         service_ms = (r["cpu_main"] + r["cpu_workers"]) * r["sent"]  # the service's CPU, ms
         share = 1.0 - r["compute_p50"] * r["processed"] / service_ms if service_ms > 0 else 1.0
         overhead.append(f"{n} robots {100.0 * share:.0f} %")
@@ -238,11 +244,14 @@ def render(
                     f"Where the service's CPU goes at {sizes[-1]} robots: CPU ms per scan sent, "
                     "by thread (the kernel's per-thread counters over the publishing interval; "
                     "Python thread names from `py-spy dump`; threads doing the same job added "
-                    "up, both workers (or the host's other processes) added up).",
+                    "up, both workers (or the host's other processes) added up), and how "
+                    "often each slept and woke: its context switches per scan sent (voluntary "
+                    "and not, from `/proc/PID/task/TID/status`; a wake-up costs tens of "
+                    "microseconds on a virtual machine).",
                     "",
-                    "| process | thread | CPU ms per scan |",
-                    "| --- | --- | ---: |",
-                    *thread_rows(by_thread),
+                    "| process | thread | CPU ms per scan | context switches per scan |",
+                    "| --- | --- | ---: | ---: |",
+                    *thread_rows(by_thread, switches),
                     "",
                     floor,
                 ]

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from bench.procstat import cpu_seconds, descendants, machine_steal, pss_tree_mb, rss_tree_mb
-from bench.threads import python_thread_names, task_cpu, thread_table
+from bench.threads import python_thread_names, task_cpu, task_switches, thread_table
 
 RATE_HZ = 10.0
 #: Scans of each robot not timed: its first scan after the initial pose searches wide (a few ms
@@ -350,22 +350,31 @@ def run_size(
         main0 = cpu_seconds(proc.pid)
         workers0 = sum(cpu_seconds(p) for p in workers_pids)
         tasks0 = {p: task_cpu(p) for p in [proc.pid, *workers_pids]}
+        switches0 = {p: task_switches(p) for p in tasks0}
         ended.wait(duration + 120)
         main_cpu = cpu_seconds(proc.pid) - main0
         steal1 = machine_steal()
         workers_cpu = sum(cpu_seconds(p) for p in workers_pids) - workers0
         tasks1 = {p: task_cpu(p) for p in tasks0}
+        switches1 = {p: task_switches(p) for p in tasks0}
         result = out.get(timeout=60)
         h = health(endpoint, "fleetbench")
         by_thread: dict[str, dict[str, float]] = {}
+        switches: dict[str, dict[str, float]] = {}
         if threads:
             for p, start in tasks0.items():
                 # A host of service processes (--processes) runs process 0 itself.
                 labels = ("host", "processes") if hosted else ("main", "workers")
-                table = by_thread.setdefault(labels[0] if p == proc.pid else labels[1], {})
+                label = labels[0] if p == proc.pid else labels[1]
                 names = python_thread_names(p)
-                for name, ms in thread_table(start, tasks1[p], names, result["scans_sent"]):
-                    table[name] = table.get(name, 0.0) + ms
+                sent = result["scans_sent"]
+                for into, rows in (
+                    (by_thread, thread_table(start, tasks1[p], names, sent)),
+                    (switches, thread_table(switches0[p], switches1[p], names, sent, scale=1.0)),
+                ):
+                    table = into.setdefault(label, {})
+                    for name, value in rows:
+                        table[name] = table.get(name, 0.0) + value
         gen.join(10)
         finished = True
     finally:
@@ -386,6 +395,7 @@ def run_size(
         steal1[1] - steal0[1],
         by_thread,
     )
+    row["switches"] = switches  # context switches per scan sent, by thread (with ``threads``)
     row["pss_peak"] = max(pss) if pss else math.nan
     # scans that never reached an owner's log: lost on the bus before the service took them in
     row["never_recorded"] = None if recorded is None else row["sent"] - recorded
