@@ -290,6 +290,12 @@ class Map:
         shapely.prepare(geom)
         return cls(geom, segments, cell_size)
 
+    def __reduce__(self) -> tuple[Callable[..., Map], tuple[Any, ...]]:
+        """Pickled as its geometry, walls and cell size: the rest is made again (the wall
+        vectors) or on first use (the index, derived structures), and the geometry prepared,
+        so that a map validated in another process costs little to send and to take in."""
+        return _restored, (self.geometry, self.segments, self.cell_size)
+
     @classmethod
     def from_geojson(
         cls,
@@ -365,6 +371,12 @@ class Map:
         """Whether each point ``(K, 2)`` lies in the free space (walls excluded)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         return np.asarray(shapely.contains_xy(self.geometry, pts[:, 0], pts[:, 1]), dtype=bool)
+
+
+def _restored(geom: Polygon | MultiPolygon, segments: FloatArray, cell_size: float) -> Map:
+    """A :class:`Map` unpickled (see :meth:`Map.__reduce__`): validated where it was made."""
+    shapely.prepare(geom)
+    return Map(geom, segments, cell_size)
 
 
 def _segments_of(geom: Polygon | MultiPolygon) -> FloatArray:

@@ -1,7 +1,9 @@
 import math
+import pickle
 
 import numpy as np
 import pytest
+import shapely
 from shapely.geometry import Polygon, box
 
 from rlutf.errors import MapError
@@ -155,3 +157,25 @@ def test_the_wall_index_is_made_on_first_use() -> None:
     index = world.index
     assert (index.nx, index.ny) == (30, 20)
     assert world.index is index
+
+
+def test_a_pickled_map_comes_back_the_same_without_what_is_made_on_first_use() -> None:
+    m = Map.from_geojson(ROOM, cell_size=0.5)
+    fresh = pickle.dumps(m)
+    m.index  # noqa: B018 (made: not part of what is sent)
+    sent = pickle.dumps(m)
+    assert len(sent) == len(fresh)
+    back = pickle.loads(sent)
+    assert back.geometry.equals_exact(m.geometry, 0.0)
+    assert np.array_equal(back.segments, m.segments)
+    assert back.cell_size == 0.5
+    assert np.array_equal(back.wall_start, m.wall_start)
+    assert np.array_equal(back.wall_direction, m.wall_direction)
+    assert np.array_equal(back.wall_length, m.wall_length)
+    assert back.bounds == m.bounds
+    points = np.array([[1.0, 1.0], [5.5, 5.5], [25.0, 1.0]])
+    assert back.contains(points).tolist() == [True, False, False]
+    assert back.contains_point(1.0, 1.0) and not back.contains_point(5.5, 5.5)
+    assert shapely.is_prepared(back.geometry)  # as a map validated here
+    assert "wall_index" not in back._derived
+    assert np.array_equal(back.index.cell_walls, m.index.cell_walls)
