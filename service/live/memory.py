@@ -10,24 +10,9 @@ heap, so it runs every ``interval_s``, not per message.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import time
-from collections.abc import Callable
 
-
-def _malloc_trim() -> Callable[[], None] | None:
-    """glibc's ``malloc_trim(0)``, or ``None`` where the C library has none (musl, macOS)."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
-    try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):
-        return None
-    trim.argtypes = [ctypes.c_size_t]
-    trim.restype = ctypes.c_int
-    return lambda: trim(0)
+from service.maps.helper import malloc_trim
 
 
 class HeapTrimmer:
@@ -35,7 +20,7 @@ class HeapTrimmer:
 
     def __init__(self, interval_s: float = 30.0) -> None:
         self.interval_s = interval_s
-        self._trim = _malloc_trim()
+        self._trim = malloc_trim()
         self._next = time.monotonic() + interval_s
         self.trims = 0
 

@@ -16,6 +16,9 @@ start` or the first call and ends when ``idle_s`` passed without a call.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 import logging
 import multiprocessing as mp
 import signal
@@ -41,6 +44,21 @@ class HelperFailed(RuntimeError):
     died, or raised."""
 
 
+def malloc_trim() -> Callable[[], None] | None:
+    """glibc's ``malloc_trim(0)``, which gives the heap's free pages back to the system, or
+    ``None`` where the C library has none (musl, macOS)."""
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return None
+    try:
+        trim = ctypes.CDLL(name).malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = [ctypes.c_size_t]
+    trim.restype = ctypes.c_int
+    return lambda: trim(0)
+
+
 def _serve(conn: Connection, handle: Callable[..., Any]) -> None:
     """The helper process: answer each call with ``("ok", result)`` or ``("raised", text)``
     until the pipe closes."""
@@ -48,6 +66,7 @@ def _serve(conn: Connection, handle: Callable[..., Any]) -> None:
     # closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    trim = malloc_trim()
     conn.send(("ready",))
     while True:
         try:
@@ -59,6 +78,12 @@ def _serve(conn: Connection, handle: Callable[..., Any]) -> None:
         except Exception as err:  # a bug in handle: the caller gets its text
             reply = ("raised", f"{type(err).__name__}: {err}")
         conn.send(reply)
+        # What the call took (a map of real size decoded: 100 MB and more) goes back to the
+        # system now, not when the process ends idle: collected, and the heap trimmed.
+        del args, reply
+        gc.collect()
+        if trim is not None:
+            trim()
 
 
 class HelperProcess:

@@ -135,3 +135,25 @@ def test_a_killed_validating_process_rejects_its_map_only() -> None:
         assert checker.process.pid not in (None, pid)
     finally:
         checker.close()
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        line = next(x for x in f if x.startswith("VmRSS:"))
+    return int(line.split()[1]) / 1024
+
+
+def test_the_validating_process_gives_back_what_a_big_map_took() -> None:
+    payload, _ = warehouse_payload(5.0)  # decoded and built: well over 100 MB
+    checker = MapChecker(1 << 26, LIMITS, isolated=True)
+    try:
+        checker.start()
+        pid = checker.process.pid
+        assert pid is not None
+        idle = _rss_mb(pid)
+        assert checker.check("warehouse", payload).version == 1
+        # collected and its heap trimmed once it answered, not when it ends idle
+        assert wait_until(lambda: _rss_mb(pid) < idle + 30, 10.0), (idle, _rss_mb(pid))
+        assert checker.process.pid == pid
+    finally:
+        checker.close()
