@@ -106,9 +106,9 @@ class LocalizationService:
         self.metrics = make_metrics(settings.instance, settings.metrics_port, settings.metrics_addr)
         self.stats = Stats(settings.instance, timings=self.metrics)
         self.clock = ReceiveClock()
-        self.maps = MapBook(  # with worker processes, this process only checks maps
-            settings.max_map_bytes, settings.map_limits(), isolated=settings.workers != 0
-        )
+        # Maps checked in a child process, sent back if robots run here (service.maps.book.MapBook)
+        apart, own = settings.workers != 0 or settings.intake == "loop", settings.workers == 0
+        self.maps = MapBook(settings.max_map_bytes, settings.map_limits(), apart, own)
         self.live: LiveView = make_live_view(settings, self.maps)  # Foxglove, or nothing
         self._own_session = session is None
         self._session = session

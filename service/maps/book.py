@@ -154,14 +154,16 @@ def check_map(
 
 
 def _check_elsewhere(
-    map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None
-) -> tuple[int, str] | str:
-    """:func:`check_map` in the validating process: the version and digest, or why not."""
+    map_id: str, payload: bytes, max_bytes: int, limits: MapLimits | None, keep_world: bool
+) -> CheckedMap | str:
+    """:func:`check_map` in the validating process, the map itself sent back only with
+    ``keep_world`` (its geometry and walls, pickled: :meth:`rlutf.map.Map.__reduce__`); or why
+    not."""
     try:
         checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
     except MapRejected as err:
         return str(err)
-    return checked.version, checked.digest
+    return checked if keep_world else checked._replace(world=None)
 
 
 class MapChecker:
@@ -180,6 +182,9 @@ class MapChecker:
             map itself. The process runs from :meth:`start` or the first map until no map came
             for ``idle_s`` seconds; a map whose validation takes longer than ``timeout_s``, or
             kills the process, is rejected.
+        keep_world: with ``isolated``, the validating process sends the map back (its geometry
+            and walls, validated; taking them in holds the lock for milliseconds), for a
+            service whose robots run in this process; else the map is ``None``.
         idle_s: see ``isolated``.
         timeout_s: see ``isolated``.
     """
@@ -189,12 +194,14 @@ class MapChecker:
         max_bytes: int,
         limits: MapLimits | None = None,
         isolated: bool = False,
+        keep_world: bool = False,
         idle_s: float = IDLE_S,
         timeout_s: float = TIMEOUT_S,
     ) -> None:
         self.max_bytes = max_bytes
         self.limits = limits
         self.isolated = isolated
+        self.keep_world = keep_world
         self.process = HelperProcess(_check_elsewhere, "rlutf-mapcheck", idle_s, timeout_s)
         self._lock = threading.Lock()
         self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
@@ -215,13 +222,12 @@ class MapChecker:
                 payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
             )
         try:
-            found = self.process.call(map_id, payload, self.max_bytes, self.limits)
+            found = self.process.call(map_id, payload, self.max_bytes, self.limits, self.keep_world)
         except HelperFailed as err:  # too slow, or killed (out of memory?): a new one next time
             raise MapRejected(f"map {map_id!r}: validating it failed: {err}") from err
         if isinstance(found, str):
             raise MapRejected(found)
-        version, digest = found
-        return CheckedMap(version, digest, None)
+        return CheckedMap(*found)
 
     def check(self, map_id: str, payload: bytes) -> CheckedMap:
         """The map's version, digest and map; a second caller with the same payload waits for
@@ -253,7 +259,15 @@ class MapBook:
         max_bytes: the maps' size limit, bytes.
         limits: extent and vertex limits of a map.
         isolated: validate maps in a process of their own (:class:`MapChecker`); the maps
-            loaded then carry no :class:`~rlutf.map.Map`.
+            loaded then carry no :class:`~rlutf.map.Map` unless ``keep_world``.
+        keep_world: with ``isolated``, the validating process sends each map back, for a
+            service whose robots run in this process.
+
+    A service (:class:`service.live.node.LocalizationService`) validates apart with worker
+    processes and in each process of the default layout (``intake`` ``loop``: its one input
+    thread also runs its robots, and a validation in-process held the lock from it for up to
+    a third of a second at a time, for a 10 MB map); only a service on threads with callback
+    intake (the tests' harness) validates in-process.
     """
 
     def __init__(
@@ -261,8 +275,9 @@ class MapBook:
         max_bytes: int,
         limits: MapLimits | None = None,
         isolated: bool = False,
+        keep_world: bool = False,
     ) -> None:
-        self.checker = MapChecker(max_bytes, limits, isolated)
+        self.checker = MapChecker(max_bytes, limits, isolated, keep_world)
         self._maps: dict[str, LoadedMap] = {}
 
     def get(self, map_id: str) -> LoadedMap | None:

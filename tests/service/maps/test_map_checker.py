@@ -7,15 +7,17 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
-from service_harness import WORLD, wait_until
+from service_harness import WORLD, drive, running_bench, wait_until
 
 from bench.bigmap import warehouse_payload
 from bench.mapload import square_map
 from rlutf.map import MapLimits
 from schemas import Map, encode
-from service.maps.book import MapChecker, MapRejected, content_digest
+from service.maps.book import MapChecker, MapRejected, check_map, content_digest
 
 LIMITS = MapLimits(max_area=100_000.0, max_vertices=2_000_000)
 
@@ -143,6 +145,22 @@ def _rss_mb(pid: int) -> float:
     return int(line.split()[1]) / 1024
 
 
+def test_a_map_checked_apart_comes_back_as_the_one_checked_here() -> None:
+    payload, _ = warehouse_payload(0.5)
+    checker = MapChecker(1 << 26, LIMITS, isolated=True, keep_world=True)
+    try:
+        checked = checker.check("warehouse", payload)
+        assert checker.process.pid not in (None, os.getpid())
+    finally:
+        checker.close()
+    here = check_map(payload, expected_id="warehouse", max_bytes=1 << 26, limits=LIMITS)
+    assert (checked.version, checked.digest) == (here.version, here.digest)
+    assert checked.world is not None and here.world is not None
+    assert checked.world.geometry.equals_exact(here.world.geometry, 0.0)
+    assert np.array_equal(checked.world.segments, here.world.segments)
+    assert np.array_equal(checked.world.index.cell_walls, here.world.index.cell_walls)
+
+
 def test_the_validating_process_gives_back_what_a_big_map_took() -> None:
     payload, _ = warehouse_payload(5.0)  # decoded and built: well over 100 MB
     checker = MapChecker(1 << 26, LIMITS, isolated=True)
@@ -157,3 +175,18 @@ def test_the_validating_process_gives_back_what_a_big_map_took() -> None:
         assert checker.process.pid == pid
     finally:
         checker.close()
+
+
+def test_a_service_whose_robots_run_on_its_input_thread_checks_maps_apart(tmp_path: Path) -> None:
+    # each process of the default layout (`rlutf serve --processes N`) takes its inputs and
+    # runs its robots on one thread (intake "loop"); a map's check would stall them there
+    with running_bench(tmp_path, intake="loop") as bench:
+        checker = bench.service.maps.checker
+        assert checker.isolated and checker.keep_world
+        last = drive(bench, ["r1"], 30)["r1"]
+        loaded = bench.service.maps.get("m1")
+        assert loaded is not None and loaded.world is not None  # sent back, for its robots
+        assert checker.process.pid not in (None, os.getpid())
+    assert last["map_id"] == "m1" and last["status"] != "lost"
+    with running_bench(tmp_path / "threads") as bench:  # callback intake, threads: the tests'
+        assert not bench.service.maps.checker.isolated
