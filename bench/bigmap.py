@@ -1,21 +1,25 @@
 """What a map of real size costs, and whether a map of large extent can stall the fleet.
 
-Run: ``python -m bench.bigmap [--mb 10] [--write]`` (issue 20 item 2, issue 19 item 2).
+Run: ``python -m bench.bigmap [--mb 10] [--processes N | --workers N] [--write]`` (issue 20
+item 2, issue 19 item 2).
 
 The map of real size is a generated warehouse: a hall with thousands of racks, each traced as a
 scanner's map would be (a vertex every 5 cm, coordinates to the millimetre with 2 mm of noise),
 sized to about ``--mb`` MB of JSON. First, in this process, one step at a time (time and the
 peak of Python's allocations, ``tracemalloc``): parsing the JSON alone (``json.loads``), the
-service's decode (pydantic, the schema), the main process's validation (:func:`load_map`:
-decode, extent and vertex limits, geometry), a worker's build (decode, geometry, wall index,
-distance field) and recording it (an MCAP recorder, to the file closed). Then live: an ``rlutf
-serve`` subprocess (router on a loopback port, embedded store, 2 worker processes, recording on)
-with 3 robots driven at 10 Hz on a small building; in turn: the warehouse put with ``rlutf map
-put`` (put to the store's confirmation), loaded (put to ``map_updated``), and a robot on it
-(InitialPose to its first pose); a 144-byte 2 km square (put to ``invalid_map``); a 40,000-vertex
-room and a robot on it. For each, the steady robots' longest time without a pose and their
-scan-to-pose latency from the put to the first pose on the new map (at least 5 s), and the peak
-resident memory of the service (all its processes) over the run.
+service's decode (pydantic, the schema), the validation (:func:`check_map`: decode, extent and
+vertex limits, geometry, content digest; the map checker's process does it), a worker's build
+(decode, geometry, wall index, distance field) and recording it (an MCAP recorder, to the file
+closed). Then live: an ``rlutf serve`` subprocess (router on a loopback port, embedded store,
+recording on) in the service's default layout (``--processes N``, N as
+:func:`bench.fleetrun.serve_layout` resolves it: one process per usable core) or, with
+``--workers N``, the layout of worker processes, with 3 robots driven at 10 Hz on a small
+building; in turn: the warehouse put with ``rlutf map put`` (put to the store's confirmation),
+loaded (put to ``map_updated``), and a robot on it (InitialPose to its first pose); a 144-byte 2
+km square (put to ``invalid_map``); a 40,000-vertex room and a robot on it. For each, the steady
+robots' longest time without a pose and their scan-to-pose latency from the put to the first
+pose on the new map (at least 5 s), and the peak resident memory of the service (all its
+processes) in each phase and of each of its processes over the run.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.fleetrun import layout_text, serve_layout
 from bench.mapload import (
     JSON_ENCODING,
     PeakRss,
@@ -51,6 +56,8 @@ from bench.mapload import (
 from bench.report import section_main
 
 SECTION = "Maps of real size and of large extent"
+#: The section of a run in the layout of workers (``--workers N``).
+WORKERS_SECTION = f"{SECTION}: the layout of workers"
 RACK = (1.0, 2.0)  # x, y size of a rack, metres
 PITCH = (3.0, 2.6)  # rack spacing: 2 m aisles between rows, 0.6 m between racks in a row
 
@@ -127,7 +134,7 @@ def offline(payload: bytes) -> list[tuple[str, float, float]]:
     from service.config import Settings
     from service.live.worker import world_of_payload
     from service.logs.mcaplog import McapRecorder
-    from service.maps.book import load_map
+    from service.maps.book import check_map
 
     s = Settings()
     rows = []
@@ -137,9 +144,9 @@ def offline(payload: bytes) -> list[tuple[str, float, float]]:
     )
     rows.append(
         (
-            "validate in the main process (decode, limits, geometry)",
+            "validate (decode, limits, geometry, digest)",
             *_measure(
-                lambda: load_map(
+                lambda: check_map(
                     payload, expected_id=None, max_bytes=s.max_map_bytes, limits=s.map_limits()
                 )
             )[:2],
@@ -175,6 +182,18 @@ def _events(session: Any) -> tuple[list[tuple[float, dict[str, Any]]], Any]:
 
 def _seen(events: list[tuple[float, dict[str, Any]]], code: str, map_id: str) -> bool:
     return any(e["code"] == code and e["key"].endswith(f"/{map_id}") for _, e in events)
+
+
+def _count(events: list[tuple[float, dict[str, Any]]], code: str, map_id: str) -> int:
+    """Events of ``code`` about ``map_id`` (one from each process that loaded it, say)."""
+    return sum(e["code"] == code and e["key"].endswith(f"/{map_id}") for _, e in events)
+
+
+def _since(t0: float, pred: Callable[[], Any], timeout: float) -> float | None:
+    """Seconds from ``t0`` (monotonic) until ``pred`` holds, waiting until ``timeout`` seconds
+    after ``t0`` at most (``None``: it did not hold by then)."""
+    waited = _wait(pred, max(t0 + timeout - time.monotonic(), 0.0))
+    return None if waited is None else time.monotonic() - t0
 
 
 def _wait(pred: Callable[[], Any], timeout: float) -> float | None:
@@ -222,22 +241,20 @@ def _robot_on(session: Any, robot: str, map_id: str, world: Any, pose: np.ndarra
     return go
 
 
-def _connect(config: Any, proc: subprocess.Popen[bytes]) -> Any:
-    """A session to the service once it listens (it compiles or loads its kernels first)."""
+def _connect(config: Any, endpoint: str, proc: subprocess.Popen[bytes]) -> Any:
+    """A session to the service once it is ready (every process of it; it compiles or loads
+    its kernels first)."""
     import zenoh
 
-    for _ in range(600):
-        if proc.poll() is not None:
-            raise RuntimeError(f"rlutf serve exited with {proc.returncode}")
-        try:
-            return zenoh.open(config)
-        except zenoh.ZError:
-            time.sleep(0.2)
-    raise RuntimeError("rlutf serve did not listen within 120 s")
+    from bench.fleetrun import wait_ready
+
+    wait_ready(endpoint, proc, timeout=600.0, instance="bigmap")
+    return zenoh.open(config)
 
 
-def live(payload: bytes, racks_y: int, workers: int) -> dict[str, Any]:
-    """The live part against a fresh ``rlutf serve`` subprocess."""
+def live(payload: bytes, racks_y: int, workers: int, processes: int) -> dict[str, Any]:
+    """The live part against a fresh ``rlutf serve`` subprocess (``processes`` service
+    processes, or with 0 the layout of ``workers`` worker processes)."""
 
     from rlutf.map import Map as World
     from schemas import Map, decode, encode
@@ -248,22 +265,24 @@ def live(payload: bytes, racks_y: int, workers: int) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="rlutf-bigmap-"))
     exe = shutil.which("rlutf", path=str(Path(sys.executable).parent)) or "rlutf"
     cmd = [exe, "serve", "--listen", endpoint, "--store", str(tmp / "store")]
-    cmd += ["--record", str(tmp / "logs"), "--instance", "bigmap", "--workers", str(workers)]
+    cmd += ["--record", str(tmp / "logs"), "--instance", "bigmap"]
+    cmd += ["--processes", str(processes)] if processes else ["--workers", str(workers)]
     proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
     out: dict[str, Any] = {}
     try:
         world = World.from_geojson(decode(Map, payload, max_bytes=10**9).geometry.model_dump())
         room = wavy_room(40_000)
-        session = _connect(client_config(endpoint), proc)
+        session = _connect(client_config(endpoint), endpoint, proc)
         with PeakRss(proc.pid) as rss, session:
             time.sleep(3.0)
             rover = _robot_on(
                 session, "rover", "wavy", World.from_geojson(room), np.array([0.0, 0.0, 0.0])
             )
-            fleet = SteadyFleet(session, robots=3, seconds=60.0)
+            fleet = SteadyFleet(session, robots=3, seconds=90.0)
             fleet.start()
             events, sub = _events(session)
             fleet.wait_steady()
+            time.sleep(5.0)  # a window of steady driving (before, it began before the fleet)
             out["before"] = fleet.window(time.monotonic() - 5.0, time.monotonic())
             out["rss_before_mb"] = rss.restart()
             # The warehouse, with `rlutf map put` (a process of its own, as an operator's).
@@ -274,11 +293,14 @@ def live(payload: bytes, racks_y: int, workers: int) -> dict[str, Any]:
             )
             t0 = time.monotonic()
             put = [exe, "map", "put", str(path), "--connect", endpoint, "--timeout", "60"]
-            subprocess.run(put, check=True, stdout=subprocess.DEVNULL)
-            out["put_s"] = time.monotonic() - t0
-            loaded = _wait(lambda: _seen(events, "map_updated", "warehouse"), 60.0)
-            out["load_s"] = None if loaded is None else loaded + out["put_s"]
+            tool = subprocess.Popen(put, stdout=subprocess.DEVNULL)  # it waits for every process
+            loads = lambda: _count(events, "map_updated", "warehouse")  # noqa: E731
+            out["load_s"] = _since(t0, lambda: loads() >= 1, 60.0)  # the first process
             out["first_pose_s"] = picker()
+            out["load_all_s"] = _since(t0, lambda: loads() >= max(processes, 1), 60.0)
+            out["loaded_by"] = loads()
+            tool.wait(90.0)
+            out["put_s"] = time.monotonic() - t0  # to `rlutf map put`'s end, at most
             time.sleep(max(t0 + 5.0 - time.monotonic(), 0.0))
             out["warehouse"] = fleet.window(t0, time.monotonic())
             out["rss_warehouse_mb"] = rss.restart()
@@ -300,6 +322,7 @@ def live(payload: bytes, racks_y: int, workers: int) -> dict[str, Any]:
             sub.undeclare()
             fleet.stop()
         out["rss_peak_mb"] = rss.peak
+        out["rss_by_role_mb"] = dict(rss.by_role)
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -321,13 +344,21 @@ def render(args: argparse.Namespace) -> str:
     rows = offline(payload)
     gc.collect()
     gc.freeze()  # the fleet's thread in this process must not pause for collections
-    run = live(payload, racks_y, args.workers)
+    workers, processes = serve_layout(args.workers, args.processes)
+    load = os.getloadavg()[0]
+    started = time.strftime("%H:%M UTC", time.gmtime())
+    run = live(payload, racks_y, workers, processes)
     buf = io.StringIO()
     w = buf.write
-    w(f"## {SECTION}\n\n")
+    flag = f"--processes {processes}" if processes else f"--workers {workers}"
+    if processes:
+        w(f"## {SECTION}\n\n")
+    else:
+        w(f"### {SECTION}, in the layout of workers\n\n")
     w(
-        f"`python -m bench.bigmap --mb {args.mb:g} --workers {args.workers} --write` "
-        f"({os.cpu_count()} cores, shared). A warehouse of {holes:,} racks traced at 5 cm: "
+        f"`python -m bench.bigmap --mb {args.mb:g} {flag} --write` "
+        f"({os.cpu_count()} cores, shared; load average {load:.2f} at the start, {started}). "
+        f"A warehouse of {holes:,} racks traced at 5 cm: "
         f"{len(payload) / 1e6:.1f} MB of JSON, {vertices:,} vertices.\n\n"
     )
     w("| step, in one process | time | peak allocations |\n| --- | ---: | ---: |\n")
@@ -335,18 +366,22 @@ def render(args: argparse.Namespace) -> str:
         w(f"| {name} | {seconds:.2f} s | {peak:.0f} MB |\n")
     t = {name.split(" (")[0]: seconds for name, seconds, _ in rows}
     parse, decode = t["parse the JSON alone"], t["decode"]
-    check = t["validate in the main process"]
+    check = t["validate"]
     w(
-        f"\nJSON: the main process's validation ({check:.2f} s) is mostly the schema's decode "
-        f"({decode:.2f} s; `json.loads` alone takes {parse:.2f} s); both are C code that holds "
-        "the interpreter's lock throughout, so the service validates maps in a process of its "
-        "own (`MapChecker`, isolated when there are worker processes) and its Zenoh callbacks "
-        "run on. The worker's build is mostly the distance field of the wide search (compiled, "
-        "in proportion to the walls), on the slow lane of the worker whose robot needs it.\n"
+        f"\nJSON: the validation ({check:.2f} s) is mostly the schema's decode ({decode:.2f} s; "
+        f"`json.loads` alone takes {parse:.2f} s), the geometry's validity and the digest's "
+        "encoding, C code that holds the interpreter's lock for up to a third of a second at a "
+        "time, so the service validates maps in a process of its own (`MapChecker`), which, in "
+        "each process of the default layout, sends the map back validated (its walls and "
+        "geometry); the service's threads run on meanwhile. The build (wall index, distance "
+        "field of the wide search, simplified walls) is compiled code that lets go of the lock, "
+        "and short Python steps, on the slow lane of the process (or worker) whose robot "
+        "needs the map.\n"
     )
+    what = f"{workers} workers" if not processes else layout_text(processes)
     w(
-        "\nLive (`rlutf serve`, 2 workers, recording; 3 robots at 10 Hz on another map; the "
-        "steady robots from each put to the first pose on that map, at least 5 s):\n\n"
+        f"\nLive (`rlutf serve {flag}`, {what}, recording; 3 robots at 10 Hz on another map; "
+        "the steady robots from each put to the first pose on that map, at least 5 s):\n\n"
     )
     w(
         "| | time | steady robots: longest without a pose | latency p50 / p99 / max | "
@@ -364,9 +399,13 @@ def render(args: argparse.Namespace) -> str:
         )
 
     row("before any put", "", run["before"], run["rss_before_mb"])
+    every = fmt(run["load_all_s"])
+    if run["load_all_s"] is None:
+        every = f"{run['loaded_by']} of {max(processes, 1)} processes in 60 s"
     row(
-        "warehouse: `rlutf map put` to stored; to `map_updated`; first pose on it",
-        f"{fmt(run['put_s'])}; {fmt(run['load_s'])}; {fmt(run['first_pose_s'])}",
+        "warehouse: to `map_updated` (the first process; every process); first pose on it; "
+        "`rlutf map put` to its end",
+        f"{fmt(run['load_s'])}; {every}; {fmt(run['first_pose_s'])}; {fmt(run['put_s'])}",
         run["warehouse"],
         run["rss_warehouse_mb"],
     )
@@ -387,6 +426,13 @@ def render(args: argparse.Namespace) -> str:
         f"over each phase; over the run {run['rss_peak_mb']:.0f} MB. Log written: "
         f"{run['log_mb']:.1f} MB.\n"
     )
+    w(
+        "\nEach process's peak over the run (resident; `host` is the process started, `pK` "
+        "its service processes, a child a process it spawned: worker, map checker):\n\n"
+        "| process | peak |\n| --- | ---: |\n"
+    )
+    for role, mb in sorted(run["rss_by_role_mb"].items()):
+        w(f"| {role} | {mb:.0f} MB |\n")
     return buf.getvalue()
 
 
@@ -398,8 +444,21 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--mb", type=float, default=10.0, help="size of the warehouse map, MB")
-    p.add_argument("--workers", type=int, default=2, help="service worker processes")
-    return section_main(p, render, SECTION, argv)
+    p.add_argument(
+        "--processes",
+        type=int,
+        default=None,
+        help="service processes (default: the service's own layout, one per usable core)",
+    )
+    p.add_argument(
+        "--workers", type=int, default=None, help="worker processes: the layout of workers"
+    )
+    return section_main(
+        p,
+        render,
+        lambda a: WORKERS_SECTION if serve_layout(a.workers, a.processes)[1] == 0 else SECTION,
+        argv,
+    )
 
 
 if __name__ == "__main__":

@@ -209,35 +209,72 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def rss_mb(pid: int | None = None) -> float:
-    """Resident memory of a process and all its descendants, MB (Linux)."""
-    total = 0
+def process_rss_mb(pid: int | None = None) -> dict[int, float]:
+    """Resident memory of a process and each of its descendants, MB by pid (Linux)."""
+    out: dict[int, float] = {}
     stack = [pid or os.getpid()]
     while stack:
         p = stack.pop()
         try:
             for line in Path(f"/proc/{p}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
-                    total += int(line.split()[1])
+                    out[p] = int(line.split()[1]) / 1024.0
         except OSError:
             continue
         stack += _children(p)
-    return total / 1024.0
+    return out
+
+
+def rss_mb(pid: int | None = None) -> float:
+    """Resident memory of a process and all its descendants, MB (Linux)."""
+    return sum(process_rss_mb(pid).values())
+
+
+def process_role(pid: int, root: int) -> str:
+    """What a process of a service's tree is, from its command line and its parent: ``host``
+    (the process started), ``p1`` ... (the host's service processes), ``p1's child`` (a spawned
+    helper of that one: a worker, the map checker, a kernel compiler)."""
+    if pid == root:
+        return "host"
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return f"pid {pid}"
+    for arg in argv:
+        name = Path(arg.decode(errors="replace")).name
+        if name.startswith("process-") and name.endswith(".json"):
+            return "p" + name[len("process-") : -len(".json")]
+    return f"{process_role(parent, root)}'s child"
 
 
 class PeakRss:
-    """Samples :func:`rss_mb` of a process tree every 50 ms on a thread; ``peak`` in MB."""
+    """Samples the resident memory of a process tree every 50 ms on a thread: ``peak`` (the
+    tree's, MB) and ``by_role`` (each process's peak, MB, by :func:`process_role`; the largest
+    of several children of one role)."""
 
     def __init__(self, pid: int | None = None) -> None:
         self.pid = pid
         self.peak = 0.0
         self.phase = 0.0
+        self.by_role: dict[str, float] = {}
+        self._roles: dict[int, str] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="peak-rss", daemon=True)
 
+    def _sample(self) -> float:
+        root = self.pid or os.getpid()
+        each = process_rss_mb(root)
+        for pid, mb in each.items():
+            role = self._roles.get(pid)
+            if role is None:
+                role = self._roles[pid] = process_role(pid, root)
+            self.by_role[role] = max(self.by_role.get(role, 0.0), mb)
+        return sum(each.values())
+
     def _run(self) -> None:
         while not self._stop.is_set():
-            now = rss_mb(self.pid)
+            now = self._sample()
             self.peak = max(self.peak, now)
             self.phase = max(self.phase, now)
             self._stop.wait(0.05)
@@ -254,7 +291,7 @@ class PeakRss:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join(1.0)
-        self.peak = max(self.peak, rss_mb(self.pid))
+        self.peak = max(self.peak, self._sample())
 
 
 def square_map(map_id: str, side: float) -> bytes:
