@@ -1,4 +1,5 @@
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -379,3 +380,20 @@ def test_every_estimate_carries_a_covariance() -> None:
         # 1 cm noise, 360 beams: about a millimetre of position sigma
         assert 2e-4 < math.sqrt(cov[0, 0]) < 5e-3
         assert 0.005 < res.sigma < 0.02
+
+
+def test_a_map_sent_to_another_process_gives_the_same_poses_bit_for_bit() -> None:
+    # A service's process takes its maps validated by a child process, pickled
+    # (rlutf.map.Map.__reduce__): its robots' poses must be those on the map built here.
+    rng = np.random.default_rng(11)
+    world = make_building(rng)
+    sent = pickle.loads(pickle.dumps(world))
+    truth = make_trajectory(world, rng, 25)
+    scans = [simulate_scan(world, truth[i], LidarModel(), rng) for i in range(25)]
+    start = compose(truth[0], [0.15, -0.1, math.radians(4)])
+    runs = []
+    for m in (world, sent):
+        loc = Localizer(m, start, LocalizerConfig(), seed=3)
+        poses = [loc.update(relative(truth[i - 1], truth[i]), scans[i]).pose for i in range(1, 25)]
+        runs.append(np.array(poses).tobytes())
+    assert runs[0] == runs[1]
