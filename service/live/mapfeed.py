@@ -9,7 +9,11 @@ A map of real size takes a second or more to check, and a client may put maps fa
 :data:`WAITING_BYTES` bytes). A put beyond them is not loaded, with an Event ``map_dropped`` (at
 most one a second, counting the puts since the last); once the puts that waited are done, the
 service fetches the stored version of every map it dropped a put of, so that it ends on what the
-store holds, as if it had seen every put.
+store holds, as if it had seen every put. A service without a store of its own (the other
+processes of ``rlutf serve --processes N``, an instance with ``--no-store``) also asks the store
+every :data:`LOOK_S` seconds for the versions of the maps it holds, and fetches those it is
+behind on: a put Zenoh did not deliver to it (a router drops a message of many fragments that
+it cannot send on within 50 ms) reaches it so.
 
 A put is loaded once the map store holds it (:mod:`service.maps.confirmation`), so that no
 service runs robots on a version the store refused or dropped. The Events said once per put
@@ -42,9 +46,15 @@ from service.maps.book import (
     VersionConflict,
     put_verdict,
 )
-from service.maps.confirmation import CONFIRM_S, StoreWord, await_store
+from service.maps.confirmation import (
+    StoreWatch,
+    StoreWord,
+    await_store,
+    dropped_message,
+    unconfirmed_message,
+)
 from service.maps.files import FileMapStore
-from service.maps.store import MapStorage, room_for, stored_version
+from service.maps.store import MapStorage, room_for, stored_version, stored_versions
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +72,8 @@ CATCH_UP_S = 0.5
 #: Maps whose dropped puts are followed by a fetch of the stored version; the puts of more
 #: maps are dropped with an Event that asks for them again.
 MAX_STALE = 1024
+#: Seconds between two looks, by a service without a store, at the versions the store holds.
+LOOK_S = 2.0
 
 GlobalEvent = Callable[[str, str, str, str, int | None], None]
 """Publish an event not tied to a robot: level, code, key, message, time."""
@@ -127,6 +139,8 @@ class MapFeed:
         #: What the map store holds of a map (the version a put must beat, and whether it has
         #: puts of it to store yet): the embedded store's own answer, or the store's on the bus.
         self.store_holds: Callable[[str], StoredVersion | None] = self._ask_store
+        self._next_look: float | None = 0.0  # None: the store is this service's own
+        self._watch = StoreWatch()
         self._session: zenoh.Session | None = None
         self._thread: threading.Thread | None = None
 
@@ -181,19 +195,8 @@ class MapFeed:
             self._drop_event_at = now
             dropped, self._dropped = self._dropped, 0
             waiting, waiting_mb = self._waiting, self._waiting_bytes / 1e6
-        then = (
-            f"when they are done the service loads what the store holds for {map_id}"
-            if follow
-            else f"put {map_id} again (the puts of {MAX_STALE} other maps are already dropped)"
-        )
-        self._global_event(
-            "warning",
-            EventCode.MAP_DROPPED,
-            key,
-            f"{dropped} map put(s) not loaded ({len(payload)} bytes, this one): {waiting} map "
-            f"puts ({waiting_mb:.1f} MB) already wait to be checked; {then}",
-            None,
-        )
+        message = dropped_message(map_id, dropped, len(payload), waiting, waiting_mb, follow)
+        self._global_event("warning", EventCode.MAP_DROPPED, key, message, None)
 
     def embed_store(
         self,
@@ -229,16 +232,14 @@ class MapFeed:
             ),
             on_conflict=self._store_conflict,
         )
-        self.store_busy = storage.busy
+        self.store_busy, self._next_look = storage.busy, None
         self.store_holds = storage.answer
         return storage
 
     def _store_conflict(self, key: str, message: str) -> None:
         """The embedded store refused a put not newer than a removed version: said per map, as
         the service's own refusals are (one every ``event_interval_s``, the last held back said
-        at its end: `rlutf map put` waits for it). Before, one a second for every map at once: a
-        second refused put within the second waited out the tool's timeout, "no storage
-        answered". The map thread is woken to say one held back when its interval ends."""
+        at its end, when the map thread is woken: `rlutf map put` waits for it)."""
         map_id = self.keys.parse_map_key(key) or key
         # A subject of its own: held back with the service's own conflicts on the map (the same
         # code), the last of them replaced the store's, and the tool never saw the store's word.
@@ -272,6 +273,9 @@ class MapFeed:
             due = self.throttle.flush()  # the Events held back whose interval is over
             if self._stale:
                 due = CATCH_UP_S if due is None else min(due, CATCH_UP_S)
+            if self._next_look is not None:
+                look = max(0.0, self._next_look - time.monotonic())
+                due = look if due is None else min(due, look)
             try:
                 task = self._tasks.get(timeout=due)
             except queue.Empty:
@@ -305,7 +309,8 @@ class MapFeed:
 
     def _catch_up(self) -> None:
         """When no put waits here or in the embedded store: load the stored version of the maps
-        whose puts were dropped."""
+        whose puts were dropped, and those the store holds a newer version of (:meth:`_look`)."""
+        self._look()
         with self._lock:
             if self._waiting or not self._stale or self.store_busy():
                 return
@@ -317,6 +322,18 @@ class MapFeed:
                 self._refresh(map_id)
             except Exception:
                 log.exception("fetching map %s after dropped puts failed", map_id)
+
+    def _look(self) -> None:
+        """Without a store of its own, every :data:`LOOK_S`: the maps the store holds newer
+        versions of, with no put of them on its way here, are fetched (:class:`StoreWatch`)."""
+        if self._next_look is None or time.monotonic() < self._next_look or not self._session:
+            return
+        self._next_look = time.monotonic() + LOOK_S
+        held = {m: h for m in self.book.ids() if (h := self._held(m)) is not None}
+        stored = stored_versions(self._session, self.keys, min(self.timeout_s, LOOK_S))
+        behind = self._watch.behind(held, stored)
+        with self._lock:
+            self._stale.update(m for m in behind if m not in self._last_put)
 
     def _refresh(self, map_id: str) -> None:
         """Load what the store holds of ``map_id``, once it has no put of it left to store."""
@@ -443,22 +460,13 @@ class MapFeed:
         with self._lock:
             if map_id in self._stale or len(self._stale) < MAX_STALE:
                 self._stale.add(map_id)
-        held = "nothing" if answer.version is None else f"version {answer.version}"
         if word.word == "dropped":
             log.info("map %s version %d put not loaded: the store dropped it (holds %s)",
-                     map_id, checked.version, held)  # fmt: skip
+                     map_id, checked.version, answer.version)  # fmt: skip
             return
-        self.throttle.say(
-            map_id,
-            "warning",
-            EventCode.MAP_UNCONFIRMED,
-            self.keys.map(map_id),
-            f"map {map_id} version {checked.version} put not loaded: the store did not say it "
-            f"holds it within {CONFIRM_S:g} s (it holds {held}, {answer.pending} put(s) of the "
-            "map wait to be stored there); this service loads what the store holds once they "
-            "are stored",
-            self.clock(),
-        )
+        message = unconfirmed_message(map_id, checked.version, answer)
+        key = self.keys.map(map_id)
+        self.throttle.say(map_id, "warning", EventCode.MAP_UNCONFIRMED, key, message, self.clock())
 
     def _record(self, loaded: LoadedMap) -> None:
         self.recorder.record(

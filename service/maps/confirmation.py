@@ -14,11 +14,11 @@ not hold this one (it dropped it). A store that answers nothing is no store with
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Literal, NamedTuple
 
 from schemas import StoredVersion
-from service.maps.book import put_verdict
+from service.maps.book import Held, put_verdict
 
 #: Seconds a service waits at most for the store's word on a put (the store may have many big
 #: puts to check before it); past them, the put is not loaded now, and the service loads what
@@ -88,3 +88,60 @@ def await_store(
             return StoreWord("unconfirmed", answer)
         pause(wait)
         wait = min(wait * 2, LAST_POLL_S)
+
+
+class StoreWatch:
+    """What a service without a store of its own fetches after a look at the versions the
+    store holds: the puts that never reached it (Zenoh drops a message that a link cannot take
+    in time; a router sends one of many fragments on within 50 ms or drops it), so that it ends
+    as if it had seen every put since it started. The first look only notes what the store held
+    before; a map is fetched once the store holds it with no put of it left to store."""
+
+    def __init__(self) -> None:
+        #: The version the store held of each map at the last look (``None``: not looked yet).
+        self.seen: dict[str, int] | None = None
+
+    def behind(self, held: Mapping[str, Held], stored: Mapping[str, StoredVersion]) -> list[str]:
+        """The maps to fetch: held here (``held``: version and digest by map id) in an older
+        version than the store's, or not held and put since the last look (``stored``: the
+        store's answers by map id)."""
+        behind = []
+        seen, self.seen = self.seen, {}
+        for map_id, answer in stored.items():
+            if answer.removed or answer.pending or answer.version is None:
+                continue
+            mine = held.get(map_id)
+            new = mine is None and seen is not None and seen.get(map_id, -1) < answer.version
+            if new or (mine is not None and answer.version > mine[0]):
+                behind.append(map_id)
+            if not new:  # one not fetched yet is looked for again
+                self.seen[map_id] = answer.version
+        return sorted(behind)
+
+
+def unconfirmed_message(map_id: str, version: int, answer: StoredVersion) -> str:
+    """Event ``map_unconfirmed``'s message: a put of ``version`` the store did not say it holds
+    within :data:`CONFIRM_S` (``answer``: its last word), not loaded."""
+    held = "nothing" if answer.version is None else f"version {answer.version}"
+    return (
+        f"map {map_id} version {version} put not loaded: the store did not say it holds it "
+        f"within {CONFIRM_S:g} s (it holds {held}, {answer.pending} put(s) of the map wait to be "
+        "stored there); this service loads what the store holds once they are stored"
+    )
+
+
+def dropped_message(
+    map_id: str, dropped: int, size: int, waiting: int, waiting_mb: float, follow: bool
+) -> str:
+    """Event ``map_dropped``'s message: ``dropped`` puts not loaded (the last ``size`` bytes),
+    ``waiting`` puts (``waiting_mb``) waiting to be checked; ``follow``: the stored version is
+    loaded once they are done (else the service follows too many maps' dropped puts already)."""
+    then = (
+        f"when they are done the service loads what the store holds for {map_id}"
+        if follow
+        else f"put {map_id} again (the puts of many other maps are already dropped)"
+    )
+    return (
+        f"{dropped} map put(s) not loaded ({size} bytes, this one): {waiting} map puts "
+        f"({waiting_mb:.1f} MB) already wait to be checked; {then}"
+    )

@@ -72,8 +72,17 @@ def stored_version(
     """What the map store on the bus holds of ``map_id`` (the highest version if several stores
     answer), or ``None``: no store answers (zenohd's storage manager, which applies no version
     rule, answers nothing there; the embedded store answers for every map asked by its id)."""
-    found: StoredVersion | None = None
-    for reply in session.get(keys.map_version(map_id), timeout=timeout):
+    return stored_versions(session, keys, timeout, map_id).get(map_id)
+
+
+def stored_versions(
+    session: zenoh.Session, keys: Keys, timeout: float, map_id: str | None = None
+) -> dict[str, StoredVersion]:
+    """What the map stores on the bus hold of ``map_id``, or of every map one knows of (a get on
+    ``{prefix}/mapversions/*``), by map id: the highest version if several stores answer."""
+    key = keys.map_versions if map_id is None else keys.map_version(map_id)
+    found: dict[str, StoredVersion] = {}
+    for reply in session.get(key, timeout=timeout):
         if reply.ok is None:
             continue
         try:
@@ -81,8 +90,9 @@ def stored_version(
         except ValueError:
             log.warning("bad map version answer on %s", reply.ok.key_expr)
             continue
-        if answer.map_id == map_id and (found is None or _beyond(answer, found)):
-            found = answer
+        other = found.get(answer.map_id)
+        if map_id in (None, answer.map_id) and (other is None or _beyond(answer, other)):
+            found[answer.map_id] = answer
     return found
 
 
