@@ -313,11 +313,48 @@ def _components(cells: IntArray, nx: int) -> list[IntArray]:
     return [cells[np.array(g)] for _, g in sorted(groups.items())]
 
 
+@dataclass(frozen=True, eq=False)
+class MapWalls:
+    """The map's walls as :func:`find_changes` uses them, made once per map version
+    (:func:`map_walls`): the boundary of a map of real size takes milliseconds to make, and the
+    distance of each cell to it a walk over every wall (0.7 s for 5,000 cells on a 10 MB map).
+
+    Attributes:
+        boundary: the boundary of the map's free space (its rings).
+        tree: an index of the boundary's parts (one per ring).
+    """
+
+    boundary: LineString | MultiLineString
+    tree: shapely.STRtree
+
+    def distance(self, points: FloatArray) -> FloatArray:
+        """``(K,)`` distance of each point ``(K, 2)`` to the walls: equal, bit for bit, to
+        ``shapely.distance(points, boundary)`` (the least of the distances to the rings, each
+        computed the same way), with the rings far from a point left out."""
+        out = np.empty(len(points))
+        if len(points):
+            found, distances = self.tree.query_nearest(
+                shapely.points(points), return_distance=True, all_matches=False
+            )
+            out[found[0]] = distances
+        return out
+
+
+def map_walls(world: Map) -> MapWalls:
+    """The map's :class:`MapWalls`, kept with the map (:meth:`rlutf.map.Map.derived`)."""
+
+    def make(w: Map) -> MapWalls:
+        boundary = w.geometry.boundary
+        return MapWalls(boundary, shapely.STRtree(shapely.get_parts(boundary)))
+
+    return world.derived("mapchange:walls", make)
+
+
 def find_changes(grid: ChangeGrid) -> list[Change]:
     """The changes the grid holds evidence of, ``added`` first, each kind in grid order."""
     s = grid.settings
     world = grid.world
-    walls = world.geometry.boundary
+    walls = map_walls(world)
     out: list[Change] = []
     for kind in (SHORT, THROUGH):
         marks = grid.marks[kind]
@@ -333,7 +370,7 @@ def find_changes(grid: ChangeGrid) -> list[Change]:
         if len(dense) == 0:
             continue
         centres = grid.centre(dense)
-        distance = shapely.distance(shapely.points(centres), walls)
+        distance = walls.distance(centres)
         if kind == SHORT:
             keep = world.contains(centres) & (distance >= s.clearance)
         else:
@@ -364,7 +401,8 @@ def _change(grid: ChangeGrid, kind: int, cells: IntArray) -> Change | None:
             return None
         geometry = shape
     else:
-        line = shapely.line_merge(grid.world.geometry.boundary.intersection(boxes.buffer(h)))
+        walls = map_walls(grid.world).boundary
+        line = shapely.line_merge(walls.intersection(boxes.buffer(h)))
         if not isinstance(line, LineString | MultiLineString) or line.length < s.min_length:
             return None
         geometry = line

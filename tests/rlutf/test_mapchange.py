@@ -5,10 +5,21 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapely.geometry import Point, box
+import shapely
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import LineString, Point, box
 
 from rlutf.map import Map
-from rlutf.mapchange import ChangeGrid, ChangeSettings, Returns, _components, find_changes
+from rlutf.mapchange import (
+    ChangeGrid,
+    ChangeSettings,
+    Returns,
+    _components,
+    find_changes,
+    map_walls,
+)
+from rlutf.sim import make_building
 
 ROOM = Map.from_shapely(box(0.0, 0.0, 10.0, 6.0))
 T0 = 1_700_000_000_000_000_000
@@ -121,3 +132,55 @@ def test_counts_saturate_rather_than_wrap_over_a_long_lived_map_version() -> Non
     assert merged.counts.min() >= 0 and merged.marks[0].max() == top
     (change,) = find_changes(merged)
     assert change.kind == "added" and change.geometry.distance(Point(5.0, 3.0)) < 0.3
+
+
+#: A building of rooms and a room with two pillars: walls of several rings.
+BUILDING = make_building(np.random.default_rng(5))
+PILLARS = Map.from_shapely(
+    box(0.0, 0.0, 10.0, 6.0).difference(box(2.0, 2.0, 3.0, 3.0)).difference(box(6.0, 1.0, 7.0, 4.0))
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.sampled_from([ROOM, PILLARS, BUILDING]),
+    st.lists(st.tuples(st.floats(-0.2, 1.2), st.floats(-0.2, 1.2)), min_size=0, max_size=40),
+)
+def test_the_walls_distance_equals_shapelys_to_the_boundary(world: Map, at: list) -> None:
+    """The index of the walls is a fast path: the distances it gives are those to the whole
+    boundary, bit for bit (a cell is kept or left out exactly as before)."""
+    x0, y0, x1, y1 = world.bounds
+    points = np.array([(x0 + u * (x1 - x0), y0 + v * (y1 - y0)) for u, v in at]).reshape(-1, 2)
+    plain = shapely.distance(shapely.points(points), world.geometry.boundary)
+    np.testing.assert_array_equal(map_walls(world).distance(points), plain)
+
+
+def test_a_second_report_makes_no_walls_again_and_finds_the_same_changes() -> None:
+    """The map's boundary (and the wall index over it) is made once per map version, kept with
+    the map: it was made again for every report, tens of milliseconds for a map of real size."""
+    world = Map.from_shapely(PILLARS.geometry)
+    angles = np.linspace(-0.2, 0.2, 36)
+    cos, sin = np.cos(angles), np.sin(angles)
+    # from (4, 3) along +x: an object at x = 5.5 the map lacks (the pillar's face at 6 m) ...
+    added = Returns(np.array([4.0, 3.0, 0.0]), np.zeros(3), cos, sin,
+                    1.5 / cos, 2.0 / cos)  # fmt: skip
+    # ... and from (8, 3) along +x, beams through the wall at x = 10
+    removed = Returns(np.array([8.0, 3.0, 0.0]), np.zeros(3), cos, sin,
+                      3.5 / cos, 2.0 / cos)  # fmt: skip
+    grid = ChangeGrid(world)
+    for k in range(30):
+        grid.add(added, T0 + k * 1_000_000_000, "r1")
+        grid.add(removed, T0 + k * 1_000_000_000, "r2")
+    assert "mapchange:walls" not in world._derived
+    first = find_changes(grid)
+    walls = world._derived["mapchange:walls"]
+    second = find_changes(grid)
+    assert world._derived["mapchange:walls"] is walls  # not made again
+    assert [c.kind for c in first] == ["added", "removed"]
+    assert first[0].geometry.distance(Point(5.5, 3.0)) < 0.3
+    assert first[1].geometry.within(LineString([(10.0, 0.0), (10.0, 6.0)]).buffer(1e-9))
+    assert second == first  # the same changes, the same geometries
+    # and those a map of the same walls, not yet used for a report, gives
+    fresh = ChangeGrid(Map.from_shapely(PILLARS.geometry))
+    fresh.merge(grid)
+    assert find_changes(fresh) == first
