@@ -14,8 +14,10 @@ first evidence of it arrives (the map book holds the version the robots are on).
 
 The other instances' evidence arrives on a Zenoh callback thread, which only checks its key
 and size and hands the payload to a thread of the feed's own (:meth:`HealthFeed.declare`):
-decompressing, merging and building a report (a map's polygons, its first time) run there, not
-on the thread that delivers the bus's samples. The workers' evidence goes there too: it comes
+decompressing, merging and building a report run there, not on the thread that delivers the
+bus's samples, and so does waiting for a map version's walls at its first evidence (with worker
+processes this process holds no map: the process that validates maps builds it and sends it back,
+:meth:`service.maps.book.MapBook.world_of`). The workers' evidence goes there too: it comes
 with their outputs, on the thread that publishes the poses, and a report walks the map's grid
 and builds a polygon per change (a warehouse with 2000 pallets the map lacks: a second and
 more), which held back every robot's pose that came after it.
@@ -24,7 +26,6 @@ more), which held back every robot's pose that came after it.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import queue
 import threading
@@ -38,7 +39,7 @@ from schemas import SCHEMA_NAMES, EventCode, MapHealth
 from service.evidence import decode_evidence, encode_evidence
 from service.keys import Keys
 from service.maphealth import Handed, MapHealthEngine
-from service.maps.book import MapBook
+from service.maps.book import MapBook, MapRejected
 from service.maps.store import room_for
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,9 @@ WAITING = 32
 #: of them were 2 GiB); one is always taken when none waits.
 WAITING_BYTES = 128 << 20
 JSON = zenoh.Encoding.APPLICATION_JSON
+#: A map the validating process could not build for map health is asked for again this much
+#: later, seconds (each try decodes the whole map there).
+RETRY_S = 60.0
 
 Publish = Callable[[str, bytes], None]
 Record = Callable[[str, str, bytes, int, int], None]  # key, schema, payload, log time, stamp
@@ -98,6 +102,7 @@ class HealthFeed:
         self.reports: Callable[[str], bool] = lambda key: True
         self.events: Limited | None = None
         self._merging: Merging | None = None  # the feed's own thread, once declared
+        self._failed: dict[str, tuple[int, int]] = {}  # a version not built, when to retry
 
     def share_as(
         self,
@@ -163,9 +168,11 @@ class HealthFeed:
         return self._merge(handed, report)
 
     def _merge(self, handed: list[Handed], report: bool = True) -> str | None:
+        worlds = self._worlds(handed)  # before the lock: it may wait for the validating process
         try:
             with self._lock:
-                self._register(handed)
+                for map_id, version, world in worlds:
+                    self.engine.register_map(map_id, version, world)
                 self.engine.merge(handed)
         except ValueError as err:  # a grid of another shape than this map's
             return str(err)
@@ -182,15 +189,34 @@ class HealthFeed:
             self.publish(out.key, out.payload)
             self.record(out.key, MAPHEALTH_SCHEMA, out.payload, now, out.stamp_ns)
 
-    def _register(self, handed: list[Handed]) -> None:
-        for h in handed:
-            loaded = self.maps.get(h.map_id)
-            known = self.engine.version(h.map_id)
-            if loaded is not None and loaded.version == h.version and known != h.version:
-                # With worker processes the map was checked there: built here once a
-                # version, at its first evidence (its walls place the changes).
-                world = loaded.world or World.from_geojson(json.loads(loaded.payload)["geometry"])
-                self.engine.register_map(h.map_id, h.version, world)
+    def _worlds(self, handed: list[Handed]) -> list[tuple[str, int, World]]:
+        """The maps of the versions evidence comes for that are not registered yet (their
+        walls place the changes). With worker processes this process holds no map: the
+        validating process builds it and sends it back, at the version's first evidence only
+        (decoding and validating a 10 MB map here held the interpreter's lock for up to 0.8 s
+        at a time, from every thread of the process). A map that cannot be had is asked for
+        again :data:`RETRY_S` later; its evidence is dropped meanwhile."""
+        out: list[tuple[str, int, World]] = []
+        for map_id, version in dict.fromkeys((h.map_id, h.version) for h in handed):
+            loaded = self.maps.get(map_id)
+            if loaded is None or loaded.version != version:
+                continue
+            with self._lock:
+                known = self.engine.version(map_id)
+            failed = self._failed.get(map_id)
+            if known == version or (
+                failed is not None and failed[0] == version and self.clock() < failed[1]
+            ):
+                continue
+            try:
+                world = self.maps.world_of(loaded)
+            except MapRejected as err:
+                log.warning("map health of %r version %d: %s", map_id, version, err)
+                self._failed[map_id] = (version, self.clock() + int(RETRY_S * 1e9))
+                continue
+            self._failed.pop(map_id, None)
+            out.append((map_id, version, world))
+        return out
 
     def on_query(self, query: zenoh.Query) -> None:
         """Answer gets on ``{prefix}/maphealth/*`` with the current MapHealth of each map asked

@@ -188,3 +188,58 @@ def test_a_get_of_one_maps_health_makes_no_report_of_the_others() -> None:
         queryable.undeclare()
     assert [str(k) for k in replies] == ["rlutf/maphealth/m1"]
     assert made == ["m1"], made
+
+
+def test_with_maps_checked_apart_the_validating_process_builds_the_map_at_its_first_evidence(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A main process with worker processes holds no map (the book's map is ``None``): map
+    health's walls came from decoding and validating the payload here, which held the lock for
+    up to 0.8 s for a 10 MB map. The validating process builds it now, at the version's first
+    evidence only; a build that fails drops that map's evidence and is tried again later."""
+    from service.live import healthfeed
+
+    world = World.from_shapely(box(0.0, 0.0, 10.0, 6.0))
+    payload = encode(
+        Map.model_validate({"map_id": "m1", "version": 1, "geometry": world.to_geojson()})
+    )
+    book = MapBook(10**8, isolated=True)
+    now = [T0]
+    feed = HealthFeed(Keys(), book, lambda key, data: None, lambda *record: None, lambda: now[0])
+    try:
+        book.offer("m1", payload, T0)
+        loaded = book.get("m1")
+        assert loaded is not None and loaded.world is None
+        calls = book.checker.process.started  # one process so far, which checked the map
+        grid = ChangeGrid(world)
+        angles = np.linspace(-0.2, 0.2, 36)
+        ret = Returns(np.array([2.0, 3.0, 0.0]), np.zeros(3), np.cos(angles), np.sin(angles),
+                      3.0 / np.cos(angles), 8.0 / np.cos(angles))  # fmt: skip
+        for k in range(30):
+            grid.add(ret, T0 + k * 1_000_000_000, "r1")
+        evidence = [Handed("m1", 1, grid.snapshot())]
+
+        # the validating process fails (too slow: stopped): no map, the evidence dropped ...
+        book.checker.process.timeout_s = 0.0
+        feed.on_evidence(evidence)  # merged on this thread: no feed thread declared
+        assert feed.engine.version("m1") is None and feed.engine.answer("m1") is None
+        book.checker.process.timeout_s = 30.0
+        feed.on_evidence(evidence)  # ... and not asked again at once
+        assert feed.engine.version("m1") is None and book.checker.process.pid is None
+        now[0] += int(healthfeed.RETRY_S * 1e9)  # asked again later: built there, sent back
+        building = book.checker.process.started
+        feed.on_evidence(evidence)
+        assert book.checker.process.started == building + 1 > calls
+        held = feed.engine._maps["m1"].world
+        assert held is not world and held.geometry.equals_exact(world.geometry, 0.0)
+        assert np.array_equal(held.segments, world.segments)
+        assert book.get("m1").world is None  # type: ignore[union-attr]  # kept by the feed only
+        answer = feed.engine.answer("m1")
+        assert answer is not None and b'"added"' in answer
+
+        # later evidence of the version asks for no map
+        monkeypatch.setattr(book, "world_of", None)  # calling it would raise
+        feed.on_evidence(evidence)
+        assert feed.engine._maps["m1"].world is held
+    finally:
+        book.checker.close()

@@ -37,8 +37,23 @@ def served(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Bench]:
         yield b
 
 
-def test_a_rack_the_map_lacks_is_put_answered_and_shown(served: Bench, capsys) -> None:
+def test_a_rack_the_map_lacks_is_put_answered_and_shown(
+    served: Bench, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
     bench = served
+    workers = bench.service.settings.workers != 0
+    built_here: list[str] = []
+    if workers:
+        # With worker processes this process never decodes nor validates a map (it held the
+        # interpreter's lock for up to 0.8 s for a 10 MB map): the validating process builds
+        # the map health's map and sends it back. Spawned processes do not see this patch.
+        build = World.from_geojson.__func__  # type: ignore[attr-defined]
+
+        def counted(cls: type[World], *args: object, **kw: object) -> World:
+            built_here.append("from_geojson")
+            return build(cls, *args, **kw)  # type: ignore[no-any-return]
+
+        monkeypatch.setattr(World, "from_geojson", classmethod(counted))
     puts = Collector()
     sub = bench.client.declare_subscriber("rlutf/maphealth/*", puts)
     bench.put_map()
@@ -77,6 +92,13 @@ def test_a_rack_the_map_lacks_is_put_answered_and_shown(served: Bench, capsys) -
     reports = puts.on(key)
     assert all(h["map_id"] == "m1" and h["version"] == 1 for h in reports)
     assert reports[-1]["robots"] == 2 and reports[-1]["scans"] > STEPS
+    if workers:
+        assert built_here == []
+        loaded = bench.service.maps.get("m1")
+        assert loaded is not None and loaded.world is None  # the book keeps no map here
+        world = bench.service.healthfeed.engine._maps["m1"].world  # the one sent back
+        assert world.geometry.equals_exact(bench.world.geometry, 0.0)
+        assert np.array_equal(world.segments, bench.world.segments)
     # a get answers the current report
     (answer,) = [
         json.loads(r.ok.payload.to_bytes())
