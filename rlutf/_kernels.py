@@ -301,16 +301,16 @@ def scan_terms(
     full_circle: bool,
     max_gap: float,
     cap: float,
-) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-           np.ndarray, np.ndarray, float]:  # fmt: skip
+) -> tuple[int, bool, np.ndarray, float]:
     """What one scan's comparison needs, in one pass: the beams with a return, whether the
     polygons close through the sensor (:func:`rlutf.scan.needs_origin`), and each kept beam's
     polar-area weight (:class:`rlutf.discrepancy.PolarArea`, trapezoid rule over the real
     polygon's perimeter); and the kept beams gathered (one call, not a dozen array operations
     in Python per scan): their angles, cosines, sines, ranges, squared ranges, the capped
-    area's band ``2 cap rho_r`` (empty for ``cap <= 0``) and the longest kept range (0 if none).
-    Returns ``(kept indices, closing, weights, angles, cos, sin, ranges, squared ranges, band,
-    longest)``."""
+    area's band ``2 cap rho_r`` (not filled for ``cap <= 0``) and the longest kept range (0 if
+    none). Returns ``(kept beams n, closing, terms, longest)``, ``terms`` the ``(7, n)`` rows
+    weights, angles, cosines, sines, ranges, squared ranges and band: one array, as each array
+    returned costs the call about 0.4 us to hand to Python."""
     n_all = len(ranges)
     keep = np.empty(n_all, dtype=np.int64)
     n = 0
@@ -319,14 +319,15 @@ def scan_terms(
         if r >= range_min and r <= range_max:  # NaN fails both
             keep[n] = i
             n += 1
-    keep = keep[:n]
-    weights = np.zeros(n)
-    k_angles = np.empty(n)
-    k_cos = np.empty(n)
-    k_sin = np.empty(n)
-    k_ranges = np.empty(n)
-    k_sq = np.empty(n)
-    band = np.empty(n if cap > 0.0 else 0)
+    terms = np.empty((7, n))
+    weights = terms[0]
+    weights[:] = 0.0
+    k_angles = terms[1]
+    k_cos = terms[2]
+    k_sin = terms[3]
+    k_ranges = terms[4]
+    k_sq = terms[5]
+    band = terms[6]
     two_cap = 2.0 * cap
     longest = 0.0
     for k in range(n):
@@ -341,7 +342,7 @@ def scan_terms(
             band[k] = two_cap * r
         longest = max(longest, r)
     if n == 0:
-        return keep, True, weights, k_angles, k_cos, k_sin, k_ranges, k_sq, band, longest
+        return n, True, terms, longest
     widest = 0.0
     perimeter = 0.0
     for k in range(n - 1):
@@ -369,4 +370,4 @@ def scan_terms(
     scale = 0.25 / max(perimeter, 1e-9)
     for k in range(n):
         weights[k] *= scale
-    return keep, closing, weights, k_angles, k_cos, k_sin, k_ranges, k_sq, band, longest
+    return n, closing, terms, longest

@@ -32,29 +32,28 @@ class Problem:
         self.range_max = scan.range_max
         kind = config.discrepancy
         self.cap = config.area_cap if kind == "area" else None
-        (keep, self.closing, weights, angles, cos, sin, real, real_sq, band, longest) = (
-            _kernels.scan_terms(
-                scan.ranges,
-                beams.angles,
-                beams.cos,
-                beams.sin,
-                scan.range_min,
-                scan.range_max,
-                scan.covers_full_circle(),
-                config.max_gap,
-                self.cap if self.cap is not None else 0.0,
-            )
+        cap = self.cap if self.cap is not None else 0.0
+        self.count, self.closing, terms, longest = _kernels.scan_terms(
+            scan.ranges,
+            beams.angles,
+            beams.cos,
+            beams.sin,
+            scan.range_min,
+            scan.range_max,
+            scan.covers_full_circle(),
+            config.max_gap,
+            cap,
         )
-        self.count = len(keep)
         if self.count < config.min_returns:
             return
-        self.beams = beams if len(keep) == len(beams) else Beams(angles, cos, sin)
-        self.real_ranges = real
+        # The rows of terms: weights, angles, cosines, sines, ranges, squared ranges, band.
+        self.beams = beams if self.count == len(beams) else Beams(terms[1], terms[2], terms[3])
+        self.real_ranges = real = terms[4]
         if kind != "turning":
             # The combined discrepancy keeps the exact area: capped, its turning term (which
             # people and grazed edges disturb the most) would dominate.
-            given = band if len(band) == self.count else None
-            self.area = PolarArea.of_terms(real, weights, self.cap, real_sq, given)
+            given = terms[6] if cap > 0.0 else None
+            self.area = PolarArea.of_terms(real, terms[0], self.cap, terms[5], given)
         if self.cap is not None:
             # A virtual range past the real one plus the cap counts as the cap, so no beam needs
             # casting farther than the longest return plus the widest cap of a search.
