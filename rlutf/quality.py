@@ -67,7 +67,7 @@ def deviation_range(covariance: FloatArray | None, fallback: float) -> float:
     """
     if covariance is None:
         return fallback
-    a, b, c = float(covariance[0, 0]), float(covariance[0, 1]), float(covariance[1, 1])
+    a, b, c = covariance.item(0, 0), covariance.item(0, 1), covariance.item(1, 1)
     if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
         return fallback
     mean, half = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
