@@ -68,6 +68,16 @@ def test_the_localizer_tracks_on_the_coarse_map_only_where_it_helps() -> None:
     assert Localizer(traced, pose, LocalizerConfig(refine=False)).tracking_map is traced
 
 
+def test_the_map_tracked_on_follows_a_new_map() -> None:
+    traced, other = _traced(_room(7.0)), _traced(_room(11.0))
+    loc = Localizer(traced, np.array([1.0, 1.0, 0.0]))
+    assert loc.tracking_map is coarse_map(traced, 0.07)
+    loc.set_map(other)
+    assert loc.tracking_map is coarse_map(other, 0.07)
+    loc.set_map(traced)
+    assert loc.tracking_map is coarse_map(traced, 0.07)
+
+
 def test_negative_coarse_tolerance_is_refused() -> None:
     with pytest.raises(ConfigError, match="coarse_tolerance"):
         LocalizerConfig(coarse_tolerance=-0.01)

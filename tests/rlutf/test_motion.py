@@ -89,3 +89,11 @@ def test_one_pose_path_gives_the_same_bits_as_the_batch_path(
     fast = interpolate(a, b, f)
     slow = compose(batch_a, relative(batch_a, batch_b) * f)[0]
     assert fast.tobytes() == slow.tobytes()
+
+
+@given(pose, pose)
+@settings(max_examples=300)
+def test_the_localizers_float_compose_is_numpys_bit_for_bit(a: np.ndarray, b: np.ndarray) -> None:
+    from rlutf.localizer import _compose
+
+    assert _compose(a, b).tobytes() == compose(a[None], b[None])[0].tobytes()
