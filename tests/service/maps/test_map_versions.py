@@ -453,6 +453,8 @@ def test_map_put_gets_its_word_when_the_services_hold_back_their_events(
         bench.put_map(version=2)  # put back by someone else: the service's word goes out
         unchanged = lambda: [e for e in _events(col) if e["code"] == "map_unchanged"]  # noqa: E731
         assert col.wait_for(lambda: len(unchanged()) == 1)
+        # the service's word on an echo does not wait for the store, which may not hold it yet
+        assert col.wait_for(lambda: _stored(bench) is not None)
         said = time.monotonic()
         assert main(remove) == 0
         capsys.readouterr()
