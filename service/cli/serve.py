@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import signal
@@ -196,12 +197,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         if err.filename is not None:  # a folder of the store, the state or the logs
             raise
         # the metrics port is taken or the address is not local
-        print(
-            f"rlutf serve: cannot serve metrics on {settings.metrics_addr}:"
-            f"{settings.metrics_port} ({err.strerror or err}); choose another --metrics-port "
-            "(0: any free one) or --metrics-addr",
-            file=sys.stderr,
-        )
+        print(f"rlutf serve: {_metrics_refused(settings, err)}", file=sys.stderr)
         return EXIT_FAILURE
     except RuntimeError as err:  # a worker process could not start, or the name is taken
         if isinstance(err, NameTaken):  # after its worker processes started: stop them
@@ -326,7 +322,16 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
         host.close()
         say(session_failure(err, settings.listen))
         return EXIT_FAILURE
-    except (RuntimeError, OSError) as err:
+    except OSError as err:
+        host.close()
+        if err.filename is not None:  # a folder of the store, the state or the logs
+            raise
+        # The host's metrics port is taken or its address is not local: said as a single
+        # process says it ("[Errno 98] Address already in use" named neither port nor fix).
+        bind = err.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL)
+        say(_metrics_refused(settings, err) if bind else str(err))
+        return EXIT_FAILURE
+    except RuntimeError as err:
         host.close()
         say(str(err))
         return EXIT_FAILURE
@@ -344,6 +349,16 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
     finally:
         host.close()
     return _name_kept(host.service.name_claim.lost)  # its process 0's name: the host's
+
+
+def _metrics_refused(settings: Any, err: OSError) -> str:
+    """Why the metrics endpoint could not listen (its port taken, its address not local), and
+    what to do."""
+    return (
+        f"cannot serve metrics on {settings.metrics_addr}:{settings.metrics_port} "
+        f"({err.strerror or err}); choose another --metrics-port (0: any free one) or "
+        "--metrics-addr"
+    )
 
 
 def _layout_fits(command: str, settings: Any) -> bool:

@@ -324,6 +324,24 @@ def test_serve_on_a_taken_port_says_so(
     assert f"127.0.0.1:{taken_port}" in err and "--metrics-port" in err
 
 
+def test_serve_with_processes_on_a_taken_metrics_port_says_which_and_what_to_do(
+    files: Path, taken_port: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The default layout (a host of service processes) names the metrics port it could not
+    take and the fix, as a single process does; it said "[Errno 98] Address already in use"."""
+    free = socket.socket()
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()
+    argv = ["serve", "--processes", "2", "-l", f"tcp/127.0.0.1:{port}", "--no-record"]
+    argv += ["--store", str(files / "s"), "--no-state", "--metrics-addr", "127.0.0.1"]
+    code = _run([*argv, "--metrics-port", str(taken_port)])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert f"cannot serve metrics on 127.0.0.1:{taken_port}" in err, err
+    assert "choose another --metrics-port" in err and "[Errno" not in err, err
+
+
 def test_log_level_and_debug_after_the_subcommand(
     files: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
