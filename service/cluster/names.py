@@ -256,3 +256,54 @@ class NameClaim:
                 except zenoh.ZError:  # already gone with the session
                     log.debug("undeclare failed", exc_info=True)
         self._sub = self._token = None
+
+
+class HostNameClaim(NameClaim):
+    """The claims of a host's process 0 (``rlutf serve --processes N``): its own name,
+    INSTANCE-p0, and the host's, INSTANCE, which no process declares as a member but under which
+    the host answers Health. Without the second, a single-process ``rlutf serve --instance
+    INSTANCE`` beside the host started, took robots and answered Health as INSTANCE too.
+
+    Args:
+        instance: process 0's name.
+        host: the host's name.
+        keys: the key layout.
+        on_lost: as :class:`NameClaim`'s, for either name.
+    """
+
+    def __init__(self, instance: str, host: str, keys: Keys, on_lost: Callable[[str], None]):
+        super().__init__(instance, keys, on_lost)
+        self.host = NameClaim(host, keys, self._host_lost)
+
+    def _host_lost(self, message: str) -> None:
+        with self._lock:
+            first = self.lost is None
+            if first:
+                self.lost = message
+        if first:
+            self.on_lost(message)
+
+    def take(
+        self,
+        session: zenoh.Session,
+        timeout: float,
+        wait: float | None = None,
+        settle: float = SETTLE_S,
+    ) -> None:
+        """Claim the host's name, then process 0's (:meth:`NameClaim.take`)."""
+        self.host.take(session, timeout, wait, settle)
+        try:
+            super().take(session, timeout, wait, settle)
+        except NameTaken:
+            self.host.close()
+            raise
+
+    def confirm(self) -> None:
+        """As :meth:`NameClaim.confirm`, for both names."""
+        self.host.confirm()
+        super().confirm()
+
+    def close(self) -> None:
+        """Give both names up."""
+        super().close()
+        self.host.close()

@@ -229,6 +229,7 @@ class Host:
                 "no_store": s.no_store,
             }
         )
+        from service.cluster.names import HostNameClaim
         from service.live.node import LocalizationService
         from service.live.worker import tune_gc
         from service.logs.recording import make_recorder
@@ -237,6 +238,11 @@ class Host:
         # Told of the host's stop; and when another instance takes its name, it sets it.
         stop = self._stop_requested
         self.service = LocalizationService(own, recorder=make_recorder(own), stop=stop)
+        # The host's own name is claimed too: it answers Health under it, and a single process
+        # of that name beside it would take robots as another member (service.cluster.names).
+        self.service.name_claim = HostNameClaim(
+            own.instance, s.instance, self.keys, self.service._name_taken
+        )
         # It compiles the localizer's kernels on a first start after an install (or loads
         # them); the others start once it is ready and load them from numba's cache, instead
         # of all compiling the same kernels at once.

@@ -259,7 +259,8 @@ def test_two_hosts_of_one_name_meet_and_the_younger_host_stops(tmp_path: Path) -
             code = None
         text = logs[1].read_text()
         assert code == 1, text[-3000:]
-        assert "rlutf serve: another instance named h-p0 is running" in text, text[-3000:]
+        # it lost h-p0 and the host's own name h, whichever it learnt of first
+        assert "rlutf serve: another instance named h" in text, text[-3000:]
         time.sleep(2.0)
         assert hosts[0].poll() is None, logs[0].read_text()[-3000:]
         assert live_members(clients[0]) == {"h-p0", "h-p1"}
@@ -277,3 +278,45 @@ def test_two_hosts_of_one_name_meet_and_the_younger_host_stops(tmp_path: Path) -
                     host.wait(10.0)
         if bridge is not None:
             bridge.close()
+
+
+def test_a_single_process_of_a_hosts_name_refuses_to_start_beside_it(tmp_path: Path) -> None:
+    """``rlutf serve --processes 2 --instance h`` runs h-p0 and h-p1 and answers Health as h; a
+    single-process ``rlutf serve --instance h`` joining its router exits 1, saying why, and
+    takes no robot. It started before, a third member h beside h-p0 and h-p1, and a second
+    answer to h's Health."""
+    end = f"tcp/127.0.0.1:{free_port()}"
+    log = tmp_path / "host.log"
+    cmd = [sys.executable, "-m", "service", "serve", "--processes", "2", "--instance", "h"]
+    cmd += ["--listen", end, "--no-record", "--store", str(tmp_path / "store")]
+    cmd += ["--state", str(tmp_path / "state")]
+    with log.open("wb") as out:
+        host = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+    client: zenoh.Session | None = None
+    single: Instance | None = None
+    try:
+        client = session = _connect(end, host, log)
+        ready = wait_until(lambda: live_members(session) == {"h-p0", "h-p1"}, 60.0)
+        assert ready, log.read_text()[-3000:]
+        (tmp_path / "single").mkdir()
+        single = spawn_instance(end, "h", tmp_path / "single")
+        code = _exit_code(single, 45.0)
+        text = single.log.read_text()
+        assert code == 1, text[-2000:]
+        assert "an instance named h is live" in text, text[-2000:]
+        assert "each instance needs a name of its own" in text, text[-2000:]
+        assert host.poll() is None, log.read_text()[-3000:]
+        assert live_members(client) == {"h-p0", "h-p1"}
+        answers = [r.ok for r in client.get(Keys().health("h"), timeout=2.0) if r.ok]
+        assert len(answers) == 1
+    finally:
+        if single is not None:
+            single.stop()
+        if client is not None:
+            client.close()
+        host.terminate()
+        try:
+            host.wait(30.0)
+        except subprocess.TimeoutExpired:
+            host.kill()
+            host.wait(10.0)
