@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import json
 import math
+import signal
 import sys
 import threading
 import time
@@ -420,6 +421,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             started = time.monotonic()
             robots.start()
             due = started + args.report_every
+            # SIGTERM (`timeout`, `docker stop`, systemd) stops the fleet as Ctrl-C does, with
+            # the summary; it ended the process on the spot, with no summary, before.
+            main = threading.current_thread() is threading.main_thread()  # else: not ours
+            previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
             try:
                 while robots.is_alive():
                     robots.join(max(0.0, min(0.5, due - time.monotonic())))
@@ -428,6 +433,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                         due += args.report_every
             except KeyboardInterrupt:
                 print("interrupted: stopping the robots", flush=True)
+            finally:
+                if main:
+                    signal.signal(signal.SIGTERM, previous)
             stop.set()
             robots.join(5.0)
             time.sleep(0.5)  # the last poses
@@ -459,3 +467,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         return EXIT_FAILURE
     return EXIT_OK
+
+
+def _interrupt(_signum: int, _frame: object) -> None:
+    """A SIGTERM taken as Ctrl-C: the robots stop and the summary is printed."""
+    raise KeyboardInterrupt

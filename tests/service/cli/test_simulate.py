@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -200,3 +202,29 @@ def test_help_explains_the_command() -> None:
     ).stdout
     for flag in ("--duration", "--no-initial-pose", "--stored-map", "--bad-input-every", "--ros2"):
         assert flag in out
+
+
+def test_sigterm_stops_the_fleet_with_its_summary(tmp_path: Path) -> None:
+    """SIGTERM (``timeout``, ``docker stop``, systemd) stops the robots as Ctrl-C does: the
+    summary, exit 0. It ended the process at once with no summary (exit -15) before."""
+    with running_bench(tmp_path) as bench:
+        cmd = [sys.executable, "-m", "service", "simulate", "-e", bench.endpoint]
+        cmd += ["--robots", "1", "--duration", "120", "--beams", "90", "--report-every", "1"]
+        out = tmp_path / "out.txt"
+        with out.open("wb") as sink:
+            proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT)
+        try:
+            end = time.monotonic() + 60.0
+            while "1 of 1 robots localized" not in out.read_text():
+                assert proc.poll() is None and time.monotonic() < end, out.read_text()
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGTERM)
+            code = proc.wait(30.0)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    text = out.read_text()
+    assert code == 0, text
+    assert "interrupted: stopping the robots" in text, text
+    assert "r000" in text.split("interrupted: stopping the robots")[-1], text
