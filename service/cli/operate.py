@@ -12,13 +12,16 @@ from typing import Any
 from service.cli.errors import EXIT_FAILURE, EXIT_OK
 from service.cli.flags import client, seconds, zenoh_flags
 from service.cli.query import (
+    OFF_MAP_M,
     check_ids,
     json_flag,
+    off_map,
     refused_hint,
     request_flags,
     require_service,
     show_event,
     show_other,
+    tenths,
 )
 
 
@@ -72,43 +75,6 @@ def register(sub: Any) -> None:
     events.set_defaults(func=cmd_events)
 
 
-#: A pose farther than this outside the stored map's free space is refused, metres. Nearer, the
-#: robot's first scan corrects it (a click into a wall, a rough guess by a door).
-OFF_MAP_M = 1.0
-
-
-def off_map(payload: bytes, x: float, y: float) -> str | None:
-    """Why ``(x, y)`` cannot be on the stored map ``payload`` (a Map message): farther than
-    :data:`OFF_MAP_M` outside its free space; ``None`` when it may be (or the payload is not a
-    map this check can read: the service then says what is wrong with it)."""
-    import shapely
-    from shapely.geometry import shape
-
-    from schemas import Map, SchemaError, decode
-
-    try:
-        world = decode(Map, payload, max_bytes=len(payload))
-        free = shape(world.geometry.model_dump())
-    except (SchemaError, ValueError, TypeError, AttributeError):
-        return None
-    point = shapely.Point(x, y)
-    away = float(free.distance(point))
-    if free.is_empty or away <= OFF_MAP_M:
-        return None
-    x0, y0, x1, y1 = free.bounds
-    return (
-        f"({x:g}, {y:g}) is {_tenths(away)} m outside the free space of map {world.map_id!r} "
-        f"(version {world.version}: x {x0:.1f} to {x1:.1f} m, y {y0:.1f} to {y1:.1f} m); is the "
-        "pose in that map's coordinates, in metres? `rlutf map show "
-        f"{world.map_id} --out map.png` draws it; --force puts the pose anyway"
-    )
-
-
-def _tenths(value: float) -> str:
-    """A number to a tenth, or, past a million, as ``1e+300`` (not its 300 digits)."""
-    return f"{value:.1f}" if abs(value) < 1e6 else f"{value:.3g}"
-
-
 def _pose(text: str) -> tuple[float, float, float]:
     try:
         x, y, theta = (float(p) for p in text.split(","))
@@ -146,7 +112,7 @@ def cmd_initialpose(args: argparse.Namespace) -> int:
         outcome = put_request(
             session, settings.prefix, args.robot, request, args.wait, show_event(args.json)
         )
-    said = f"{args.robot} at x {x:g} m, y {y:g} m, θ {_tenths(math.degrees(theta))}° on {args.map}"
+    said = f"{args.robot} at x {x:g} m, y {y:g} m, θ {tenths(math.degrees(theta))}° on {args.map}"
     if outcome.result == "refused":
         print(refused_hint("initialpose", args.map, outcome.code), file=sys.stderr)
         return EXIT_FAILURE

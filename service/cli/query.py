@@ -199,6 +199,51 @@ def require_service(session: Any, prefix: str, endpoints: list[str]) -> None:
         )
 
 
+#: A pose farther than this outside the stored map's free space is refused, metres. Nearer, the
+#: robot's first scan corrects it (a click into a wall, a rough guess by a door).
+OFF_MAP_M = 1.0
+
+
+def off_map(
+    payload: bytes,
+    x: float,
+    y: float,
+    radius: float = 0.0,
+    fix: str = "--force puts the pose anyway",
+) -> str | None:
+    """Why ``(x, y)`` (or every point of the circle of ``radius`` around it) cannot be on the
+    stored map ``payload`` (a Map message): farther than :data:`OFF_MAP_M` outside its free
+    space; ``None`` when it may be (or the payload is not a map this check can read: the service
+    then says what is wrong with it). ``fix`` ends the message."""
+    import shapely
+    from shapely.geometry import shape
+
+    from schemas import Map, SchemaError, decode
+
+    try:
+        world = decode(Map, payload, max_bytes=len(payload))
+        free = shape(world.geometry.model_dump())
+    except (SchemaError, ValueError, TypeError, AttributeError):
+        return None
+    point = shapely.Point(x, y)
+    away = float(free.distance(point)) - radius
+    if free.is_empty or away <= OFF_MAP_M:
+        return None
+    x0, y0, x1, y1 = free.bounds
+    what = f"({x:g}, {y:g})" if radius <= 0 else f"the circle of {radius:g} m around ({x:g}, {y:g})"
+    return (
+        f"{what} is {tenths(away)} m outside the free space of map {world.map_id!r} "
+        f"(version {world.version}: x {x0:.1f} to {x1:.1f} m, y {y0:.1f} to {y1:.1f} m); is the "
+        "pose in that map's coordinates, in metres? `rlutf map show "
+        f"{world.map_id} --out map.png` draws it; {fix}"
+    )
+
+
+def tenths(value: float) -> str:
+    """A number to a tenth, or, past a million, as ``1e+300`` (not its 300 digits)."""
+    return f"{value:.1f}" if abs(value) < 1e6 else f"{value:.3g}"
+
+
 def cmd_relocalize(args: argparse.Namespace) -> int:
     """``rlutf relocalize ROBOT --map ID [--near X,Y,RADIUS] [--wait SECONDS]``."""
     from schemas import Region, Relocalize
@@ -214,6 +259,16 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
     settings, session = client(args)
     with session:
         require_service(session, settings.prefix, settings.connect)
+        if region is not None:  # a circle off the map: searched for ever, never found
+            from service.keys import Keys
+
+            fix = "leave out --near to search the whole map"
+            for reply in session.get(Keys(settings.prefix).map(args.map), timeout=5.0):
+                payload = None if reply.ok is None else reply.ok.payload.to_bytes()
+                why = None if payload is None else off_map(payload, x, y, radius, fix=fix)
+                if why is not None:
+                    print(f"rlutf relocalize: refused: --near: {why}", file=sys.stderr)
+                    return EXIT_FAILURE
         outcome = put_request(
             session, settings.prefix, args.robot, request, args.wait, show_event(args.json)
         )

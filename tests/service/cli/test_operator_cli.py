@@ -179,6 +179,30 @@ def test_an_initial_pose_far_off_the_stored_map_is_refused_before_it_is_put(
         assert code == 0, err
 
 
+def test_a_relocalize_circle_off_the_stored_map_is_refused_before_it_is_put(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A --near circle wholly off the map (a typo, another map's coordinates) was put: the
+    # robot then searched that circle at every scan, lost for good, its Events saying
+    # "relocalizing on the whole map", and the command ended "not relocalized" after --wait.
+    with running_bench(tmp_path) as bench:
+        bench.put_map()
+        time.sleep(0.3)  # stored
+        e = bench.endpoint
+        argv = ["relocalize", "r1", "--map", "m1", "--near", "1000,1000,1", "-e", e]
+        code, out, err = _cli(capsys, *argv, "--wait", "0")
+        assert code == 1 and out == "", (out, err)
+        assert "--near: the circle of 1 m around (1000, 1000)" in err, err
+        assert "outside the free space of map 'm1'" in err and "leave out --near" in err, err
+        code, out, _ = _cli(capsys, "robots", "-e", e, "--json")
+        assert json.loads(out) == []  # nothing was put
+        # a circle that reaches the map is put as before
+        x0, y0 = bench.world.bounds[:2]
+        reach = ["relocalize", "r1", "--map", "m1", "--near", f"{x0 - 3},{y0 + 1},3", "-e", e]
+        code, out, err = _cli(capsys, *reach, "--wait", "0")
+        assert code == 0 and "asked the service to relocalize r1" in out, (out, err)
+
+
 def test_initialpose_on_a_missing_map_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
