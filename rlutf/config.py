@@ -136,7 +136,9 @@ class LocalizerConfig:
             three times a good scanner's range noise: fine enough to tell two nearby basins
             apart, coarse enough that map errors do not decide).
         relocalize_after: after this many ``lost`` updates in a row the localizer relocalizes
-            by itself (:meth:`Localizer.relocalize` on the whole map); 0 never.
+            by itself (:meth:`Localizer.relocalize` on the whole map); 0 never. A relocalization
+            in a circle (an operator's ``--near``) with no answer after this many scans searches
+            the whole map from then on.
         relocalize_resolution: cell side of the relocalization's search grid, metres.
         seed_fit: the first update after a seeded pose (an initial pose, a handover, a
             restart) must fit at least this share of the scan's returns, or the update is

@@ -27,10 +27,8 @@ position radius, whichever is larger, so that early rounds still see beams that 
 A pose given with a wide uncertainty (the initial pose, a reset, the update after a ``lost``
 one, or a prediction that does not fit) is searched first over a grid of poses scored with the
 map's distance field (:mod:`rlutf.field`, ``wide_search``); the best few are refined and the
-best fit is kept.
-
-Randomness comes from a seeded :class:`numpy.random.Generator` owned by the localizer, so the
-same seed and inputs give the same poses bit for bit.
+best fit is kept. Randomness comes from a seeded :class:`numpy.random.Generator` owned by the
+localizer, so the same seed and inputs give the same poses bit for bit.
 """
 
 from __future__ import annotations
@@ -105,13 +103,11 @@ class Localizer:
         # A relocalization under way, and the lost updates in a row that may start one.
         self._follower: Follower | None = None
         self._lost_run = 0
-        # Running typical share of the returns that fit, over the updates that were not lost;
-        # and whether the robot is on probation after a lost update.
+        # Running typical share of the returns that fit (not lost updates); on probation?
         self._typical_fit = math.nan
         self._fit_deviation = 0.0
         self._probation = False
-        # A seeded pose (an initial pose, a handover, a restart) is a claim until a scan fits
-        # it: the first update after it must fit at least ``seed_fit`` of its returns.
+        # A seeded pose (initial pose, handover, restart) is a claim until a scan fits it.
         self._unverified = True
 
     @property
@@ -179,6 +175,7 @@ class Localizer:
             accept_fit=cfg.relocalize_fit,
             win_margin=cfg.win_margin,
             follow_scans=cfg.follow_scans,
+            widen_after=cfg.relocalize_after,
         )
         self._follower = Follower(self._map, region, search, follow, self._refine_settings)
         self._spread = None
@@ -191,6 +188,11 @@ class Localizer:
     def relocalizing(self) -> bool:
         """A relocalization is under way."""
         return self._follower is not None
+
+    @property
+    def searched_region(self) -> tuple[float, float, float] | None:
+        """The circle a relocalization under way searches (``None``: the whole map, or none)."""
+        return None if self._follower is None else self._follower.region
 
     def _spread_of(self, spread: tuple[float, float] | None) -> tuple[float, float]:
         cfg = self.config

@@ -370,6 +370,9 @@ class FollowSettings:
         win_margin: the winner's summed unfit share (over the scans followed) must be at least
             this much under every other hypothesis's.
         follow_scans: after this many scans without a winner, search the map again.
+        widen_after: a search in a region that has no winner after this many scans searches the
+            whole map from its next search on (the robot is not where it was said to be); 0:
+            never.
     """
 
     max_hypotheses: int = 5
@@ -377,6 +380,7 @@ class FollowSettings:
     accept_fit: float = 0.8
     win_margin: float = 0.3
     follow_scans: int = 10
+    widen_after: int = 0
 
 
 @dataclass
@@ -430,6 +434,7 @@ class Follower:
         self._refine = refine
         self._followed: list[_Followed] = []
         self._scans = 0
+        self._steps = 0  # scans taken since the relocalization began
 
     def step(
         self, motion: FloatArray, scan: Scan, fit: Callable[[FloatArray], Refinement]
@@ -439,6 +444,7 @@ class Follower:
         ``fit(pose)`` refines a pose against this scan (the localizer's own refinement).
         """
         cfg = self._follow
+        self._steps += 1
         if self._followed:
             self._scans += 1
             moved = []
@@ -461,6 +467,8 @@ class Follower:
                 if self._scans < cfg.follow_scans:
                     return FollowStep(None, self._hypotheses(), 0, kept[0].fit)
         # Search the map: the first scan, or every hypothesis failed, or none won in time.
+        if self.region is not None and 0 < cfg.widen_after < self._steps:
+            self.region = None  # nothing in the region won: before, it was searched for good
         found = relocalize(self.world, scan, self.region, self._search, self._refine)
         self._scans = 0
         if found.found and not found.ambiguous:

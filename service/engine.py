@@ -42,7 +42,14 @@ from service.guard import Limits, Outbound, guarded, region_on, usable_scan
 from service.keys import NO_RETURNS_MESSAGE, Keys
 from service.maphealth import NullEvidence, ScanEvidence
 from service.prepared import MapShelf, WorldSource
-from service.relocalization import REQUEST_WAIT_NS, Episode, EventSpec, Request, wire_hypotheses
+from service.relocalization import (
+    REQUEST_WAIT_NS,
+    Episode,
+    EventSpec,
+    Request,
+    searching,
+    wire_hypotheses,
+)
 
 __all__ = ["FleetEngine", "Outbound"]
 
@@ -369,11 +376,7 @@ class FleetEngine:
                 EventCode.LOST,
                 pose_key,
                 _unfit(result, self.config.fit_distance, self.config.min_fit)
-                + (
-                    "relocalizing on the whole map"
-                    if result.relocalizing
-                    else "searching wider at the next scan"
-                ),
+                + searching(result.relocalizing, robot.localizer.searched_region),
             )
         return out
 

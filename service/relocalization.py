@@ -140,3 +140,15 @@ def wire_hypotheses(result: LocalizeResult) -> tuple[Hypothesis, ...] | None:
 
 def _unit(score: float) -> float:
     return min(max(score, 0.0), 1.0) if math.isfinite(score) else 0.0
+
+
+def searching(relocalizing: bool, region: tuple[float, float, float] | None) -> str:
+    """What a lost robot's localizer does next, for its Event: a relocalization in a circle (an
+    operator's ``--near``) searches the whole map if nothing fits there
+    (:attr:`rlutf.relocalize.FollowSettings.widen_after`)."""
+    if not relocalizing:
+        return "searching wider at the next scan"
+    if region is None:
+        return "relocalizing on the whole map"
+    x, y, radius = region
+    return f"relocalizing within {radius:g} m of ({x:g}, {y:g}); if not there, on the whole map"

@@ -7,7 +7,7 @@ import shapely.affinity
 from shapely.geometry import box
 
 from rlutf import _bnb
-from rlutf.localizer import Localizer
+from rlutf.localizer import Localizer, LocalizerConfig
 from rlutf.map import Map
 from rlutf.motion import relative, wrap_angle
 from rlutf.relocalize import RelocalizeSettings, relocalize, search_grid
@@ -173,3 +173,38 @@ def test_hypotheses_headings_are_wrapped() -> None:
     assert result.hypotheses
     for h in result.hypotheses:
         assert -math.pi <= h.pose[2] < math.pi
+
+
+def test_a_circle_the_robot_is_not_in_gives_way_to_the_whole_map() -> None:
+    """An operator's circle (`rlutf relocalize --near`) that misses the robot was searched for
+    good: the robot stayed lost, or after hundreds of scans took a place in the circle that
+    happened to look like its own. After ``relocalize_after`` scans without an answer the
+    whole map is searched."""
+    rng = np.random.default_rng(41)
+    world = make_building(rng)
+    truth = make_trajectory(world, rng, 40)
+    scans = [simulate_scan(world, truth[i], LidarModel(), rng) for i in range(40)]
+    x0, y0, x1, y1 = world.bounds
+    # the corner of the building farthest from the robot, a circle of 1 m
+    far = max(((x0, y0), (x0, y1), (x1, y0), (x1, y1)), key=lambda c: math.dist(c, truth[0, :2]))
+    region = (far[0], far[1], 1.0)
+    assert math.dist(far, truth[0, :2]) > 5.0
+    loc = Localizer(world, truth[0])
+    loc.relocalize(region)
+    assert loc.searched_region == region
+    found = None
+    for i in range(1, 40):
+        res = loc.update(relative(truth[i - 1], truth[i]), scans[i])
+        if res.status != "lost":
+            found = i
+            break
+    assert found is not None and found <= loc.config.relocalize_after + 3, found
+    assert _close(res.pose, truth[found], 0.05, 1.0)
+    assert loc.searched_region is None and not loc.relocalizing
+    # Kept to the circle (relocalize_after 0: the localizer never gives it up), it stays lost.
+    kept = Localizer(world, truth[0], LocalizerConfig(relocalize_after=0))
+    kept.relocalize(region)
+    statuses = {
+        kept.update(relative(truth[i - 1], truth[i]), scans[i]).status for i in range(1, 20)
+    }
+    assert statuses == {"lost"} and kept.searched_region == region
