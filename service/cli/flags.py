@@ -431,7 +431,7 @@ def zenoh_file_config(settings: Any) -> Any:
     from service.live.sessions import zenoh_config
 
     try:
-        return zenoh_config(settings)
+        cfg = zenoh_config(settings)
     except zenoh.ZError as err:
         endpoint = _bad_endpoint(settings)
         if endpoint is not None:
@@ -447,6 +447,10 @@ def zenoh_file_config(settings: Any) -> Any:
             "it (JSON5, as zenohd reads it) or leave out -c/--config",
             EXIT_USAGE,
         ) from err
+    endpoint = _bad_endpoint(settings)  # a port zenoh takes here and fails to open later
+    if endpoint is not None:
+        raise CliError(endpoint, EXIT_USAGE)
+    return cfg
 
 
 #: Where each endpoint setting is listened on or connected to, and an endpoint of its kind.
@@ -465,13 +469,15 @@ def _bad_endpoint(settings: Any) -> str | None:
 
     for name, flag, example in _ENDPOINT_FLAGS:
         for endpoint in getattr(settings, name):
+            port = endpoint.split("?")[0].split("#")[0].rpartition(":")[2]
             try:
                 zenoh.Config().insert_json5(f"{name}/endpoints", json.dumps([endpoint]))
+                if port.isdigit() and int(port) > 65535:  # zenoh takes it, and fails to open it
+                    raise zenoh.ZError(f"port {port}")
             except zenoh.ZError:
-                return (
-                    f"{flag} {endpoint}: not a zenoh endpoint; give PROTOCOL/HOST:PORT, "
-                    f"e.g. {example}"
-                )
+                over = port.isdigit() and int(port) > 65535
+                what = f"port {port} is over 65535" if over else "not a zenoh endpoint"
+                return f"{flag} {endpoint}: {what}; give PROTOCOL/HOST:PORT, e.g. {example}"
     return None
 
 

@@ -294,10 +294,14 @@ def test_serve_on_a_taken_port_says_so(
     assert code == 1
     assert f"tcp/127.0.0.1:{taken_port}" in err and "-l/--listen" in err
     assert "the port is taken" in err and ".rs:" not in err
-    # not an endpoint at all: not a taken port either
+    # not an endpoint at all: not a taken port either, and the flag's value to fix (exit 2)
     code = _run(["serve", "-l", "tcp/127.0.0.1:99999", *common])
     err = capsys.readouterr().err
-    assert code == 1 and "check the endpoints" in err and "port is taken" not in err
+    assert code == 2 and "port is taken" not in err
+    assert "-l/--listen tcp/127.0.0.1:99999: port 99999 is over 65535" in err, err
+    code = _run(["robots", "-e", "tcp/127.0.0.1:70000"])
+    err = capsys.readouterr().err
+    assert code == 2 and "-e/--connect tcp/127.0.0.1:70000: port 70000 is over 65535" in err, err
 
     free = socket.socket()
     free.bind(("127.0.0.1", 0))
