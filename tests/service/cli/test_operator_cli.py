@@ -46,6 +46,8 @@ def _tracked(bench: Bench) -> SimRobot:
     col = Collector()
     sub = bench.client.declare_subscriber("rlutf/robots/r1/pose", col)
     time.sleep(0.3)
+    # loaded first (on a busy host a put takes a while): scans before it would be skipped
+    assert col.wait_for(lambda: bench.service.maps.get("m1") is not None)
     robot = bench.robot("r1", 1)
     robot.initial_pose("m1")
     time.sleep(0.3)
