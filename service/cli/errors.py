@@ -91,8 +91,12 @@ def _os_message(err: OSError) -> tuple[str, int]:
 
 def explain(err: BaseException) -> tuple[str, int] | None:
     """``err`` as a message and an exit code, or ``None`` for an error no command foresees."""
+    from service.logs.mcapfile import SchemaMissing
+
     if isinstance(err, CliError):
         return str(err), err.code
+    if isinstance(err, SchemaMissing):  # a log would be written that no audit can read
+        return str(err), EXIT_FAILURE
     if isinstance(err, OSError):
         return _os_message(err)
     if isinstance(err, json.JSONDecodeError):

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Mapping
-from functools import cache
 from importlib import metadata, resources
+from importlib.resources.abc import Traversable
 from typing import IO, Any, NamedTuple
 
+from schemas import SCHEMA_NAMES
 from service.logs.manifest import MANIFEST_METADATA, Manifest
 from service.logs.mcapwriter import McapWriter
 
@@ -71,23 +72,77 @@ Converter = Callable[[Record], list[Record]]
 """Turns a logged message into further messages to log beside it (the Foxglove views)."""
 
 
-@cache
+#: The Foxglove views' schema names: :data:`service.logs.foxglove.SCHEMA_NAMES` (which imports
+#: this module; a test keeps the two the same).
+VIEW_SCHEMA_NAMES = (
+    "foxglove.LaserScan",
+    "foxglove.PoseInFrame",
+    "foxglove.FrameTransform",
+    "foxglove.SceneUpdate",
+)
+
+
+class SchemaMissing(Exception):
+    """A schema a log may name has no document in the installed package.
+
+    Args:
+        schema_name: e.g. ``rlutf.LaserScan``.
+        where: the file that was looked for, or why none is known.
+    """
+
+    def __init__(self, schema_name: str, where: str) -> None:
+        super().__init__(
+            f"no JSON Schema for {schema_name} ({where}): the installed rlutf package is "
+            "incomplete or was changed under the service; reinstall it "
+            "(pip install --force-reinstall) and start again"
+        )
+        self.schema_name = schema_name
+
+
+def _schema_file(schema_name: str) -> Traversable | None:
+    """Where the installed package keeps a schema name's document; ``None`` if nowhere."""
+    if schema_name.startswith("rlutf."):
+        return resources.files("schemas").joinpath("jsonschema", f"{schema_name}.json")
+    if schema_name.startswith("foxglove."):
+        return resources.files("service.logs").joinpath("foxglove_schemas", f"{schema_name}.json")
+    return None
+
+
 def schema_data(schema_name: str) -> bytes | None:
-    """The JSON Schema document logged for a schema name, or ``None`` if none is known.
+    """The JSON Schema document logged for a schema name, read now; ``None`` if none is known.
 
     ``rlutf.*`` documents are the checked-in files of ``schemas/jsonschema/``; ``foxglove.*``
     ones are Foxglove's published schemas embedded under ``service/logs/foxglove_schemas/``.
     """
-    if schema_name.startswith("rlutf."):
-        path = resources.files("schemas").joinpath("jsonschema", f"{schema_name}.json")
-    elif schema_name.startswith("foxglove."):
-        path = resources.files("service.logs").joinpath("foxglove_schemas", f"{schema_name}.json")
-    else:
+    path = _schema_file(schema_name)
+    if path is None:
         return None
     try:
         return path.read_bytes()
     except FileNotFoundError:
         return None
+
+
+def load_schemas() -> dict[str, bytes]:
+    """Every schema a log may name (WIRE.md's and the Foxglove views'), read now.
+
+    A writer holds them from its creation on: before, each was read from the installed package
+    when a channel was first used, and a ``pip install`` under a running service (or a file
+    removed) made the next new channel's schema id 0, silently, and the log unauditable.
+
+    Raises:
+        SchemaMissing: one of them cannot be read.
+    """
+    found: dict[str, bytes] = {}
+    for name in (*sorted(SCHEMA_NAMES.values()), *VIEW_SCHEMA_NAMES):
+        path = _schema_file(name)
+        try:
+            found[name] = path.read_bytes() if path is not None else b""
+        except OSError as err:
+            raise SchemaMissing(name, f"{path}: {err.strerror or err}") from err
+        if not found[name]:
+            raise SchemaMissing(name, f"{path}: empty")
+    return found
 
 
 def config_metadata(config: Mapping[str, Any]) -> dict[str, str]:
@@ -118,8 +173,13 @@ class LogWriter:
         converter: called with every written record; what it returns is written too.
         chunk_size: uncompressed chunk size, bytes, at which a chunk is closed.
         zstd_level: the chunks' zstd level.
-        schemas: schema data to log for these schema names instead of :func:`schema_data`'s
+        schemas: schema data to log for these schema names instead of the package's own
             (a copy of a log keeps the log's own).
+        known: the package's schemas, as :func:`load_schemas` read them (a recorder reads them
+            once for all its files); read now when not given.
+
+    Raises:
+        SchemaMissing: ``known`` is not given and a schema cannot be read.
     """
 
     def __init__(
@@ -129,9 +189,12 @@ class LogWriter:
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         zstd_level: int = DEFAULT_ZSTD_LEVEL,
         schemas: Mapping[str, bytes] | None = None,
+        known: Mapping[str, bytes] | None = None,
     ) -> None:
+        book = dict(load_schemas() if known is None else known)
+        book.update((name, data) for name, data in (schemas or {}).items() if data)
+        self._book = book
         self._writer = McapWriter(output, chunk_size, zstd_level)
-        self._given = dict(schemas or {})
         self._writer.start(profile="", library=LIBRARY)
         self._converter = converter
         self._schemas: dict[str, int] = {}
@@ -155,10 +218,10 @@ class LogWriter:
             return channel
         schema_id = self._schemas.get(schema_name)
         if schema_id is None:
-            data = self._given.get(schema_name) or schema_data(schema_name)
-            schema_id = 0
-            if data is not None:
-                schema_id = self._writer.register_schema(schema_name, SCHEMA_ENCODING, data)
+            data = self._book.get(schema_name)
+            if data is None:  # a channel without a schema is a log no audit can read
+                raise SchemaMissing(schema_name, "not a schema of WIRE.md or of the views")
+            schema_id = self._writer.register_schema(schema_name, SCHEMA_ENCODING, data)
             self._schemas[schema_name] = schema_id
         channel = self._writer.register_channel(topic, MESSAGE_ENCODING, schema_id)
         self._channels[key] = channel

@@ -51,7 +51,13 @@ from typing import IO, Any, NamedTuple, cast
 
 from schemas import Event, EventCode, encode
 from service.logs.foxglove import FoxgloveConverter
-from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, DEFAULT_ZSTD_LEVEL, LogWriter, Record
+from service.logs.mcapfile import (
+    DEFAULT_CHUNK_SIZE,
+    DEFAULT_ZSTD_LEVEL,
+    LogWriter,
+    Record,
+    load_schemas,
+)
 from service.logs.recqueue import ConfigItem as _Config
 from service.logs.recqueue import Item as _Item
 from service.logs.recqueue import Message as _Message
@@ -98,6 +104,9 @@ class McapRecorder:
         chunk_size: uncompressed bytes at which a chunk is closed early.
         zstd_level: the chunks' zstd level.
         foxglove: also log the Foxglove views (off: ``rlutf log views`` writes them later).
+
+    Raises:
+        service.logs.mcapfile.SchemaMissing: the installed package lacks a schema it may log.
     """
 
     def __init__(
@@ -123,6 +132,9 @@ class McapRecorder:
         self.chunk_size = chunk_size
         self.zstd_level = zstd_level
         self._converter = FoxgloveConverter() if foxglove else None
+        # read now, for every file of the run: a package reinstalled under the service cannot
+        # change what it logs, and one that lacks a schema stops it at start
+        self._known = load_schemas()
         self._queue = _Queue(queue_size, _POLL_S)
         self._lock = threading.Lock()
         self._overflowed = 0
@@ -392,7 +404,9 @@ class McapRecorder:
         except OSError:
             self._sequence -= 1  # a retry of a full disk or a folder gone takes no number
             raise
-        writer = LogWriter(stream, self._converter, self.chunk_size, self.zstd_level)
+        writer = LogWriter(
+            stream, self._converter, self.chunk_size, self.zstd_level, known=self._known
+        )
         # each retry while recording fails opens a file: said once the file is written to
         (log.info if self._failing is None else log.debug)("recording to %s", part)
         return _OpenFile(part, final, stream, writer, time.monotonic())
