@@ -155,6 +155,8 @@ class Sweeper:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.evicted = 0
+        #: Called after each sweep, on the sweeper's thread (the Events a budget held back).
+        self.also: Callable[[], None] = lambda: None
 
     def start(self) -> None:
         """Start sweeping."""
@@ -181,3 +183,7 @@ class Sweeper:
     def _run(self) -> None:
         while not self._stop.wait(SWEEP_INTERVAL_S):
             self.sweep()
+            try:
+                self.also()
+            except Exception:
+                log.exception("after a sweep")

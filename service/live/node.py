@@ -115,6 +115,7 @@ class LocalizationService:
         self._poses: dict[str, bytes] = {}
         view = RobotView(settings.instance, self._poses, self.clock, settings.prefix)
         self.robot_view = view
+        view.unplaced_ns = max(view.unplaced_ns, 3 * int(settings.event_interval_s * 1e9))
         self._declared: list[Any] = []
         self.outbox = Outbox()  # Events go out from its thread, never from a callback's
         self.out = Announcer(self.keys, self.recorder, self.clock, self.outbox, view.told)
@@ -194,6 +195,7 @@ class LocalizationService:
         self.sweeper = Sweeper(
             self.clock, int(settings.robot_idle_s * 1e9), self.dispatcher.idle_since, self._evict
         )
+        self.sweeper.also = self.out.say_folded  # the Events the budget held back, counted
 
         def rec(key: str, schema: str, payload: bytes, at: int, stamp: int) -> None:
             self.recorder.record(key, schema, payload, at, stamp)
@@ -443,7 +445,7 @@ class LocalizationService:
                 self.robot_view.published(done.robot, now, out.received_ns)
                 self.metrics.pose(out.status)
             else:
-                self._publish(out.key, out.payload)
+                self.out.engine_event(done.robot, out.key, out.payload)  # within the budget
                 now = self.clock()
                 self.recorder.record(out.key, EVENT_SCHEMA, out.payload, now, out.stamp_ns)
                 self.robot_view.event(done.robot, out.payload, now)
@@ -468,6 +470,7 @@ class LocalizationService:
             **self.gate.figures(),
             **self.name_claim.figures(),  # the claim: this process's session id
             "robots_evicted": self.sweeper.evicted,
+            "events_held_back": self.out.budget.held_back,  # service.live.eventbudget
         }
         if self.ros2 is not None:
             extra["ros2_robots"] = self.ros2.robots()  # robot id: namespace, the first 50
@@ -489,12 +492,9 @@ class LocalizationService:
             query.reply(self.keys.health(self.settings.instance), self.health(), encoding=JSON)
 
     def wait(self, stop: threading.Event) -> None:
-        """Block until ``stop`` is set (a signal handler sets it).
-
-        Timed waits in a loop, so that the main thread returns to the interpreter at least once
-        a second and runs pending signal handlers; it also gives freed heap pages back to the
-        system now and then (:mod:`service.live.memory`).
-        """
+        """Block until ``stop`` is set (a signal handler sets it): timed waits in a loop, so that
+        the main thread runs pending signal handlers at least once a second; it also gives freed
+        heap pages back to the system now and then (:mod:`service.live.memory`)."""
         trimmer = HeapTrimmer()
         while not stop.wait(1.0) and not self.stopping.is_set():  # name lost: stopping
             trimmer.maybe()

@@ -16,9 +16,10 @@ from typing import Protocol
 
 import zenoh
 
-from schemas import SCHEMA_NAMES, Event, encode
+from schemas import SCHEMA_NAMES, Event, EventCode, encode
 from schemas.fastevent import encode_scan_dropped
 from service.keys import Keys, printable
+from service.live.eventbudget import EventBudget
 from service.live.outbox import Outbox
 from service.logs.recording import Recorder
 
@@ -50,6 +51,7 @@ class Announcer:
         clock: the service's receive clock, ns.
         outbox: the thread Events go out from.
         on_robot_event: told of each robot Event sent (robot, code, stamp).
+        budget: how many robots' Events of a code go out at most (:mod:`service.live.eventbudget`).
     """
 
     def __init__(
@@ -59,8 +61,10 @@ class Announcer:
         clock: Callable[[], int],
         outbox: Outbox,
         on_robot_event: Callable[[str, str, int], None] | None = None,
+        budget: EventBudget | None = None,
     ) -> None:
         self.keys = keys
+        self.budget = budget or EventBudget()
         #: Told of each robot Event sent: robot, code, stamp (the per-robot view's reasons).
         self.on_robot_event = on_robot_event
         self.recorder = recorder
@@ -182,12 +186,40 @@ class Announcer:
         stamp = now if now is not None else self.clock()
         if self.on_robot_event is not None:  # first: the view holds it once the Event is out
             self.on_robot_event(robot, code, stamp)
-        self.event(self.keys.robot_events(robot), level, code, about, message, stamp)
+        key = self.keys.robot_events(robot)
+        if self.budget.admit(robot, level, code, about, message, stamp):
+            self.event(key, level, code, about, message, stamp)
+        elif code == EventCode.ROBOT_EVICTED:  # not sent, but replay forgets the robot there
+            ev = Event(stamp_ns=stamp, level=level, code=code, key=about, message=message)
+            self.recorder.record(key, EVENT_SCHEMA, encode(ev), self.clock(), stamp)
+
+    def engine_event(self, robot: str, key: str, payload: bytes) -> None:
+        """Publish an Event the engine made about ``robot`` (its caller records it), within the
+        budget: a flood of new ids is a flood of ``not_initialized``."""
+        code, about = _field(payload, b"code"), _field(payload, b"key")
+        if self.budget.admit(robot, "", code, about, payload, self.clock()):
+            self.publish(key, payload)
+
+    def say_folded(self) -> None:
+        """Send the Events that count those the budget held back, once their window is over
+        (called once a second, by the sweeper's thread)."""
+        for f in self.budget.due(self.clock()):
+            self.global_event(f.level, f.code, f.about, f.message)
 
     def global_event(
         self, level: str, code: str, about: str, message: str, now: int | None = None
     ) -> None:
         self.event(self.keys.events, level, code, about, message, now)
+
+
+def _field(payload: bytes, name: bytes) -> str:
+    """A string field of an encoded Event (compact JSON, as :func:`schemas.encode` writes it,
+    its values the service's own), read without decoding it; ``""`` if absent."""
+    start = payload.find(b'"' + name + b'":"')
+    if start < 0:
+        return ""
+    start += len(name) + 4
+    return payload[start : payload.find(b'"', start)].decode(errors="replace")
 
 
 def _log(ev: Event) -> None:

@@ -8,7 +8,9 @@ The answer is a :class:`~schemas.answers.RobotsAnswer` (docs/wire.md, RobotsAnsw
 robot held with its latest pose and, up to :data:`MAX_WAITING` (the longest silent forgotten
 first), the robots that send scans but have no pose yet (no initial pose, or a map not loaded),
 aged from the latest such scan's Event, and those given an initial pose that have sent no scan
-since (``no_scan_yet``, aged from the initial pose).
+since (``no_scan_yet``, aged from the initial pose). A robot never placed (``not_initialized``)
+is listed only while its scans keep coming (:data:`UNPLACED_SHOWN_NS`): an id made up for one
+message, a flood of them, is not listed for ``robot_idle_s``.
 """
 
 from __future__ import annotations
@@ -70,6 +72,14 @@ _WAITING = {
 }
 #: The reason of a robot given an initial pose that has sent no scan since.
 NO_SCAN_YET = "no_scan_yet"
+#: The reason of a robot that sends scans but was never given a pose.
+NOT_INITIALIZED = "not_initialized"
+#: How long a robot never placed stays listed after its latest ``not_initialized`` Event, ns
+#: (at least; three ``event_interval_s`` where that is longer, :attr:`RobotView.unplaced_ns`):
+#: one that scans gets such an Event every ``event_interval_s``, while an id made up for a
+#: message or a few (10,000 of them in a quarter of a second, made up by a client) stayed listed
+#: for ``robot_idle_s`` (an hour), crowding out the robots that do wait.
+UNPLACED_SHOWN_NS = 10_000_000_000
 #: Inputs that place a robot on a map, after which it is listed (:data:`NO_SCAN_YET`) until its
 #: first pose: a Relocalize too (it went unlisted, or stayed "no map" after one on a mistyped
 #: map while the robot sent no scans).
@@ -123,6 +133,8 @@ class RobotView:
         self.owns: Callable[[str], bool] = lambda robot: True
         self._answer: tuple[int, int, bytes] | None = None  # the last answer: when, generation
         self._generation = 0  # counts robots coming and going (a new first pose, a forget)
+        #: How long a robot never placed is listed after its latest not_initialized Event, ns.
+        self.unplaced_ns = UNPLACED_SHOWN_NS
 
     # ------------------------------------------------------------------ hot path
     def published(self, robot: str, at_ns: int, received_ns: int | None) -> None:
@@ -256,6 +268,15 @@ class RobotView:
     def waiting(self) -> list[WaitingRobot]:
         """Robots whose scans get no pose, by robot id (those with a pose since left out)."""
         now = self._clock()
+        with self._lock:  # the robots never placed that went silent are forgotten
+            gone = [
+                robot
+                for robot, (at, reason, _) in self._waiting.items()
+                if reason == NOT_INITIALIZED and now - at > self.unplaced_ns
+            ]
+            for robot in gone:
+                del self._waiting[robot]
+        self._generation += bool(gone)
         return [
             WaitingRobot(
                 robot_id=robot,
