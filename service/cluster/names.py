@@ -163,10 +163,14 @@ class NameClaim:
             claims_key(self.keys, self.instance), self._on_sample, history=True
         )
         time.sleep(settle)
-        for claim in self._claims(session, timeout):
+        live = [c for c in self._claims(session, timeout) if c.session != mine]
+        for claim in live:
             self._seen(claim)
         with self._lock:
-            rival = self._beaten_by
+            # Only a claim still live counts: the subscriber may have been told of one that went
+            # meanwhile (a previous run's, leaving as this one starts).
+            older = [c for c in live if c < self.own]
+            rival = self._beaten_by = min(older) if older else None
             self._held = rival is None
         if rival is not None:
             self.close()
