@@ -348,13 +348,16 @@ def run_size(
         workers_pids = descendants(proc.pid)
         steal0 = machine_steal()
         main0 = cpu_seconds(proc.pid)
-        workers0 = sum(cpu_seconds(p) for p in workers_pids)
+        workers0 = {p: cpu_seconds(p) for p in workers_pids}
         tasks0 = {p: task_cpu(p) for p in [proc.pid, *workers_pids]}
         switches0 = {p: task_switches(p) for p in tasks0}
         ended.wait(duration + 120)
         main_cpu = cpu_seconds(proc.pid) - main0
         steal1 = machine_steal()
-        workers_cpu = sum(cpu_seconds(p) for p in workers_pids) - workers0
+        # A child that ended meanwhile (a map checker idle for a while) is not read again: its
+        # CPU since the start is left out (it was idle, or it would not have ended).
+        ends = {p: cpu_seconds(p) for p in workers_pids}
+        workers_cpu = sum(ends[p] - workers0[p] for p in ends if not math.isnan(ends[p]))
         tasks1 = {p: task_cpu(p) for p in tasks0}
         switches1 = {p: task_switches(p) for p in tasks0}
         result = out.get(timeout=60)

@@ -146,8 +146,7 @@ class MapFeed:
 
     def start(self, session: zenoh.Session) -> None:
         """Start the map thread; maps are fetched on ``session``."""
-        self._session = session
-        self.book.checker.start()
+        self._session = session  # the map checker's process starts with the first map
         self._thread = threading.Thread(target=self._run, name="rlutf-maps", daemon=True)
         self._thread.start()
 

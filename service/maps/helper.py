@@ -31,8 +31,11 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
-#: How long a helper process lives without a call, seconds.
-IDLE_S = 60.0
+#: How long a helper process lives without a call, seconds: a map checker is about 57 MB
+#: resident, one per service process of the default layout, so it goes soon after its maps
+#: (kept a minute from the service's start, two of them held the service at 200 robots at 517
+#: to 522 MB resident instead of 464: BENCHMARKS.md, "200 robots on 0.5.1").
+IDLE_S = 10.0
 #: The longest call, seconds (a 64 MB map decodes in about 15 s on one free core).
 TIMEOUT_S = 120.0
 #: The longest start of a process (its imports), seconds.
