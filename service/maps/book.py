@@ -207,8 +207,9 @@ class MapChecker:
         self._recent: OrderedDict[tuple[str, bytes], Future[CheckedMap]] = OrderedDict()
 
     def start(self) -> None:
-        """Start the validating process, if isolated, and wait until it runs (its imports take
-        a second or more: at start, not when the first map comes)."""
+        """Start the validating process now, if isolated, and wait until it runs (its imports
+        take a second or more). A service does not: its first map starts it, so that a service
+        with no map to check holds no such process (:data:`service.maps.helper.IDLE_S`)."""
         if self.isolated:
             self.process.start()
 
