@@ -200,8 +200,12 @@ class SteadyFleet:
 
 
 def _children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").glob("*"):
+    out: list[int] = []
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:  # the process ended
+        return out
+    for task in tasks:
         try:
             out += [int(c) for c in (task / "children").read_text().split()]
         except OSError:
@@ -209,19 +213,33 @@ def _children(pid: int) -> list[int]:
     return out
 
 
+def _cmdline(pid: int) -> bytes | None:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return None
+
+
 def process_rss_mb(pid: int | None = None) -> dict[int, float]:
-    """Resident memory of a process and each of its descendants, MB by pid (Linux)."""
+    """Resident memory of a process and each of its descendants, MB by pid (Linux).
+
+    A child whose command line is still its parent's is between fork and exec (every process
+    the service and the benches start is spawned or exec'd): its resident pages are its
+    parent's, so it is left out; counted, one sample in a spawn doubled the parent."""
     out: dict[int, float] = {}
-    stack = [pid or os.getpid()]
+    stack: list[tuple[int, bytes | None]] = [(pid or os.getpid(), None)]
     while stack:
-        p = stack.pop()
+        p, parent_cmdline = stack.pop()
+        cmdline = _cmdline(p)
+        if parent_cmdline is not None and cmdline == parent_cmdline:
+            continue
         try:
             for line in Path(f"/proc/{p}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
                     out[p] = int(line.split()[1]) / 1024.0
         except OSError:
             continue
-        stack += _children(p)
+        stack += [(c, cmdline) for c in _children(p)]
     return out
 
 
