@@ -185,8 +185,31 @@ def test_a_service_whose_robots_run_on_its_input_thread_checks_maps_apart(tmp_pa
         assert checker.isolated and checker.keep_world
         last = drive(bench, ["r1"], 30)["r1"]
         loaded = bench.service.maps.get("m1")
-        assert loaded is not None and loaded.world is not None  # sent back, for its robots
+        assert loaded is not None and loaded.world is not None
+        assert checker.process.started == 0  # m1, 2 kB, is checked in the process itself
+        payload, _ = warehouse_payload(0.2)  # over INLINE_BYTES
+        bench.client.put("rlutf/maps/warehouse", payload)
+        assert wait_until(lambda: bench.service.maps.get("warehouse") is not None, 30.0)
+        big = bench.service.maps.get("warehouse")
+        assert big is not None and big.world is not None  # sent back, for its robots
         assert checker.process.pid not in (None, os.getpid())
     assert last["map_id"] == "m1" and last["status"] != "lost"
     with running_bench(tmp_path / "threads") as bench:  # callback intake, threads: the tests'
         assert not bench.service.maps.checker.isolated
+
+
+def test_a_small_map_is_validated_here_and_starts_no_process() -> None:
+    payload = _small()
+    checker = MapChecker(1 << 26, LIMITS, isolated=True, inline_bytes=len(payload))
+    try:
+        checked = checker.check("m1", payload)
+        assert checked.version == 1 and checked.world is None  # as from the process
+        assert checker.build("m1", payload).bounds == WORLD.bounds
+        with pytest.raises(MapRejected, match="max_map_area"):
+            checker.check("square", square_map("square", 2000.0))
+        assert checker.process.started == 0 and checker.process.pid is None
+        bigger = _small(version=2) + b" "  # one byte over: validated apart
+        assert checker.check("m1", bigger).version == 2
+        assert checker.process.started == 1
+    finally:
+        checker.close()
