@@ -24,14 +24,27 @@ def children(pid: int) -> list[int]:
     return found
 
 
+def _cmdline(pid: int) -> bytes | None:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read()
+    except OSError:
+        return None
+
+
 def descendants(pid: int) -> list[int]:
-    """Process ids of ``pid``'s children, their children, and so on."""
+    """Process ids of ``pid``'s children, their children, and so on; without a child between
+    fork and exec (its command line still its parent's: every process the service starts is
+    spawned or exec'd), whose resident pages are its parent's and would count twice."""
     found = []
-    todo = children(pid)
+    todo = [(c, _cmdline(pid)) for c in children(pid)]
     while todo:
-        p = todo.pop()
+        p, parent_cmdline = todo.pop()
+        cmdline = _cmdline(p)
+        if cmdline is None or cmdline == parent_cmdline:
+            continue
         found.append(p)
-        todo += children(p)
+        todo += [(c, cmdline) for c in children(p)]
     return found
 
 
@@ -49,8 +62,9 @@ def _kb_mb(pids: list[int], name: str, field: str) -> float:
 
 
 def rss_tree_mb(pid: int) -> float:
-    """Resident memory of a process and its children, MB."""
-    return _kb_mb([pid, *children(pid)], "status", "VmRSS:")
+    """Resident memory of a process and its descendants, MB (``VmRSS`` added up: a library
+    mapped by several counts in each)."""
+    return _kb_mb([pid, *descendants(pid)], "status", "VmRSS:")
 
 
 def pss_tree_mb(pid: int) -> float:
