@@ -12,6 +12,10 @@ the service keeps is bounded here:
   localizer, its followed pose and its durable state go, with an Event ``robot_evicted``
   (recorded, so replay forgets it at the same point). A robot that comes back starts anew, like
   one never seen: an InitialPose (or its last pose, followed on the bus) places it again.
+  A robot never placed (no InitialPose, Relocalize or seed taken in: it has no pose and nothing
+  worth keeping) is evicted after :data:`UNPLACED_IDLE_S` already: ids made up for a message or
+  a few, a burst of ten thousand, held ``max_robots`` full for ``robot_idle_s`` (an hour) and
+  every real new robot was refused meanwhile.
 """
 
 from __future__ import annotations
@@ -32,6 +36,29 @@ EVENTS_PER_S = 10
 REJECTIONS_KEPT = 8192
 #: How often idle robots are looked for, seconds.
 SWEEP_INTERVAL_S = 1.0
+#: How long a robot never placed may send nothing before it is evicted, seconds (or
+#: ``robot_idle_s`` where that is shorter); as long as the per-robot view lists it.
+UNPLACED_IDLE_S = 10.0
+
+
+def eviction_message(idle_s: float, placed: bool) -> str:
+    """The ``robot_evicted`` Event's message for a robot idle for ``idle_s``."""
+    if not placed:
+        return (
+            f"no input for {idle_s:g} s and never placed (no InitialPose, no pose): the robot is "
+            "forgotten; it starts anew at its next input (publish an InitialPose)"
+        )
+    return (
+        f"no input for {idle_s:g} s (robot_idle_s): the robot's state is dropped; it starts "
+        "anew at its next input (publish an InitialPose)"
+    )
+
+
+#: The ``robot_evicted`` Event's message for a robot never placed evicted to make room.
+MADE_ROOM = (
+    "never placed (no InitialPose, no pose), evicted to make room for a robot placed by an "
+    "InitialPose or a Relocalize (max_robots held); it starts anew at its next input"
+)
 
 
 class Holder(Protocol):
@@ -132,24 +159,30 @@ class Gate:
 
 
 class Sweeper:
-    """A thread that evicts robots idle for longer than ``idle_ns``.
+    """A thread that evicts robots idle for longer than ``idle_ns``, and those never placed
+    idle for longer than ``unplaced_ns``.
 
     Args:
         clock: the service's receive clock, ns.
         idle_ns: how long a robot may send nothing.
-        idle_since: the robots whose last input was received before a given time.
-        evict: evicts one robot; returns ``False`` when it is busy after all (kept for now).
+        idle_since: the robots whose last input was received before a given time (with a
+            second argument false: only those never placed).
+        evict: evicts one robot, with the message of its Event; returns ``False`` when it is
+            busy after all (kept for now).
+        unplaced_ns: how long a robot never placed may send nothing (at most ``idle_ns``).
     """
 
     def __init__(
         self,
         clock: Callable[[], int],
         idle_ns: int,
-        idle_since: Callable[[int], list[str]],
-        evict: Callable[[str], bool],
+        idle_since: Callable[[int, bool], list[str]],
+        evict: Callable[[str, str], bool],
+        unplaced_ns: int = int(UNPLACED_IDLE_S * 1e9),
     ) -> None:
         self._clock = clock
         self._idle_ns = idle_ns
+        self.unplaced_ns = min(unplaced_ns, idle_ns)
         self._idle_since = idle_since
         self._evict = evict
         self._stop = threading.Event()
@@ -172,13 +205,28 @@ class Sweeper:
     def sweep(self) -> int:
         """Evict the robots idle now; returns how many went."""
         gone = 0
-        for robot in self._idle_since(self._clock() - self._idle_ns):
-            try:
-                gone += self._evict(robot)
-            except Exception:
-                log.exception("evicting %s failed", robot)
+        now = self._clock()
+        for placed, idle_ns in ((True, self._idle_ns), (False, self.unplaced_ns)):
+            for robot in self._idle_since(now - idle_ns, placed):
+                try:
+                    gone += self._evict(robot, eviction_message(idle_ns / 1e9, placed))
+                except Exception:
+                    log.exception("evicting %s failed", robot)
         self.evicted += gone
         return gone
+
+    def make_room(self) -> bool:
+        """Evict one robot never placed, the first seen, for a robot being placed while
+        ``max_robots`` are held (a sustained flood of made-up ids must not keep a real robot
+        out); whether one went."""
+        for robot in self._idle_since(self._clock() + 1, False):
+            try:
+                if self._evict(robot, MADE_ROOM):
+                    self.evicted += 1
+                    return True
+            except Exception:
+                log.exception("evicting %s failed", robot)
+        return False
 
     def _run(self) -> None:
         while not self._stop.wait(SWEEP_INTERVAL_S):

@@ -33,6 +33,7 @@ from service.cores import usable_cores
 from service.guard import Limits
 from service.keys import InputKind, Keys, Message
 from service.live.publishing import PoseOut
+from service.live.robots import PLACING
 from service.live.shards import (
     IN_FLIGHT,
     Done,
@@ -289,10 +290,15 @@ class Dispatcher:
             box.shard.drain()
         return True
 
-    def idle_since(self, before_ns: int) -> list[str]:
-        """Robots whose last input was received before ``before_ns``."""
+    def idle_since(self, before_ns: int, placed: bool = True) -> list[str]:
+        """Robots whose last input was received before ``before_ns``; with ``placed`` false,
+        only those never placed (no InitialPose, Relocalize or seed taken in)."""
         with self.lock:
-            return [r for r, b in self.boxes.items() if b.last_in < before_ns]
+            return [
+                r
+                for r, b in self.boxes.items()
+                if b.last_in < before_ns and (placed or not b.placed)
+            ]
 
     def submit(
         self, robot: str, kind: InputKind, payload: bytes, message: Message, received_ns: int
@@ -314,6 +320,7 @@ class Dispatcher:
                 shard.robots += 1
                 box = self.boxes[robot] = Mailbox(shard)
             box.last_in = received_ns
+            box.placed = box.placed or kind in PLACING
             if kind != "scan" and self.processes:
                 box.history.note_input(entry)
             if kind == "scan":

@@ -17,7 +17,7 @@ from service.cluster.membership import Membership
 from service.cluster.ownership import Ownership
 from service.config import Settings
 from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Message
-from service.live.admission import Gate
+from service.live.admission import Gate, Sweeper
 from service.live.keywatch import KeyWatch
 from service.live.stats import Stats
 from service.ros2.frontdoor import Ros2FrontDoor
@@ -41,6 +41,7 @@ class Service(Protocol):
     ownership: Ownership
     membership: Membership
     gate: Gate
+    sweeper: Sweeper
     keywatch: KeyWatch
 
     def clock(self) -> int: ...
@@ -144,7 +145,7 @@ class Intake:
             return
         received = svc.clock()
         svc.stats.add("received")
-        if self._over_limit(robot, key, received):
+        if self._over_limit(robot, key, received, leaf):
             return
         try:
             msg = decode(MODELS[leaf], payload, max_bytes=limit)
@@ -156,10 +157,13 @@ class Intake:
             return
         svc.ownership.offer(robot, leaf, payload, msg, received)
 
-    def _over_limit(self, robot: str, key: str, at: int) -> bool:
-        """Whether a new robot is refused (``max_robots`` held): counted, an Event a second."""
+    def _over_limit(self, robot: str, key: str, at: int, kind: str) -> bool:
+        """Whether a new robot is refused (``max_robots`` held): counted, an Event a second. An
+        input that places a robot first evicts a robot never placed, if there is one."""
         svc = self.svc
         refused = svc.gate.refuse_new(svc, robot, at)
+        if refused is not None and kind in REQUESTS and svc.sweeper.make_room():
+            refused = svc.gate.refuse_new(svc, robot, at)
         if refused is None:
             return False
         svc.stats.add("rejected")
@@ -203,7 +207,9 @@ class Intake:
             return
         svc.stats.add("received")
         key = svc.keys.robot(robot, kind)
-        if self._over_limit(robot, key, at) or self._stamp_refused(robot, key, msg.stamp_ns, at):
+        if self._over_limit(robot, key, at, kind) or self._stamp_refused(
+            robot, key, msg.stamp_ns, at
+        ):
             return
         svc.ownership.offer(robot, kind, payload, msg, at)
 

@@ -351,8 +351,8 @@ class LocalizationService:
         """Whether ``robot`` is held here."""
         return robot in self.dispatcher.boxes or self.ownership.holds(robot)
 
-    def _evict(self, robot: str) -> bool:
-        """Drop a robot that sent nothing for ``robot_idle_s`` (see service.live.admission)."""
+    def _evict(self, robot: str, why: str) -> bool:
+        """Drop a robot that sent nothing for long (see service.live.admission)."""
         with self.ownership.lock:  # no input of the robot is admitted meanwhile
             if not self.dispatcher.forget(robot):
                 return False
@@ -367,8 +367,7 @@ class LocalizationService:
                 "info",
                 EventCode.ROBOT_EVICTED,
                 self.keys.robot(robot, "scan"),
-                f"no input for {self.settings.robot_idle_s:g} s (robot_idle_s): the robot's state "
-                "is dropped; it starts anew at its next input (publish an InitialPose)",
+                why,
             )
         return True
 

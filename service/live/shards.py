@@ -59,6 +59,7 @@ class Mailbox:
     busy: bool = False
     queued: bool = False
     last_in: int = 0  # receive time of the robot's last input
+    placed: bool = False  # an InitialPose or a Relocalize (a seed too) was taken in
     history: History = field(default_factory=History)  # to re-seed it if its worker dies
 
     def worth_a_batch(self) -> bool:

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from service_harness import Collector, running_bench
+from service_harness import Collector, running_bench, wait_until
 
 from schemas import Event, encode
 from service.live.eventbudget import ROBOTS_PER_WINDOW, WINDOW_NS, EventBudget
@@ -139,3 +139,77 @@ def test_a_flood_of_new_robot_ids_costs_bounded_events_and_the_fleet_is_answered
         # the made-up ids that sent a valid scan are not listed as waiting for robot_idle_s
         waiting = [w.robot_id for w in b.service.robot_view.waiting()]
         assert not [r for r in waiting if r.startswith("fake")], waiting[:5]
+
+
+@pytest.mark.integration
+def test_made_up_ids_that_fill_max_robots_give_way_soon_and_placed_robots_stay(
+    tmp_path: Path,
+) -> None:
+    # A burst of valid scans on made-up ids filled max_robots, and every real new robot was
+    # refused for robot_idle_s (an hour). A robot never placed is evicted after a short idle.
+    with running_bench(tmp_path, max_robots=30, event_interval_s=0.0) as b:
+        b.service.sweeper.unplaced_ns = 1_500_000_000  # the default, 10 s, is long to wait
+        events, poses = Collector(), Collector()
+        subs = [
+            b.client.declare_subscriber("rlutf/events", events),
+            b.client.declare_subscriber("rlutf/robots/*/events", events),
+            b.client.declare_subscriber("rlutf/robots/late/pose", poses),
+        ]
+        b.put_map()
+        time.sleep(0.3)
+        early = b.robot("early", 1)
+        early.initial_pose("m1")  # placed, and silent from here on: kept for robot_idle_s
+        valid = encode(b.robot("fake", 2).scan_msg(1))
+        for i in range(40):
+            b.client.put(f"rlutf/robots/fake{i}/scan", valid)
+        assert events.wait_for(
+            lambda: any(e["code"] == "robot_limit" for e in events.on("rlutf/events"))
+        )
+        late = b.robot("late", 3)
+        late.initial_pose("m1")
+        assert b.service.holds("early") and not b.service.holds("late"), "refused while full"
+        evicted = lambda: [  # noqa: E731
+            e
+            for k, got in events.samples.items()
+            if k.startswith("rlutf/robots/fake")
+            for e in got
+            if e["code"] == "robot_evicted"
+        ]
+        assert wait_until(lambda: b.service.sweeper.evicted == 29, 10.0), b.service.sweeper.evicted
+        assert evicted() and all("never placed" in e["message"] for e in evicted())
+        late.initial_pose("m1")
+        for _ in range(10):
+            late.advance()
+            time.sleep(0.1)
+        assert poses.wait_for(lambda: len(poses.on("rlutf/robots/late/pose")) >= 5)
+        assert b.service.holds("early"), "a placed robot idle for 4 s was evicted"
+        for sub in subs:
+            sub.undeclare()
+
+
+@pytest.mark.integration
+def test_a_robot_being_placed_takes_the_place_of_one_never_placed(tmp_path: Path) -> None:
+    # made-up ids that keep coming hold max_robots full however soon they are evicted: an
+    # InitialPose of a new robot evicts one of them rather than be refused
+    with running_bench(tmp_path, max_robots=10, event_interval_s=0.0) as b:
+        events = Collector()
+        sub = b.client.declare_subscriber("rlutf/robots/*/events", events)
+        b.put_map()
+        time.sleep(0.3)
+        valid = encode(b.robot("fake", 2).scan_msg(1))
+        for i in range(10):
+            b.client.put(f"rlutf/robots/fake{i}/scan", valid)
+        assert wait_until(lambda: b.service.robots_held() == 10, 5.0)
+        b.client.put("rlutf/robots/fake10/scan", valid)  # refused: full
+        time.sleep(0.3)
+        assert not b.service.holds("fake10")
+        b.robot("late", 3).initial_pose("m1")
+        assert wait_until(lambda: b.service.holds("late"), 5.0)
+        assert b.service.robots_held() == 10 and b.service.sweeper.evicted == 1
+        assert not b.service.holds("fake0"), "the first seen goes"
+        made_room = lambda: [  # noqa: E731
+            e for e in events.on("rlutf/robots/fake0/events") if e["code"] == "robot_evicted"
+        ]
+        assert events.wait_for(lambda: len(made_room()) == 1)
+        assert "to make room" in made_room()[0]["message"]
+        sub.undeclare()
