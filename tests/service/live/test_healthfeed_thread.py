@@ -204,6 +204,7 @@ def test_with_maps_checked_apart_the_validating_process_builds_the_map_at_its_fi
         Map.model_validate({"map_id": "m1", "version": 1, "geometry": world.to_geojson()})
     )
     book = MapBook(10**8, isolated=True)
+    book.checker.inline_bytes = 0  # the map is small: taken as one over INLINE_BYTES
     now = [T0]
     feed = HealthFeed(Keys(), book, lambda key, data: None, lambda *record: None, lambda: now[0])
     try:
