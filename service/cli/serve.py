@@ -258,13 +258,13 @@ def follow_host(host_pid: int, stop: threading.Event) -> None:
 
 def _addrs_usable(settings: Any) -> None:
     """Refuse a ``--metrics-addr`` or ``--foxglove-addr`` that is no address of this host (a
-    name that does not resolve, another host's address) before anything starts: the endpoint
-    binds it once the service has started, a host's processes included. (A bad
-    ``--foxglove-addr`` was "cannot serve the live view ...: choose another --foxglove-port",
-    exit 1.)
+    name that does not resolve, another host's address), and a port another program holds,
+    before anything starts: the endpoint binds it once the service has started, a host's
+    processes included (seconds later). (A bad ``--foxglove-addr`` was "cannot serve the live
+    view ...: choose another --foxglove-port", exit 1.)
 
     Raises:
-        CliError: naming the flag, the address and the fix.
+        CliError: naming the flag, the address or port and the fix.
     """
     import socket
 
@@ -285,6 +285,19 @@ def _addrs_usable(settings: Any) -> None:
                 "addresses, e.g. 0.0.0.0 (all of them) or 127.0.0.1",
                 EXIT_USAGE,
             ) from None
+        if port:  # taken? (the servers bind with SO_REUSEADDR, so the probe does too)
+            try:
+                with socket.socket(family, kind) as probe:
+                    probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                    probe.bind((where[0], port, *where[2:]))
+            except OSError as err:
+                raise CliError(
+                    _metrics_refused(settings, err)
+                    if flag == "--metrics-addr"
+                    else f"cannot serve the live view on {addr}:{port} ({err.strerror or err}); "
+                    "choose another --foxglove-port",
+                    EXIT_FAILURE,
+                ) from None
 
 
 def _store_free(folder: Path, fix: str) -> None:

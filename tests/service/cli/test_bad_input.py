@@ -329,10 +329,20 @@ def test_serve_on_a_taken_port_says_so(
 
 
 def test_serve_with_processes_on_a_taken_metrics_port_says_which_and_what_to_do(
-    files: Path, taken_port: int, capsys: pytest.CaptureFixture[str]
+    files: Path,
+    taken_port: int,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The default layout (a host of service processes) names the metrics port it could not
-    take and the fix, as a single process does; it said "[Errno 98] Address already in use"."""
+    take and the fix, as a single process does; it said "[Errno 98] Address already in use".
+    Before it starts any process (it said so about 5 s later, its processes started)."""
+    from service.live.host import Host
+
+    def started(*args: object, **kw: object) -> None:
+        raise AssertionError("the host started its processes")
+
+    monkeypatch.setattr(Host, "start", started)
     free = socket.socket()
     free.bind(("127.0.0.1", 0))
     port = free.getsockname()[1]
