@@ -236,14 +236,22 @@ class Intake:
     def reject(self, robot: str | None, key: str, message: str, at: int) -> None:
         """Bad input from the ROS 2 front door: an Event, nothing else."""
         svc = self.svc
-        if robot is not None and not svc.ownership.owns(robot):
+        if robot is None:
+            # No robot (a namespace that is no robot id, a grid not imported): every instance's
+            # front door reads the key, so one reports it, an Event an interval per topic (the
+            # topics subscribed: a few), as for JSON keys (names are a client's to invent).
+            if svc.ownership.ready and svc.membership.owns_key(key):
+                svc.stats.add("received")
+                svc.stats.add("rejected")
+                topic = key.rsplit("/", 3)[-3] if key.count("/") >= 3 else ""
+                code = EventCode.INVALID_KEY
+                svc.keywatch.limited(f"ros2_{topic}", "error", code, key, message, at)
+            return
+        if not svc.ownership.owns(robot):
             return  # its owner reports it
         svc.stats.add("received")
         svc.stats.add("rejected")
-        if robot is None:
-            svc._global_event("error", EventCode.INVALID_KEY, key, message, at)
-        else:
-            self._invalid(robot, None, key, message, at)
+        self._invalid(robot, None, key, message, at)
 
     def _invalid(self, robot: str, kind: str | None, key: str, message: str, at: int) -> None:
         """An Event ``invalid_message`` for a rejected input of ``robot``: at most one per
