@@ -165,7 +165,13 @@ def register(sub: Any) -> None:
         metavar="BROKEN.mcap",
         help="damaged logs, or folders (their unfinished *.mcap.part logs)",
     )
-    rec.add_argument("out", type=Path, metavar="OUT")
+    rec.add_argument(
+        "out",
+        type=Path,
+        metavar="OUT",
+        help="the repaired log, or a folder to write into (needed for several: one log each, "
+        "named as its input less .part)",
+    )
     rec.set_defaults(func=cmd_recover)
     views = lsub.add_parser(
         "views",

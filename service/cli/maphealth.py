@@ -34,7 +34,7 @@ def register(msub: Any) -> None:
         description="Print the map's MapHealth: the places where robots consistently see "
         "something the map lacks (added) or see through its walls (removed).",
     )
-    p.add_argument("map_id")
+    p.add_argument("map_id", help="the map's id")
     p.add_argument("--json", action="store_true", help="print the MapHealth message as JSON")
     p.add_argument("--png", type=Path, help="draw the map with the changes over it")
     p.add_argument(

@@ -33,7 +33,7 @@ def register(sub: Any) -> None:
     msub = maps.add_subparsers(dest="map_command", metavar="ACTION")
     maps.set_defaults(func=cmd_map)
     put = msub.add_parser("put", help="store a map (JSON Map message or GeoJSON geometry)")
-    put.add_argument("file", type=Path)
+    put.add_argument("file", type=Path, help="a Map message (JSON) or GeoJSON file")
     put.add_argument(
         "--id",
         dest="map_id",
@@ -58,7 +58,7 @@ def register(sub: Any) -> None:
     )
     zenoh_flags(put, client=True)
     get = msub.add_parser("get", help="print a stored map")
-    get.add_argument("map_id")
+    get.add_argument("map_id", help="the map's id")
     get.add_argument("--out", type=Path, help="write to a file instead of stdout")
     timeout_flag(get, what="the storage's answer")
     zenoh_flags(get, client=True)
@@ -124,7 +124,9 @@ def register(sub: Any) -> None:
     build.add_argument(
         "--ros2", action="store_true", help="LOG is a rosbag2 recording with scans and poses"
     )
-    build.add_argument("--scan-topic", default="/scan", help="with --ros2: LaserScan topic")
+    build.add_argument(
+        "--scan-topic", default="/scan", help="with --ros2: LaserScan topic (default /scan)"
+    )
     build.add_argument(
         "--pose-topic",
         default="/amcl_pose",
