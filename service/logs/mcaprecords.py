@@ -305,7 +305,13 @@ def read_summary(stream: IO[bytes]) -> Summary | None:
         return None
     summary = Summary()
     stream.seek(footer.summary_start)
-    for _, record in read_records(stream, SUMMARY_RECORDS, end=at):
+    for offset, record in read_records(stream, SUMMARY_RECORDS | {Opcode.FOOTER}, end=at):
+        if isinstance(record, Footer):  # another file's end, then more: files put together
+            raise RecordError(
+                f"a footer and the closing magic at byte {offset:,}, before the file's own at "
+                f"byte {at:,}: the file holds more than one MCAP file (files concatenated?); "
+                "give each log as its own file"
+            )
         if isinstance(record, Statistics):
             summary.statistics = record
         elif isinstance(record, Schema):
