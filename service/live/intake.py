@@ -20,6 +20,7 @@ from service.keys import INPUT_KINDS, MODELS, InputKind, KeyError_, Keys, Messag
 from service.live.admission import Gate, Sweeper
 from service.live.keywatch import KeyWatch
 from service.live.stats import Stats
+from service.ros2 import names
 from service.ros2.frontdoor import Ros2FrontDoor
 
 #: Robot keys the intake keeps split at most (a fleet uses a few per robot).
@@ -251,7 +252,11 @@ class Intake:
             return  # its owner reports it
         svc.stats.add("received")
         svc.stats.add("rejected")
-        self._invalid(robot, None, key, message, at)
+        # An initial pose (RViz's "2D Pose Estimate") is an operator's request, said each time.
+        dk = names.parse_data_key(key, svc.settings.ros2.domain_id)
+        posed = "/" + svc.settings.ros2.initialpose_topic.strip("/")
+        kind = "initialpose" if dk is not None and dk.topic.endswith(posed) else None
+        self._invalid(robot, kind, key, message, at)
 
     def _invalid(self, robot: str, kind: str | None, key: str, message: str, at: int) -> None:
         """An Event ``invalid_message`` for a rejected input of ``robot``: at most one per
