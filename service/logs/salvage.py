@@ -202,6 +202,13 @@ def _copy(src: IO[bytes], writer: Writer, report: RecoverReport) -> None:
                 else:
                     copier.take(rec)
                 end = src.tell()
+            if report.complete and src.tell() < size:  # another file appended (`cat a b`)
+                report.complete = False
+                report.stopped_at = src.tell()
+                report.stopped = (
+                    f"{size - src.tell():,} more bytes after its footer and closing magic, not "
+                    "read: another file appended? recover it on its own"
+                )
             break
         except Redeclared:
             raise

@@ -16,6 +16,7 @@ from mcaplog_fixtures import record_with_poses, simulated_inputs
 
 from service.cli.main import main
 from service.logs.mcaprecords import RecordError, read_summary
+from service.logs.salvage import recover
 
 
 @pytest.fixture
@@ -42,3 +43,17 @@ def test_replay_and_log_info_refuse_a_doubled_log(
     out, err = capsys.readouterr()
     assert "audit: passed" not in out + err
     assert "concatenated" in err and "Traceback" not in err, err
+
+
+def test_log_recover_does_not_call_a_doubled_log_read_to_its_end(
+    doubled: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`rlutf log recover`, which the refusal suggests, copied the first file and said "the
+    input was read to its end, nothing was missing", the second never read."""
+    size = doubled.stat().st_size
+    report = recover(doubled, tmp_path / "fixed.mcap")
+    assert not report.complete
+    assert report.stopped_at == size // 2 and "after its footer" in str(report.stopped)
+    assert main(["log", "recover", str(doubled), str(tmp_path / "fixed2.mcap")]) == 0
+    out = capsys.readouterr().out
+    assert "nothing was missing" not in out and "after its footer" in out, out
