@@ -43,11 +43,13 @@ def _default_instance() -> str:
     return f"{host[:40] or 'rlutf'}-{os.getpid()}"
 
 
-def _ros_domain_id() -> int:
-    try:
-        return int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
-    except ValueError:
-        return 0
+class _EnvDomainId(str):
+    """$ROS_DOMAIN_ID as given, checked by :class:`Ros2Settings` (defaults are validated)."""
+
+
+def _ros_domain_id() -> Any:  # an int, or the variable as given
+    value = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return _EnvDomainId(value) if value else 0
 
 
 class Ros2Robot(BaseModel):
@@ -69,7 +71,7 @@ class Ros2Robot(BaseModel):
 class Ros2Settings(BaseModel):
     """The ROS 2 front door (rmw_zenoh): ``--ros2``, ``ros2.*``, ``RLUTF_ROS2__*``."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
     enabled: bool = Field(False, description="Serve ROS 2 robots on rmw_zenoh's keys.")
     domain_id: int = Field(
@@ -125,6 +127,19 @@ class Ros2Settings(BaseModel):
     robots: dict[str, Ros2Robot] = Field(
         default_factory=dict, description="Per-namespace overrides, keyed by namespace."
     )
+
+    @field_validator("domain_id", mode="before")
+    @classmethod
+    def _domain_from_env(cls, value: Any, info: Any) -> Any:
+        if isinstance(value, _EnvDomainId):  # refused as $ROS_DOMAIN_ID, with the front door
+            valid = value.isdigit() and int(value) <= 232
+            if info.data.get("enabled") and not valid:
+                raise ValueError(
+                    f"ROS_DOMAIN_ID={str(value)!r} in the environment is no ROS domain id (0 "
+                    "to 232): fix it, or give --ros-domain-id or ros2.domain_id"
+                )
+            return int(value) if valid else 0
+        return value
 
     def robot(self, namespace: str) -> Ros2Robot:
         """The overrides of a namespace (with or without slashes)."""
