@@ -21,6 +21,7 @@ from service.cli.flags import (
     EXIT_USAGE,
     client,
     timeout_flag,
+    writable,
     zenoh_flags,
 )
 from service.keys import printable
@@ -52,6 +53,8 @@ def cmd_health(args: argparse.Namespace) -> int:
     """``rlutf map health``."""
     from service.logs.mcapread import LogError
 
+    if args.png is not None:
+        writable(args.png, "--png")  # before any work, as every output path
     try:
         found = _from_logs(args.log, args.map_id) if args.log else _from_service(args)
     except LogError as err:
