@@ -76,8 +76,20 @@ def frame(name: str) -> str:
 
 
 def yaw(q: Any) -> float:
-    """The heading of a quaternion (rotation about z)."""
+    """The heading of a quaternion (rotation about z).
+
+    Raises:
+        CdrError: a quaternion of length 0 or not finite (an orientation left unset is all
+            zeros): it has no heading, and tf2 refuses it too; it was taken as heading 0.
+    """
     x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    length2 = x * x + y * y + z * z + w * w
+    if not 1e-12 < length2 < math.inf:  # NaN fails both
+        raise CdrError(
+            f"orientation: the quaternion (x {x:g}, y {y:g}, z {z:g}, w {w:g}) has no heading "
+            "(length 0 or not finite; an orientation left unset is all zeros); a heading theta "
+            "is x 0, y 0, z sin(theta/2), w cos(theta/2)"
+        )
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 

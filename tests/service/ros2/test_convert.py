@@ -169,3 +169,22 @@ def test_the_recorded_json_decodes_to_the_same_message(
     assert convert.wire_json(decode(LaserScan, payload)) == payload
     odom = Odometry(stamp_ns=stamp, x=angle, y=-angle, theta=1e-7 * angle)
     assert decode(Odometry, convert.wire_json(odom)) == odom
+
+
+@pytest.mark.parametrize(
+    "q", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, math.nan, 1.0), (0, 0, 0, math.inf)]
+)
+def test_a_quaternion_with_no_heading_is_refused_not_taken_as_heading_0(
+    q: tuple[float, float, float, float],
+) -> None:
+    # an orientation left unset is all zeros: it was taken as heading 0 (tf2 refuses it)
+    for msg, type_name, read in (
+        (initialpose_msg(np.zeros(3), 9), "geometry_msgs/msg/PoseWithCovarianceStamped",
+         lambda raw: convert.initial_pose(raw, "m1")),
+        (odom_msg(np.zeros(3), 9), "nav_msgs/msg/Odometry", convert.odometry),
+    ):  # fmt: skip
+        o = msg.pose.pose.orientation
+        o.x, o.y, o.z, o.w = q
+        raw = bytes(TS.serialize_cdr(msg, type_name))
+        with pytest.raises(SchemaError, match=r"orientation: the quaternion .* has no heading"):
+            read(raw)
