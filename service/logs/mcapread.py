@@ -75,16 +75,36 @@ class UnreadableConfig(LogError):
 
 
 class DamagedLog(LogError):
-    """An MCAP file cut short or corrupted: ``rlutf log recover`` can salvage it."""
+    """An MCAP file cut short or corrupted: ``rlutf log recover`` can salvage it. One that holds
+    a second MCAP file (``cat a.mcap b.mcap``) is named so."""
 
     def __init__(self, path: Path, detail: str) -> None:
+        second = _second_file_at(path)
         super().__init__(
             part_message(path)
             if path.name.endswith(".mcap.part")
+            else f"{path}: another MCAP file starts at byte {second:,} (read as this one's, its "
+            "bytes made no sense): the file holds more than one (files concatenated?); give each "
+            "log as its own file"
+            if second is not None
             else f"{path}: {detail}. The file is incomplete or damaged (a crash or a copy cut "
             f"short); salvage its complete chunks with: rlutf log recover {path} FIXED.mcap"
         )
         self.path = path
+
+
+def _second_file_at(path: Path) -> int | None:
+    """Where the magic that starts an MCAP file is found again past the file's start (a second
+    of several MCAP files put together), or ``None`` (a search at disk speed, on the error's path
+    only)."""
+    import mmap
+
+    try:
+        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+            at = m.find(MAGIC + b"\x01", 1)  # a Header record follows a file's first magic
+    except (OSError, ValueError):  # not a regular file, or empty
+        return None
+    return at if at > 0 else None
 
 
 class UnorderedLog(LogError):

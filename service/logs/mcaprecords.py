@@ -221,6 +221,11 @@ def read_records(
         opcode, length = head[0], int.from_bytes(head[1:], "little")
         if opcode == 0:
             raise RecordError(f"at byte {at:,}, opcode 0x00, which no record has (0 is reserved)")
+        if head.startswith(MAGIC):
+            raise RecordError(
+                f"at byte {at:,}, the magic that starts an MCAP file: the file holds more than one "
+                "MCAP file (files concatenated?); give each log as its own file"
+            )
         if crc is not None:
             crc.add(head)
         record_type = _RECORDS.get(opcode)

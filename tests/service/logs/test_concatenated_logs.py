@@ -57,3 +57,18 @@ def test_log_recover_does_not_call_a_doubled_log_read_to_its_end(
     assert main(["log", "recover", str(doubled), str(tmp_path / "fixed2.mcap")]) == 0
     out = capsys.readouterr().out
     assert "nothing was missing" not in out and "after its footer" in out, out
+
+
+def test_two_different_logs_put_together_are_named_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`cat p1.mcap p0.mcap`: the summary offset of the second file points into it, and reading
+    on from the first file's end met the second's magic as a record "4.8e18 bytes long"."""
+    a = record_with_poses(tmp_path / "a", tmp_path, simulated_inputs(steps=5, beams=90))
+    b = record_with_poses(tmp_path / "b", tmp_path, simulated_inputs(steps=8, beams=90))
+    out = tmp_path / "both"
+    out.mkdir()
+    (out / "both.mcap").write_bytes(a.files[0].read_bytes() + b.files[0].read_bytes())
+    assert main(["replay", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "concatenated" in err and "bytes long" not in err, err
