@@ -268,6 +268,10 @@ class Ownership:
             elif robot in self._held:
                 if len(self._held[robot]) < HOLD_MAX and self._hold(payload):
                     self._held[robot].append((kind, payload, message))
+                    if kind == "initialpose" and not self._in_grace():
+                        # the operator places it: no need to wait for its pose on the bus,
+                        # behind the lookups of every new id before it (a flood's)
+                        self._fetched(robot, None)
                 else:
                     self.held_dropped += 1
             else:
@@ -381,6 +385,8 @@ class Ownership:
             if wait > 0:
                 time.sleep(wait)
             with self.lock:
+                if robot not in self._held:
+                    continue  # placed, released or evicted meanwhile: nothing to look up
                 known = self._has_seed(robot)
             try:
                 found = None if known else self._fetch(robot)

@@ -237,6 +237,35 @@ def test_no_pose_anywhere_releases_inputs_unseeded_and_an_initial_pose_needs_no_
     assert own.figures()["handover_seeds"] == 0
 
 
+def test_an_initial_pose_does_not_wait_behind_the_lookups_of_other_new_ids() -> None:
+    """Each new id's pose is looked up on the bus on one thread, in turn: a flood of made-up
+    ids held a robot an operator placed behind all of theirs. Its InitialPose now places it at
+    once, and a robot no longer waiting is not looked up."""
+    asked: list[str] = []
+
+    def fetch(r: str) -> PoseEstimate | None:
+        asked.append(r)
+        time.sleep(0.05)
+        return None
+
+    own, admitted = _ownership(Membership("a"), fetch)
+    try:
+        for i in range(40):  # 2 s of lookups
+            payload, msg = _odom(100 + i)
+            own.offer(f"fake{i}", "odom", payload, msg, 1 + i)
+        payload, msg = _odom(200)
+        own.offer("real", "odom", payload, msg, 100)
+        ip = InitialPose(stamp_ns=201, map_id="m1", x=0.0, y=0.0, theta=0.0)
+        own.offer("real", "initialpose", encode(ip), ip, 101)
+        real = [(k, m.stamp_ns) for r, k, m, _ in admitted if r == "real"]
+        assert real == [("odom", 200), ("initialpose", 201)], real  # at once, in order
+        assert own.active("real")
+        assert wait_until(lambda: len(admitted) == 42, 5.0)
+    finally:
+        own.close()
+    assert "real" not in asked and len(asked) == 40
+
+
 def _scan(stamp: int) -> tuple[bytes, LaserScan]:
     msg = LaserScan(
         stamp_ns=stamp, angle_min=0.0, angle_increment=0.1, range_min=0.1, range_max=10.0,
