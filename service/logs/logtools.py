@@ -166,7 +166,13 @@ def render_info(info: LogInfo, console: Console) -> None:
     console.print(f"written by: {info.writer or 'unknown'}")
     run = info.run
     if run is not None:
-        started = _when(int(run.get("started_ns", "0")))
+        raw = run.get("started_ns")
+        started = (
+            _when(int(raw))
+            if raw is not None and raw.isdigit()
+            else f"unknown (started_ns {'missing' if raw is None else repr(raw)}: this record "
+            "is damaged)"
+        )
         console.print(
             f"run: {run.get('run_id')}, instance {run.get('instance') or '?'}, started "
             f"{started}, file number {run.get('sequence', '?')} in the run (from 0)"

@@ -294,3 +294,23 @@ def _wait_for_part(folder: Path, rec: McapRecorder, timeout: float = 10.0) -> li
             return parts
         time.sleep(0.05)
     raise AssertionError(f"no .mcap.part in {folder}")
+
+
+@pytest.mark.parametrize("started", [None, "17x"])
+def test_info_says_a_damaged_run_record_is_damaged(
+    log: Path, started: str | None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A flipped byte in the key ``started_ns`` of ``rlutf.run`` showed "started 1970-01-01"."""
+    from dataclasses import replace
+
+    from rich.console import Console
+
+    from service.logs.logtools import render_info
+
+    info = log_info(log)
+    run = {"run_id": "r", "instance": "edge-1", "sequence": "0"}
+    if started is not None:
+        run["started_ns"] = started
+    render_info(replace(info, run=run), Console(width=200))
+    out = capsys.readouterr().out
+    assert "1970" not in out and "started unknown" in out and "damaged" in out, out
