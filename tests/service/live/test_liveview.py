@@ -119,7 +119,7 @@ def test_an_operator_watches_a_robot_live(tmp_path: Path) -> None:
         _drive(bench, r1, 10)
         assert col.wait_for(lambda: len(col.on("rlutf/robots/r1/pose")) >= 5)
         time.sleep(0.3)
-        assert view.shown == 1  # the map only: no client follows anything yet
+        assert view.shown == 0  # no client follows anything yet: the map is shown on subscribing
 
         with foxglove_client(view.url) as client:
             client.pump(0.5)

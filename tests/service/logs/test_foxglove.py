@@ -314,3 +314,16 @@ def test_a_maps_rings_parsed_one_by_one_equal_the_whole_parse(
     assert polygons == whole_polygons
     assert fields["frame_id"] == whole_fields["frame_id"] == "coordinates"
     assert fields["geometry"]["type"] == geometry["type"]
+
+
+def test_a_map_frame_is_learned_without_converting_the_map() -> None:
+    """The live view converts a map only for a client that watches it; the robots drawn on it
+    still need its frame."""
+    from service.logs.foxglove import FoxgloveConverter
+
+    conv = FoxgloveConverter()
+    assert conv.frame_of("site") == "map"
+    conv.note_frame("site", b'{"map_id":"site","version":2,"frame_id":"site\\"s","geometry":{}}')
+    assert conv.frame_of("site") == 'site"s'
+    conv.note_frame("site", b'{"map_id":"site","version":3,"frame_id":null,"geometry":{}}')
+    assert conv.frame_of("site") == "map"
