@@ -4,8 +4,11 @@ A namespace becomes a robot once a message of it decodes: its id, the key naming
 use (learned from its keys or forced by the settings), its recent odometry, and on the bus the
 liveliness tokens of its topics (``ros2 topic list``) and the publishers of its outputs. At most
 ``max_robots`` are held: a new namespace past that is refused (an Event ``robot_limit`` a second)
-once those idle for ``idle_ns`` are dropped. A robot dropped (idle, or evicted by the service)
-loses its tokens and publishers; its next input makes it anew.
+once those idle for :data:`ROOM_IDLE_NS` (or ``idle_ns``, if shorter) are dropped: made-up
+namespaces, a burst of them, held it full for ``robot_idle_s`` (an hour), and what a robot
+dropped loses, its tokens, publishers and recent odometry, is stale after seconds without input
+(the service keeps its state for ``robot_idle_s``). A robot dropped (idle, or evicted by the
+service) loses its tokens and publishers; its next input makes it anew.
 
 Tokens and publishers are declared and undeclared on a thread of the roster's own, never in the
 Zenoh callback where a robot's first input arrives. zenoh-python forbids Zenoh calls in a
@@ -49,6 +52,8 @@ Send = Callable[[str, bytes, dict[str, "Publisher"]], None]
 """Publish a robot's pose (robot id, PoseEstimate payload) with its publishers by type."""
 #: Least time between two ``robot_limit`` Events of the front door, ns.
 LIMIT_EVENT_NS = 1_000_000_000
+#: How long a namespace may send nothing before a full front door drops it to make room, ns.
+ROOM_IDLE_NS = 10_000_000_000
 
 Subscribed = tuple[str, str, names.Qos]
 """A topic the front door reads in each namespace: name, message type, QoS (for its token)."""
@@ -103,7 +108,8 @@ class Roster:
         settings: the ``ros2`` settings.
         subscribed: the topics read in each namespace (announced by each robot's tokens).
         max_robots: most robots (namespaces) held.
-        idle_ns: how long a robot may send nothing before it makes room (``robot_idle_s``).
+        idle_ns: ``robot_idle_s``: a robot idle for that long, or for :data:`ROOM_IDLE_NS`,
+            makes room.
         on_limit: where a refusal is reported (at most once a second).
         forgotten: told of each robot dropped, after its entry goes.
         send: publishes a pose that waited for its robot's publishers (on the roster's thread).
@@ -123,6 +129,7 @@ class Roster:
         self.subscribed = list(subscribed)
         self.max_robots = max_robots
         self.idle_ns = idle_ns
+        self.room_idle_ns = min(ROOM_IDLE_NS, idle_ns)
         self.on_limit = on_limit
         self.forgotten = forgotten
         self.send = send
@@ -183,7 +190,7 @@ class Roster:
             idle = []
             if received - self._last_sweep >= LIMIT_EVENT_NS:  # a look at most once a second
                 self._last_sweep = received
-                gone = received - self.idle_ns
+                gone = received - self.room_idle_ns
                 idle = [r.robot_id for r in self._robots.values() if r.seen_ns < gone]
         for gone_id in idle:  # owned elsewhere, or never taken: this instance evicts no one
             self.forget(gone_id)

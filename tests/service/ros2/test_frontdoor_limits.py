@@ -259,3 +259,28 @@ def test_a_frame_id_cannot_forge_a_line_of_the_service_log(
         assert wait_until(lambda: health(bench.client)["extra"]["ros2_scans_laser_at_base"] >= 1)
     said = [rec.getMessage() for rec in caplog.records if "tf_static" in rec.getMessage()]
     assert said and all("\n" not in m and "\x1b" not in m for m in said), said
+
+
+def test_a_full_front_door_makes_room_after_seconds_not_robot_idle_s(tmp_path: Path) -> None:
+    """Made-up namespaces, one valid message each, held a full front door for robot_idle_s (an
+    hour): every real ROS robot new since was refused."""
+    with running_bench(
+        tmp_path, ros2=Ros2Settings(enabled=True, map_id="m1"), max_robots=2
+    ) as bench:
+        assert bench.service.ros2 is not None
+        bench.service.ros2.roster.room_idle_ns = 1_000_000_000  # the default, 10 s, is long
+        bench.put_map()
+        time.sleep(0.3)
+        for i in range(2):
+            _robot(bench, f"/made_up{i}", i).advance()
+        assert wait_until(lambda: len(health(bench.client)["extra"]["ros2_robots"]) == 2)
+        time.sleep(1.5)
+        fresh = _robot(bench, "/fresh", 5)
+        fresh.initial_pose()
+        for _ in range(3):
+            fresh.advance()
+            time.sleep(0.05)
+        assert wait_until(lambda: "fresh" in health(bench.client)["extra"]["ros2_robots"])
+        assert bench.service.ros2.roster.robots_refused == 0  # the front door refused none
+        held = health(bench.client)["extra"]["ros2_robots"]
+        assert "made_up0" not in held or "made_up1" not in held, held
