@@ -189,10 +189,19 @@ def memory_problem(spec: FleetSpec, available: int | None = None) -> str | None:
     if free is None or need <= free // 2:
         return None
     return (
-        f"{spec.robots} robots with {spec.poses} poses of {spec.beams}-beam scans each would "
-        f"take about {need / 1e9:.1f} GB for their precomputed scans, and {free / 1e9:.1f} GB "
-        "is available: simulate fewer robots, for less time, or with fewer beams"
+        f"{spec.robots} robots with {_short(spec.poses)} poses of {spec.beams}-beam scans each "
+        f"would take about {_short(need / 1e9)} GB for their precomputed scans, and "
+        f"{free / 1e9:.1f} GB is available: simulate fewer robots, for less time, or with "
+        "fewer beams"
     )
+
+
+def _short(value: float) -> str:
+    """``value`` as it reads: whole or with one decimal, three digits and an exponent past a
+    million (``--path-seconds 1e300`` printed a number of 300 digits, twice)."""
+    if value >= 1e6:
+        return f"{value:.3g}"
+    return str(value) if isinstance(value, int) else f"{value:.1f}"
 
 
 @contextmanager

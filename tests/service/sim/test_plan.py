@@ -154,3 +154,16 @@ def test_a_bad_schedule_names_the_field() -> None:
         Schedule(every=0)
     with pytest.raises(ValueError, match="first"):
         Schedule(every=1, first=0)
+
+
+def test_a_fleet_far_too_large_is_named_in_a_short_line() -> None:
+    # `rlutf simulate --path-seconds 1e300` (or --rate 1e300) printed the poses and the GB as
+    # numbers of some 300 digits each
+    from service.sim.fleet import memory_problem
+
+    spec = FleetSpec(robots=5, poses=10**300, beams=360)
+    problem = memory_problem(spec, available=24 * 10**9)
+    assert problem is not None
+    assert len(problem) < 250, problem
+    assert "5 robots with 1e+300 poses of 360-beam scans" in problem
+    assert "24.0 GB is available" in problem
