@@ -124,6 +124,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.cluster.names import NameTaken
     from service.live.heapdumps import install_from_env
     from service.live.node import LocalizationService
+    from service.live.sessions import StoppedWaiting
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
 
@@ -199,6 +200,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # the metrics port is taken or the address is not local
         print(f"rlutf serve: {_metrics_refused(settings, err)}", file=sys.stderr)
         return EXIT_FAILURE
+    except StoppedWaiting:  # told to stop while the session waited for its router
+        service.close()
+        return EXIT_OK
     except RuntimeError as err:  # a worker process could not start, or the name is taken
         if isinstance(err, NameTaken):  # after its worker processes started: stop them
             service.close()

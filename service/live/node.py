@@ -57,7 +57,7 @@ from service.live.metrics import make_metrics
 from service.live.outbox import Outbox
 from service.live.publishing import EVENT_SCHEMA, Announcer
 from service.live.robots import PLACING, RobotView, robots_key
-from service.live.sessions import service_config
+from service.live.sessions import open_unless_stopped, service_config
 from service.live.shards import Done
 from service.live.stats import Stats
 from service.live.supervise import worker_lost
@@ -237,7 +237,7 @@ class LocalizationService:
             self.recorder.on_event = self.out.recorder_event
         self.dispatcher.start(progress)
         if self._session is None:
-            self._session = zenoh.open(service_config(s))
+            self._session = open_unless_stopped(service_config(s), self.stopping)
         session = self._session
         # Before anything is declared or recorded: refuses a name another instance has.
         self.name_claim.take(session, s.handover_timeout_s)

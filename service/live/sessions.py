@@ -11,6 +11,8 @@ import json
 import logging
 import os
 import socket
+import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -154,6 +156,58 @@ def service_config(settings: Settings) -> zenoh.Config:
             TX_QUEUE_BATCHES,
         )
     return cfg
+
+
+class StoppedWaiting(RuntimeError):
+    """The service was told to stop while its zenoh session was still opening."""
+
+
+def open_unless_stopped(
+    cfg: zenoh.Config, stop: threading.Event, say_after_s: float = 5.0
+) -> zenoh.Session:
+    """``zenoh.open(cfg)``, given up once ``stop`` is set.
+
+    A client whose file waits for its router (``connect/timeout_ms: -1``, the deployment's
+    ``service-client.json5``) stays in ``zenoh.open`` until a router answers, where the signal
+    handlers never ran: SIGTERM and Ctrl-C did nothing (``docker compose stop``, a pod deleted:
+    killed after the grace period) and the service said nothing meanwhile. The session is opened
+    by a thread of its own; this waits on ``stop`` and says, after ``say_after_s``, what it waits
+    for.
+
+    Raises:
+        StoppedWaiting: ``stop`` was set first (the opening thread is left to the process's end).
+        zenoh.ZError: the session cannot be opened.
+    """
+    done: dict[str, object] = {}
+
+    def opening() -> None:
+        try:
+            done["session"] = zenoh.open(cfg)
+        except BaseException as err:  # handed to the waiting thread
+            done["error"] = err
+
+    thread = threading.Thread(target=opening, name="zenoh-open", daemon=True)
+    thread.start()
+    say_at: float | None = time.monotonic() + say_after_s
+    while thread.is_alive():
+        if stop.wait(0.1):
+            raise StoppedWaiting("stopped while waiting for zenoh")
+        if say_at is not None and time.monotonic() > say_at:
+            say_at = None
+            log.warning("waiting for zenoh at %s to answer", _connect_endpoints(cfg))
+    if "error" in done:
+        raise done["error"]  # type: ignore[misc]
+    return done["session"]  # type: ignore[return-value]
+
+
+def _connect_endpoints(cfg: zenoh.Config) -> str:
+    try:
+        found = json.loads(cfg.get_json("connect/endpoints"))
+    except (zenoh.ZError, ValueError, TypeError):
+        return "its connect endpoints"
+    if isinstance(found, dict):  # per mode: {"router": [...], "client": [...]}
+        found = [e for v in found.values() for e in v]
+    return ", ".join(map(str, found)) or "its connect endpoints"
 
 
 def short_queues(cfg: zenoh.Config) -> list[str]:
