@@ -340,6 +340,15 @@ def load(args: argparse.Namespace) -> Any:
     return _with_file(settings)
 
 
+def with_file_endpoints(settings: Any) -> Any:
+    """A tool's ``settings``: the file's endpoints (in its mode) where -e gives none, else
+    :data:`DEFAULT_CONNECT`."""
+    settings = _with_file(settings)
+    if not settings.connect:
+        settings = settings.model_copy(update={"connect": [DEFAULT_CONNECT]})
+    return settings
+
+
 def _with_file(settings: Any) -> Any:
     """``settings`` with what its zenoh file states where no setting is given
     (:func:`service.live.sessions.with_file`); as they are when zenoh cannot read the file
@@ -403,9 +412,7 @@ def client(args: argparse.Namespace) -> Any:
     settings = checked_settings(
         lambda: Settings(mode=args.mode or "client", listen=[], zenoh_config=args.config, **given)
     )
-    settings = _with_file(settings)  # the file's endpoints (in this mode) where -e gives none
-    if not settings.connect:
-        settings = settings.model_copy(update={"connect": [DEFAULT_CONNECT]})
+    settings = with_file_endpoints(settings)
     config = zenoh_file_config(settings)
     # A tool asks once: a file made for the service (connect.timeout_ms -1: retry for ever, as
     # deploy/zenoh's) must not make it wait for ever when the router is down.

@@ -21,6 +21,7 @@ from service.cli.flags import (
     ROS_DOMAIN_ID,
     SEED,
     checked_settings,
+    with_file_endpoints,
     zenoh_file_config,
     zenoh_flags,
 )
@@ -294,15 +295,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     settings = checked_settings(  # a bad RLUTF_* value: named, exit 2 (a ValidationError, 1)
         lambda: Settings(
             mode=args.mode or "client",
-            connect=args.connect or ["tcp/127.0.0.1:7447"],
             listen=[],
             zenoh_config=args.config,
+            **({"connect": args.connect} if args.connect else {}),
             **({"prefix": args.prefix} if args.prefix else {}),
         )
     )
+    # The -c file's endpoints where -e gives none, as the other tools (the file was ignored: its
+    # robots went to tcp/127.0.0.1:7447, and with a file that waits, timeout_ms -1, for ever).
+    settings = with_file_endpoints(settings)
     keys = Keys(settings.prefix)
     where = ", ".join(settings.connect)
     config = zenoh_file_config(settings)  # an endpoint or -c/--config file zenoh refuses
+    config.insert_json5("connect/timeout_ms", "0")  # asks once, as the other tools
     try:
         operator = zenoh.open(config)
     except zenoh.ZError as err:
