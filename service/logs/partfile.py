@@ -43,6 +43,12 @@ def part_message(path: Path, now: float | None = None) -> str:
         else "is unfinished"
     )
     final = path.name.removesuffix(".part")
+    if age is not None and age >= RECENT_S:  # no service will finish it (it was told so before)
+        return (
+            f"{path}: this log {state}: a .mcap.part file has no index, and this one will not be "
+            f"finished and renamed {final}. To read it, copy its complete chunks: rlutf log "
+            f"recover {path} COPY.mcap (the .part file is not changed), then use COPY.mcap"
+        )
     return (
         f"{path}: this log {state}: a .mcap.part file has no index until the service finishes "
         f"it (at rotation, record_max_seconds, or when it stops) and renames it {final}. "
