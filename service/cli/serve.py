@@ -6,6 +6,7 @@ import argparse
 import errno
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas import MAX_BEAMS
+from service.cli.envnames import warn_unknown
 from service.cli.errors import CliError, session_failure
 from service.cli.flags import (
     EXIT_FAILURE,
@@ -113,6 +115,7 @@ def register(sub: Any) -> None:
 
 def cmd_config(args: argparse.Namespace) -> int:
     """Print the effective configuration."""
+    warn_unknown("rlutf config", os.environ)
     print(json.dumps(load(args).effective(), indent=2))
     return EXIT_OK
 
@@ -128,6 +131,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.live.worker import tune_gc
     from service.logs.recording import make_recorder
 
+    if args.host_pid is None:  # a host's processes share its environment: it warned
+        warn_unknown("rlutf serve", os.environ)
     settings = load(args)
     # Foxglove's SDK is imported only for a live view: a few MB in every process of a service.
     live_view_errors: tuple[type[OSError], ...] = ()
