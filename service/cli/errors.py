@@ -146,3 +146,13 @@ def _environment_message(err: BaseException) -> str:
         f"setting is given as a JSON object ({prefix}='{{\"name\": value}}') or one variable "
         f"per name ({prefix}__NAME=value); `rlutf config` prints the settings"
     )
+
+
+def unanswered_hint(args: object) -> str:
+    """What to check when no instance answered a query: the service, the endpoint and prefix,
+    and with a zenoh file (``-c``, a deployment's TLS identity), the router's access control,
+    which drops a query this identity may not make without a word (a robot's certificate)."""
+    hint = "is `rlutf serve` running? use -e/--connect and --prefix"
+    if getattr(args, "config", None) is not None:
+        hint += "; with access control, may the identity of the -c file query it?"
+    return hint

@@ -10,7 +10,7 @@ import time
 from typing import Any
 
 from schemas import Event, EventCode, encode
-from service.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CliError
+from service.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CliError, unanswered_hint
 from service.cli.flags import client, seconds, timeout_flag, zenoh_flags
 
 
@@ -307,7 +307,7 @@ def cmd_health(args: argparse.Namespace) -> int:
     if not healths:
         print(
             f"rlutf health: no instance answered on prefix {settings.prefix!r} within "
-            f"{args.timeout:g} s; is `rlutf serve` running? use -e/--connect and --prefix",
+            f"{args.timeout:g} s; {unanswered_hint(args)}",
             file=sys.stderr,
         )
         return EXIT_FAILURE

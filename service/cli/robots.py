@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from service.cli.errors import EXIT_FAILURE, EXIT_OK
+from service.cli.errors import EXIT_FAILURE, EXIT_OK, unanswered_hint
 from service.cli.flags import client, number, timeout_flag, zenoh_flags
 from service.cli.present import SILENT_AFTER_S
 
@@ -60,7 +60,7 @@ def cmd_robots(args: argparse.Namespace) -> int:
     if not answers:
         print(
             f"rlutf robots: no instance answered on prefix {settings.prefix!r} within "
-            f"{args.timeout:g} s; is `rlutf serve` running? use -e/--connect and --prefix",
+            f"{args.timeout:g} s; {unanswered_hint(args)}",
             file=sys.stderr,
         )
         return EXIT_FAILURE

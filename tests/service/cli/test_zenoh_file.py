@@ -56,6 +56,7 @@ def test_a_tool_connects_to_the_endpoints_of_its_config_file(
     code = main(["health", "-c", str(path), "--timeout", "0.5"])
     err = capsys.readouterr().err
     assert code == 1 and "no instance answered" in err, err  # the router answered, no service
+    assert "access control, may the identity of the -c file query it?" in err, err
     code = main(["robots", "-c", str(path), "-e", "tcp/127.0.0.1:1", "--timeout", "0.5"])
     assert code == 1 and "cannot reach zenoh at tcp/127.0.0.1:1" in capsys.readouterr().err
 
