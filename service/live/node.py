@@ -237,7 +237,7 @@ class LocalizationService:
             self.recorder.on_event = self.out.recorder_event
         self.dispatcher.start(progress)
         if self._session is None:
-            self._session = open_unless_stopped(service_config(s), self.stopping)
+            self._session = open_unless_stopped(service_config(s), self.stopping, s.connect)
         session = self._session
         # Before anything is declared or recorded: refuses a name another instance has.
         self.name_claim.take(session, s.handover_timeout_s)

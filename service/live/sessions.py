@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from pathlib import Path
 
 import zenoh
@@ -163,7 +165,7 @@ class StoppedWaiting(RuntimeError):
 
 
 def open_unless_stopped(
-    cfg: zenoh.Config, stop: threading.Event, say_after_s: float = 5.0
+    cfg: zenoh.Config, stop: threading.Event, endpoints: Sequence[str], say_after_s: float = 5.0
 ) -> zenoh.Session:
     """``zenoh.open(cfg)``, given up once ``stop`` is set.
 
@@ -171,43 +173,31 @@ def open_unless_stopped(
     ``service-client.json5``) stays in ``zenoh.open`` until a router answers, where the signal
     handlers never ran: SIGTERM and Ctrl-C did nothing (``docker compose stop``, a pod deleted:
     killed after the grace period) and the service said nothing meanwhile. The session is opened
-    by a thread of its own; this waits on ``stop`` and says, after ``say_after_s``, what it waits
-    for.
+    by a thread of its own; this waits on ``stop`` and says, after ``say_after_s``, that it waits
+    for ``endpoints`` (the settings' ``connect``, the file's included: :func:`with_file`).
 
     Raises:
         StoppedWaiting: ``stop`` was set first (the opening thread is left to the process's end).
         zenoh.ZError: the session cannot be opened.
     """
-    done: dict[str, object] = {}
+    opened: Future[zenoh.Session] = Future()
 
     def opening() -> None:
         try:
-            done["session"] = zenoh.open(cfg)
+            opened.set_result(zenoh.open(cfg))
         except BaseException as err:  # handed to the waiting thread
-            done["error"] = err
+            opened.set_exception(err)
 
-    thread = threading.Thread(target=opening, name="zenoh-open", daemon=True)
-    thread.start()
-    say_at: float | None = time.monotonic() + say_after_s
-    while thread.is_alive():
+    threading.Thread(target=opening, name="zenoh-open", daemon=True).start()
+    say_at = time.monotonic() + say_after_s
+    while not opened.done():
         if stop.wait(0.1):
             raise StoppedWaiting("stopped while waiting for zenoh")
-        if say_at is not None and time.monotonic() > say_at:
-            say_at = None
-            log.warning("waiting for zenoh at %s to answer", _connect_endpoints(cfg))
-    if "error" in done:
-        raise done["error"]  # type: ignore[misc]
-    return done["session"]  # type: ignore[return-value]
-
-
-def _connect_endpoints(cfg: zenoh.Config) -> str:
-    try:
-        found = json.loads(cfg.get_json("connect/endpoints"))
-    except (zenoh.ZError, ValueError, TypeError):
-        return "its connect endpoints"
-    if isinstance(found, dict):  # per mode: {"router": [...], "client": [...]}
-        found = [e for v in found.values() for e in v]
-    return ", ".join(map(str, found)) or "its connect endpoints"
+        if time.monotonic() > say_at:
+            say_at = math.inf
+            where = ", ".join(endpoints) or "its connect endpoints"
+            log.warning("waiting for zenoh at %s to answer", where)
+    return opened.result()
 
 
 def short_queues(cfg: zenoh.Config) -> list[str]:

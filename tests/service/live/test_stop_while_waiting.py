@@ -40,7 +40,7 @@ def test_open_gives_up_once_told_to_stop(tmp_path: Path) -> None:
     threading.Timer(0.5, stop.set).start()
     start = time.monotonic()
     with pytest.raises(StoppedWaiting):
-        open_unless_stopped(cfg, stop)
+        open_unless_stopped(cfg, stop, ["tcp/127.0.0.1:1"])
     assert time.monotonic() - start < 3.0
 
 
