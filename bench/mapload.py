@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from bench.procstat import descendants
+
 RATE_HZ = 10.0
 JSON_ENCODING = "application/json"
 
@@ -199,47 +201,18 @@ class SteadyFleet:
         }
 
 
-def _children(pid: int) -> list[int]:
-    out: list[int] = []
-    try:
-        tasks = list(Path(f"/proc/{pid}/task").iterdir())
-    except OSError:  # the process ended
-        return out
-    for task in tasks:
-        try:
-            out += [int(c) for c in (task / "children").read_text().split()]
-        except OSError:
-            continue
-    return out
-
-
-def _cmdline(pid: int) -> bytes | None:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return None
-
-
 def process_rss_mb(pid: int | None = None) -> dict[int, float]:
-    """Resident memory of a process and each of its descendants, MB by pid (Linux).
-
-    A child whose command line is still its parent's is between fork and exec (every process
-    the service and the benches start is spawned or exec'd): its resident pages are its
-    parent's, so it is left out; counted, one sample in a spawn doubled the parent."""
+    """Resident memory of a process and each of its descendants (:func:`bench.procstat.
+    descendants`: a child between fork and exec left out), MB by pid (Linux)."""
+    root = pid or os.getpid()
     out: dict[int, float] = {}
-    stack: list[tuple[int, bytes | None]] = [(pid or os.getpid(), None)]
-    while stack:
-        p, parent_cmdline = stack.pop()
-        cmdline = _cmdline(p)
-        if parent_cmdline is not None and cmdline == parent_cmdline:
-            continue
+    for p in [root, *descendants(root)]:
         try:
             for line in Path(f"/proc/{p}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
                     out[p] = int(line.split()[1]) / 1024.0
         except OSError:
             continue
-        stack += [(c, cmdline) for c in _children(p)]
     return out
 
 
