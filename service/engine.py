@@ -47,6 +47,7 @@ from service.relocalization import (
     Episode,
     EventSpec,
     Request,
+    placed_during,
     searching,
     wire_hypotheses,
 )
@@ -303,8 +304,8 @@ class FleetEngine:
                 robot.start_stamp = req.stamp_ns
         robot.map_id, robot.map_version = req.map_id, version
         if req.kind == "initialpose":
-            robot.episode = None
-            return []
+            ended, robot.episode = robot.episode, None
+            return self._events(robot, received_ns, key, placed_during(ended, req))
         robot.localizer.relocalize(region_on(req.region, world))
         robot.episode = Episode(f"requested on {req.describe()}")
         return self._events(robot, received_ns, key, robot.episode.start())

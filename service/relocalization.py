@@ -8,9 +8,10 @@ rules read only receive times, so replay decides as the live service did.
 
 A relocalization *episode* starts with a Relocalize, or with a localizer result that relocalizes
 after ``lost`` updates (automatic recovery: ``LocalizerConfig.relocalize_after``), and ends at
-the result that is ``corrected`` with no hypotheses left. :class:`Episode` turns the results into
-the Events ``relocalizing`` (once, at the start), ``ambiguous`` (once, the first time several
-hypotheses remain) and ``relocalized`` (once, at the end).
+the result that is ``corrected`` with no hypotheses left, or at an InitialPose that places the
+robot meanwhile. :class:`Episode` turns the results into the Events ``relocalizing`` (once, at the
+start), ``ambiguous`` (once, the first time several hypotheses remain) and ``relocalized`` (once,
+at the end; :func:`placed_during` when an InitialPose ends it).
 """
 
 from __future__ import annotations
@@ -121,6 +122,23 @@ class Episode:
             )
             return events, True
         return events, False
+
+
+def placed_during(episode: Episode | None, placed: Request) -> list[EventSpec]:
+    """The ``relocalized`` event of an episode that an InitialPose ends (the operator placed the
+    robot while it was being relocalized: an operator's Relocalize, or the one a restart seeds
+    from a pose too old to resume from), so that every ``relocalizing`` has its end."""
+    if episode is None or not episode.announced:
+        return []
+    x, y, theta = (float(v) for v in placed.pose)
+    return [
+        (
+            "info",
+            EventCode.RELOCALIZED,
+            f"relocalization ended by an initial pose: placed at ({x:.3f}, {y:.3f}, "
+            f"{theta:.3f}) on map {placed.map_id!r} after {episode.updates} scan(s)",
+        )
+    ]
 
 
 def wire_hypotheses(result: LocalizeResult) -> tuple[Hypothesis, ...] | None:

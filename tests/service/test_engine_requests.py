@@ -177,16 +177,25 @@ CORRIDOR = World.from_geojson(
 )
 
 
-def test_an_ambiguous_place_says_lost_with_hypotheses_until_one_wins() -> None:
-    steps = 110
+def _relocalizing_in_corridor(
+    steps: int, x_end: float
+) -> tuple[FleetEngine, Run, np.ndarray, list[Outbound]]:
+    """A robot driven along the corridor from x = 5 to ``x_end``, relocalized at its start:
+    the engine, the run, its truth and what the Relocalize gave."""
     truth = np.zeros((steps + 1, 3))
-    truth[:, 0] = np.linspace(5.0, 16.0, steps + 1)
+    truth[:, 0] = np.linspace(5.0, x_end, steps + 1)
     truth[:, 1] = 3.0
     run = Run(CORRIDOR, truth, truth.copy(), np.random.default_rng(0), 360)
     engine = FleetEngine(Keys(), LocalizerConfig(), event_interval_ns=0)
     engine.register_map("c", 1, CORRIDOR, 0)
     engine.handle("r1", run.odometry(0), Run.received(0))
     out = engine.handle("r1", Relocalize(stamp_ns=Run.stamp(0), map_id="c"), Run.received(0) + 1)
+    return engine, run, truth, out
+
+
+def test_an_ambiguous_place_says_lost_with_hypotheses_until_one_wins() -> None:
+    steps = 110
+    engine, run, truth, out = _relocalizing_in_corridor(steps, 16.0)
     codes = [e["code"] for e in _events(out)]
     poses = []
     for i in range(1, steps + 1):
@@ -265,3 +274,28 @@ def test_an_initial_pose_long_after_the_last_odometry_anchors_on_the_next_readin
     for i in range(1, 6):
         pose = _pose(_step(engine, run, i))
         assert _error(pose, run.truth[i]) < 0.05, i
+
+
+def test_an_initial_pose_during_a_relocalization_ends_it_with_an_event() -> None:
+    # The operator places a robot that is being relocalized (theirs, or one a restart seeded
+    # from a pose too old to resume from): the episode's `relocalizing` gets its end.
+    steps = 4
+    engine, run, truth, out = _relocalizing_in_corridor(steps, 6.0)
+    assert [e["code"] for e in _events(out)] == ["relocalizing"]
+    out = _step(engine, run, 1)
+    assert _pose(out)["status"] == "lost"  # the corridor's two ends: not decided yet
+    t = truth[1]
+    placed = InitialPose(
+        stamp_ns=Run.stamp(1), map_id="c", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    events = _events(engine.handle("r1", placed, Run.received(1) + 2))
+    assert [e["code"] for e in events] == ["relocalized"]
+    assert "ended by an initial pose" in str(events[0]["message"])
+    assert "(5.250, 3.000, 0.000) on map 'c' after 1 scan(s)" in str(events[0]["message"])
+    for i in range(2, steps + 1):  # tracked from the operator's pose, no second end
+        out = _step(engine, run, i)
+        assert _pose(out)["status"] != "lost" and _events(out) == []
+        assert _error(_pose(out), truth[i]) < 0.05
+    # Placed again with no relocalization under way: nothing to end.
+    again = InitialPose(stamp_ns=Run.stamp(steps), map_id="c", x=5.0, y=3.0, theta=0.0)
+    assert engine.handle("r1", again, Run.received(steps) + 2) == []
