@@ -18,7 +18,8 @@ on a key of its own beside it:
    leaving: a process killed keeps its tokens for Zenoh's lease, 10 s); one still there refuses
    the start.
 2. Then it declares its claim, follows the claims of its name for as long as it runs and, after
-   :data:`SETTLE_S` (for a claim made at the same instant to reach it), asks for them once more.
+   :data:`SETTLE_S` (for a claim made at the same instant to reach it; twice as long as its last
+   look at the bus took, if that is longer: a loaded host), asks for them once more.
 3. Of two claims of one name the older one wins: the smaller ``(claimed_ns, session)``. Both
    instances rank the same two keys, so both reach the same decision, and exactly one of them
    stops. A winner learns of a loser and goes on. A loser that learns of it while it starts
@@ -149,6 +150,7 @@ class NameClaim:
         mine = str(session.info.zid())
         wait = NAME_WAIT_S if wait is None else wait
         deadline = time.monotonic() + wait
+        asked = time.monotonic()
         while self._other_tokens(session, timeout, mine):
             if time.monotonic() >= deadline:
                 raise NameTaken(
@@ -156,6 +158,10 @@ class NameClaim:
                     f"{self.keys.service(self.instance)} (still after {wait:.0f} s): {FIX}"
                 )
             time.sleep(0.2)
+            asked = time.monotonic()
+        # A claim made at the same instant reaches this session as slowly as the bus answers
+        # now: on a loaded host a look takes longer than the settle, so give it twice the look.
+        settle = max(settle, 2.0 * (time.monotonic() - asked))
         self.own = Claim(time.time_ns(), mine)
         liveliness = session.liveliness()
         self._token = liveliness.declare_token(claim_key(self.keys, self.instance, self.own))

@@ -98,7 +98,9 @@ def test_two_claims_made_at_the_same_instant_leave_exactly_one_the_older() -> No
     """Two sessions claim one name at once, again and again: each time exactly one refuses,
     saying what to do, and the one that holds the name has the older claim (the other either
     claimed too, and says the other started at the same time, or saw the other's claim before
-    it claimed); the loser's claim is gone, the winner is told of no loss."""
+    it claimed); the loser's claim is gone, the winner is told of no loss. (On a machine so
+    loaded that a claim crosses the bus slower than twice a look at it, both may take it: then
+    the younger is told to stop within seconds, the rule for claims that meet late.)"""
     port = free_port()
     with zenoh.open(router_config(port)) as router:
         sessions = [_client(port), _client(port)]
@@ -112,15 +114,29 @@ def test_two_claims_made_at_the_same_instant_leave_exactly_one_the_older() -> No
                 ]
                 results = _at_once(*calls)
                 refused = [r for r in results if isinstance(r, NameTaken)]
-                assert len(refused) == 1, results
-                assert "each instance needs a name of its own (--instance" in str(refused[0])
-                winner = claims[results.index(None)]
-                loser = claims[1 - results.index(None)]
-                assert winner.own is not None
-                if "started at the same time" in str(refused[0]):
-                    assert loser.own is not None and winner.own < loser.own
+                if not refused:
+                    # Both took it: the other's claim crossed the bus after the settle (a loaded
+                    # machine). The module's rule then: the younger learns of the older soon
+                    # after, and is told to stop.
+                    assert wait_until(lambda t=told: len(t) == 1, 5.0), (results, told)
+                    assert "it keeps the name, this instance stops" in told[0]
+                    assert sum(c.lost is not None for c in claims) == 1
+                    loser = next(c for c in claims if c.lost is not None)
+                    winner = next(c for c in claims if c.lost is None)
+                    assert winner.own is not None and loser.own is not None
+                    assert winner.own < loser.own
+                    loser.close()
+                    told.clear()
                 else:
-                    assert loser.own is None  # it saw the winner's claim first: no claim
+                    assert len(refused) == 1, results
+                    assert "each instance needs a name of its own (--instance" in str(refused[0])
+                    winner = claims[results.index(None)]
+                    loser = claims[1 - results.index(None)]
+                    assert winner.own is not None
+                    if "started at the same time" in str(refused[0]):
+                        assert loser.own is not None and winner.own < loser.own
+                    else:
+                        assert loser.own is None  # it saw the winner's claim first: no claim
                 time.sleep(0.3)
                 keys = {str(r.ok.key_expr) for r in router.liveliness().get("rlutf/**") if r.ok}
                 assert keys == {claim_key(KEYS, "b", winner.own)}
@@ -244,7 +260,7 @@ def test_two_services_started_at_the_same_instant_leave_exactly_one(
                 refused = [r for r in results if isinstance(r, NameTaken)]
                 assert len(started) == 1 and len(refused) == 1, results
                 assert "needs a name of its own" in str(refused[0])
-                assert live_members(router.session) == {"b"}
+                assert wait_until(lambda: live_members(router.session) == {"b"}, 5.0)
                 health = [r.ok for r in router.session.get(KEYS.health("b"), timeout=2.0) if r.ok]
                 assert len(health) == 1  # one instance answers as b
             finally:
