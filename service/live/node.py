@@ -230,7 +230,7 @@ class LocalizationService:
         # first scan. Worker processes do it as they start; with them, this process never runs
         # an update, and loaded kernels cost ~60 MB of resident memory a process.
         if not self.dispatcher.processes:
-            warm_up_aside(progress)  # compiled by a child on a first start
+            warm_up_aside(progress, self.stopping)  # a child compiles on a first start
         self.recorder.set_config(s.effective())
         if hasattr(self.recorder, "on_event"):
             # In the log when it can be; published and logged so operators see it live.

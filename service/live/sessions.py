@@ -180,6 +180,8 @@ def open_unless_stopped(
         StoppedWaiting: ``stop`` was set first (the opening thread is left to the process's end).
         zenoh.ZError: the session cannot be opened.
     """
+    if stop.is_set():  # told to stop before (while the kernels compiled): no thread left in open
+        raise StoppedWaiting("stopped before zenoh was opened")
     opened: Future[zenoh.Session] = Future()
 
     def opening() -> None:

@@ -14,14 +14,26 @@ import logging
 import os
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Callable
 
 from rlutf.warmup import kernels, warm_up
 
 log = logging.getLogger(__name__)
 
-#: The child's command: the same warm-up, in a process that exits after it.
-_CHILD = "from rlutf.warmup import warm_up; warm_up()"
+#: The child's command: the same warm-up, in a process that exits after it, or as soon as the
+#: process that started it is gone (``kill -9`` of a starting service left it compiling).
+_CHILD = (
+    "import os, threading, time\n"
+    "parent = os.getppid()\n"
+    "def orphaned():\n"
+    "    while os.getppid() == parent:\n"
+    "        time.sleep(0.5)\n"
+    "    os._exit(1)\n"
+    "threading.Thread(target=orphaned, daemon=True).start()\n"
+    "from rlutf.warmup import warm_up; warm_up()\n"
+)
 #: What a start says while the kernels compile.
 COMPILING = (
     "compiling the localizer's kernels (first start only; about 30 s on 2 cores, then they load "
@@ -45,30 +57,68 @@ def cache_holds_kernels() -> bool:
         return False
 
 
-def warm_up_aside(progress: Callable[[str], None] | None = None) -> bool:
+def warm_up_aside(
+    progress: Callable[[str], None] | None = None, stop: threading.Event | None = None
+) -> bool:
     """:func:`rlutf.warmup.warm_up` in this process, the kernels compiled by a child process
     first when numba's cache does not hold them.
 
+    Args:
+        progress: told once, when a child compiles (the wait is explained).
+        stop: set when the service is told to stop (SIGTERM, Ctrl-C): the child is ended and
+            nothing is warmed up. (Before, a service stopped while its child compiled went on
+            until the compile ended, 30 s on 2 idle cores and minutes on busy ones, then
+            compiled nothing it needed: a supervisor's grace period ran out first.)
+
     Returns:
         Whether this process compiled kernels anyway (the child failed, or the cache's index did
-        not match the sources).
+        not match the sources); ``False`` when stopped first.
     """
     if not cache_holds_kernels():
         if progress is not None:
             progress(COMPILING)
-        try:
-            run = subprocess.run(
-                [sys.executable, "-c", _CHILD],
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=CHILD_TIMEOUT_S,
-            )
-            if run.returncode != 0:
-                log.warning("the kernels' warm-up process failed: %s", run.stderr[-2000:])
-        except (OSError, subprocess.TimeoutExpired) as err:
-            log.warning("the kernels' warm-up process failed: %s", err)
+        if not _compile_in_child(stop):
+            return False
     compiled = warm_up()
     if compiled:
         log.info("this process compiled the localizer's kernels and keeps the compiler's memory")
     return compiled
+
+
+def _compile_in_child(stop: threading.Event | None) -> bool:
+    """Run the warm-up child to its end; ``False`` if ``stop`` was set first (the child ended)."""
+    try:
+        child = subprocess.Popen(
+            [sys.executable, "-c", _CHILD],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+    except OSError as err:
+        log.warning("the kernels' warm-up process failed: %s", err)
+        return True
+    # stderr is read on a thread, so a chatty child never blocks on a full pipe
+    errors: list[str] = []
+    reader = threading.Thread(
+        target=lambda: errors.append(child.stderr.read() if child.stderr else ""),
+        name="rlutf-warmup-stderr",
+        daemon=True,
+    )
+    reader.start()
+    deadline = time.monotonic() + CHILD_TIMEOUT_S
+    waiting = stop if stop is not None else threading.Event()
+    while child.poll() is None:
+        if waiting.wait(0.2) or time.monotonic() > deadline:
+            child.kill()
+            child.wait()
+            reader.join(5.0)
+            if waiting.is_set():
+                return False
+            log.warning(
+                "the kernels' warm-up process failed: timed out after %.0f s", CHILD_TIMEOUT_S
+            )
+            return True
+    reader.join(5.0)
+    if child.returncode != 0:
+        log.warning("the kernels' warm-up process failed: %s", "".join(errors)[-2000:])
+    return True
