@@ -124,7 +124,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service until SIGINT or SIGTERM."""
     import zenoh
 
-    from service.cluster.names import NameTaken
+    from service.cluster.names import NameTaken, NameWaitStopped
     from service.live.heapdumps import install_from_env
     from service.live.node import LocalizationService
     from service.live.sessions import StoppedWaiting
@@ -205,7 +205,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # the metrics port is taken or the address is not local
         print(f"rlutf serve: {_metrics_refused(settings, err)}", file=sys.stderr)
         return EXIT_FAILURE
-    except StoppedWaiting:  # told to stop while the session waited for its router
+    except (StoppedWaiting, NameWaitStopped):  # told to stop while waiting (router, name)
         service.close()
         return EXIT_OK
     except RuntimeError as err:  # a worker process could not start, or the name is taken

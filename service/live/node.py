@@ -240,7 +240,7 @@ class LocalizationService:
             self._session = open_unless_stopped(service_config(s), self.stopping, s.connect)
         session = self._session
         # Before anything is declared or recorded: refuses a name another instance has.
-        self.name_claim.take(session, s.handover_timeout_s)
+        self.name_claim.take(session, s.handover_timeout_s, stop=self.stopping)
         self.outbox.start(session)
         self.out.attach(session)
         if not s.no_store:
