@@ -388,12 +388,18 @@ def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
         found = entries
         if not found:
             parts = [p for p in Path(path).iterdir() if p.name.endswith(".mcap.part")]
-            hint = (
-                f"; it holds {len(parts)} unfinished log(s) (.mcap.part): copy what they hold "
-                f"with rlutf log recover {path}/ FOLDER, then use FOLDER"
-                if parts and suffix == ".mcap"
-                else ""
-            )
+            whole = [p for p in Path(path).iterdir() if p.name.endswith(".mcap")]
+            hint = ""
+            if parts and suffix == ".mcap":
+                hint = (
+                    f"; it holds {len(parts)} unfinished log(s) (.mcap.part): copy what they "
+                    f"hold with rlutf log recover {path}/ FOLDER, then use FOLDER"
+                )
+            elif whole and suffix == ".mcap.part":
+                hint = (
+                    f"; it holds {len(whole)} complete log(s) (.mcap): nothing to recover, read "
+                    f"them as they are (rlutf replay {path}/ OUT.mcap, rlutf log info {path}/)"
+                )
             raise NotALog(f"{path}: a folder with no log file (*{suffix}) in it{hint}")
         files.extend(found)
     return files

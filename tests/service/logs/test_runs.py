@@ -391,6 +391,12 @@ def test_a_log_folder_is_given_as_it_is(
     assert main(["log", "recover", str(crashed), str(tmp_path / "fixed")]) == 0
     (run,) = group_runs(logs_of(tmp_path / "fixed"))
     assert run.run_id == recorders[7].run_id and len(run.files) == len(recorders[7].files)
+    capsys.readouterr()
+    # the other way round: recover on a folder of finished logs says there is nothing to do
+    assert main(["log", "recover", str(logs), str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert "a folder with no log file (*.mcap.part) in it" in err
+    assert f"{len(logs_of(logs))} complete log(s) (.mcap): nothing to recover" in err
 
 
 def test_an_audit_of_a_folder_names_its_unfinished_logs(
