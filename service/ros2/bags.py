@@ -253,7 +253,11 @@ def bag_inputs(
         writer.finish()
     summary.warnings = odometry_frames.warnings(frames)
     if not summary.counts["LaserScan"]:
-        raise BagError(f"{bag}: no valid scan on {topics.scan}")
+        on_scan = f"{topics.scan}: "
+        why = Counter(
+            {k[len(on_scan) :]: n for k, n in summary.rejected.items() if k.startswith(on_scan)}
+        )
+        raise BagError(f"{bag}: no valid scan on {topics.scan}{_why(why)}")
     if not summary.counts["initialpose"] and not summary.counts["InitialPose"]:
         raise BagError(
             f"{bag}: no initial pose: give --initial-pose X,Y,THETA (none on {pose_topic})"
@@ -389,12 +393,14 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
                 continue
     pose_stamps = trail.stamps  # in order
     found = 0
+    invalid: Counter[str] = Counter()
     if pose_stamps:
         with _reader(bag) as reader:
             for _conn, _t, raw in _on_topic(reader, scan_topic):
                 try:
                     scan = convert.laser_scan(bytes(raw))
-                except (SchemaError, AttributeError):
+                except (SchemaError, AttributeError) as err:
+                    invalid[str(err)[:200]] += 1
                     continue
                 i = bisect.bisect_left(pose_stamps, scan.stamp_ns)
                 near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
@@ -409,4 +415,12 @@ def scans_with_poses(bag: Path, scan_topic: str, pose_topic: str) -> Iterator[Sc
                 found += 1
                 yield pose, ranges, angles, scan.range_max
     if not found:
-        raise BagError(f"{bag}: no scan on {scan_topic} has a pose on {pose_topic}")
+        raise BagError(f"{bag}: no scan on {scan_topic} has a pose on {pose_topic}{_why(invalid)}")
+
+
+def _why(invalid: Counter[str]) -> str:
+    """Why the scans left out were refused, the commonest first: ``""`` for none."""
+    if not invalid:
+        return ""
+    listed = "; ".join(f"{n} scans: {why}" for why, n in invalid.most_common(3))
+    return f" ({sum(invalid.values())} scans refused: {listed})"

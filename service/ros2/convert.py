@@ -7,7 +7,8 @@ the engine, the log and replay cannot tell them apart. Outputs are ``amcl_pose``
 (``PoseWithCovarianceStamped``) and the ``map`` -> ``odom`` transform, as Nav2 AMCL publishes
 them, and the pose's quality fields as a ``diagnostic_msgs/msg/DiagnosticArray``.
 
-A range that is NaN or infinite is no return (REP 117), like ``null`` in JSON.
+A range that is NaN or infinite is no return (REP 117), like ``null`` in JSON; a ``range_max`` of
++inf (no limit) is :data:`FLOAT32_MAX`.
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+#: The ``range_max`` of a LaserScan whose ``range_max`` is infinite (a driver's "no limit"): the
+#: largest the message's float32 holds. The wire contract's is finite; the engine bounds it by
+#: the robot's map and ``limits.max_range``. Such scans were refused, every one of them.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: Name of the DiagnosticStatus of a robot's localization.
 DIAGNOSTIC_NAME = "rlutf: localization"
 
@@ -122,6 +127,9 @@ def laser_scan(
         if found is not None:
             sensor_offset = found
     ranges = np.asarray(m.ranges, dtype=np.float64)
+    range_max = float(m.range_max)
+    if range_max == math.inf:  # no upper limit: bounded by the map in the engine, as any
+        range_max = FLOAT32_MAX
     values: list[float | None] = ranges.tolist()
     if not np.isfinite(ranges).all():
         for i in np.flatnonzero(~np.isfinite(ranges)).tolist():
@@ -131,7 +139,7 @@ def laser_scan(
         "angle_min": float(m.angle_min),
         "angle_increment": float(m.angle_increment),
         "range_min": float(m.range_min),
-        "range_max": float(m.range_max),
+        "range_max": range_max,
         "ranges": values,
         "sensor_offset": dict(zip(("x", "y", "theta"), sensor_offset, strict=True)),
     }
