@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +142,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     from service.logs.mcapread import LogError
     from service.maps.mapimport import (
         BUILT_SURFACE_CELLS,
+        DEFAULT_MAX_RANGE,
         DEFAULT_MIN_AREA,
         MapImportError,
         build_grid,
@@ -179,13 +181,15 @@ def cmd_build(args: argparse.Namespace) -> int:
 
             topics = (args.scan_topic, args.pose_topic)
             try:  # the scans read twice (the extent, then the cells) rather than held
-                grid = build_grid(lambda: bag_scans(log, *topics), **cells)
+                grid = build_grid(capped(lambda: bag_scans(log, *topics), args.max_range), **cells)
             except BagError as err:
                 raise ValueError(str(err)) from err
         elif mcap:
-            grid = build_grid(_run_scans(args.log, args.from_map), **cells)
+            grid = build_grid(capped(_run_scans(args.log, args.from_map), args.max_range), **cells)
         else:
-            carmen = read_carmen(log, max_range=args.max_range)
+            carmen = read_carmen(
+                log, max_range=DEFAULT_MAX_RANGE if args.max_range is None else args.max_range
+            )
             if carmen.cut:
                 print(f"rlutf map build: warning: {log}: {carmen.cut}", file=sys.stderr)
             grid = build_grid(carmen.scans, **cells)
@@ -210,6 +214,20 @@ def cmd_build(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return _finish(args, result)
+
+
+def capped(scans: Any, max_range: float | None) -> Any:
+    """What reads ``scans`` (a function giving them anew) with each scan's range_max at most
+    ``max_range`` (``None``: as they are). ``--max-range`` was read for CARMEN logs alone: an
+    MCAP log or a bag was built with every range up to its scanner's maximum, in silence."""
+    if max_range is None:
+        return scans
+
+    def read() -> Iterator[Any]:
+        for pose, ranges, angles, range_max in scans():
+            yield pose, ranges, angles, min(range_max, max_range)
+
+    return read
 
 
 def _cell_flags(args: argparse.Namespace) -> None:

@@ -142,9 +142,10 @@ def register(sub: Any) -> None:
     build.add_argument(
         "--max-range",
         type=number(above=0),
-        default=50.0,
+        default=None,
         metavar="M",
-        help="longer ranges are no return, m (default 50)",
+        help="longer ranges are no return, m (default: each scan's range_max; 50 for a CARMEN "
+        "log, which has none)",
     )
     build.add_argument(
         "--surface-offset",
