@@ -297,13 +297,23 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
 def cmd_health(args: argparse.Namespace) -> int:
     """``rlutf health``: 0 if an instance answers."""
     from service.cli.present import health_problems, health_table
-    from service.live.queries import fetch_health
+    from service.live.queries import fetch_health, live_instances
 
     if args.instance != "*":
         check_ids("health", instance=args.instance)
     settings, session = client(args)
     with session:
         healths = fetch_health(session, settings.prefix, args.instance, args.timeout)
+        live = live_instances(session, settings.prefix) if not healths else []
+    if not healths and args.instance != "*" and live:
+        # the service runs, under other names: "is `rlutf serve` running?" sent one looking
+        print(
+            f"rlutf health: no instance {args.instance!r} on prefix {settings.prefix!r}; the "
+            f"live instances are {', '.join(repr(i) for i in live)} (--instance NAME, or leave "
+            "it out for all)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
     if not healths:
         print(
             f"rlutf health: no instance answered on prefix {settings.prefix!r} within "
