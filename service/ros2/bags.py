@@ -367,6 +367,11 @@ def write_pose_bag(
     return written, transforms
 
 
+#: How far a stamp goes back, on a bag's pose or scan topic, for a clock reset, ns (less is a
+#: message that came late).
+CLOCK_RESET_NS = 1_000_000_000
+
+
 def scans_with_poses(
     bag: Path, scan_topic: str, pose_topic: str, base_frame: str = "base_footprint"
 ) -> Iterator[ScanAtPose]:
@@ -380,6 +385,12 @@ def scans_with_poses(
     taken at the base). It was taken at the base always: a laser mounted 0.2 m ahead of it
     smeared every wall of the map into two.
 
+    A clock reset (a stamp more than :data:`CLOCK_RESET_NS` older than the one before it on its
+    topic, in the bag's order: a simulation restarted, a robot's clock set back between two
+    recordings) starts a new span of poses and of scans, and the scans of the k-th span take
+    the poses of the k-th span only: the poses of two spans stamped alike were mixed, and half
+    the walls of such a bag's map were drawn from the wrong pose, with no word.
+
     The bag is read twice: its poses first (a few numbers each, held), then its scans, each
     given as it is read, so a mapping run of hours is never held (a decoded scan is about 3 KB);
     :func:`service.maps.mapimport.build_grid` asks for the scans twice, so a map build reads
@@ -388,7 +399,8 @@ def scans_with_poses(
     Raises:
         BagError: the bag is unreadable or has no scan with a pose.
     """
-    trail = OdometryTrail(kept=1 << 62)
+    trails: list[OdometryTrail] = []
+    last: int | None = None
     frames = StaticFrames()
     static_topic = BagTopics(scan=scan_topic).in_namespace("tf_static")
     with _reader(bag) as reader:
@@ -402,14 +414,18 @@ def scans_with_poses(
                 m = convert.deserialize(bytes(raw), conn.msgtype)
                 p = m.pose.pose
                 stamp = convert.stamp_ns(m.header)
-                trail.add(stamp, (p.position.x, p.position.y, convert.yaw(p.orientation)))
+                at = (p.position.x, p.position.y, convert.yaw(p.orientation))
             except (SchemaError, AttributeError):
                 continue
-    pose_stamps = trail.stamps  # in order
+            if last is None or stamp < last - CLOCK_RESET_NS:
+                trails.append(OdometryTrail(kept=1 << 62))
+            last = stamp
+            trails[-1].add(stamp, at)
     offset_of = partial(frames.offset, base_frame)
+    span, last = 0, None
     found = 0
     invalid: Counter[str] = Counter()
-    if pose_stamps:
+    if trails:
         with _reader(bag) as reader:
             for _conn, _t, raw in _on_topic(reader, scan_topic):
                 try:
@@ -417,6 +433,13 @@ def scans_with_poses(
                 except (SchemaError, AttributeError) as err:
                     invalid[str(err)[:200]] += 1
                     continue
+                if last is not None and scan.stamp_ns < last - CLOCK_RESET_NS:
+                    span += 1
+                last = scan.stamp_ns
+                if span >= len(trails):
+                    continue  # a span of scans with no poses
+                trail = trails[span]
+                pose_stamps = trail.stamps  # in order
                 i = bisect.bisect_left(pose_stamps, scan.stamp_ns)
                 near = [pose_stamps[j] for j in (i - 1, i) if 0 <= j < len(pose_stamps)]
                 if not near or min(abs(s - scan.stamp_ns) for s in near) > 500_000_000:
