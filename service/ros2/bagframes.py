@@ -17,6 +17,7 @@ says of a robot with no Odometry: :mod:`service.ros2.odomwatch`).
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from itertools import islice
 
@@ -180,3 +181,54 @@ class BagOdometryFrames:
             f"no odometry: {topic} {carries} no {odom} -> {base} (--odom-frame -> --base-frame): "
             f"{without}.{fix}"
         )
+
+
+class LaserFrames:
+    """The scans' frames that a bag's ``tf_static`` does not link to the base frame, counted.
+
+    Such a scan is taken at the base, as the live front door takes it, where the live service
+    logs it and counts it in health; a bag's replay said nothing, and a bag recorded without
+    its ``tf_static`` (or with it on another topic) was localized with the laser at the base:
+    every pose off by the laser's mount, without a word.
+
+    Args:
+        frames: the bag's static transforms (filled as it is read).
+        base_frame: the frame whose pose is estimated (``--base-frame``).
+        static_topic: the ``tf_static`` topic read.
+    """
+
+    def __init__(self, frames: StaticFrames, base_frame: str, static_topic: str) -> None:
+        self.frames = frames
+        self.base_frame = base_frame
+        self.static_topic = static_topic
+        self.scans = 0
+        self.unlinked: Counter[str] = Counter()
+
+    def offset(self, frame: str) -> tuple[float, float, float] | None:
+        """The pose of a scan's ``frame`` in the base frame; ``None`` (counted) when unlinked."""
+        self.scans += 1
+        found = self.frames.offset(self.base_frame, frame)
+        key = frame[:FRAME_CHARS]
+        if found is None and (key in self.unlinked or len(self.unlinked) < PAIRS_KEPT):
+            self.unlinked[key] += 1
+        return found
+
+    def warnings(self, topics: Mapping[str, str]) -> list[str]:
+        """What to say of the scans taken at the base (``topics``: the bag's, with types)."""
+        if not self.unlinked:
+            return []
+        n = sum(self.unlinked.values())
+        common = self.unlinked.most_common(4)
+        listed = ", ".join(f"'{printable(f)}' ({k} scans)" for f, k in common)
+        others = sorted(
+            t for t, ty in topics.items() if ty == convert.TF_MESSAGE and t.endswith("tf_static")
+        )
+        others = [printable(t) for t in others if t != self.static_topic]
+        has = "the bag has no such topic" if self.static_topic not in topics else "it does not"
+        hint = f"; the bag's tf_static is on {', '.join(others)}" if others else ""
+        return [
+            f"{n} of {self.scans} scans were taken at '{self.base_frame}' (--base-frame): their "
+            f"frame {listed} is not linked to it by {printable(self.static_topic)} ({has}){hint}: "
+            "poses are off by the laser's mount; record the robot's tf_static with its scans, "
+            "or give --base-frame the frame the scans are in"
+        ]

@@ -45,7 +45,7 @@ from service.logs.mcapchunks import ChunkTooLarge
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcaprecords import RecordTooLarge, bound_file
 from service.ros2 import convert, names
-from service.ros2.bagframes import BagOdometryFrames
+from service.ros2.bagframes import BagOdometryFrames, LaserFrames
 from service.ros2.statictf import StaticFrames
 from service.ros2.trail import OdometryTrail, map_to_odom
 
@@ -199,15 +199,16 @@ def bag_inputs(
         static_topic: "tf_static",  # the laser's pose in the base frame
     }
     frames = StaticFrames()
+    lasers = LaserFrames(frames, topics.base_frame, static_topic)
     odometry_frames = BagOdometryFrames(
         odom_topic, topics.odom_tf, topics.global_frame, topics.odom_frame, topics.base_frame
     )
     with _reader(bag) as reader:
-        present = {c.topic for c in reader.connections}
+        types = {c.topic: c.msgtype for c in reader.connections}
+        present = set(types)
         if topics.scan not in present:
             raise BagError(f"{bag}: no topic {topics.scan} (topics: {', '.join(sorted(present))})")
         if odom_topic not in present:
-            types = {c.topic: c.msgtype for c in reader.connections}
             tf = topics.tf or topics.in_namespace("tf")
             tf_messages = (bytes(raw) for _c, _t, raw in _on_topic(reader, tf))
             said = odometry_frames.no_topic(types, tf, tf_messages)
@@ -235,7 +236,7 @@ def bag_inputs(
                 if kind == "odom":
                     msgs = _odometry(conn.msgtype, bytes(raw), topics, odometry_frames)
                 else:
-                    msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, frames)
+                    msgs = _convert(kind, conn.msgtype, bytes(raw), map_msg.map_id, topics, lasers)
             except SchemaError as err:
                 summary.rejected[f"{conn.topic}: {str(err)[:120]}"] += 1
                 continue
@@ -252,7 +253,7 @@ def bag_inputs(
                 summary.counts[type(m).__name__] += 1
             summary.last_ns = t_ns
         writer.finish()
-    summary.warnings = odometry_frames.warnings(frames)
+    summary.warnings = odometry_frames.warnings(frames) + lasers.warnings(types)
     if not summary.counts["LaserScan"]:
         on_scan = f"{topics.scan}: "
         why = Counter(
@@ -267,11 +268,11 @@ def bag_inputs(
 
 
 def _convert(
-    kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics, frames: StaticFrames
+    kind: str, msgtype: str, raw: bytes, map_id: str, topics: BagTopics, lasers: LaserFrames
 ) -> list[LaserScan | InitialPose]:
     if kind == "scan":
         _expect(msgtype, convert.LASER_SCAN)
-        return [convert.laser_scan(raw, offset_of=partial(frames.offset, topics.base_frame))]
+        return [convert.laser_scan(raw, offset_of=lasers.offset)]
     _expect(msgtype, convert.POSE_COV)
     return [convert.initial_pose(raw, map_id, topics.global_frame)]
 

@@ -1,0 +1,73 @@
+"""``rlutf replay BAG --ros2`` says when a bag's scans are in a frame its ``tf_static`` does not
+link to the base frame (a bag recorded without ``tf_static``): they are taken at the base, and
+every pose is off by the laser's mount. It said nothing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_client import TS, odom_msg, scan_msg, tf_msg
+
+from rlutf.motion import compose, relative
+from rlutf.sim import make_building, make_trajectory
+from service.cli.main import main
+
+T0 = 1_765_000_000_000_000_000
+WORLD = make_building(np.random.default_rng(21))
+STEPS = 20
+LASER = np.array([0.2, 0.0, 0.0])
+
+
+def _bag(path: Path, truth: np.ndarray, static_topic: str | None) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    rng = np.random.default_rng(1)
+    odom = np.array([relative(np.array([1.0, -2.0, 0.4]), p) for p in truth])
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        sc = w.add_connection("/robot1/scan", "sensor_msgs/msg/LaserScan", typestore=TS)
+        oc = w.add_connection("/robot1/odom", "nav_msgs/msg/Odometry", typestore=TS)
+        if static_topic is not None:
+            stc = w.add_connection(static_topic, "tf2_msgs/msg/TFMessage", typestore=TS)
+            raw = TS.serialize_cdr(
+                tf_msg(LASER, T0, "base_footprint", "laser"), "tf2_msgs/msg/TFMessage"
+            )
+            w.write(stc, T0 - 10, raw)
+        for i in range(STEPS):
+            t = T0 + i * 100_000_000
+            w.write(oc, t, TS.serialize_cdr(odom_msg(odom[i], t), "nav_msgs/msg/Odometry"))
+            m = scan_msg(WORLD, compose(truth[i], LASER), t + 5_000_000, rng, "laser")
+            w.write(sc, t + 5_000_000, TS.serialize_cdr(m, "sensor_msgs/msg/LaserScan"))
+
+
+@pytest.mark.parametrize(
+    ("static_topic", "said"),
+    [
+        (None, "(the bag has no such topic)"),
+        ("/tf_static", "the bag's tf_static is on /tf_static"),
+        ("/robot1/tf_static", None),
+    ],
+)
+def test_scans_in_a_frame_tf_static_does_not_link_are_said(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    static_topic: str | None,
+    said: str | None,
+) -> None:
+    truth = make_trajectory(WORLD, np.random.default_rng(3), STEPS)
+    _bag(tmp_path / "bag", truth, static_topic)
+    (tmp_path / "m1.json").write_text(
+        json.dumps({"map_id": "m1", "version": 1, "geometry": WORLD.to_geojson()}), encoding="utf-8"
+    )
+    x, y, th = (float(v) for v in truth[0])
+    args = ["replay", str(tmp_path / "bag"), "--ros2", "--map", str(tmp_path / "m1.json")]
+    args += ["--scan-topic", "/robot1/scan", "--odom-topic", "/robot1/odom", "--quiet"]
+    assert main([*args, f"--initial-pose={x!r},{y!r},{th!r}"]) == 0
+    out = " ".join(capsys.readouterr().out.split())  # rich wraps long lines
+    if said is None:
+        assert "taken at" not in out, out
+        return
+    assert f"{STEPS} of {STEPS} scans were taken at 'base_footprint'" in out, out
+    assert "frame 'laser'" in out and "/robot1/tf_static" in out and said in out, out
