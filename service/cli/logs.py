@@ -205,7 +205,10 @@ def _fail(command: str, err: Exception) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """``rlutf replay``: sort the inputs into runs, replay and audit each on its own; with no
     ``--out`` an audit only (the recomputed logs are written aside, then removed)."""
+    from service.cli.ros2bags import check_flags
+
     args.kept = args.out is not None
+    check_flags(args)
     # Outputs that cannot be written are refused before a replay of hours, not after it.
     if args.plot is not None:
         usable_folder(args.plot, "--plot")

@@ -43,6 +43,48 @@ def replay_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: The flags of ``rlutf replay`` that only a bag (``--ros2``) reads, and their defaults.
+BAG_ONLY = {
+    "ros_map": ("--map", None),
+    "store": ("--store", Path("store")),
+    "initial_pose": ("--initial-pose", None),
+    "scan_topic": ("--scan-topic", "/scan"),
+    "odom_topic": ("--odom-topic", "/odom"),
+    "odom_tf": ("--odom-tf", False),
+    "base_frame": ("--base-frame", "base_footprint"),
+    "odom_frame": ("--odom-frame", "odom"),
+    "robot": ("--robot", None),
+    "ros2_out": ("--ros2-out", None),
+}
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """Refuse, before any work, the bag flags given without ``--ros2`` (they were ignored in
+    silence: ``--ros2-out`` wrote nothing, exit 0) and a ``--ros2-out`` that exists (it was
+    refused once the replay was done).
+
+    Raises:
+        CliError: naming the flags and the fix (exit 2).
+    """
+    from service.cli.errors import CliError
+    from service.cli.flags import EXIT_USAGE
+
+    if not args.ros2:
+        given = [flag for key, (flag, default) in BAG_ONLY.items() if getattr(args, key) != default]
+        if given:
+            raise CliError(
+                f"{', '.join(given)}: only read with --ros2 (IN a rosbag2 recording); give "
+                "--ros2, or leave them out to replay rlutf logs",
+                EXIT_USAGE,
+            )
+    elif args.ros2_out is not None and (args.ros2_out.exists() or args.ros2_out.is_symlink()):
+        raise CliError(
+            f"--ros2-out {args.ros2_out}: exists already (a rosbag2 is written as a new "
+            "folder); remove it or choose another",
+            EXIT_USAGE,
+        )
+
+
 def load_map(spec: str, store: Path) -> bytes:
     """A Map payload from a file (Map JSON, GeoJSON or map_server YAML) or a stored map id.
 
