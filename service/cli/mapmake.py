@@ -160,6 +160,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     )
     _outputs(args)
     _cell_flags(args)
+    _source_flags(args)
     log = args.log[0]
     # half the memory the host has for the grid (16 million cells always)
     cells = {"resolution": args.resolution, "max_cells": max_grid_cells(available_memory())}
@@ -228,6 +229,33 @@ def capped(scans: Any, max_range: float | None) -> Any:
             yield pose, ranges, angles, min(range_max, max_range)
 
     return read
+
+
+def _source_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags the kind of LOG given does not read (they were ignored in silence:
+    ``--pose-topic`` on an MCAP log, ``--from-map`` on a bag), before it is read."""
+    log = args.log[0]
+    mcap = not args.ros2 and (log.is_dir() or log.suffix == ".mcap")
+    unread = []
+    if not args.ros2:
+        unread += [
+            f
+            for f, v, d in (
+                ("--scan-topic", args.scan_topic, "/scan"),
+                ("--pose-topic", args.pose_topic, "/amcl_pose"),
+            )
+            if v != d
+        ]
+    if not mcap and args.from_map is not None:
+        unread.append("--from-map")
+    if unread:
+        kind = "a bag (--ros2)" if args.ros2 else "MCAP logs" if mcap else "a CARMEN log"
+        raise CliError(
+            f"{', '.join(unread)}: not read for {kind}: --scan-topic and --pose-topic are a "
+            "bag's (with --ros2), --from-map is MCAP logs'; leave them out, or give --ros2 "
+            "with a bag",
+            EXIT_USAGE,
+        )
 
 
 def _cell_flags(args: argparse.Namespace) -> None:

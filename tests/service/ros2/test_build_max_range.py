@@ -76,3 +76,25 @@ def test_max_range_bounds_the_ranges_of_bags_and_mcap_logs(
         (tmp_path / "whole.json").read_text()
     )
     assert far.equals(whole)
+
+
+@pytest.mark.parametrize(
+    ("kind", "flags", "said"),
+    [
+        ("mcap", ["--pose-topic", "/robot1/amcl_pose"], "--pose-topic: not read for MCAP logs"),
+        ("bag", ["--ros2", *TOPICS, "--from-map", "m1"], "--from-map: not read for a bag"),
+    ],
+)
+def test_flags_the_log_does_not_read_are_refused(
+    logs: dict[str, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    kind: str,
+    flags: list[str],
+    said: str,
+) -> None:
+    """They were ignored in silence (a map built, exit 0)."""
+    out = tmp_path / "built.json"
+    assert main(["map", "build", str(logs[kind]), "--out", str(out), *flags]) == 2
+    assert said in capsys.readouterr().err
+    assert not out.exists()
