@@ -66,8 +66,10 @@ def check_flags(args: argparse.Namespace) -> None:
     Raises:
         CliError: naming the flags and the fix (exit 2).
     """
+    from schemas import valid_id
     from service.cli.errors import CliError
     from service.cli.flags import EXIT_USAGE
+    from service.keys import printable
 
     if not args.ros2:
         given = [flag for key, (flag, default) in BAG_ONLY.items() if getattr(args, key) != default]
@@ -77,6 +79,11 @@ def check_flags(args: argparse.Namespace) -> None:
                 "--ros2, or leave them out to replay rlutf logs",
                 EXIT_USAGE,
             )
+    elif args.robot is not None and not valid_id(args.robot):
+        raise CliError(
+            f"--robot {printable(args.robot)!r}: not a robot id: use 1 to 64 of A-Z a-z 0-9 _ -",
+            EXIT_USAGE,
+        )
     elif args.ros2_out is not None and (args.ros2_out.exists() or args.ros2_out.is_symlink()):
         raise CliError(
             f"--ros2-out {args.ros2_out}: exists already (a rosbag2 is written as a new "

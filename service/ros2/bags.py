@@ -187,7 +187,10 @@ def bag_inputs(
     """
     keys = keys or Keys()
     map_msg = decode(Map, map_payload, max_bytes=10**9)
-    robot = robot_id or names.robot_of_namespace(topics.namespace, "robot")
+    try:
+        robot = robot_id or names.robot_of_namespace(topics.namespace, "robot")
+    except names.NamespaceError as err:  # the live service's fix (the settings) is not replay's
+        raise BagError(f"{str(err).split(';')[0]}: give the robot's id with --robot ID") from err
     summary = BagSummary(robot, topics.namespace)
     odom_topic = topics.tf or topics.in_namespace("tf") if topics.odom_tf else topics.odom
     pose_topic = topics.initialpose or topics.in_namespace("initialpose")

@@ -79,3 +79,33 @@ def test_an_existing_ros2_out_is_refused_before_the_replay(
     assert "replayed" not in captured.out, captured.out  # refused before the replay
     assert main([*args, "--ros2-out", str(d / "fresh")]) == 0
     assert (d / "fresh" / "metadata.yaml").is_file()
+
+
+def test_a_robot_id_replay_cannot_use_is_refused_with_the_fix(
+    bag: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--robot 'a b'`` replayed every input to nothing (0 poses, 0 rejected, exit 0); a bag
+    of a nested namespace (``/site/r7/scan``) was sent to the live service's settings."""
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    d = bag["dir"]
+    args = ["replay", "--ros2", "--map", str(d / "m1.json"), "--quiet"]
+    assert main([*args, str(d / "bag"), "--robot", "a b"]) == 2
+    assert "--robot 'a b': not a robot id" in capsys.readouterr().err
+    # The same run under /site/r7: its namespace is no robot id.
+    with (
+        Reader(d / "bag") as r,
+        Writer(tmp_path / "nested", version=9, storage_plugin=StoragePlugin.MCAP) as w,
+    ):
+        conns = {
+            c.id: w.add_connection(f"/site/r7{c.topic}", c.msgtype, typestore=TS)
+            for c in r.connections
+        }
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    topics = ["--scan-topic", "/site/r7/scan", "--odom-topic", "/site/r7/odom"]
+    assert main([*args, str(tmp_path / "nested"), *topics]) == 2
+    err = capsys.readouterr().err
+    assert "namespace '/site/r7' is not a robot id" in err and "--robot ID" in err, err
+    assert "ros2.robots" not in err, err
+    assert main([*args, str(tmp_path / "nested"), *topics, "--robot", "r7"]) == 0
