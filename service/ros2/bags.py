@@ -40,7 +40,7 @@ from schemas import (
     decode,
 )
 from service.infile import not_a_file
-from service.keys import Keys
+from service.keys import Keys, printable
 from service.logs.mcapchunks import ChunkTooLarge
 from service.logs.mcapfile import LogWriter, Record
 from service.logs.mcaprecords import RecordTooLarge, bound_file
@@ -408,6 +408,11 @@ def scans_with_poses(
     frames = StaticFrames()
     static_topic = BagTopics(scan=scan_topic).in_namespace("tf_static")
     with _reader(bag) as reader:
+        said = _unposed(
+            bag, {c.topic: c.msgtype for c in reader.connections}, scan_topic, pose_topic
+        )
+        if said:
+            raise BagError(said)
         for conn, _t, raw in _on_topic(reader, static_topic):
             with contextlib.suppress(SchemaError):
                 _expect(conn.msgtype, convert.TF_MESSAGE)
@@ -460,6 +465,24 @@ def scans_with_poses(
                 yield pose, ranges, angles, scan.range_max
     if not found:
         raise BagError(f"{bag}: no scan on {scan_topic} has a pose on {pose_topic}{_why(invalid)}")
+
+
+def _unposed(bag: Path, types: Mapping[str, str], scan: str, pose: str) -> str | None:
+    """Why a map cannot be built from the bag's topics (one missing, or of another type), with
+    the topics that would do; ``None`` when they are there. It said "no scan on /scan has a pose
+    on /amcl_pose" of a bag with neither topic."""
+    kinds = {
+        "--scan-topic": (scan, (convert.LASER_SCAN,)),
+        "--pose-topic": (pose, (convert.POSE_COV, convert.ODOMETRY)),
+    }
+    for flag, (topic, wanted) in kinds.items():
+        if types.get(topic) in wanted:
+            continue
+        fits, want = sorted(t for t, ty in types.items() if ty in wanted), " or ".join(wanted)
+        what = f"carries {types[topic]}, not {want}" if topic in types else "is not in the bag"
+        give = f"give {flag} {' or '.join(fits)}" if fits else f"the bag has no {want}"
+        return f"{bag}: {printable(topic)} ({flag}) {what}; {give}"
+    return None
 
 
 def _why(invalid: Counter[str]) -> str:
