@@ -238,7 +238,11 @@ class LogFile:
     def _check(self) -> _Index:
         head = self._stream.read(len(MAGIC))
         if head != MAGIC:
-            raise NotALog(f"{self.path}: not an MCAP file (it does not start with the MCAP magic)")
+            sqlite = head == b"SQLite f"  # "SQLite format 3": a rosbag2 of the sqlite3 storage
+            said = ": a rosbag2 recording (sqlite3), which --ros2 reads" if sqlite else ""
+            raise NotALog(
+                f"{self.path}: not an MCAP file (it does not start with the MCAP magic){said}"
+            )
         self._stream.seek(-len(MAGIC), io.SEEK_END)
         if self._stream.tell() < len(MAGIC) or self._stream.read(len(MAGIC)) != MAGIC:
             raise DamagedLog(self.path, "the file does not end with the MCAP magic")

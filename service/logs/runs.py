@@ -400,6 +400,11 @@ def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
                     f"; it holds {len(whole)} complete log(s) (.mcap): nothing to recover, read "
                     f"them as they are (rlutf replay {path}/ OUT.mcap, rlutf log info {path}/)"
                 )
+            if not parts and (Path(path) / "metadata.yaml").is_file():  # a rosbag2 (sqlite3)
+                hint = (
+                    "; it is a rosbag2 recording (metadata.yaml): rlutf replay --ros2 and "
+                    "rlutf map build --ros2 read it"
+                )
             raise NotALog(f"{path}: a folder with no log file (*{suffix}) in it{hint}")
         files.extend(found)
     return files
