@@ -110,6 +110,8 @@ def _reader(bag: Path) -> Iterator[Any]:
     is a :class:`BagError`, like one it cannot find."""
     from rosbags.highlevel import AnyReader
 
+    if not bag.exists():  # rosbags says "The following paths are missing: [PosixPath(...)]"
+        raise BagError(f"{bag}: no such file or folder (a rosbag2 folder, or its .mcap)")
     for path in [bag, *(sorted(bag.iterdir()) if bag.is_dir() else [])]:
         problem = not_a_file(path)  # rosbags would wait on a FIFO for ever
         if problem is not None:

@@ -4,6 +4,7 @@ MCAP bag is: it was "a folder with no log file (*.mcap) in it" or "not an MCAP f
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -51,3 +52,17 @@ def test_a_db3_file_is_named_as_a_bag(bag: Path, capsys: pytest.CaptureFixture[s
     assert main(["replay", str(db3), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "a rosbag2 recording (sqlite3), which --ros2 reads" in err, err
+
+
+def test_a_bag_that_is_not_there_is_said_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rosbags' "The following paths are missing: [PosixPath('...')]" was printed as it is."""
+    missing = tmp_path / "nobag"
+    (tmp_path / "m1.json").write_text(
+        json.dumps({"map_id": "m1", "version": 1, "geometry": WORLD.to_geojson()}), encoding="utf-8"
+    )
+    args = ["replay", str(missing), "--ros2", "--map", str(tmp_path / "m1.json")]
+    assert main([*args, "--initial-pose=1,2,0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{missing}: no such file or folder" in err and "PosixPath" not in err, err
