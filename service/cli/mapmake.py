@@ -177,14 +177,26 @@ def cmd_build(args: argparse.Namespace) -> int:
         if not mcap and len(args.log) > 1:
             raise ValueError("one CARMEN log or bag at a time (several files: MCAP logs of a run)")
         if args.ros2:
-            from service.ros2.bags import BagError
+            from service.ros2.bagframes import LaserFrames
+            from service.ros2.bags import BagError, BagTopics
             from service.ros2.bags import scans_with_poses as bag_scans
+            from service.ros2.statictf import StaticFrames
 
-            topics = (args.scan_topic, args.pose_topic)
+            topics = (args.scan_topic, args.pose_topic, args.base_frame)
+            static = BagTopics(scan=args.scan_topic).in_namespace("tf_static")
+            lasers = LaserFrames(StaticFrames(), args.base_frame, static)
+
+            def scans() -> Any:  # each reading counts the scans put at the base anew
+                lasers.scans = 0
+                lasers.unlinked.clear()
+                return bag_scans(log, *topics, lasers)
+
             try:  # the scans read twice (the extent, then the cells) rather than held
-                grid = build_grid(capped(lambda: bag_scans(log, *topics), args.max_range), **cells)
+                grid = build_grid(capped(scans, args.max_range), **cells)
             except BagError as err:
                 raise ValueError(str(err)) from err
+            for warning in lasers.warnings():
+                print(f"rlutf map build: warning: {warning}", file=sys.stderr)
         elif mcap:
             grid = build_grid(capped(_run_scans(args.log, args.from_map), args.max_range), **cells)
         else:
@@ -243,6 +255,7 @@ def _source_flags(args: argparse.Namespace) -> None:
             for f, v, d in (
                 ("--scan-topic", args.scan_topic, "/scan"),
                 ("--pose-topic", args.pose_topic, "/amcl_pose"),
+                ("--base-frame", args.base_frame, "base_footprint"),
             )
             if v != d
         ]

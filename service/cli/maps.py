@@ -133,6 +133,12 @@ def register(sub: Any) -> None:
         help="with --ros2: PoseWithCovarianceStamped topic of the poses (default /amcl_pose)",
     )
     build.add_argument(
+        "--base-frame",
+        default="base_footprint",
+        help="with --ros2: the frame the poses are of; each scan is put at its laser from the "
+        "bag's tf_static (default base_footprint)",
+    )
+    build.add_argument(
         "--resolution",
         type=number(above=0),
         default=0.05,

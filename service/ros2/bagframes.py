@@ -203,6 +203,7 @@ class LaserFrames:
         self.static_topic = static_topic
         self.scans = 0
         self.unlinked: Counter[str] = Counter()
+        self.topics: Mapping[str, str] = {}  # the bag's, with types, when the reader sets them
 
     def offset(self, frame: str) -> tuple[float, float, float] | None:
         """The pose of a scan's ``frame`` in the base frame; ``None`` (counted) when unlinked."""
@@ -213,8 +214,9 @@ class LaserFrames:
             self.unlinked[key] += 1
         return found
 
-    def warnings(self, topics: Mapping[str, str]) -> list[str]:
+    def warnings(self, topics: Mapping[str, str] | None = None) -> list[str]:
         """What to say of the scans taken at the base (``topics``: the bag's, with types)."""
+        topics = self.topics if topics is None else topics
         if not self.unlinked:
             return []
         n = sum(self.unlinked.values())

@@ -379,7 +379,11 @@ CLOCK_RESET_NS = 1_000_000_000
 
 
 def scans_with_poses(
-    bag: Path, scan_topic: str, pose_topic: str, base_frame: str = "base_footprint"
+    bag: Path,
+    scan_topic: str,
+    pose_topic: str,
+    base_frame: str = "base_footprint",
+    lasers: LaserFrames | None = None,
 ) -> Iterator[ScanAtPose]:
     """``(sensor pose, ranges, angles, range_max)`` for each scan of a bag with poses.
 
@@ -388,8 +392,7 @@ def scans_with_poses(
     pose within half a second, are left out. The pose is the base's (``base_frame``); the
     sensor's is that composed with the laser's pose in it, from the ``tf_static`` of the scan's
     namespace, as replay reads it (a scan whose frame that tree does not link to the base is
-    taken at the base). It was taken at the base always: a laser mounted 0.2 m ahead of it
-    smeared every wall of the map into two.
+    taken at the base, and counted in ``lasers`` when given: its frames, base frame and topics).
 
     A clock reset (a stamp more than :data:`CLOCK_RESET_NS` older than the one before it on its
     topic, in the bag's order: a simulation restarted, a robot's clock set back between two
@@ -407,12 +410,13 @@ def scans_with_poses(
     """
     trails: list[OdometryTrail] = []
     last: int | None = None
-    frames = StaticFrames()
+    frames = lasers.frames if lasers else StaticFrames()
     static_topic = BagTopics(scan=scan_topic).in_namespace("tf_static")
     with _reader(bag) as reader:
-        said = _unposed(
-            bag, {c.topic: c.msgtype for c in reader.connections}, scan_topic, pose_topic
-        )
+        types = {c.topic: c.msgtype for c in reader.connections}
+        if lasers:
+            lasers.topics = types
+        said = _unposed(bag, types, scan_topic, pose_topic)
         if said:
             raise BagError(said)
         for conn, _t, raw in _on_topic(reader, static_topic):
@@ -432,7 +436,7 @@ def scans_with_poses(
                 trails.append(OdometryTrail(kept=1 << 62))
             last = stamp
             trails[-1].add(stamp, at)
-    offset_of = partial(frames.offset, base_frame)
+    offset_of = lasers.offset if lasers else partial(frames.offset, base_frame)
     span, last = 0, None
     found = 0
     invalid: Counter[str] = Counter()

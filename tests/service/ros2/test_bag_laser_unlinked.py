@@ -71,3 +71,36 @@ def test_scans_in_a_frame_tf_static_does_not_link_are_said(
         return
     assert f"{STEPS} of {STEPS} scans were taken at 'base_footprint'" in out, out
     assert "frame 'laser'" in out and "/robot1/tf_static" in out and said in out, out
+
+
+def test_map_build_says_so_too_and_takes_base_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The map build from such a bag put every scan at the base in silence, and had no
+    --base-frame for a robot whose poses are of base_link (tf_static: base_link -> laser)."""
+    from ros_client import initialpose_msg
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    truth = make_trajectory(WORLD, np.random.default_rng(3), STEPS)
+    rng = np.random.default_rng(1)
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        sc = w.add_connection("/robot1/scan", "sensor_msgs/msg/LaserScan", typestore=TS)
+        pc = w.add_connection(
+            "/robot1/amcl_pose", "geometry_msgs/msg/PoseWithCovarianceStamped", typestore=TS
+        )
+        stc = w.add_connection("/robot1/tf_static", "tf2_msgs/msg/TFMessage", typestore=TS)
+        raw = TS.serialize_cdr(tf_msg(LASER, T0, "base_link", "laser"), "tf2_msgs/msg/TFMessage")
+        w.write(stc, T0 - 10, raw)
+        for i in range(STEPS):
+            t = T0 + i * 100_000_000
+            m = scan_msg(WORLD, compose(truth[i], LASER), t, rng, "laser")
+            w.write(sc, t, TS.serialize_cdr(m, "sensor_msgs/msg/LaserScan"))
+            p = initialpose_msg(truth[i], t)
+            w.write(pc, t, TS.serialize_cdr(p, "geometry_msgs/msg/PoseWithCovarianceStamped"))
+    args = ["map", "build", str(tmp_path / "bag"), "--ros2", "--scan-topic", "/robot1/scan"]
+    args += ["--pose-topic", "/robot1/amcl_pose", "--out", str(tmp_path / "built.json")]
+    assert main(args) == 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"warning: {STEPS} of {STEPS} scans were taken at 'base_footprint'" in err, err
+    assert main([*args, "--base-frame", "base_link"]) == 0
+    assert "taken at" not in capsys.readouterr().err
