@@ -145,7 +145,6 @@ def cmd_build(args: argparse.Namespace) -> int:
         DEFAULT_MAX_RANGE,
         DEFAULT_MIN_AREA,
         MapImportError,
-        build_grid,
         grid_to_map,
         map_id_from_name,
         max_grid_cells,
@@ -192,20 +191,22 @@ def cmd_build(args: argparse.Namespace) -> int:
                 return bag_scans(log, *topics, lasers)
 
             try:  # the scans read twice (the extent, then the cells) rather than held
-                grid = build_grid(capped(scans, args.max_range), **cells)
+                grid = _built(capped(scans, args.max_range), log.name, cells)
             except BagError as err:
                 raise ValueError(str(err)) from err
             for warning in lasers.warnings():
                 print(f"rlutf map build: warning: {warning}", file=sys.stderr)
         elif mcap:
-            grid = build_grid(capped(_run_scans(args.log, args.from_map), args.max_range), **cells)
+            grid = _built(
+                capped(_run_scans(args.log, args.from_map), args.max_range), log.name, cells
+            )
         else:
             carmen = read_carmen(
                 log, max_range=DEFAULT_MAX_RANGE if args.max_range is None else args.max_range
             )
             if carmen.cut:
                 print(f"rlutf map build: warning: {log}: {carmen.cut}", file=sys.stderr)
-            grid = build_grid(carmen.scans, **cells)
+            grid = _built(carmen.scans, log.name, cells)
         if args.save_grid:
             save_grid(grid, args.save_grid)
             print(f"wrote {args.save_grid}")
@@ -227,6 +228,16 @@ def cmd_build(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return _finish(args, result)
+
+
+def _built(scans: Any, name: str, cells: dict[str, Any]) -> Any:
+    """``build_grid`` of ``scans``, each reading of the log shown as a progress bar on a
+    terminal (minutes for a long bag, with nothing shown before)."""
+    from service.cli.buildprogress import reading_scans
+    from service.maps.mapimport import build_grid
+
+    with reading_scans(name) as counted:
+        return build_grid(counted(scans), **cells)
 
 
 def capped(scans: Any, max_range: float | None) -> Any:
