@@ -213,7 +213,15 @@ def _select(
         rows, cols = grid.shape
         where = f"point ({spec[0]:g}, {spec[1]:g})"
         if not (0 <= row < rows and 0 <= col < cols):
-            raise ComponentError(f"component: {where} is outside the grid")
+            # its corners, in the map frame (a grid's origin may be turned)
+            ends = grid.to_world(
+                np.array([[0.0, 0.0], [cols, 0.0], [0.0, rows], [cols, rows]]) * grid.resolution
+            )
+            (x0, y0), (x1, y1) = ends.min(axis=0), ends.max(axis=0)
+            raise ComponentError(
+                f"component: {where} is outside the grid, which spans x {x0:g} to {x1:g} m and "
+                f"y {y0:g} to {y1:g} m in the map frame"
+            )
         if labels[row, col] == 0:
             state = "occupied" if grid.occupied[row, col] else "unknown"
             raise ComponentError(f"component: {where} is in an {state} cell, not free space")

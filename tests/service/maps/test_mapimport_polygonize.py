@@ -115,7 +115,10 @@ def test_component_by_index_point_or_all() -> None:
     [
         (2, "index 2 does not exist; the grid has 2 free component"),
         ((3.4, 0.5), r"point \(3.4, 0.5\) is in an occupied cell"),
-        ((-1.0, 0.5), "outside the grid"),
+        (
+            (-1.0, 0.5),
+            r"outside the grid, which spans x 0 to 5 m and y 0 to 2.4 m in the map frame",
+        ),
     ],
 )
 def test_unknown_component_raises(spec: object, words: str) -> None:
