@@ -61,14 +61,15 @@ BAG_ONLY = {
 def check_flags(args: argparse.Namespace) -> None:
     """Refuse, before any work, the bag flags given without ``--ros2`` (they were ignored in
     silence: ``--ros2-out`` wrote nothing, exit 0) and a ``--ros2-out`` that exists (it was
-    refused once the replay was done).
+    refused once the replay was done) or whose folder does not (it was made, where ``--out``
+    refuses).
 
     Raises:
         CliError: naming the flags and the fix (exit 2).
     """
     from schemas import valid_id
     from service.cli.errors import CliError
-    from service.cli.flags import EXIT_USAGE
+    from service.cli.flags import EXIT_USAGE, writable
     from service.keys import printable
 
     if not args.ros2:
@@ -90,6 +91,8 @@ def check_flags(args: argparse.Namespace) -> None:
             "folder); remove it or choose another",
             EXIT_USAGE,
         )
+    elif args.ros2_out is not None:  # its folder must exist, as --out's (it was made)
+        writable(args.ros2_out, "--ros2-out")
 
 
 def load_map(spec: str, store: Path) -> bytes:

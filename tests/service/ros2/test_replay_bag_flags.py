@@ -79,6 +79,11 @@ def test_an_existing_ros2_out_is_refused_before_the_replay(
     assert "replayed" not in captured.out, captured.out  # refused before the replay
     assert main([*args, "--ros2-out", str(d / "fresh")]) == 0
     assert (d / "fresh" / "metadata.yaml").is_file()
+    # a folder that does not exist is refused as --out's is (it was made)
+    assert main([*args, "--ros2-out", str(d / "missing" / "poses")]) == 2
+    captured = capsys.readouterr()
+    assert f"the folder {d / 'missing'} does not exist" in captured.err, captured.err
+    assert not (d / "missing").exists()
 
 
 def test_a_robot_id_replay_cannot_use_is_refused_with_the_fix(
