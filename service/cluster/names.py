@@ -54,6 +54,10 @@ NAME_WAIT_S = 12.0
 #: Seconds a starting instance gives a claim declared at the same instant as its own to reach it
 #: before it asks for the claims again.
 SETTLE_S = 0.25
+#: Younger claims on this name remembered (each said once in the log) while their tokens are
+#: live; more are counted, not remembered or logged: any client may declare claim tokens, and a
+#: flood of them (20,000 seen) kept one set entry and one WARNING line each, for ever.
+TOLD_MAX = 64
 #: What an operator does about it.
 FIX = (
     "each instance needs a name of its own (--instance NAME, or `instance` in its settings; "
@@ -128,6 +132,8 @@ class NameClaim:
         self._beaten_by: Claim | None = None
         self._held = False
         self._told: set[Claim] = set()
+        self.unlisted = 0
+        """Younger claims seen past :data:`TOLD_MAX` (neither remembered nor logged)."""
         self._lock = threading.Lock()
         self._token: Any = None
         self._sub: Any = None
@@ -238,8 +244,13 @@ class NameClaim:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         claim = parse_claim(self.keys, self.instance, str(sample.key_expr))
-        if claim is not None and sample.kind == zenoh.SampleKind.PUT:
+        if claim is None:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
             self._seen(claim)
+        else:  # its token went: nothing of it is kept (said again if it comes back)
+            with self._lock:
+                self._told.discard(claim)
 
     def _seen(self, claim: Claim) -> None:
         """Another claim on this name is live: rank it against this one's, say so once."""
@@ -249,8 +260,11 @@ class NameClaim:
         with self._lock:
             if claim in self._told:
                 return
-            self._told.add(claim)
             older = claim < own
+            if not older and len(self._told) >= TOLD_MAX:
+                self.unlisted += 1
+                return
+            self._told.add(claim)
             if older and (self._beaten_by is None or claim < self._beaten_by):
                 self._beaten_by = claim
             news = older and self._held and self.lost is None
@@ -276,7 +290,12 @@ class NameClaim:
         """This instance's claim, for its Health (``extra.claim``)."""
         if self.own is None:
             return {}
-        return {"claim": {"session": self.own.session, "claimed_ns": self.own.claimed_ns}}
+        figures: dict[str, Any] = {
+            "claim": {"session": self.own.session, "claimed_ns": self.own.claimed_ns}
+        }
+        if self.unlisted:
+            figures["younger_claims_unlisted"] = self.unlisted
+        return figures
 
     def close(self) -> None:
         """Stop following the claims and give the name up (after the member token)."""
