@@ -120,7 +120,8 @@ class Ros2FrontDoor:
         self.roster = Roster(
             settings, subscribed, max_robots, idle_ns, on_limit, self._forgotten, self._publish
         )
-        self.statics = StaticTrees(settings.base_frame, max_robots)  # the robots' tf_static
+        # the robots' tf_static
+        self.statics = StaticTrees(settings.base_frame, max_robots, self.roster.holds_namespace)
         self.frames = OdometryFrames(settings.odom_frame, settings.base_frame)
         self.tf_frames = TfOdometryFrames(
             settings.global_frame,

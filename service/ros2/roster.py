@@ -177,6 +177,11 @@ class Roster:
             held = sorted((r.robot_id, r.namespace) for r in self._robots.values())
         return dict(held[:most])
 
+    def holds_namespace(self, namespace: str) -> bool:
+        """Whether ``namespace`` is a robot held."""
+        with self._lock:
+            return namespace in self._robots
+
     def count(self) -> int:
         """How many robots are held."""
         return len(self._robots)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -83,12 +83,20 @@ class StaticTrees:
 
     Args:
         base_frame: the frame whose pose is estimated (``ros2.base_frame``).
-        most: namespaces held at most (they can be invented without end: more are not held).
+        most: namespaces held at most (they can be invented without end). When that many are
+            held, the tree of a new namespace takes the place of the oldest tree of a namespace
+            that is no robot (``is_robot``); with none, it is not held. (Trees of namespaces
+            that never became robots were kept for good: tf_static on ``most`` made-up
+            namespaces took the laser's pose from every ROS robot that came later.)
+        is_robot: whether a namespace is a robot the front door holds.
     """
 
-    def __init__(self, base_frame: str, most: int) -> None:
+    def __init__(
+        self, base_frame: str, most: int, is_robot: Callable[[str], bool] = lambda ns: True
+    ) -> None:
         self.base_frame = base_frame
         self.most = most
+        self.is_robot = is_robot
         self.laser_at_base = 0  # scans whose frame tf_static does not link to the base
         self._trees: dict[str, StaticFrames] = {}
         self._warned: dict[str, set[str]] = {}  # namespace: scan frames said to have no link
@@ -98,9 +106,21 @@ class StaticTrees:
         """A robot's static transforms ``(parent, child, pose in the parent)``."""
         with self._lock:
             tree = self._trees.get(namespace)
+            full = tree is None and len(self._trees) >= self.most
+            held = list(self._trees) if full else []  # oldest first
+        victim: str | None = None
+        if full:  # asked outside the lock: the roster tells this class of robots it drops
+            victim = next((ns for ns in held if not self.is_robot(ns)), None)
+            if victim is None:
+                return
+        with self._lock:
+            tree = self._trees.get(namespace)
             if tree is None:
                 if len(self._trees) >= self.most:
-                    return
+                    if victim is None or victim not in self._trees:
+                        return  # another tree took the room meanwhile
+                    del self._trees[victim]
+                    self._warned.pop(victim, None)
                 tree = self._trees[namespace] = StaticFrames()
         for parent, child, pose in transforms:
             tree.add(parent, child, pose)
