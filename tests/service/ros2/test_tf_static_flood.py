@@ -5,7 +5,8 @@ a tf_static tree per namespace, at most ``max_robots`` of them, and a namespace 
 put tf_static (never a scan: no robot) kept its tree for good. A burst of tf_static on that
 many made-up namespaces filled them; every ROS robot that came later had its tf_static
 dropped, so its laser was taken at the base: 25 cm off on every scan, and its poses with it.
-Now, when the trees are full, the oldest tree of a namespace that is no robot gives way.
+Now, when the trees are full, the oldest tree of a namespace that is no robot gives way. And a
+tf_static over ``max_payload_bytes`` is refused before it is decoded, as other ROS inputs are.
 Real Zenoh sessions on loopback.
 """
 
@@ -19,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_client import TS, RosListener, RosRobot, key
-from service_harness import WORLD, Bench, running_bench, wait_until
+from ros_client import TS, RosListener, RosRobot, T, key, tf_msg
+from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
@@ -71,4 +72,22 @@ def test_tf_static_of_made_up_namespaces_leaves_room_for_a_real_robots(bench: Be
     health = json.loads(bench.service.health())
     assert health["extra"]["ros2_scans_laser_at_base"] == 0
     assert max(errors) < 0.05, errors
+    sub.undeclare()
+
+
+def test_a_tf_static_over_the_payload_limit_is_refused_undecoded(bench: Bench) -> None:
+    """Every other ROS input over ``max_payload_bytes`` was refused before decoding; tf_static
+    was decoded whatever its size (10 MB, 100,000 transforms: 1.7 s of the service's CPU, in
+    a Zenoh callback)."""
+    events = Collector()
+    sub = bench.client.declare_subscriber("rlutf/events", events)
+    r = _robot(bench, "/big", 3, np.array([0.25, 0.05, 0.1]))
+    one = tf_msg(np.zeros(3), r.stamp(0), "base_footprint", "base_link")
+    msg = T["tf2_msgs/msg/TFMessage"](transforms=list(one.transforms) * 12_000)  # 1.2 MB
+    r.put("tf_static", "tf2_msgs/msg/TFMessage", msg)
+    assert events.wait_for(
+        lambda: any("payload too large" in e["message"] for e in events.on("rlutf/events"))
+    )
+    said = [e for e in events.on("rlutf/events") if "payload too large" in e["message"]]
+    assert said[0]["code"] == "invalid_key" and "tf_static" in said[0]["key"]
     sub.undeclare()
