@@ -43,6 +43,13 @@ MAX_COUNT = 100_000_000
 MAX_MAPS = 64
 #: Robot ids named in one map version's counts at most.
 MAX_ROBOTS = 100_000
+#: Bytes of the header line at most: 100,000 robot ids of 64 characters, quoted, and the rest.
+HEADER_MAX = 8 << 20
+#: Items of the header's lists and objects at most (its commas): the robot ids of every map
+#: version and a few fields each. A zstd frame of 5.5 kB decompressed to a 60 MB header of
+#: 20,000,000 empty objects, which ``json.loads`` built in 1.7 s holding the interpreter's lock
+#: (every thread of the service stood still) and 1.5 GB; now refused before it is parsed.
+HEADER_ITEMS = MAX_ROBOTS + 16 * MAX_MAPS
 _CELL = np.dtype("<i8")
 _COUNT = np.dtype("<i4")
 _TIME = np.dtype("<i8")
@@ -97,6 +104,15 @@ def decode_evidence(payload: bytes, max_bytes: int = 64 << 20) -> list[Handed]:
     head, sep, body = raw.partition(b"\n")
     if not sep:
         raise ValueError("map evidence: no header line")
+    if len(head) > HEADER_MAX or head.count(b",") > HEADER_ITEMS:
+        raise ValueError(
+            f"map evidence: header of {len(head)} bytes or {head.count(b',') + 1} items, more "
+            f"than {HEADER_MAX} or {HEADER_ITEMS}: not parsed"
+        )
+    if head.count(b"{") > MAX_MAPS + 1:
+        raise ValueError(f"map evidence: 'maps' must be a list of at most {MAX_MAPS} (not parsed)")
+    if head.count(b"[") > 2 * MAX_MAPS + 1:  # each map version has two lists
+        raise ValueError("map evidence: header is not JSON of map evidence: too many lists")
     try:
         doc = json.loads(head)
     except (ValueError, RecursionError) as err:  # nested past the parser's depth: not a header
