@@ -28,6 +28,10 @@ from service.keys import Keys
 
 log = logging.getLogger(__name__)
 
+#: Robots whose owner is remembered at most (then the memo starts anew). Each made-up robot id
+#: of a flood was remembered until the members next changed: 100 bytes an id, without end.
+OWNERS_MAX = 65_536
+
 
 def rendezvous_weight(member: str, robot: str) -> int:
     """The weight of ``member`` for ``robot``: a stable 64-bit hash of both names.
@@ -168,6 +172,8 @@ class Membership:
                 return hit[1]
             found = owner_of(robot, self._alive)
             assert found is not None  # the instance itself is always a member
+            if len(self._owners) >= OWNERS_MAX:
+                self._owners.clear()
             self._owners[robot] = (self._generation, found)
             return found
 
