@@ -14,6 +14,7 @@ tool's PoseEstimate, fields in another order) are decoded when they arrive.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import threading
 from collections.abc import Callable, Mapping
@@ -40,6 +41,8 @@ class FollowedPoses:
         # robot is in poses or in encoded, never in both.
         self.encoded: dict[str, tuple[int, bytes, bool]] = {}
         self.rejected = 0
+        self.replaced = 0  # poses dropped for a newer robot's, max_robots held
+        self._ages: list[tuple[int, str]] = []  # (stamp, robot) of poses kept, some stale
         #: Poses stamped further ahead of the clock are not followed (None: no bound).
         self.max_ahead_ns: int | None = None
         #: Robots whose poses are followed at most (others' are ignored).
@@ -90,7 +93,7 @@ class FollowedPoses:
         with self.lock:
             kept = self.encoded.get(robot)
             held = self.poses.get(robot) if kept is None else None
-            if kept is None and held is None and self.full(self.poses, len(self.encoded)):
+            if kept is None and held is None and not self._room(stamp_ns):
                 return
             if (kept is not None and stamp_ns < kept[0]) or (
                 held is not None and stamp_ns < held.stamp_ns
@@ -99,6 +102,7 @@ class FollowedPoses:
             if held is not None:
                 del self.poses[robot]
             self.encoded[robot] = (stamp_ns, payload, mine)
+            self._aged(robot, stamp_ns)
 
     def remember(self, *poses: PoseEstimate) -> None:
         """Keep each robot's pose if it is the newest known (and not stamped in the future)."""
@@ -107,9 +111,9 @@ class FollowedPoses:
                 robot = pose.robot_id
                 kept = self.encoded.get(robot)
                 held = self.poses.get(robot)
-                if held is None and kept is None and self.full(self.poses, len(self.encoded)):
-                    continue
                 if self._ahead(pose.stamp_ns):
+                    continue
+                if held is None and kept is None and not self._room(pose.stamp_ns):
                     continue
                 newest = (
                     kept[0] if kept is not None else held.stamp_ns if held is not None else None
@@ -117,6 +121,51 @@ class FollowedPoses:
                 if newest is None or pose.stamp_ns >= newest:
                     self.encoded.pop(robot, None)
                     self.poses[robot] = pose
+                    self._aged(robot, pose.stamp_ns)
+
+    def _room(self, stamp_ns: int) -> bool:
+        """Whether a new robot's pose stamped ``stamp_ns`` may be kept (under the lock): below
+        :attr:`max_robots`, or in place of the stalest pose held if that one is older. Poses of
+        made-up robot ids (any client may put poses) were kept for good once
+        :attr:`max_robots` were held, and no real robot's pose was followed from then on: a
+        robot handed over then had no seed. Now such poses give way as they age."""
+        if not self.full(self.poses, len(self.encoded)):
+            return True
+        ages = self._ages
+        while ages:
+            stamp, robot = ages[0]
+            if self._stamp(robot) != stamp:  # an older entry of a robot's (or one forgotten)
+                heapq.heappop(ages)
+                continue
+            if stamp >= stamp_ns:
+                return False
+            heapq.heappop(ages)
+            self.poses.pop(robot, None)
+            self.encoded.pop(robot, None)
+            self.replaced += 1
+            return True
+        return False
+
+    def _stamp(self, robot: str) -> int | None:
+        kept = self.encoded.get(robot)
+        if kept is not None:
+            return kept[0]
+        pose = self.poses.get(robot)
+        return None if pose is None else pose.stamp_ns
+
+    def _aged(self, robot: str, stamp_ns: int) -> None:
+        """Note a pose kept (under the lock): the heap of stamps the stalest is found in, kept
+        within a few times the poses held."""
+        held = len(self.poses) + len(self.encoded)
+        if len(self._ages) > 4 * held + 64:
+            ages = []
+            for r in (*self.poses, *self.encoded):
+                stamp = self._stamp(r)
+                if stamp is not None:
+                    ages.append((stamp, r))
+            heapq.heapify(ages)
+            self._ages = ages
+        heapq.heappush(self._ages, (stamp_ns, robot))
 
     def full(self, held: Mapping[str, object], more: int = 0) -> bool:
         """Whether ``held`` (with ``more``) is at :attr:`max_robots`."""
