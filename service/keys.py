@@ -213,6 +213,14 @@ class Keys:
         if top == "maps" and len(rest) == 1:
             if not delete:
                 return None  # the map subscriber takes it
+            if not valid_id(rest[0]):  # `rlutf/maps/*`, say: no map is removed
+                return OddKey(
+                    "unknown_key",
+                    "error",
+                    "invalid_key",
+                    f"DELETE on {shown}: {printable(rest[0], 64)!r} is no map id "
+                    "([A-Za-z0-9_-]{1,64}); nothing is removed",
+                )
             return OddKey(
                 "map_deleted",
                 "warning",
