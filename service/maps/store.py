@@ -15,6 +15,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 
 import zenoh
 
@@ -30,6 +31,7 @@ from service.maps.book import (
     put_verdict,
 )
 from service.maps.files import FileMapStore
+from service.maps.readcache import ReadCache
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +190,7 @@ class MapStorage:
         self.forward = forward
         self._forwarded = zenoh.KeyExpr(keys.maps)
         self._versions: dict[str, Held] = {}
+        self.reads = ReadCache()  # the payloads read for gets, answered again for a moment
         # Held while the store's thread changes what it holds, never across a file write: the
         # Zenoh callbacks that answer gets read under it (the services ask for versions all the
         # time), and one that waited on a write held up the router's other links. The store's
@@ -400,9 +403,9 @@ class MapStorage:
         with query:
             ke = query.key_expr
             with self._lock:
-                held = list(self._versions)
+                held = dict(self._versions)
                 memory = {m: p for m, (p, _) in self._unwritten.items()}
-            for map_id in held:
+            for map_id, version in held.items():
                 key = self.keys.map(map_id)
                 if ke.intersects(zenoh.KeyExpr(key)):
                     payload = memory.get(map_id)
@@ -410,12 +413,12 @@ class MapStorage:
                         query.reply(key, payload, encoding=JSON, attachment=UNWRITTEN_MARK)
                         continue
                     try:
-                        payload = self.store.get(map_id)
+                        read = self.reads.payload(map_id, version, partial(self.store.get, map_id))
                     except OSError as err:  # its folder gone or unreadable: nothing to answer
                         log.warning("map %s could not be read from the store: %s", map_id, err)
                         continue
-                    if payload is not None:
-                        query.reply(key, payload, encoding=JSON)
+                    if read is not None:
+                        query.reply(key, read, encoding=JSON)
 
     def _on_version_query(self, query: zenoh.Query) -> None:
         """Answer ``{prefix}/mapversions/*``: for each map asked for that this store holds,
