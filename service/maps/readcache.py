@@ -58,4 +58,20 @@ class ReadCache:
                 del self._held[old]
             if sum(h[3] for h in self._held.values()) + len(data) <= REUSE_BYTES:
                 self._held[map_id] = (now, held, payload, len(data))
+                # dropped when its second is over, not at the next get (a single get of a
+                # large map kept it in memory for as long as no other get came)
+                timer = threading.Timer(REUSE_S, self._expire, (map_id, now))
+                timer.daemon = True
+                timer.start()
         return payload
+
+    def _expire(self, map_id: str, read_at: float) -> None:
+        with self._lock:
+            hit = self._held.get(map_id)
+            if hit is not None and hit[0] == read_at:
+                del self._held[map_id]
+
+    def held_bytes(self) -> int:
+        """Bytes of payloads kept now."""
+        with self._lock:
+            return sum(h[3] for h in self._held.values())

@@ -44,6 +44,13 @@ def test_gets_of_a_map_read_its_file_a_few_times_a_second_and_see_a_new_version(
         elapsed = time.monotonic() - start
         assert gets >= 50
         assert reads[0] - before <= elapsed + 2, (reads[0] - before, gets)
+        storage = bench.service._storage
+        assert storage is not None and storage.reads.held_bytes() > 0
+        # the gets over, the payload read is let go within its second, not kept for the next
+        deadline = time.monotonic() + 3.0
+        while storage.reads.held_bytes() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert storage.reads.held_bytes() == 0
         bench.put_map("m1", version=2)  # a put: the next gets see it at once
         deadline = time.monotonic() + 5.0
         seen = None
