@@ -28,13 +28,14 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import zenoh
 
 from schemas import SCHEMA_NAMES, EventCode, Map, StoredVersion
 from service.keys import KeyError_, Keys
 from service.live.dispatch import Dispatcher
+from service.live.mapfetch import MapFetches
 from service.live.throttle import EventThrottle
 from service.logs.recording import Recorder
 from service.maps.book import (
@@ -123,7 +124,7 @@ class MapFeed:
         # its arrival time, monotonic)
         self._tasks: queue.Queue[tuple[str, str, bytes, int, int, float] | None] = queue.Queue()
         self._woken = False  # a "wake" task is queued (an Event held back, from the store)
-        self._fetching: dict[str, float] = {}
+        self.fetches = MapFetches()  # the robots each map's fetch answers
         self._lock = threading.Lock()
         self._waiting = 0  # offers queued, not yet checked
         self._waiting_bytes = 0
@@ -261,6 +262,7 @@ class MapFeed:
 
     def need(self, map_id: str, robot: str) -> None:
         """Queue a fetch of ``map_id``, which ``robot`` waits for (one fetch queued per map)."""
+        self.fetches.wait(map_id, robot)
         with self._lock:
             if map_id in self._fetches:
                 return
@@ -293,7 +295,7 @@ class MapFeed:
                 else:
                     with self._lock:
                         self._fetches.discard(map_id)
-                    self._fetch(map_id, payload.decode())
+                    self._fetch(map_id)
             except Exception:
                 log.exception("map task %s %s failed", kind, map_id)
             finally:
@@ -476,24 +478,22 @@ class MapFeed:
             loaded.received_ns,
         )
 
-    def _fetch(self, map_id: str, robot: str) -> None:
-        now = time.monotonic()
-        if self.book.get(map_id) is not None or self._session is None:
+    def _fetch(self, map_id: str) -> None:
+        session, key = self._session, self.keys.map(map_id)
+        if self.book.get(map_id) is not None or session is None:
+            self.fetches.drop(map_id)
             return
-        if now - self._fetching.get(map_id, -1e9) < 1.0:
-            return
-        self._fetching[map_id] = now
-        key = self.keys.map(map_id)
-        found = False
-        for reply in self._session.get(key, timeout=self.timeout_s):
-            if reply.ok is None:
-                continue
-            found = self._offer(map_id, reply.ok.payload.to_bytes()) or found
-        if not found:
-            self._robot_event(
-                robot,
-                "error",
-                EventCode.MAP_NOT_FOUND,
-                key,
-                f"no storage answered for map {map_id!r}",
-            )
+
+        def get() -> bool:
+            found = False
+            for reply in session.get(key, timeout=self.timeout_s):
+                if reply.ok is not None:
+                    found = self._offer(map_id, reply.ok.payload.to_bytes()) or found
+            return found
+
+        def not_found(robots: Iterable[str]) -> None:
+            for robot in robots:
+                why = f"no storage answered for map {map_id!r}"
+                self._robot_event(robot, "error", EventCode.MAP_NOT_FOUND, key, why)
+
+        self.fetches.fetch(map_id, get, not_found)
