@@ -85,14 +85,15 @@ class SimFleet:
         w = self.wire
         for i in range(len(self.plan.robots)):
             session = self.sessions[i % len(self.sessions)]
-            session.put(w.key(i, "odom"), w.odometry(i, 0, t0_ns), attachment=w.attachment(i))
+            odom = w.odometry(i, 0, t0_ns)
+            session.put(w.key(i, "odom"), odom, attachment=w.attachment(i), encoding=w.encoding)
             initial = w.initial_pose(i, t0_ns)
             if initial is not None:
-                self.operator.put(w.key(i, "initialpose"), initial)
+                self.operator.put(w.key(i, "initialpose"), initial, encoding=w.encoding)
             self._publishers.append(
                 (
-                    session.declare_publisher(w.key(i, "odom"), **self._qos),
-                    session.declare_publisher(w.key(i, "scan"), **self._qos),
+                    session.declare_publisher(w.key(i, "odom"), encoding=w.encoding, **self._qos),
+                    session.declare_publisher(w.key(i, "scan"), encoding=w.encoding, **self._qos),
                 )
             )
 
@@ -102,7 +103,7 @@ class SimFleet:
         for robot, kind in due:
             key, payload = self.wire.extra(robot, kind, stamp_ns)
             self.sessions[robot % len(self.sessions)].put(
-                key, payload, attachment=self.wire.attachment(robot)
+                key, payload, attachment=self.wire.attachment(robot), encoding=self.wire.encoding
             )
         return len(due)
 

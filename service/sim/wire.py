@@ -38,6 +38,9 @@ RANGE_DECIMALS = 4
 class RobotWire(Protocol):
     """The payloads of a plan's robots (robots by index, steps as in :mod:`service.sim.plan`)."""
 
+    #: The Zenoh encoding of its puts, if any: ``application/json`` for WIRE.md's robots.
+    encoding: str | None
+
     def key(self, robot: int, kind: InputKind) -> str:
         """Where a robot puts inputs of ``kind``."""
         ...
@@ -111,6 +114,8 @@ class JsonWire:
         keys: the key layout (prefix).
     """
 
+    encoding: str | None = "application/json"  # WIRE.md: every payload is JSON, so labelled
+
     def __init__(self, plan: FleetPlan, keys: Keys | None = None) -> None:
         self.plan = plan
         self.keys = keys or Keys()
@@ -174,6 +179,8 @@ class CdrWire:
         domain: ``ROS_DOMAIN_ID``.
         distro: ``jazzy`` (type hashes in the keys) or ``humble`` (none).
     """
+
+    encoding: str | None = None  # rmw_zenoh's puts carry none
 
     def __init__(
         self, plan: FleetPlan, domain: int = 0, distro: Literal["jazzy", "humble"] = "jazzy"
