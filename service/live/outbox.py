@@ -43,7 +43,7 @@ class Outbox:
     """
 
     def __init__(self, name: str = "rlutf-outbox", maxsize: int = QUEUE_MAX) -> None:
-        self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(maxsize)
+        self._queue: queue.Queue[tuple[str, bytes, zenoh.Encoding] | None] = queue.Queue(maxsize)
         self._name = name
         self._session: zenoh.Session | None = None
         self._thread: threading.Thread | None = None
@@ -56,8 +56,8 @@ class Outbox:
         self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
         self._thread.start()
 
-    def put(self, key: str, payload: bytes) -> bool:
-        """Queue one message.
+    def put(self, key: str, payload: bytes, encoding: zenoh.Encoding = JSON) -> bool:
+        """Queue one message (JSON unless ``encoding`` says otherwise).
 
         Returns:
             ``False`` when it was dropped (the queue is full or the outbox is not running).
@@ -66,7 +66,7 @@ class Outbox:
             self.dropped += 1
             return False
         try:
-            self._queue.put_nowait((key, payload))
+            self._queue.put_nowait((key, payload, encoding))
         except queue.Full:
             self.dropped += 1
             return False
@@ -95,12 +95,12 @@ class Outbox:
             item = self._queue.get()
             if item is None:
                 return
-            key, payload = item
+            key, payload, encoding = item
             try:
                 session.put(
                     key,
                     payload,
-                    encoding=JSON,
+                    encoding=encoding,
                     congestion_control=zenoh.CongestionControl.DROP,
                     allowed_destination=zenoh.Locality.REMOTE,
                 )

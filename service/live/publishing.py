@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 
 EVENT_SCHEMA = SCHEMA_NAMES[Event]
 JSON = zenoh.Encoding.APPLICATION_JSON
+#: The encoding of ``{prefix}/service/{instance}/mapevidence`` (:mod:`service.evidence`).
+BYTES = zenoh.Encoding.APPLICATION_OCTET_STREAM
+EVIDENCE_LEAF = "/mapevidence"
 
 #: Seconds a pose's put waits at most for the others of its round (checked after each batch):
 #: the poses of the updates at hand are put back to back, at a fraction of the cost of lone
@@ -158,7 +161,10 @@ class Announcer:
                     return
                 pub.put(payload)
             else:
-                self.outbox.put(key, payload)  # never waits: see service.live.outbox
+                # never waits: see service.live.outbox. The map health evidence the instances
+                # share is a zstd frame, not JSON: labelled as bytes for tools that read rlutf/**
+                binary = key.endswith(EVIDENCE_LEAF)
+                self.outbox.put(key, payload, BYTES if binary else JSON)
         except zenoh.ZError:
             log.warning("could not publish on %s", key, exc_info=True)
 
