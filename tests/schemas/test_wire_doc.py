@@ -65,3 +65,16 @@ def test_keys_are_the_ones_the_service_uses() -> None:
 def test_the_stored_version_example_is_what_the_store_answers() -> None:
     (text,) = [text for name, text in examples() if name == "StoredVersion"]
     assert StoredVersion.model_validate_json(text).model_dump().keys() == json.loads(text).keys()
+
+
+def test_the_health_section_says_how_to_tell_a_hosts_sum_from_its_processes() -> None:
+    """A get on ``{prefix}/service/*/health`` hears a multi-process ``rlutf serve``'s processes
+    and its host, whose Health adds theirs up: a dashboard that sums the answers counts every
+    robot twice unless the contract says which answer is the sum (the host's, marked
+    ``extra.host``, service/live/host.py) and that the host declares no token."""
+    section = re.search(r"^### Health\n(.*?)(?=^### )", TEXT, flags=re.M | re.S)
+    assert section is not None
+    text = " ".join(section.group(1).split())
+    assert "`extra.host`" in text and "no token" in text and "-p0" in text
+    host = (Path(__file__).resolve().parents[2] / "service" / "live" / "host.py").read_text()
+    assert '"host": True' in host and '"by_process"' in host
