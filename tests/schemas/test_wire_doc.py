@@ -78,3 +78,16 @@ def test_the_health_section_says_how_to_tell_a_hosts_sum_from_its_processes() ->
     assert "`extra.host`" in text and "no token" in text and "-p0" in text
     host = (Path(__file__).resolve().parents[2] / "service" / "live" / "host.py").read_text()
     assert '"host": True' in host and '"by_process"' in host
+
+
+def test_the_maphealth_section_says_when_a_get_gets_no_reply() -> None:
+    """``MapHealthEngine.answer`` is ``None`` (no reply to a get) for a map with nothing counted
+    on its current version: a tool polling the key must be able to tell that from the doc."""
+    from service.keys import Keys as _Keys
+    from service.maphealth import MapHealthEngine
+
+    assert MapHealthEngine(_Keys()).answer("m1") is None
+    section = re.search(r"^### MapHealth.*?\n(.*?)(?=^## )", TEXT, flags=re.M | re.S)
+    assert section is not None
+    text = " ".join(section.group(1).split())
+    assert "gets no reply" in text and "first scan counted" in text
