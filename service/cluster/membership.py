@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from schemas import PoseEstimate, SchemaError, decode
+from schemas import PoseEstimate, SchemaError, decode, valid_id
 from service.keys import Keys
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ class Membership:
             alive: whether its token exists.
             prime: from the initial get: ignored for names the subscriber already reported.
         """
-        if not name or "/" in name:
+        if not valid_id(name):  # no instance has that name: a wildcard token (`*`), a deeper key
             return False
         with self._lock:
             if prime and name in self._heard:
