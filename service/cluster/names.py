@@ -200,9 +200,11 @@ class NameClaim:
         for claim in live:
             self._seen(claim)
         with self._lock:
-            # Only a claim still live counts: the subscriber may have been told of one that went
-            # meanwhile (a previous run's, leaving as this one starts).
-            older = [c for c in live if c < self.own]
+            # Only a claim still live counts: one the subscriber was told of and that went
+            # meanwhile (a previous run's, leaving as this one starts) is out of _told again.
+            # One it was told of and the get missed (a get that timed out on a loaded host)
+            # counts: it was forgotten, and both instances ran as one name for good.
+            older = [c for c in {*live, *self._told} if c < self.own]
             rival = self._beaten_by = min(older) if older else None
             self._held = rival is None
         if rival is not None:
