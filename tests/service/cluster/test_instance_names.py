@@ -148,13 +148,31 @@ def test_two_claims_made_at_the_same_instant_leave_exactly_one_the_older() -> No
                 s.close()
 
 
-@pytest.mark.parametrize(("older", "goes"), [(True, False), (False, False), (True, True)])
-def test_a_claim_made_while_one_settles_decides_by_age(older: bool, goes: bool) -> None:
+@pytest.mark.parametrize(
+    ("older", "goes", "missed"),
+    [
+        (True, False, False),
+        (False, False, False),
+        (True, True, False),
+        (True, False, True),
+        (True, True, True),
+    ],
+)
+def test_a_claim_made_while_one_settles_decides_by_age(
+    monkeypatch: pytest.MonkeyPatch, older: bool, goes: bool, missed: bool
+) -> None:
     """The race itself, made certain: another claim on the name appears after this one's look
     at the bus and before it settled (1 s here). An older one (the other instance claimed
     first, its claim slower to arrive) makes ``take`` refuse, saying they started at the same
     time; a younger one leaves this instance the name (the other refuses); an older one gone
-    again before the end of the settle (a previous run's, leaving) leaves it the name too."""
+    again before the end of the settle (a previous run's, leaving) leaves it the name too.
+
+    *missed*: the look at the bus after the settle misses the claim the subscriber was told of
+    (a get that timed out on a loaded host). The claim was forgotten then: ``take`` kept the
+    name, ``confirm`` passed, and both instances ran as one name, neither ever told (CI, two
+    services of one name started at once beside other tests). Now it counts the same."""
+    if missed:
+        monkeypatch.setattr(NameClaim, "_claims", lambda self, session, timeout: [])
     port = free_port()
     with zenoh.open(router_config(port)) as router:
         client = _client(port)
@@ -192,54 +210,6 @@ def test_a_claim_made_while_one_settles_decides_by_age(older: bool, goes: bool) 
                 assert ended == [None]
                 mine.confirm()
             assert told == [] and mine.lost is None
-        finally:
-            mine.close()
-            client.close()
-
-
-@pytest.mark.parametrize("goes", [False, True])
-def test_an_older_claim_the_last_look_misses_still_counts(
-    monkeypatch: pytest.MonkeyPatch, goes: bool
-) -> None:
-    """The same race on a loaded host: the subscriber is told of an older claim while this one
-    settles, and the look at the bus after the settle misses it (its get timed out). It was
-    forgotten: ``take`` kept the name, ``confirm`` passed and both instances ran as one name,
-    neither ever told (CI, two services of one name started at once beside other tests). Now
-    it counts, unless its token went before the end of the settle."""
-    monkeypatch.setattr(NameClaim, "_claims", lambda self, session, timeout: [])
-    port = free_port()
-    with zenoh.open(router_config(port)) as router:
-        client = _client(port)
-        mine = NameClaim("b", KEYS, print)
-        ended: list[Exception | None] = []
-
-        def take() -> None:
-            try:
-                mine.take(client, timeout=1.0, settle=1.0)
-                ended.append(None)
-            except NameTaken as err:
-                ended.append(err)
-
-        taking = threading.Thread(target=take)
-        try:
-            taking.start()
-            claimed = f"{KEYS.service('b')}/claim/*/*"
-            assert wait_until(lambda: any(router.liveliness().get(claimed)), 5.0, 0.005)
-            assert mine.own is not None
-            token = router.liveliness().declare_token(
-                claim_key(KEYS, "b", Claim(mine.own.claimed_ns - 1, "00"))
-            )
-            if goes:
-                time.sleep(0.2)
-                token.undeclare()
-            taking.join(10.0)
-            if goes:
-                assert ended == [None]
-                mine.confirm()
-            else:
-                token.undeclare()
-                assert isinstance(ended[0], NameTaken), ended
-                assert "started at the same time" in str(ended[0])
         finally:
             mine.close()
             client.close()
