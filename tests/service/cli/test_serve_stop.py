@@ -15,9 +15,11 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -39,21 +41,32 @@ def _serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str
     )
     assert proc.stderr is not None
     said: list[str] = []
+    ready = threading.Event()
+    reader = threading.Thread(target=_read, args=(proc.stderr, said, ready), daemon=True)
+    reader.start()  # read all along: a full pipe would hold up the service's every log line
     try:
-        end = time.monotonic() + 180.0
-        while not any("ready" in line for line in said) and time.monotonic() < end:
-            line = proc.stderr.readline()
-            if not line:
-                break
-            said.append(line)
+        ready.wait(180.0)
         assert any("rlutf serve: ready" in line for line in said), "".join(said)
         yield proc, said
-        proc.wait(timeout=60)
-        said.append(proc.stderr.read())
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"still running 60 s after the test's signals; it said:\n{''.join(said)}")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+        reader.join(10.0)
+
+
+def _read(stream: IO[str], said: list[str], ready: threading.Event) -> None:
+    """Append each line of ``stream`` to ``said`` until it ends; set ``ready`` at the line that
+    says so, or at the end."""
+    for line in stream:
+        said.append(line)
+        if "rlutf serve: ready" in line:
+            ready.set()
+    ready.set()
 
 
 #: Runs the command after it with the signals' defaults of one typed in a terminal (a test run
