@@ -213,6 +213,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             service.close()
         print(f"rlutf serve: {err}", file=sys.stderr)
         return EXIT_FAILURE
+    if stop.is_set():  # told to stop as it came up: not ready, stopping
+        service.close()
+        return EXIT_OK
     ready = (
         f"rlutf serve: ready: instance {settings.instance}, mode {settings.mode}, "
         f"listening on {', '.join(settings.listen) if settings.mode != 'client' else '-'}"
@@ -331,7 +334,9 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
     """``rlutf serve --processes N``: the host of N service processes, until ``stop``."""
     import zenoh
 
+    from service.cluster.names import NameWaitStopped
     from service.live.host import Host
+    from service.live.sessions import StoppedWaiting
 
     def say(text: str) -> None:
         print(f"rlutf serve: {text}", file=sys.stderr, flush=True)
@@ -340,6 +345,9 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
     try:
         with starting_status("rlutf serve") as progress:
             host.start(progress)
+    except (StoppedWaiting, NameWaitStopped):  # told to stop while starting: a stop, not a fault
+        host.close()
+        return EXIT_OK
     except zenoh.ZError as err:
         host.close()
         say(session_failure(err, settings.listen))
@@ -357,6 +365,9 @@ def serve_host(settings: Any, stop: threading.Event) -> int:
         host.close()
         say(str(err))
         return EXIT_FAILURE
+    if stop.is_set():  # told to stop as the last process came up: not ready, stopping
+        host.close()
+        return EXIT_OK
     names = ", ".join(p.name for p in host.processes)
     # As a single process says it: a client listens on nothing robots can reach (a host in
     # --mode client said "listening on tcp/[::]:7447", the default it never bound).

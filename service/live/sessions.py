@@ -7,6 +7,7 @@ the benchmarks open sessions the same way.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -17,6 +18,7 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from pathlib import Path
+from typing import Final
 
 import zenoh
 
@@ -160,6 +162,11 @@ def service_config(settings: Settings) -> zenoh.Config:
     return cfg
 
 
+#: Seconds a stop waits for an open under way to end (a router's open takes about half a second
+#: on a busy 2-core machine, the first of a process included).
+OPEN_END_WAIT_S: Final = 2.0
+
+
 class StoppedWaiting(RuntimeError):
     """The service was told to stop while its zenoh session was still opening."""
 
@@ -177,7 +184,12 @@ def open_unless_stopped(
     for ``endpoints`` (the settings' ``connect``, the file's included: :func:`with_file`).
 
     Raises:
-        StoppedWaiting: ``stop`` was set first (the opening thread is left to the process's end).
+        StoppedWaiting: ``stop`` was set first. An open under way is given
+            :data:`OPEN_END_WAIT_S` to end (what it opened is closed): a process that ended while
+            its opening thread was still in zenoh's code aborted (exit -6, "FATAL: exception not
+            rethrown") when that thread came back during the interpreter's end, which stops it by
+            unwinding through zenoh's frames. One that waits for a router that does not answer is
+            left to the process's end.
         zenoh.ZError: the session cannot be opened.
     """
     if stop.is_set():  # told to stop before (while the kernels compiled): no thread left in open
@@ -194,12 +206,23 @@ def open_unless_stopped(
     say_at = time.monotonic() + say_after_s
     while not opened.done():
         if stop.wait(0.1):
+            _close_when_open(opened, OPEN_END_WAIT_S)
             raise StoppedWaiting("stopped while waiting for zenoh")
         if time.monotonic() > say_at:
             say_at = math.inf
             where = ", ".join(endpoints) or "its connect endpoints"
             log.warning("waiting for zenoh at %s to answer", where)
     return opened.result()
+
+
+def _close_when_open(opened: Future[zenoh.Session], wait_s: float) -> None:
+    """Wait up to ``wait_s`` for an open given up on, and close the session it opened."""
+    try:
+        session = opened.result(timeout=wait_s)
+    except BaseException:  # still opening (left), or it failed: nothing to close
+        return
+    with contextlib.suppress(zenoh.ZError):
+        session.close()
 
 
 def short_queues(cfg: zenoh.Config) -> list[str]:

@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from service.live.warmaside import COMPILING
 
 
@@ -35,7 +37,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def _compiling(tmp_path: Path) -> tuple[subprocess.Popen[str], int]:
+def _compiling(tmp_path: Path, *layout: str) -> tuple[subprocess.Popen[str], int]:
     """A client-mode ``rlutf serve`` on an empty numba cache, once its child compiles."""
     proc = subprocess.Popen(
         [
@@ -56,6 +58,7 @@ def _compiling(tmp_path: Path) -> tuple[subprocess.Popen[str], int]:
             str(tmp_path / "state"),
             "--instance",
             "warm",
+            *layout,
         ],
         env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")},
         stdout=subprocess.DEVNULL,
@@ -73,10 +76,14 @@ def _compiling(tmp_path: Path) -> tuple[subprocess.Popen[str], int]:
     return proc, children.pop()
 
 
+@pytest.mark.parametrize(
+    "layout", [(), ("--processes", "1")], ids=["one process", "a host of processes"]
+)
 def test_sigterm_while_the_kernels_compile_stops_the_service_and_its_child(
-    tmp_path: Path,
+    tmp_path: Path, layout: tuple[str, ...]
 ) -> None:
-    proc, child = _compiling(tmp_path)
+    """Exit 0, as any stop (a host, the default layout, took it for a failure: exit 1)."""
+    proc, child = _compiling(tmp_path, *layout)
     t0 = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     try:
