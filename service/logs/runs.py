@@ -25,6 +25,7 @@ from pathlib import Path
 
 from service.infile import not_a_file
 from service.logs.mcapread import LogError, LogFile, NotALog
+from service.logs.partfile import left_unfinished
 
 RUN_METADATA = "rlutf.run"
 """Name of the metadata record that names a file's run."""
@@ -391,9 +392,16 @@ def log_files(paths: Sequence[Path], suffix: str = ".mcap") -> list[Path]:
             whole = [p for p in Path(path).iterdir() if p.name.endswith(".mcap")]
             hint = ""
             if parts and suffix == ".mcap":
+                recording = sum(not left_unfinished(p) for p in parts)
+                now = (
+                    f", {recording} of them being recorded now (a running service finishes "
+                    "each, renamed *.mcap, at rotation, record_max_seconds, or when it stops)"
+                    if recording
+                    else ""
+                )
                 hint = (
-                    f"; it holds {len(parts)} unfinished log(s) (.mcap.part): copy what they "
-                    f"hold with rlutf log recover {path}/ FOLDER, then use FOLDER"
+                    f"; it holds {len(parts)} unfinished log(s) (.mcap.part){now}: copy what "
+                    f"they hold with rlutf log recover {path}/ FOLDER, then use FOLDER"
                 )
             elif whole and suffix == ".mcap.part":
                 hint = (
