@@ -39,7 +39,7 @@ from PIL import Image, UnidentifiedImageError
 
 from service.infile import read_regular
 from service.maps.mapimport.errors import MapFileError, MapYamlError
-from service.yamlfile import YamlTooLarge, load_yaml
+from service.yamlfile import YamlTooLarge, load_yaml, problem, where
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -209,7 +209,11 @@ def parse_map_yaml(text: str | bytes) -> MapMetadata:
     try:
         doc = load_yaml(text)
     except (yaml.YAMLError, YamlTooLarge) as err:
-        raise MapYamlError(f"map YAML: cannot parse: {err}") from err
+        raise MapYamlError(
+            f"map YAML{where(err)}: cannot parse it ({problem(err)}); fix the file: a "
+            "map_server YAML is 'key: value' lines (image, resolution, origin, occupied_thresh, "
+            "free_thresh)"
+        ) from err
     if not isinstance(doc, dict):
         raise MapYamlError(f"map YAML: expected a mapping of keys, got {type(doc).__name__}")
     missing = [k for k in REQUIRED_KEYS if k not in doc]

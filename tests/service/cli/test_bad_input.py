@@ -61,6 +61,7 @@ def files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "foreign.yaml").write_text("image: x.pgm\nresolution: 0.05\n")
     # a few hundred bytes whose aliases repeat a value 9 ** 10 times (tests/service/test_yamlfile)
     (tmp_path / "laughs.yaml").write_text(laughs(then="localizer: *a9\n"))
+    (tmp_path / "broken-map.yaml").write_text("image: x.pgm\nresolution: [0.05\n")
     (tmp_path / "laughs-map.yaml").write_text(laughs(then="image: x.pgm\norigin: *a9\n"))
     (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)  # past the parser's depth
     (tmp_path / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000)
@@ -204,6 +205,11 @@ def _cases() -> Iterator[Bad]:
     yield Bad(["map", "import", "foreign.yaml"], 2, ["foreign.yaml"])
     yield Bad(["config", "--settings", "laughs.yaml"], 2, ["laughs.yaml", "100,000 values"])
     yield Bad(["map", "import", "laughs-map.yaml"], 2, ["laughs-map.yaml", "100,000 values"])
+    # a map YAML that is no YAML: the parser's four-line report, no line number in its file
+    # and no fix before
+    yield Bad(
+        ["map", "import", "broken-map.yaml"], 2, ["broken-map.yaml", "map YAML, line 3", "fix the"]
+    )
     yield Bad(["config", "--settings", "deep.json"], 2, ["deep.json", "not valid JSON"])
     yield Bad(["config", "--settings", "deep.toml"], 2, ["deep.toml", "not valid TOML"])
     yield Bad(["map", "show", "deep.json"], 2, ["deep.json", "nested deeper than a map"])
