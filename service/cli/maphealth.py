@@ -101,8 +101,17 @@ def _from_service(args: argparse.Namespace) -> tuple[dict[str, Any], Any] | str:
         if health is not None and args.png is not None:
             world = _first(session.get(keys.map(args.map_id), timeout=args.timeout), Map)
         live = health is None and bool(live_instances(session, settings.prefix))
+        stored = not live or any(  # a mistyped id is no map waiting for its first scans
+            reply.ok is not None
+            for reply in session.get(keys.map(args.map_id), timeout=args.timeout)
+        )
     if health is not None:
         return health, world
+    if not stored:
+        return (
+            f"no storage holds map {args.map_id!r}, so it has no MapHealth (the service is "
+            "live); `rlutf map list` shows the stored maps"
+        )
     if live:
         return (
             f"no MapHealth for map {args.map_id!r} yet: the service is live but has counted no "

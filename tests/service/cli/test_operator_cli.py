@@ -265,6 +265,12 @@ def test_map_health_before_any_evidence_says_the_service_is_live(
         code, out, err = _cli(capsys, "map", "health", "m1", "-e", bench.endpoint)
         assert code == 1 and out == "", (out, err)
         assert "no service answered" not in err and "live" in err and "'m1'" in err, err
+        assert "no MapHealth for map 'm1' yet" in err, err
+        # a map id no storage holds (a typo) is said so, not "counted no scan ... yet"
+        code, out, err = _cli(capsys, "map", "health", "m2", "-e", bench.endpoint)
+        assert code == 1 and out == "", (out, err)
+        assert "no storage holds map 'm2'" in err and "rlutf map list" in err, err
+        assert "yet" not in err, err
         code, _, err = _cli(capsys, "map", "health", "m1", "-e", bench.endpoint, "--prefix", "x")
         assert code == 1 and "no rlutf service is live on prefix 'x'" in err, err
 
