@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from typing import Any
 
 from service.logs.foxglove import robot_frame, scene_entity
@@ -101,9 +102,14 @@ def status_entity(robot: str, pose: dict[str, Any], frame: str) -> dict[str, Any
     )
 
 
-def status_update(entities: list[dict[str, Any]]) -> bytes:
-    """One ``foxglove.SceneUpdate`` of several robots' entities (each replaces its robot's)."""
-    update = {"deletions": [], "entities": entities}
+def status_update(
+    entities: list[dict[str, Any]], deleted: Sequence[str] = (), stamp_ns: int = 0
+) -> bytes:
+    """One ``foxglove.SceneUpdate`` of several robots' entities (each replaces its robot's),
+    deleting the entities of ids ``deleted`` (robots gone) as of ``stamp_ns``."""
+    stamp = {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
+    deletions = [{"timestamp": stamp, "type": 0, "id": d} for d in deleted]
+    update = {"deletions": deletions, "entities": entities}
     return json.dumps(update, separators=(",", ":"), allow_nan=False).encode()
 
 

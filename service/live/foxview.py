@@ -146,6 +146,7 @@ class FoxgloveView:
         self._health: dict[str, bytes] = {}  # {prefix}/maphealth/{map_id} -> newest, unshown
         self._health_latest: dict[str, bytes] = {}  # the same, shown or not
         self._resend_maps = False
+        self._gone: set[str] = set()  # robots forgotten: their channels closed at the next tick
         self._channels: dict[str, Channel] = {}
         self._converter = FoxgloveConverter()
         self._context: Context | None = None
@@ -212,6 +213,17 @@ class FoxgloveView:
             self._latest[topic] = Record(topic, schema_name, payload, log_time_ns, publish_time_ns)
             self._dirty.add(topic)
 
+    def forget(self, robot: str) -> None:
+        """``robot`` left this service (evicted, handed over): drop its newest messages now,
+        and at the next tick close its channels (unadvertised to the clients) and delete its
+        entity on ``/foxglove/fleet``. Without it the view kept every robot it ever saw."""
+        with self._lock:
+            for leaf, _ in SOURCES.values():
+                key = self.keys.robot(robot, leaf)
+                self._latest.pop(key, None)
+                self._dirty.discard(key)
+            self._gone.add(robot)
+
     def subscribed(self, topic: str) -> None:
         """A client subscribed to ``topic``: show it the newest message at the next tick."""
         with self._lock:
@@ -239,8 +251,10 @@ class FoxgloveView:
         self._show_maps()
         self._show_health()
         with self._lock:
+            gone, self._gone = self._gone, set()
             dirty, self._dirty = self._dirty, set()
             records = [self._latest[t] for t in dirty if t in self._latest]
+        self._close_robots(gone)
         entities, latest = [], 0
         for rec in records:
             parts = robot_topic(rec.topic)
@@ -263,6 +277,20 @@ class FoxgloveView:
         if entities:
             self._channels[FLEET_TOPIC].log(status_update(entities), log_time=latest)
             self.shown += 1
+
+    def _close_robots(self, gone: set[str]) -> None:
+        """Close the channels of the robots forgotten, and delete their fleet entities."""
+        deleted = []
+        for robot in sorted(gone):
+            for kind, _ in SOURCES.values():
+                channel = self._channels.pop(robot_channel(robot, kind), None)
+                if channel is not None:
+                    channel.close()
+                    deleted.append(f"robot/{robot}")
+        fleet = self._channels.get(FLEET_TOPIC)
+        if deleted and fleet is not None and fleet.has_sinks():
+            now = time.time_ns()
+            fleet.log(status_update([], sorted(set(deleted)), now), log_time=now)
 
     def _show_maps(self) -> None:
         with self._lock:

@@ -31,6 +31,9 @@ class LiveView(Protocol):
     ) -> None:
         """Offer one wire message (the recorder's arguments); never blocks long, never raises."""
 
+    def forget(self, robot: str) -> None:
+        """``robot`` is no longer held here (evicted, handed over): stop showing it."""
+
     @property
     def url(self) -> str | None:
         """Where clients connect (``None`` when off)."""
@@ -49,6 +52,9 @@ class NullLiveView:
         self, topic: str, schema_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int
     ) -> None:
         """Drop the message."""
+
+    def forget(self, robot: str) -> None:
+        """Nothing shown, nothing to forget."""
 
     @property
     def url(self) -> str | None:

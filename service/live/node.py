@@ -357,8 +357,7 @@ class LocalizationService:
             if not self.dispatcher.forget(robot):
                 return False
             self.ownership.forget(robot)
-            self._poses.pop(robot, None)
-            self.robot_view.forget(robot)
+            self._forget_pose(robot)  # and in the live view
             self.posestate.forget(robot)
             if self.ros2 is not None:  # its tokens and publishers go
                 self.ros2.forget(robot)
@@ -405,6 +404,7 @@ class LocalizationService:
     def _forget_pose(self, robot: str) -> None:
         self._poses.pop(robot, None)
         self.robot_view.forget(robot)
+        self.live.forget(robot)
 
     # ------------------------------------------------------------------------ outputs
     def _on_done(self, done: Done) -> None:
