@@ -99,6 +99,19 @@ def _join_number_lists(argv: list[str]) -> list[str]:
     return out
 
 
+#: What an interrupted command did not do, said after ``interrupted`` (exit 130).
+INTERRUPTED = {
+    "replay": ": the audit did not finish, no verdict was given (exit 130); the output log it "
+    "was writing was removed (a run's output named above was written whole)",
+}
+
+
+def _name(args: argparse.Namespace) -> str:
+    """The command as typed: ``rlutf log info``."""
+    action = getattr(args, "map_command", None) or getattr(args, "log_command", None)
+    return " ".join(w for w in ("rlutf", args.command, action) if w)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``rlutf`` console script."""
     parser = build_parser()
@@ -112,14 +125,14 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ctrl-C: said, so that no one takes what was printed for all
+        print(f"{_name(args)}: interrupted{INTERRUPTED.get(args.command, '')}", file=sys.stderr)
         return 130
     except Exception as err:
         if getattr(args, "debug", False):
             raise
         known = explain(err)
-        action = getattr(args, "map_command", None) or getattr(args, "log_command", None)
-        name = " ".join(w for w in ("rlutf", args.command, action) if w)
+        name = _name(args)
         if known is None:
             print(
                 f"{name}: unexpected error: {type(err).__name__}: {err}\n"
