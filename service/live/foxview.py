@@ -33,6 +33,7 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 
 from service.keys import Keys
 from service.live.foxstatus import maphealth_update, status_entity, status_update
+from service.live.wsgate import Gate
 from service.logs.foxglove import (
     FRAME_TRANSFORM,
     LASER_SCAN,
@@ -151,6 +152,7 @@ class FoxgloveView:
         self._converter = FoxgloveConverter()
         self._context: Context | None = None
         self._server: Any = None
+        self._gate: Gate | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.shown = 0  # messages handed to the server (tests, figures)
@@ -164,18 +166,24 @@ class FoxgloveView:
         """
         _limit_sdk_log()
         self._context = Context()
+        try:  # the SDK on a loopback port of its own, behind a door that bounds its clients
+            self._gate = Gate(self.addr, self.port, 0)
+        except OSError as err:
+            raise LiveViewError(
+                f"cannot serve the live view on {self.addr}:{self.port}: {err}"
+            ) from err
         try:
             self._server = foxglove.start_server(
                 name=self.name,
-                host=self.addr,
-                port=self.port,
+                host="127.0.0.1",
+                port=0,
                 context=self._context,
                 server_listener=_Listener(self),
             )
         except RuntimeError as err:  # the SDK's FoxgloveError
-            raise LiveViewError(
-                f"cannot serve the live view on {self.addr}:{self.port}: {err}"
-            ) from err
+            self._gate.close()
+            raise LiveViewError(f"cannot start the live view's server: {err}") from err
+        self._gate.target = self._server.port
         self._channel(TF_TOPIC, FRAME_TRANSFORM)
         self._channel(FLEET_TOPIC, SCENE_UPDATE)
         self._thread = threading.Thread(target=self._run, name="rlutf-foxglove", daemon=True)
@@ -185,15 +193,18 @@ class FoxgloveView:
     @property
     def url(self) -> str | None:
         """``ws://ADDR:PORT`` once started."""
-        if self._server is None:
+        if self._server is None or self._gate is None:
             return None
-        return f"ws://{self.addr}:{self._server.port}"
+        host = f"[{self.addr}]" if ":" in self.addr else self.addr
+        return f"ws://{host}:{self._gate.port}"
 
     def close(self) -> None:
         """Stop the thread and the server."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(2.0)
+        if self._gate is not None:
+            self._gate.close()
         if self._server is not None:
             self._server.stop()
             self._server = None
