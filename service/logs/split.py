@@ -131,12 +131,25 @@ def replay_split(
     counters = ctx.Array("q", len(shares), lock=False)
     with ProcessPoolExecutor(len(shares), ctx, initializer=_start, initargs=(counters,)) as pool:
         futures = [pool.submit(_share, files, config, shares, k) for k in range(len(shares))]
-        _follow(futures, counters, progress)
+        try:
+            _follow(futures, counters, progress)
+        except BaseException:  # Ctrl-C: stop the shares, not wait for them to finish the audit
+            _stop(pool)
+            raise
         answers = [f.result() for f in futures]
     for kind, value in answers:
         if kind == "error":
             raise LogError(value)
     return merge([value for _, value in answers])
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """End the pool's processes now (a SIGINT to this process alone, as ``kill -INT`` or
+    ``timeout -s INT`` send, reaches none of them: the pool waited for every share to finish
+    its whole audit, hours for a day's log)."""
+    for proc in list(pool._processes.values()):
+        proc.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _follow(
