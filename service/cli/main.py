@@ -101,8 +101,8 @@ def _join_number_lists(argv: list[str]) -> list[str]:
 
 #: What an interrupted command did not do, said after ``interrupted`` (exit 130).
 INTERRUPTED = {
-    "replay": ": the audit did not finish, no verdict was given (exit 130); the output log it "
-    "was writing was removed (a run's output named above was written whole)",
+    "replay": ": the audit did not finish, no verdict was given (exit 130); with --out, the "
+    "output of the run being replayed was removed (a run's output named above is whole)",
 }
 
 
