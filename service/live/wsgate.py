@@ -109,7 +109,9 @@ class Gate:
             if full:
                 self._refuse(conn)
             else:
-                threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+                threading.Thread(
+                    target=self._serve, args=(conn,), name="rlutf-foxglove-client", daemon=True
+                ).start()
 
     def _refuse(self, conn: socket.socket) -> None:
         self.refused += 1
@@ -151,7 +153,9 @@ class Gate:
             upstream.settimeout(None)
             conn.settimeout(None)
             upstream.sendall(head)
-            back = threading.Thread(target=_relay, args=(upstream, conn), daemon=True)
+            back = threading.Thread(
+                target=_relay, args=(upstream, conn), name="rlutf-foxglove-relay", daemon=True
+            )
             back.start()
             _relay(conn, upstream)
             back.join()
