@@ -153,6 +153,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         usable_folder(settings.record_dir, "--record")
     if not settings.no_state:
         usable_folder(settings.state_dir, "--state")
+    if args.host_pid is None and settings.ros2.enabled:  # said once, not by each process
+        from service.ros2.entities import no_map_warning
+
+        warning = no_map_warning(settings.ros2)
+        if warning is not None:
+            logging.getLogger("rlutf").warning("%s", warning)
     stop = threading.Event()
 
     # A host's process is stopped by its host, which says so itself: not a warning there.

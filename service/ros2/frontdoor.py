@@ -18,9 +18,9 @@ stamped ahead by the transform tolerance), and its quality (``localization_score
 rmw_zenoh's attachment, on the key the robot's own distribution listens on. Liveliness tokens
 announce the node and its topics, so ``ros2 node list`` and ``ros2 topic list`` show them. The
 robots held, and the tokens and publishers of each, are :mod:`service.ros2.roster`'s. AMCL's
-``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`;
-started without a map, the front door says at once what will be refused
-(:func:`no_map_warning`).
+``reinitialize_global_localization`` service is served by :mod:`service.ros2.globalloc`.
+Started without a map, ``rlutf serve`` says at once what will be refused, once for all its
+processes (:func:`service.ros2.entities.no_map_warning`).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from schemas import EventCode, PoseEstimate, SchemaError, decode
 from service.config import Ros2Settings
 from service.keys import InputKind, Keys, Message, printable
 from service.ros2 import convert, names
-from service.ros2.entities import no_map_warning, undeclare
+from service.ros2.entities import undeclare
 from service.ros2.frames import TF_ODOMETRY_WAIT_S, OdometryFrames, TfOdometryFrames
 from service.ros2.gate import OdometryGate
 from service.ros2.globalloc import GlobalLocalization
@@ -140,9 +140,6 @@ class Ros2FrontDoor:
     def start(self, session: zenoh.Session) -> None:
         """Declare the node's token and the subscriptions."""
         s = self.settings
-        warning = no_map_warning(s)
-        if warning is not None:
-            log.warning("%s", warning)
         self._session = session
         self.roster.start(session)
         zid = str(session.zid())

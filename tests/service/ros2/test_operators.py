@@ -28,7 +28,7 @@ from service_harness import WORLD, Bench, Collector, running_bench, wait_until
 from rlutf.sim import make_trajectory
 from service.config import Ros2Settings
 from service.live.sessions import free_port
-from service.ros2.frontdoor import no_map_warning
+from service.ros2.entities import no_map_warning
 
 pytestmark = pytest.mark.integration
 
@@ -58,11 +58,15 @@ def _track(bench: Bench, r: RosRobot, steps: int) -> None:
         time.sleep(0.03)
 
 
-def test_serve_ros2_without_a_map_warns_at_start(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "layout", [("--workers", "0"), ("--processes", "2")], ids=["one process", "a host"]
+)
+def test_serve_ros2_without_a_map_warns_at_start(tmp_path: Path, layout: tuple[str, ...]) -> None:
+    """Once, whatever the layout (a host of N processes said it N times)."""
     port = free_port()
     exe = Path(sys.executable).with_name("rlutf")
     cmd = [str(exe), "serve", "--ros2", "--listen", f"tcp/127.0.0.1:{port}"]
-    cmd += ["--store", str(tmp_path / "store"), "--no-record", "--workers", "0"]
+    cmd += ["--store", str(tmp_path / "store"), "--no-record", "--no-state", *layout]
     env = {k: v for k, v in os.environ.items() if not k.startswith(("RLUTF_", "ROS_"))}
     proc = subprocess.Popen(
         cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
@@ -83,6 +87,7 @@ def test_serve_ros2_without_a_map_warns_at_start(tmp_path: Path) -> None:
         proc.wait(30)
     text = "".join(lines)
     assert "rlutf serve: ready" in text, text
+    assert sum("no map given" in line for line in lines) == 1, text
     warning = next((line for line in lines if "no map given" in line), text)
     assert "WARNING" in warning and "--ros-map MAP_ID" in warning
     assert "initialpose" in warning and "reinitialize_global_localization" in warning
