@@ -87,6 +87,12 @@ def cmd_robots(args: argparse.Namespace) -> int:
             for w in waiting
         ]
         print(json.dumps(rows))
+    elif not states and not waiting:  # a header alone read as a table cut off
+        names = ", ".join(sorted({a.instance for a in answers}))
+        print(
+            f"no robots: {len(answers)} instance(s) answered ({names}) and hold none; a robot is "
+            "held once its first scan, odometry or initial pose reaches the service"
+        )
     else:
         print(robots_table(states, waiting, args.silent))
     return EXIT_OK

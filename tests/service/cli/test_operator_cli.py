@@ -62,6 +62,8 @@ def test_initialpose_starts_a_waiting_robot_and_events_show_it(
 ) -> None:
     with running_bench(tmp_path) as bench:
         e = bench.endpoint
+        code, out, _ = _cli(capsys, "robots", "-e", e)  # none yet: said, not a bare header
+        assert code == 0 and out.startswith("no robots: 1 instance(s) answered"), out
         bench.put_map()
         robot = bench.robot("r1", 1)
         # scans with no initial pose: a waiting robot, and not_initialized Events
