@@ -11,8 +11,8 @@ asked: it serves at most :data:`MAX_CLIENTS` clients at once (one more is answer
 Service Unavailable`` and closed, at most one log line per :data:`LOG_EVERY_S`), gives a client
 :data:`HANDSHAKE_S` seconds to send its HTTP upgrade request (a head of at most
 :data:`MAX_HEAD_BYTES`; past either it is closed), then relays the bytes both ways, two threads a
-client. A client that never reads stalls only its own relay: the SDK sees it as slow and drops
-it (its backlog of 1,024 messages).
+client. A client that never reads stalls only its own relay: the SDK sees it as slow and keeps
+only its newest 1,024 messages for it (it disconnects it once its control messages fill too).
 """
 
 from __future__ import annotations
