@@ -173,14 +173,18 @@ class Intake:
         return True
 
     def _stamp_refused(self, robot: str, key: str, stamp_ns: int, at: int) -> bool:
-        """Whether a stamp is refused (``max_stamp_ahead_s``): counted, Events rate-limited."""
+        """Whether a stamp is refused (``max_stamp_ahead_s``): counted; an Event at most one per
+        robot and ``event_interval_s`` (a robot whose clock is ahead sends every message so
+        stamped), the next counting those held back, and at most ten a second in all."""
         svc = self.svc
         problem = svc.gate.stamp_problem(stamp_ns, at)
         if problem is None:
             return False
         svc.stats.add("rejected")
-        if svc.gate.allow_event(at):
-            svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem, at)
+        held = svc.gate.rejection(robot, EventCode.STAMP_REJECTED, at)
+        if held is not None and svc.gate.allow_event(at):
+            more = f" ({held} more like it since the last such Event)" if held else ""
+            svc._robot_event(robot, "error", EventCode.STAMP_REJECTED, key, problem + more, at)
         return True
 
     def front_door(self) -> Ros2FrontDoor:

@@ -16,6 +16,10 @@ from service_harness import Collector, running_bench
 
 from service.live.admission import REJECTIONS_KEPT, Gate
 
+SCAN_BODY = (
+    b'"angle_min": 0, "angle_increment": 0.1, "range_min": 0.1, "range_max": 9, "ranges": [1]'
+)
+
 
 def test_the_gate_holds_back_a_robot_s_rejections_within_the_interval() -> None:
     gate = Gate(lambda: 0, 10**9, 10, event_interval_ns=1_000)
@@ -72,4 +76,34 @@ def test_the_next_event_counts_the_rejections_held_back(tmp_path: Path) -> None:
         events = lambda: col.on("rlutf/robots/r1/events")  # noqa: E731
         assert col.wait_for(lambda: len(events()) == 2), events()
         assert "(19 more like it since the last such Event)" in str(events()[1]["message"])
+        sub.undeclare()
+
+
+@pytest.mark.integration
+def test_a_robot_whose_clock_is_ahead_costs_one_stamp_event_per_interval(tmp_path: Path) -> None:
+    """A robot whose clock is an hour ahead stamps every scan and odometry so: each is rejected
+    and counted, but it used to cost an Event per message (up to ten a second, each logged and
+    recorded) where every other rejection costs one per robot and ``event_interval_s``; and
+    another robot's clock then went unsaid, the ten Events a second all taken."""
+    with running_bench(tmp_path, event_interval_s=30.0) as b:
+        col = Collector()
+        sub = b.client.declare_subscriber("rlutf/robots/*/events", col)
+        time.sleep(0.5)
+        ahead = time.time_ns() + 3_600 * 10**9
+        for k in range(30):
+            odom = b'{"stamp_ns": %d, "x": 0, "y": 0, "theta": 0}' % (ahead + k)
+            b.client.put("rlutf/robots/r1/odom", odom)
+            scan = b'{"stamp_ns": %d, %s}' % (ahead + k, SCAN_BODY)
+            b.client.put("rlutf/robots/r1/scan", scan)
+        b.client.put(
+            "rlutf/robots/r2/odom", b'{"stamp_ns": %d, "x": 0, "y": 0, "theta": 0}' % ahead
+        )
+
+        def codes(robot: str) -> list[object]:
+            return [e["code"] for e in col.on(f"rlutf/robots/{robot}/events")]
+
+        assert col.wait_for(lambda: b.service.gate.stamps_rejected >= 61)
+        assert col.wait_for(lambda: codes("r2") == ["stamp_rejected"]), "another robot is its own"
+        time.sleep(0.5)
+        assert codes("r1") == ["stamp_rejected"], codes("r1")
         sub.undeclare()
