@@ -49,6 +49,7 @@ from service.relocalization import (
     Request,
     placed_during,
     searching,
+    unfit,
     wire_hypotheses,
 )
 
@@ -335,6 +336,11 @@ class FleetEngine:
             i = bisect.bisect_left(robot.odom_stamps, start)
             if i < len(robot.odom_stamps) and robot.odom_stamps[i] <= msg.stamp_ns:
                 robot.anchor = robot.odom_poses[i]
+            elif i == len(robot.odom_stamps) and msg.stamp_ns < start - ANCHOR_GAP_NS:
+                # Its scans and odometry all stamped long before the pose: the robot's clock is
+                # behind the requester's, and no reading would come after the pose for as long.
+                # The pose is taken as at this scan.
+                start = robot.start_stamp = msg.stamp_ns
         odom = self._odometry_at(robot, msg.stamp_ns)
         if odom is None or robot.anchor is None:
             motion = np.zeros(3)
@@ -376,7 +382,7 @@ class FleetEngine:
                 "warning",
                 EventCode.LOST,
                 pose_key,
-                _unfit(result, self.config.fit_distance, self.config.min_fit)
+                unfit(result, self.config.fit_distance, self.config.min_fit)
                 + searching(result.relocalizing, robot.localizer.searched_region),
             )
         return out
@@ -479,22 +485,3 @@ class FleetEngine:
                 "event", self.keys.robot_events(robot.robot_id), encode(ev), now_ns, robot.robot_id
             )
         ]
-
-
-def _unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
-    """Why a pose is lost, with the share of the returns that fit and the share needed."""
-    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
-    fit = result.fit if math.isfinite(result.fit) else 0.0
-    digits = 0  # enough digits that the two shares never read the same
-    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
-        digits += 1
-    shares = (
-        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
-        f"the best pose, under the {100 * needed:.{digits}f} % needed"
-    )
-    if needed > min_fit:
-        return (
-            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
-            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
-        )
-    return f"the scan does not fit the map: {shares}; "

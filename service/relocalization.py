@@ -170,3 +170,22 @@ def searching(relocalizing: bool, region: tuple[float, float, float] | None) -> 
         return "relocalizing on the whole map"
     x, y, radius = region
     return f"relocalizing within {radius:g} m of ({x:g}, {y:g}); if not there, on the whole map"
+
+
+def unfit(result: LocalizeResult, distance: float, min_fit: float) -> str:
+    """Why a pose is lost, with the share of the returns that fit and the share needed."""
+    needed = result.fit_needed if math.isfinite(result.fit_needed) else min_fit
+    fit = result.fit if math.isfinite(result.fit) else 0.0
+    digits = 0  # enough digits that the two shares never read the same
+    while digits < 3 and round(100 * fit, digits) >= round(100 * needed, digits):
+        digits += 1
+    shares = (
+        f"only {100 * fit:.{digits}f} % of its returns lie within {distance:g} m of the map at "
+        f"the best pose, under the {100 * needed:.{digits}f} % needed"
+    )
+    if needed > min_fit:
+        return (
+            f"the scan fits the map worse than this robot's scans usually do: {shares} (its "
+            f"usual share less a margin; never under {100 * min_fit:.0f} %); "
+        )
+    return f"the scan does not fit the map: {shares}; "

@@ -299,3 +299,35 @@ def test_an_initial_pose_during_a_relocalization_ends_it_with_an_event() -> None
     # Placed again with no relocalization under way: nothing to end.
     again = InitialPose(stamp_ns=Run.stamp(steps), map_id="c", x=5.0, y=3.0, theta=0.0)
     assert engine.handle("r1", again, Run.received(steps) + 2) == []
+
+
+def test_an_initial_pose_stamped_ahead_of_a_robot_s_clock_anchors_its_odometry() -> None:
+    # A robot whose clock is years behind (no NTP: it starts in 2001) is placed by an operator
+    # (`rlutf initialpose` stamps the pose with the operator's clock). Every reading of the
+    # robot is long before the pose, so none was its odometry at the pose, and none after it
+    # would come until the robot's clock passed the pose's stamp: its odometry went unused,
+    # silently, each scan localized with no motion (searched: `corrected`, never `tracking`).
+    # The pose is taken as at the robot's first scan instead; its odometry is used from there.
+    run = Run.make(WORLD, 3, STEPS)
+    behind = Run.stamp(0) - 978_307_200 * 10**9  # the robot's clock reads 2001
+    engine = _engine()
+
+    def odometry(i: int) -> Odometry:
+        o = run.odometry(i)
+        return o.model_copy(update={"stamp_ns": o.stamp_ns - behind})
+
+    engine.handle("r1", odometry(0), Run.received(0))
+    t = run.truth[0]
+    start = InitialPose(
+        stamp_ns=Run.stamp(0), map_id="m1", x=float(t[0]), y=float(t[1]), theta=float(t[2])
+    )
+    engine.handle("r1", start, Run.received(0) + 1)
+    statuses = []
+    for i in range(1, 8):
+        engine.handle("r1", odometry(i), Run.received(i))
+        scan = run.scan(i)
+        scan = scan.model_copy(update={"stamp_ns": scan.stamp_ns - behind})
+        pose = _pose(engine.handle("r1", scan, Run.received(i) + 1))
+        assert _error(pose, run.truth[i]) < 0.05, i
+        statuses.append(pose["status"])
+    assert statuses[1:] == ["tracking"] * 6, statuses

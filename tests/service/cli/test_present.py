@@ -18,7 +18,7 @@ from service.cli.present import (
     poses_table,
     robots_table,
 )
-from service.engine import _unfit
+from service.relocalization import unfit as _unfit
 
 
 def _state(robot: str, age_s: float | None, owner: str, x: float = 0.0) -> RobotState:
