@@ -101,7 +101,8 @@ class WaitingRobot(WireModel):
     reason: NonEmptyStr = Field(
         description="Why: the Event code not_initialized or map_not_found, no_scan_yet (an "
         "initial pose or a Relocalize taken in, no scan since) or no_returns (its scans have "
-        "too few returns to give a pose); more may be added."
+        "too few returns to give a pose), stamp_rejected (its inputs are stamped too far ahead of "
+        "the service's clock); more may be added."
     )
     age_s: NonNegativeFloat = Field(
         description="Seconds since the latest such Event, or since the initial pose for "

@@ -52,11 +52,17 @@ NO_MAP_HINT = (
     "no map: the robot's map is in no storage (its initial pose or scans wait for it); "
     "`rlutf map list` shows the stored maps, `rlutf map put FILE --id ID` stores one"
 )
+CLOCK_HINT = (
+    "clock ahead: the robot's scans and odometry are stamped too far ahead of the service's "
+    "clock (max_stamp_ahead_s), so each is refused; synchronise its clock (chrony, NTP) with the "
+    "service's host (`rlutf events ROBOT`)"
+)
 #: How each waiting reason reads in the status column, and its hint.
 _WAITS = {
     NO_SCAN_YET: ("no scan yet", NO_SCAN_HINT),
     NO_RETURNS: ("no returns", NO_RETURNS_HINT),
     EventCode.MAP_NOT_FOUND: ("no map", NO_MAP_HINT),
+    EventCode.STAMP_REJECTED: ("clock ahead", CLOCK_HINT),
 }
 
 
@@ -144,7 +150,8 @@ def robots_table(
     ]
     text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
     shown = {_wait(w)[1] for w in waits}
-    hints = [h for h in (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT, NO_RETURNS_HINT) if h in shown]
+    known = (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT, NO_RETURNS_HINT, CLOCK_HINT)
+    hints = [h for h in known if h in shown]
     return "\n\n".join([text, *hints])
 
 

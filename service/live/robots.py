@@ -69,11 +69,17 @@ _LOST = b'"status":"lost"'
 _WAITING = {
     b'"code":"not_initialized"': "not_initialized",
     b'"code":"map_not_found"': "map_not_found",
+    b'"code":"stamp_rejected"': "stamp_rejected",
 }
 #: The reason of a robot given an initial pose that has sent no scan since.
 NO_SCAN_YET = "no_scan_yet"
 #: The reason of a robot that sends scans but was never given a pose.
 NOT_INITIALIZED = "not_initialized"
+#: The reason of a robot whose inputs are stamped too far ahead of the service's clock (its
+#: clock is ahead): every one is refused, so it gets no pose, although it sends scans.
+STAMP_REJECTED = "stamp_rejected"
+#: Reasons said again by every ``event_interval_s`` while they hold: forgotten once they stop.
+_REPEATED = (NOT_INITIALIZED, STAMP_REJECTED)
 #: How long a robot never placed stays listed after its latest ``not_initialized`` Event, ns
 #: (at least; three ``event_interval_s`` where that is longer, :attr:`RobotView.unplaced_ns`):
 #: one that scans gets such an Event every ``event_interval_s``, while an id made up for a
@@ -272,7 +278,7 @@ class RobotView:
             gone = [
                 robot
                 for robot, (at, reason, _) in self._waiting.items()
-                if reason == NOT_INITIALIZED and now - at > self.unplaced_ns
+                if reason in _REPEATED and now - at > self.unplaced_ns
             ]
             for robot in gone:
                 del self._waiting[robot]

@@ -337,3 +337,10 @@ def test_a_robot_whose_scans_have_no_returns_reads_no_returns_with_its_hint() ->
     text, hint = robots_table([], [blocked]).split("\n\n")
     assert text.splitlines()[-1].split()[:4] == ["r3", "m", "no", "returns"]
     assert hint.startswith("no returns:") and "lidar" in hint
+
+
+def test_a_robot_whose_clock_is_ahead_reads_clock_ahead_with_its_hint() -> None:
+    ahead = WaitingRobot(robot_id="r4", reason="stamp_rejected", age_s=1.0, owner="a", map_id="m")
+    text, hint = robots_table([], [ahead]).split("\n\n")
+    assert text.splitlines()[-1].split()[:4] == ["r4", "m", "clock", "ahead"]
+    assert hint.startswith("clock ahead:") and "NTP" in hint

@@ -306,3 +306,27 @@ def test_a_relocalize_before_any_scan_lists_the_robot_on_its_map(bench: Bench) -
     relocalize("m1")
     assert col.wait_for(lambda: waiting() == [("r6", "no_scan_yet", "m1")], 5.0), waiting()
     sub.undeclare()
+
+
+def test_a_robot_whose_clock_is_ahead_is_listed_as_such_not_as_sending_no_scan(
+    bench: Bench,
+) -> None:
+    # A robot whose clock is an hour ahead, placed by an operator (the pose stamped with the
+    # operator's clock, taken in): every scan of its own is refused (stamp_rejected). The view
+    # listed it as "no scan yet" (is it sending scans?), sending the operator to the network.
+    bench.put_map()
+    time.sleep(0.3)
+    robot = bench.robot("r8", 5)
+    robot.initial_pose("m1")
+    robot.t0 += 3_600 * 10**9  # its clock, for its scans and odometry from now on
+
+    def waiting() -> list[tuple[str, str, object]]:
+        answers = ask(bench, "rlutf/service/*/robots")
+        return [(w["robot_id"], w["reason"], w["map_id"]) for a in answers for w in a["waiting"]]
+
+    for _ in range(40):
+        robot.advance()
+        if waiting() == [("r8", "stamp_rejected", "m1")]:
+            break
+        time.sleep(0.05)
+    assert waiting() == [("r8", "stamp_rejected", "m1")]
