@@ -19,10 +19,25 @@ import logging
 import threading
 from collections.abc import Callable, Mapping
 
-from schemas import PoseEstimate, SchemaError, decode
+from schemas import InitialPose, PoseEstimate, SchemaError, decode
 from schemas.fastpose import read_head
 
 log = logging.getLogger(__name__)
+
+#: A robot's pose put this long after an InitialPose of it was received answers a scan its owner
+#: handled after the InitialPose, whatever their stamps say, ns.
+PLACED_NS = 2_000_000_000
+
+
+def superseded(placed: InitialPose, received_ns: int, pose: bytes, now_ns: int) -> bool:
+    """Whether a robot's pose put at ``now_ns`` (encoded) supersedes the robot's InitialPose
+    received at ``received_ns``, as the seed of a handover: on its map, put more than
+    :data:`PLACED_NS` after it. Stamps alone cannot say: an operator's clock (the InitialPose's)
+    and the robot's (its scans', so its poses') may be years apart, and a robot whose clock is
+    behind was seeded, at every handover, from the InitialPose it was placed with long before.
+    """
+    on_map = b'"map_id":"%s"' % placed.map_id.encode()
+    return now_ns - received_ns > PLACED_NS and on_map in pose
 
 
 class FollowedPoses:

@@ -53,7 +53,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 from schemas import InitialPose, Odometry, PoseEstimate, Relocalize, SchemaError, decode, encode
-from service.cluster.followed import FollowedPoses
+from service.cluster.followed import FollowedPoses, superseded
 from service.cluster.membership import Membership
 from service.keys import MODELS, InputKind, Message
 
@@ -130,7 +130,7 @@ class Ownership:
         self._last_in: dict[str, int] = {}
         self.followed = FollowedPoses(clock, self.lock)
         self._tails: dict[str, deque[_Odom]] = {}
-        self._placed: dict[str, tuple[bytes, InitialPose]] = {}
+        self._placed: dict[str, tuple[bytes, InitialPose, int]] = {}  # and when received
         self._max_age_ns = resume_max_age_ns
         self._restored: dict[str, tuple[int, int]] = {}  # robot: pose stamp, published at
         self._fetches: queue.Queue[str | None] = queue.Queue()
@@ -161,7 +161,13 @@ class Ownership:
     def follow_pose(self, robot: str, payload: bytes, max_bytes: int) -> str | None:
         """Keep a pose put on the bus (by any instance) if it is the robot's newest
         (:meth:`service.cluster.followed.FollowedPoses.follow`: why it was not, if its stamp is
-        too far ahead of the clock)."""
+        too far ahead of the clock). A placement followed is superseded by its owner's poses
+        on its map put long enough after it (:func:`superseded`)."""
+        placed = self._placed.get(robot)
+        if placed is not None and superseded(placed[1], placed[2], payload, self._clock()):
+            with self.lock:
+                if self._placed.get(robot) is placed:
+                    del self._placed[robot]
         return self.followed.follow(robot, payload, max_bytes)
 
     def follow_own_pose(self, robot: str, payload: bytes, stamp_ns: int) -> None:
@@ -246,7 +252,7 @@ class Ownership:
             with self.lock:
                 placed = self._placed.get(robot)
                 if placed is None or msg.stamp_ns >= placed[1].stamp_ns:
-                    self._placed[robot] = (bytes(payload), msg)
+                    self._placed[robot] = (bytes(payload), msg, self._clock())
 
     # ------------------------------------------------------------------------ inputs
     def offer(
@@ -343,7 +349,7 @@ class Ownership:
                 self._seed(robot, pose.stamp_ns, (encode(again), again))
                 return
         if placed is not None and (pose is None or placed[1].stamp_ns > pose.stamp_ns):
-            self._seed(robot, placed[1].stamp_ns, placed)  # placed, not localized since
+            self._seed(robot, placed[1].stamp_ns, placed[:2])  # placed, not localized since
         elif pose is not None and pose.hypotheses:  # ambiguous: its best guess may be wrong
             again = Relocalize(stamp_ns=pose.stamp_ns, map_id=pose.map_id)
             self._seed(robot, pose.stamp_ns, (encode(again), again))
