@@ -92,6 +92,12 @@ class RobotState(WireModel):
     sigma_theta_rad: NonNegativeFloat | None = Field(
         default=None, description="1-sigma heading uncertainty, radians (null: as sigma_xy_m)."
     )
+    refused: NonEmptyStr | None = Field(
+        default=None,
+        description="The Event code the robot's inputs have been refused with since its latest "
+        "pose (stamp_rejected: stamped too far ahead of the service's clock), so that it gets "
+        "no pose although it sends; null: none (new, optional).",
+    )
 
 
 class WaitingRobot(WireModel):
@@ -130,7 +136,8 @@ class RobotsAnswer(WireModel):
 
 def encode_answer(answer: StoredVersion | RobotsAnswer) -> bytes:
     """Render an answer as the service puts it on the bus: compact UTF-8 JSON with every field,
-    optional ones as ``null``, floats in pydantic's format (``0.000042``, ``1e+16``).
+    optional ones as ``null`` (a robot's ``refused`` only in an answer where one has it),
+    floats in pydantic's format (``0.000042``, ``1e+16``).
 
     Args:
         answer: The answer to send.
@@ -138,4 +145,7 @@ def encode_answer(answer: StoredVersion | RobotsAnswer) -> bytes:
     Returns:
         The payload.
     """
+    if isinstance(answer, RobotsAnswer) and not any(r.refused for r in answer.robots):
+        # ``refused`` (optional, newer) only where a robot has it: the bytes stay as they were
+        return answer.model_dump_json(exclude={"robots": {"__all__": {"refused"}}}).encode()
     return answer.model_dump_json().encode()

@@ -113,6 +113,8 @@ def age(seconds: float | None) -> str:
 
 def status_of(state: RobotState, silent_after: float = SILENT_AFTER_S) -> str:
     """The robot's status, ``silent (...)`` once no pose has come for ``silent_after`` s."""
+    if state.refused == EventCode.STAMP_REJECTED:
+        return f"clock ahead ({state.status})"
     if state.age_s is not None and state.age_s > silent_after:
         return f"silent ({state.status})"
     return state.status
@@ -127,6 +129,7 @@ def robots_table(
     silent_after: float = SILENT_AFTER_S,
 ) -> str:
     """``rlutf robots``: one line per robot, then the robots waiting for an initial pose."""
+    states = list(states)
     rows = [
         [
             s.robot_id,
@@ -149,7 +152,7 @@ def robots_table(
         for w in waits
     ]
     text = table([*ROBOT_COLUMNS, "latency ms", "owner"], rows, {3, 4, 5, 6, 7, 8, 9})
-    shown = {_wait(w)[1] for w in waits}
+    shown = {_wait(w)[1] for w in waits} | {CLOCK_HINT for s in states if s.refused}
     known = (WAITING_HINT, NO_MAP_HINT, NO_SCAN_HINT, NO_RETURNS_HINT, CLOCK_HINT)
     hints = [h for h in known if h in shown]
     return "\n\n".join([text, *hints])

@@ -222,12 +222,26 @@ class RobotView:
             if seen is not None:
                 age = max(now - seen.at_ns, 0) / 1e9
                 latency = None if seen.latency_ns is None else seen.latency_ns / 1e6
-            out.append(self._state(pose, age, latency))
+            state = self._state(pose, age, latency)
+            if seen is not None and self._refused(robot, seen.at_ns, now):
+                state = state.model_copy(update={"refused": STAMP_REJECTED})
+            out.append(state)
         out += [
             self._state(pose, max(now - published, 0) / 1e9, None)
             for pose, _, published in self._restored_here()
         ]
         return sorted(out, key=lambda s: s.robot_id)
+
+    def _refused(self, robot: str, published_ns: int, now: int) -> bool:
+        """Whether the robot's inputs have been refused for their stamps since its latest pose
+        (published at ``published_ns``), and lately: it sends, but gets no pose."""
+        refused = self._waiting.get(robot)
+        return (
+            refused is not None
+            and refused[1] == STAMP_REJECTED
+            and published_ns < refused[0]
+            and now - refused[0] <= self.unplaced_ns
+        )
 
     def restore(self, pose: PoseEstimate, published_ns: int) -> None:
         """A robot's pose from before a restart, published at ``published_ns``."""

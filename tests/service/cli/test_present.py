@@ -344,3 +344,11 @@ def test_a_robot_whose_clock_is_ahead_reads_clock_ahead_with_its_hint() -> None:
     text, hint = robots_table([], [ahead]).split("\n\n")
     assert text.splitlines()[-1].split()[:4] == ["r4", "m", "clock", "ahead"]
     assert hint.startswith("clock ahead:") and "NTP" in hint
+
+
+def test_a_robot_with_a_pose_whose_inputs_are_refused_reads_clock_ahead() -> None:
+    base = {"robot_id": "r5", "map_id": "m", "status": "tracking", "x": 1.0, "y": 2.0}
+    refused = RobotState(**base, theta=0.0, age_s=30.0, owner="a", refused="stamp_rejected")
+    text, hint = robots_table([refused]).split("\n\n")
+    assert text.splitlines()[-1].split()[2:5] == ["clock", "ahead", "(tracking)"]
+    assert hint.startswith("clock ahead:")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 
 import pytest
 from service_harness import Bench, Collector, drive
@@ -330,3 +331,48 @@ def test_a_robot_whose_clock_is_ahead_is_listed_as_such_not_as_sending_no_scan(
             break
         time.sleep(0.05)
     assert waiting() == [("r8", "stamp_rejected", "m1")]
+
+
+def test_a_tracking_robot_whose_clock_jumps_ahead_is_said_refused_not_silent(
+    bench: Bench,
+) -> None:
+    # A robot tracking on its map whose clock steps an hour ahead (a bad NTP server): every
+    # input of it is refused (stamp_rejected) while it sends at 10 Hz, and the view showed its
+    # last pose ageing, "silent" as a robot that stopped sending.
+    bench.put_map()
+    time.sleep(0.3)
+    robot = bench.robot("r9", 6)
+    robot.initial_pose("m1")
+    time.sleep(0.3)
+
+    def state() -> dict:
+        answers = ask(bench, "rlutf/service/*/robots")
+        return next((r for a in answers for r in a["robots"] if r["robot_id"] == "r9"), {})
+
+    for _ in range(5):
+        robot.advance()
+        time.sleep(0.05)
+    assert wait_until_state(state, lambda s: bool(s) and s.get("refused") is None)
+    robot.t0 += 3_600 * 10**9
+    for _ in range(40):
+        robot.advance()
+        if state().get("refused") == "stamp_rejected":
+            break
+        time.sleep(0.05)
+    assert state().get("refused") == "stamp_rejected"
+    robot.t0 -= 3_600 * 10**9  # its clock set right: its poses come again, and it is not said
+    assert wait_until_state(state, lambda s: bool(s) and s.get("refused") is None, robot.advance)
+
+
+def wait_until_state(
+    state: Callable[[], dict],
+    ok: Callable[[dict], bool],
+    each: Callable[[], object] = lambda: None,
+) -> bool:
+    """Whether ``ok(state())`` came true within 60 tries, ``each()`` before each."""
+    for _ in range(60):
+        each()
+        if ok(state()):
+            return True
+        time.sleep(0.05)
+    return False
