@@ -102,6 +102,10 @@ class FileMapStore:
             os.close(self._claim)
             self._claim = None
 
+    def path(self, map_id: str) -> Path:
+        """The file of ``map_id`` (raises ``ValueError`` for an invalid id)."""
+        return self._path(map_id)
+
     def _path(self, map_id: str) -> Path:
         if not valid_id(map_id):
             raise ValueError(f"invalid map id {map_id!r}")

@@ -30,6 +30,7 @@ from service.maps.book import (
     check_map,
     put_verdict,
 )
+from service.maps.filecheck import FileCheck
 from service.maps.files import FileMapStore
 from service.maps.readcache import ReadCache
 
@@ -200,12 +201,19 @@ class MapStorage:
         # Maps removed (`rlutf map remove`): running services keep their copy, so a put must be
         # newer than the version removed for the store and them to agree.
         self._removed: dict[str, Held] = store.removed()
+        self.files = FileCheck(store.path, self._check, self._file_changed)
         for map_id, payload in store.items():
             try:
-                checked = check_map(payload, expected_id=map_id, max_bytes=max_bytes, limits=limits)
-                self._versions[map_id] = (checked.version, checked.digest)
+                self._versions[map_id] = self._check(map_id, payload)
+                self.files.wrote(map_id)
             except MapRejected as err:
-                log.warning("stored map %s is invalid and is not served: %s", map_id, err)
+                self.on_error(
+                    self.keys.map(map_id),
+                    f"the map store's file {store.path(map_id)} holds no valid map ({err}): "
+                    f"map {map_id} is not served, and robots on it are not localized; put it "
+                    f"again (`rlutf map put FILE --id {map_id}`), or put a valid file back and "
+                    "restart",
+                )
         self._tasks: queue.Queue[tuple[str, str, bytes | None] | None] = queue.Queue(_QUEUED)
         self._thread = threading.Thread(target=self._run, name="rlutf-store", daemon=True)
         self._thread.start()
@@ -216,6 +224,25 @@ class MapStorage:
         self._versions_queryable = session.declare_queryable(
             keys.map_versions, self._on_version_query
         )
+
+    def _check(self, map_id: str, payload: bytes) -> Held:
+        checked = check_map(
+            payload, expected_id=map_id, max_bytes=self.max_bytes, limits=self.limits
+        )
+        return (checked.version, checked.digest)
+
+    def _file_changed(self, map_id: str, message: str) -> None:
+        self.on_error(self.keys.map(map_id), message)
+
+    def _read(self, map_id: str) -> bytes | None:
+        """The file of a map held, if it holds what is held (:class:`FileCheck`); while a
+        put of it is stored, as it is."""
+        with self._queue_lock:
+            busy = map_id in self._pending_maps
+        return self.store.get(map_id) if busy else self.files.read(map_id, self._stored(map_id))
+
+    def _stored(self, map_id: str) -> Callable[[], Held | None]:
+        return lambda: self._versions.get(map_id)
 
     def held(self, map_id: str) -> Held | None:
         """The version stored for ``map_id`` and its content digest, if any; for a map removed
@@ -322,6 +349,7 @@ class MapStorage:
             except OSError as err:
                 log.debug("map %s still not written: %s", map_id, err)
                 continue
+            self.files.wrote(map_id)
             with self._lock:
                 del self._unwritten[map_id]
             version = self._versions[map_id][0]
@@ -340,6 +368,7 @@ class MapStorage:
             except OSError as err:
                 self.on_error(key, f"could not remove map {map_id}: {err}")
                 return
+            self.files.forget(map_id)
             with self._lock:
                 self._versions.pop(map_id, None)
                 self._unwritten.pop(map_id, None)
@@ -356,6 +385,12 @@ class MapStorage:
         verdict = put_verdict(held or removed, version, digest)
         if removed is not None and verdict != "conflict":
             verdict = "new"  # the removed version put back as it was, or a newer one
+        if verdict == "echo" and held is not None and map_id not in self._unwritten:
+            try:  # a put of the very map held writes its file again if it no longer holds it
+                if self.files.repair(map_id, payload, held, self.store.put):
+                    self.on_written(key, f"map {map_id} version {held[0]} written again")
+            except OSError as err:
+                self._file_changed(map_id, f"map {map_id}: its file could not be written: {err}")
         if verdict != "new":
             if removed is not None:  # no running service may know of the removal
                 self.on_conflict(key, removed_conflict(map_id, version, removed[0]))
@@ -367,6 +402,7 @@ class MapStorage:
         except OSError as err:  # a full disk: held in memory, written when it can be
             self._hold_unwritten(key, map_id, payload, (version, digest), err)
             return
+        self.files.wrote(map_id)
         with self._lock:
             self._unwritten.pop(map_id, None)  # an older version waiting is superseded
             self._versions[map_id] = (version, digest)
@@ -416,7 +452,7 @@ class MapStorage:
                         query.reply(key, payload, encoding=JSON, attachment=UNWRITTEN_MARK)
                         continue
                     try:
-                        read = self.reads.payload(map_id, version, partial(self.store.get, map_id))
+                        read = self.reads.payload(map_id, version, partial(self._read, map_id))
                     except OSError as err:  # its folder gone or unreadable: nothing to answer
                         log.warning("map %s could not be read from the store: %s", map_id, err)
                         continue
