@@ -23,7 +23,7 @@ from service.maps.book import (
     load_map,
     put_verdict,
 )
-from service.maps.store import UNWRITTEN_MARK
+from service.maps.store import UNWRITTEN_MARK, stored_version
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
@@ -249,6 +249,13 @@ def put_payload(
         if held is not None and _same_content(held, msg):
             said = f"unchanged: {key} already holds this map as version {held.version}"
             return _unchanged(key, held.version, said, in_memory)
+        stored = None if held is not None else stored_version(session, Keys(prefix), msg.map_id, 1)
+        if stored is not None and stored.version is not None and not stored.removed:
+            # held but not served (its file damaged): the very map held repairs it, else next
+            put_as = msg.model_copy(update={"version": stored.version})
+            if content_digest(put_as) != stored.digest:
+                put_as = msg.model_copy(update={"version": stored.version + 1})
+            return _put(session, prefix, key, put_as, None, in_memory, timeout)
         msg = msg.model_copy(update={"version": held.version + 1 if held is not None else 1})
         put = _put(session, prefix, key, msg, held, in_memory, timeout)
         named = None if put.stored or held is not None else held_named(put.said)

@@ -104,3 +104,30 @@ def test_an_invalid_file_at_start_is_said_with_its_path(tmp_path: Path) -> None:
             assert "rlutf map put" in said[0] and _served(session) == []
         finally:
             storage.close()
+
+
+@pytest.mark.integration
+def test_map_put_next_repairs_or_supersedes_a_map_held_but_not_served(tmp_path: Path) -> None:
+    """`rlutf map put FILE` (version next) learnt the version from the map served: none, so it
+    put version 1, which the store (holding version 1) refused with no answer: exit 1, 'no
+    storage answered'. It now asks the store what it holds."""
+    from service.maps.client import put_payload
+
+    file = tmp_path / "m1.json"
+    with zenoh.open(session_config("peer")) as session:
+        storage = MapStorage(session, Keys(), FileMapStore(tmp_path), 10_000_000)
+        try:
+            session.put("rlutf/maps/m1", _payload(1), encoding=JSON)
+            _until(lambda: _served(session) == [_payload(1)])
+            file.unlink()
+            time.sleep(1.1)  # the store's last read is answered again for 1 s
+            put = put_payload(session, "rlutf", _payload(0), timeout=3.0)  # the same walls
+            assert put.stored and put.version == 1, put
+            assert file.read_bytes() == _payload(1)
+            file.write_bytes(b"")
+            time.sleep(1.1)
+            put = put_payload(session, "rlutf", _other_walls(7), timeout=3.0)
+            assert put.stored and put.version == 2, put
+            assert json.loads(file.read_bytes())["version"] == 2
+        finally:
+            storage.close()
