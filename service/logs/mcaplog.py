@@ -58,6 +58,7 @@ from service.logs.mcapfile import (
     Record,
     load_schemas,
 )
+from service.logs.partfile import check_in_place
 from service.logs.recqueue import ConfigItem as _Config
 from service.logs.recqueue import Item as _Item
 from service.logs.recqueue import Message as _Message
@@ -428,7 +429,10 @@ class McapRecorder:
 
     def _flush(self) -> None:
         f = self._file
-        if f is None or not f.writer.dirty:
+        if f is None:
+            return
+        check_in_place(f.part, f.stream.fileno())
+        if not f.writer.dirty:
             return
         f.writer.flush()
         f.stream.flush()

@@ -6,6 +6,8 @@ one not written for :data:`RECENT_S` was left by a recorder that crashed or was 
 
 from __future__ import annotations
 
+import errno
+import os
 import time
 from pathlib import Path
 
@@ -55,3 +57,24 @@ def part_message(path: Path, now: float | None = None) -> str:
         f"To read it now, copy its complete chunks: rlutf log recover {path} COPY.mcap "
         "(the file being recorded is not touched), then use COPY.mcap"
     )
+
+
+def check_in_place(path: Path, fd: int) -> None:
+    """Raise ``FileNotFoundError`` when the file open as ``fd`` is no longer at ``path``.
+
+    A log removed while it was written (by hand, or with its folder) took every write without an
+    error: the recorder wrote into a file nobody could find until its rotation, up to an hour
+    later, said nothing, and lost it all. The recorder checks this at each flush.
+    """
+    held = os.fstat(fd)
+    try:
+        found = os.stat(path)
+    except FileNotFoundError:
+        found = None
+    if found is None or (found.st_dev, found.st_ino) != (held.st_dev, held.st_ino):
+        raise FileNotFoundError(
+            errno.ENOENT,
+            "the log being written was removed or moved (with its folder?), and what it held "
+            "since it was opened with it; the folder is not made again",
+            str(path),
+        )
