@@ -252,6 +252,9 @@ class EventCode:
     memory and tries again every few seconds; a restart before then loses it."""
     MAP_WRITE_RESUMED: Final = "map_write_resumed"
     """A map held in memory after ``map_write_failed`` is written to disk."""
+    STORE_IN_USE: Final = "store_in_use"
+    """The embedded store's folder was replaced under it (removed and made again, a copy put in
+    its place) and another running process claimed it meanwhile: both serve it; stop one."""
     MAP_VERSION_CONFLICT: Final = "map_version_conflict"
     """A map put of a version lower than the one held, or of the same version with other
     content (WIRE.md v1.2): it changed nothing; the message names both versions."""

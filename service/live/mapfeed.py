@@ -211,26 +211,23 @@ class MapFeed:
         store cannot disagree on a put one of them dropped under a flood. ``report(kind, level,
         code, key, message)``: an Event, at most one a second per kind.
         """
+
+        def say(code: str, level: str) -> Callable[[str, str], None]:
+            return lambda key, msg: report(code, level, code, key, msg)
+
         storage = MapStorage(
             session,
             self.keys,
             store,
             max_bytes,
-            on_error=lambda key, msg: report(
-                "invalid_map", "error", EventCode.INVALID_MAP, key, msg
-            ),
+            on_error=say(EventCode.INVALID_MAP, "error"),
             checker=self.book.checker,
-            on_drop=lambda key, msg: report(
-                "map_dropped", "warning", EventCode.MAP_DROPPED, key, msg
-            ),
+            on_drop=say(EventCode.MAP_DROPPED, "warning"),
             forward=self.on_sample,
-            on_unwritten=lambda key, msg: report(
-                "map_write_failed", "error", EventCode.MAP_WRITE_FAILED, key, msg
-            ),
-            on_written=lambda key, msg: report(
-                "map_write_resumed", "warning", EventCode.MAP_WRITE_RESUMED, key, msg
-            ),
+            on_unwritten=say(EventCode.MAP_WRITE_FAILED, "error"),
+            on_written=say(EventCode.MAP_WRITE_RESUMED, "warning"),
             on_conflict=self._store_conflict,
+            on_claim=say(EventCode.STORE_IN_USE, "error"),
         )
         self.store_busy, self._next_look = storage.busy, None
         self.store_holds = storage.answer

@@ -61,7 +61,7 @@ class FileMapStore:
         self._lock = threading.Lock()
         self._claim: int | None = None
 
-    def claim(self) -> None:
+    def claim(self) -> bool:
         """Serve this folder alone: hold its :data:`CLAIM_FILE` locked until :meth:`release`
         (or this process ends, when the system lets the lock go by itself).
 
@@ -71,6 +71,9 @@ class FileMapStore:
         site's map replaced by another site's of the same id at its next restart. Readers (the
         CLI reading a map from a folder) do not claim it. A file system that refuses locks
         (some network mounts) is served unclaimed.
+
+        Returns:
+            Whether the folder is locked (not on such a file system).
 
         Raises:
             StoreInUse: another process holds the folder (the message names its pid).
@@ -91,10 +94,40 @@ class FileMapStore:
         except OSError as err:
             os.close(fd)
             log.warning("map store %s: not locked (%s): serve it from one process only", path, err)
-            return
+            return False
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._claim = fd
+        return True
+
+    def reclaim(self) -> str | None:
+        """Claim the folder again when its :data:`CLAIM_FILE` is no longer the one held: the
+        folder was removed and made again, or replaced by a copy, under the running store, and
+        a second ``rlutf serve`` on it was let in (it found no claim). ``None`` when it is held
+        again (or cannot be: the folder gone, whose writes fail and say so); else what is wrong.
+        """
+        old = self._claim
+        if old is None:
+            return None
+        try:
+            held, found = os.fstat(old), (self.root / CLAIM_FILE).stat()
+            if (held.st_dev, held.st_ino) == (found.st_dev, found.st_ino):
+                return None
+        except FileNotFoundError:
+            if not self.root.is_dir():
+                return None
+        self._claim = None
+        try:
+            claimed = self.claim()
+        except StoreInUse as err:
+            self._claim = old
+            return f"{err}; this process serves it too (the folder was replaced under it): stop one"
+        if not claimed:  # not locked: keep the old claim
+            self._claim = old
+            return None
+        os.close(old)
+        log.info("map store %s: claimed again (the folder was replaced)", self.root)
+        return None
 
     def release(self) -> None:
         """Let the folder go (:meth:`claim`)."""

@@ -153,6 +153,8 @@ class MapStorage:
         on_written: reports a map held in memory written at last (default: a log line).
         on_conflict: reports a put refused because a newer version of the map was removed
             (no running service may hold it to say so; default: a log line).
+        on_claim: reports the store's folder replaced under it and claimed by another process
+            (default: a log line).
         forward: called with every sample on ``{prefix}/maps/*`` this storage did not drop:
             the service beside it follows the maps so, and never loads a put its store dropped.
     """
@@ -171,6 +173,7 @@ class MapStorage:
         on_unwritten: Callable[[str, str], None] | None = None,
         on_written: Callable[[str, str], None] | None = None,
         on_conflict: Callable[[str, str], None] | None = None,
+        on_claim: Callable[[str, str], None] | None = None,
     ) -> None:
         self.store = store
         self.keys = keys
@@ -182,6 +185,7 @@ class MapStorage:
         self.on_unwritten = on_unwritten or self.on_drop
         self.on_written = on_written or (lambda key, msg: log.info("%s", msg))
         self.on_conflict = on_conflict or (lambda key, msg: log.info("%s", msg))
+        self.on_claim = on_claim or (lambda key, msg: log.warning("%s", msg))
         # Maps taken but not on disk yet: map id -> (payload, monotonic time of the first refusal)
         self._unwritten: dict[str, tuple[bytes, float]] = {}
         self._pending = 0  # puts queued or being stored
@@ -214,6 +218,7 @@ class MapStorage:
                     f"again (`rlutf map put FILE --id {map_id}`), or put a valid file back and "
                     "restart",
                 )
+        self._said_claim: str | None = None
         self._tasks: queue.Queue[tuple[str, str, bytes | None] | None] = queue.Queue(_QUEUED)
         self._thread = threading.Thread(target=self._run, name="rlutf-store", daemon=True)
         self._thread.start()
@@ -316,9 +321,13 @@ class MapStorage:
     def _run(self) -> None:
         while True:
             try:
-                task = self._tasks.get(timeout=RETRY_S if self._unwritten else None)
+                task = self._tasks.get(timeout=RETRY_S)
             except queue.Empty:
                 self._write_held()
+                claim = self.store.reclaim()  # its folder replaced: claimed again, or said once
+                if claim is not None and claim != self._said_claim:
+                    self.on_claim(self.keys.events, claim)
+                self._said_claim = claim
                 continue
             if task is None:
                 break
