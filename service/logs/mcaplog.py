@@ -307,6 +307,7 @@ class McapRecorder:
                 if f.part.stat().st_size == 0:
                     f.part.unlink()
                     self._sequence -= 1  # its number goes to the next file that opens
+                    self._opened = f.sequence  # and its number in the run
                     self._previous = f.follows  # and the run's next file follows the one before
         self._retry_at = time.monotonic() + RETRY_S
         if self._failing is not None:
