@@ -27,7 +27,12 @@ def cmd_catalog(args: argparse.Namespace) -> int:
         stored = list_maps(session, settings.prefix, args.timeout)
         if args.map_command == "list":
             shown = _print_maps(stored, on, args.json)
-            return shown if stored else _none_stored(session, settings.prefix)
+            hidden = _not_served(session, settings.prefix, stored, args.timeout)
+            for line in hidden:
+                print(line, file=sys.stderr)
+            if stored or hidden:
+                return EXIT_FAILURE if hidden else shown
+            return _none_stored(session, settings.prefix)
         if args.map_id not in {m.map_id for m in stored}:
             raise CliError(
                 f"no storage holds map {args.map_id!r} (`rlutf map list` shows the stored maps)"
@@ -96,6 +101,24 @@ def _print_maps(stored: list[Any], on: dict[str, list[str]], as_json: bool) -> i
             )
         )
     return EXIT_OK
+
+
+def _not_served(session: Any, prefix: str, stored: list[Any], timeout: float) -> list[str]:
+    """A line for each map a store holds but does not serve: its file was changed or removed on
+    disk (the store said which with ``invalid_map``). Before, such a map was not listed at all,
+    or, alone, "no maps stored yet" (exit 0) was printed."""
+    from service.keys import Keys
+    from service.maps.store import stored_versions
+
+    served = {m.map_id for m in stored}
+    held = stored_versions(session, Keys(prefix), min(timeout, 2.0))
+    return [
+        f"map {a.map_id} version {a.version}: held by the map store but not served, its file "
+        "changed or removed on disk (`rlutf events` says which); put it again: "
+        f"rlutf map put FILE --id {a.map_id}"
+        for a in sorted(held.values(), key=lambda a: a.map_id)
+        if a.version is not None and not a.removed and a.map_id not in served
+    ]
 
 
 def _none_stored(session: Any, prefix: str) -> int:
