@@ -107,8 +107,8 @@ class FileCheck:
             map_id,
             f"the map store's file {path} {what}, not version {now[0]} of map {map_id} the "
             "store holds (edited, damaged or removed on disk): the store no longer serves it, "
-            "and a restart would leave the map's robots without it; the running services keep "
-            f"their copy. Put the map again (`rlutf map put FILE --id {map_id}`), or put the "
+            "and a restart would load what the file holds (or nothing); the running services "
+            f"keep their copy. Put the map again (`rlutf map put FILE --id {map_id}`), or put the "
             "file back as it was",
         )
         return None
