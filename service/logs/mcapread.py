@@ -361,7 +361,7 @@ class LogFile:
 
     # ------------------------------------------------------------------ queries
     def library(self) -> str | None:
-        """What wrote the file: its MCAP header's library (``rlutf 0.5.2``, say, for this service's
+        """What wrote the file: its MCAP header's library (``rlutf 0.5.3``, say, for this service's
         logs: the version whose localizer computed its poses); ``None`` if unreadable."""
         try:
             return str(read_header(self._stream).library)
