@@ -124,9 +124,12 @@ class Announcer:
         # same scans; counted in health.
         # Written from a template (schemas.fastevent): a service behind on its scans drops many,
         # and the model cost each drop ~10 us more on the thread that is behind.
+        # Logged at the dropped scan's own receive time (its log_time): a robot may stamp two
+        # scans alike, and replay drops the very scan that was dropped here, not the first of
+        # that stamp (service.logs.dropped, since 0.5.3).
         payload = encode_scan_dropped(self.keys.robot(robot, "scan"), stamp_ns)
         self.recorder.record(
-            self.keys.robot_events(robot), EVENT_SCHEMA, payload, self.clock(), stamp_ns
+            self.keys.robot_events(robot), EVENT_SCHEMA, payload, received_ns, stamp_ns
         )
 
     def publish(self, key: str, payload: bytes, pose: bool = False) -> None:

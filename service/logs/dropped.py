@@ -18,6 +18,10 @@ from schemas import EventCode
 from service.logs.mcapfile import Record
 from service.logs.mcapread import LogFile, merged_messages, robot_topic
 
+#: The first version whose service logs a ``scan_dropped`` Event at the dropped scan's own
+#: log_time (before, at the moment of the drop).
+DROPS_AT_RECEIPT = (0, 5, 3)
+
 EVENT_SCHEMA = "rlutf.Event"
 """The schema of an Event in a log."""
 #: The service's Events that mark a recording gap: the log lacks messages from their stamp on.
@@ -30,6 +34,7 @@ def dropped_scans(
     gaps: list[int] | None = None,
     records_too: bool = True,
     owns: Callable[[str], bool] | None = None,
+    received: Counter[tuple[str, int, int]] | None = None,
 ) -> tuple[Counter[tuple[str, int]], list[Record]]:
     """The scans the live service dropped (per robot and stamp) and the events saying so (only
     with ``records_too``: they go into an output log, and a run under overload has many);
@@ -38,7 +43,9 @@ def dropped_scans(
     Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
     ``(log_time_ns, robot)``, in log order, and their records to the events returned; the
     start of each recording gap (Event ``recording_resumed``, or ``recorder_overflow``: messages
-    lost to a full queue; each stamped when the gap began) to ``gaps``.
+    lost to a full queue; each stamped when the gap began) to ``gaps``; each drop as ``(robot,
+    stamp, log_time)`` to ``received`` (a service of :data:`DROPS_AT_RECEIPT` or later logs the
+    Event at the dropped scan's own log_time, which tells apart two scans stamped alike).
     """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
@@ -56,6 +63,8 @@ def dropped_scans(
             stamp = data.get("stamp_ns")
             if isinstance(stamp, int):
                 drops[(where.robot, stamp)] += 1
+                if received is not None:
+                    received[(where.robot, stamp, rec.log_time_ns)] += 1
                 if records_too:
                     records.append(rec)
         elif (
@@ -67,3 +76,13 @@ def dropped_scans(
             if records_too:
                 records.append(rec)
     return drops, records
+
+
+def drops_at_receipt(libraries: Sequence[str | None]) -> bool:
+    """Whether every log (by its MCAP header's library, ``rlutf 0.5.3``) was written by a service
+    that logs its drops at the dropped scan's log_time (:data:`DROPS_AT_RECEIPT`)."""
+    for library in libraries:
+        match = re.fullmatch(r"rlutf (\d+)\.(\d+)\.(\d+)\S*", library or "")
+        if match is None or tuple(int(g) for g in match.groups()) < DROPS_AT_RECEIPT:
+            return False
+    return bool(libraries)

@@ -13,10 +13,11 @@ from mcaplog_fixtures import T0, payloads, read_all, simulated_inputs, write_log
 
 from rlutf.localizer import LocalizerConfig
 from rlutf.motion import compose
-from schemas import Event, EventCode, PoseEstimate, decode, encode
+from schemas import Event, EventCode, LaserScan, PoseEstimate, decode, encode
 from service.cli.main import main
 from service.engine import FleetEngine
 from service.keys import Keys
+from service.logs import mcapfile
 from service.logs.mcapfile import Record
 from service.logs.mcapread import LogFile
 from service.logs.plots import dead_reckoning
@@ -101,16 +102,24 @@ def _drop_event(robot: str, stamp: int, log_time: int) -> Record:
     return Record(f"rlutf/robots/{robot}/events", "rlutf.Event", encode(ev), log_time, stamp)
 
 
-def test_recorded_drops_are_honoured(tmp_path: Path) -> None:
+@pytest.mark.parametrize("library", ["now", "rlutf 0.5.2"], ids=["at receipt", "older service"])
+def test_recorded_drops_are_honoured(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, library: str
+) -> None:
+    """The service logs a drop at the dropped scan's own log_time (since 0.5.3); an older one
+    logged it when the newer scan arrived, and replay drops the first scan of its stamp."""
     records = simulated_inputs(("r1",), steps=8)
     dropped_stamp = T0 + 4 * 100_000_000
-    # The event comes after the scan it drops (as live: when the newer scan arrives).
-    with_drop = [*records, _drop_event("r1", dropped_stamp, T0 + 5 * 100_000_000 + 2_000_000)]
-    without_scan = [
+    (scan,) = [
         r
         for r in records
-        if not (r.schema_name == "rlutf.LaserScan" and r.publish_time_ns == dropped_stamp)
+        if r.schema_name == "rlutf.LaserScan" and r.publish_time_ns == dropped_stamp
     ]
+    if library != "now":
+        monkeypatch.setattr(mcapfile, "LIBRARY", library)
+    at = scan.log_time_ns if library == "now" else T0 + 5 * 100_000_000 + 2_000_000
+    with_drop = [*records, _drop_event("r1", dropped_stamp, at)]
+    without_scan = [r for r in records if r is not scan]
     a = replay([write_log(tmp_path / "drop.mcap", with_drop)], tmp_path / "a.mcap")
     b = replay([write_log(tmp_path / "noscan.mcap", without_scan)])
     assert a.dropped == 1
@@ -121,6 +130,29 @@ def test_recorded_drops_are_honoured(tmp_path: Path) -> None:
     again = replay([tmp_path / "a.mcap"])
     assert again.dropped == 1
     assert [p.payload for p in again.recomputed["r1"]] == [p.payload for p in a.recomputed["r1"]]
+
+
+def test_of_two_scans_stamped_alike_the_one_dropped_live_is_dropped(tmp_path: Path) -> None:
+    """A robot stamped two scans alike and the service dropped the second (under load): replay
+    dropped the first of that stamp and computed other poses than live, so the audit of a right
+    log failed (helper 51's review of robot clocks)."""
+    records = simulated_inputs(("r1",), steps=8)
+    scans = [r for r in records if r.schema_name == "rlutf.LaserScan"]
+    first, second = scans[3], scans[4]
+    msg = decode(LaserScan, second.payload)
+    twin = Record(
+        second.topic,
+        second.schema_name,
+        encode(msg.model_copy(update={"stamp_ns": first.publish_time_ns})),
+        second.log_time_ns,
+        first.publish_time_ns,
+    )
+    inputs = [twin if r is second else r for r in records]
+    drop = _drop_event("r1", first.publish_time_ns, twin.log_time_ns)
+    a = replay([write_log(tmp_path / "drop.mcap", [*inputs, drop])])
+    b = replay([write_log(tmp_path / "noscan.mcap", [r for r in inputs if r is not twin])])
+    assert a.dropped == 1
+    assert [p.payload for p in a.recomputed["r1"]] == [p.payload for p in b.recomputed["r1"]]
 
 
 def test_rotated_files_replay_as_one(tmp_path: Path) -> None:
