@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import json
 import re
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 from schemas import EventCode
 from service.logs.mcapfile import Record
@@ -34,7 +35,7 @@ def dropped_scans(
     gaps: list[int] | None = None,
     records_too: bool = True,
     owns: Callable[[str], bool] | None = None,
-    received: Counter[tuple[str, int, int]] | None = None,
+    drop_events: list[tuple[str, int, Record]] | None = None,
 ) -> tuple[Counter[tuple[str, int]], list[Record]]:
     """The scans the live service dropped (per robot and stamp) and the events saying so (only
     with ``records_too``: they go into an output log, and a run under overload has many);
@@ -43,9 +44,9 @@ def dropped_scans(
     Robots the service evicted (Event ``robot_evicted``) are added to ``evictions`` as
     ``(log_time_ns, robot)``, in log order, and their records to the events returned; the
     start of each recording gap (Event ``recording_resumed``, or ``recorder_overflow``: messages
-    lost to a full queue; each stamped when the gap began) to ``gaps``; each drop as ``(robot,
-    stamp, log_time)`` to ``received`` (a service of :data:`DROPS_AT_RECEIPT` or later logs the
-    Event at the dropped scan's own log_time, which tells apart two scans stamped alike).
+    lost to a full queue; each stamped when the gap began) to ``gaps``. With ``drop_events``,
+    each ``scan_dropped`` Event goes there as ``(robot, stamp, record)`` instead of into the
+    records returned (:class:`LiveDrops`).
     """
     drops: Counter[tuple[str, int]] = Counter()
     records = []
@@ -63,9 +64,9 @@ def dropped_scans(
             stamp = data.get("stamp_ns")
             if isinstance(stamp, int):
                 drops[(where.robot, stamp)] += 1
-                if received is not None:
-                    received[(where.robot, stamp, rec.log_time_ns)] += 1
-                if records_too:
+                if drop_events is not None:
+                    drop_events.append((where.robot, stamp, rec))
+                elif records_too:
                     records.append(rec)
         elif (
             isinstance(data, dict)
@@ -86,3 +87,69 @@ def drops_at_receipt(libraries: Sequence[str | None]) -> bool:
         if match is None or tuple(int(g) for g in match.groups()) < DROPS_AT_RECEIPT:
             return False
     return bool(libraries)
+
+
+class LiveDrops:
+    """The scans the live service dropped, for a replay to drop again (:func:`dropped_scans`).
+
+    A service of :data:`DROPS_AT_RECEIPT` or later logs each ``scan_dropped`` Event at the
+    dropped scan's own log_time, which tells apart two scans a robot stamped alike: the scan
+    dropped is the one of that robot, stamp and log_time. In an older service's log (the Event
+    logged when the drop happened) it is the first scan of that robot and stamp, and the output
+    of the replay logs the Event at that scan, as the newer service does, so that the output
+    audits alike.
+
+    Attributes:
+        records: what an output log holds before the replay's pass (the Events of evictions,
+            and of drops logged at their scan).
+    """
+
+    def __init__(
+        self,
+        logs: Sequence[LogFile],
+        evictions: list[tuple[int, str]],
+        gaps: list[int],
+        records_too: bool,
+        owns: Callable[[str], bool] | None,
+    ) -> None:
+        events: list[tuple[str, int, Record]] = []
+        self.counts, self.records = dropped_scans(logs, evictions, gaps, records_too, owns, events)
+        self._exact: Counter[tuple[str, int, int]] | None = None
+        self._waiting: dict[tuple[str, int], deque[Record]] = {}
+        if drops_at_receipt([lf.library() for lf in logs]):
+            self._exact = Counter((robot, stamp, r.log_time_ns) for robot, stamp, r in events)
+            self.records += [r for _, _, r in events] if records_too else []
+        elif records_too:
+            for robot, stamp, r in events:
+                self._waiting.setdefault((robot, stamp), deque()).append(r)
+
+    def take(self, robot: str, stamp_ns: int, log_time_ns: int) -> Record | bool:
+        """Whether the scan of ``robot`` stamped ``stamp_ns``, logged at ``log_time_ns``, was
+        dropped live (counted off): ``False``, ``True``, or the Event to log at it."""
+        key = (robot, stamp_ns)
+        if self.counts.get(key, 0) <= 0:
+            return False
+        if self._exact is not None:
+            at = (robot, stamp_ns, log_time_ns)
+            if self._exact.get(at, 0) <= 0:
+                return False  # another scan of the same stamp: the dropped one comes later
+            _take(self._exact, at)
+        _take(self.counts, key)
+        waiting = self._waiting.get(key)
+        if not waiting:
+            return True
+        e = waiting.popleft()
+        return Record(e.topic, e.schema_name, e.payload, log_time_ns, e.publish_time_ns)
+
+    def left(self) -> list[Record]:
+        """The Events of drops whose scan the log does not hold, as they were logged."""
+        return [e for waiting in self._waiting.values() for e in waiting]
+
+
+K = TypeVar("K")
+
+
+def _take(counts: Counter[K], key: K) -> None:
+    counts[key] -= 1
+    if not counts[key]:
+        del counts[key]

@@ -30,12 +30,11 @@ import json
 import logging
 import os
 import time
-from collections import Counter, defaultdict
+from collections import defaultdict
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
 
 from schemas import (
     InitialPose,
@@ -49,7 +48,7 @@ from schemas import (
 from service.engine import FleetEngine
 from service.keys import Keys
 from service.logs.completeness import Completeness, check_run
-from service.logs.dropped import EVENT_SCHEMA, dropped_scans, drops_at_receipt
+from service.logs.dropped import EVENT_SCHEMA, LiveDrops
 from service.logs.foxglove import FoxgloveConverter
 from service.logs.mcapfile import DEFAULT_CHUNK_SIZE, LogWriter, Record
 from service.logs.mcapread import (
@@ -190,14 +189,12 @@ class _Run:
     def __init__(
         self,
         result: ReplayResult,
-        drops: Counter[tuple[str, int]],
+        drops: LiveDrops,
         writer: LogWriter | None,
         owns: Callable[[str], bool] | None = None,
         count_shared: bool = True,
-        received: Counter[tuple[str, int, int]] | None = None,
     ) -> None:
         cfg = result.config
-        self.received = received
         self.result = result
         self.owns = owns
         self.count_shared = count_shared
@@ -289,7 +286,11 @@ class _Run:
                 self.result.initial_poses[robot].append(
                     (msg.stamp_ns, msg.map_id, msg.x, msg.y, msg.theta)
                 )
-        elif isinstance(msg, LaserScan) and self._dropped_live(robot, msg.stamp_ns, rec):
+        elif isinstance(msg, LaserScan) and (
+            dropped := self.drops.take(robot, msg.stamp_ns, rec.log_time_ns)
+        ):
+            if isinstance(dropped, Record):  # an older service's log: its Event, at its scan
+                self._write(dropped)
             self.result.dropped += 1
             return
         try:
@@ -310,20 +311,6 @@ class _Run:
                 if keep:
                     self.result.recomputed[robot].append(pose)
         self._health(rec.log_time_ns)
-
-    def _dropped_live(self, robot: str, stamp_ns: int, rec: Record) -> bool:
-        """Whether the live service dropped this scan (and count it as dropped again): the scan
-        received when its Event says, or, in an older service's log, the first of its stamp."""
-        key = (robot, stamp_ns)
-        if self.drops.get(key, 0) <= 0:
-            return False
-        if self.received is not None:
-            at = (robot, stamp_ns, rec.log_time_ns)
-            if self.received.get(at, 0) <= 0:
-                return False  # another scan of the same stamp: the dropped one comes later
-            _take(self.received, at)
-        _take(self.drops, key)
-        return True
 
     def _health(self, now_ns: int, force: bool = False) -> None:
         """Hand the evidence on once a second of log time; write the MapHealth that is due."""
@@ -427,10 +414,7 @@ def replay(
         result = ReplayResult(config, keep=keep)
         evictions: list[tuple[int, str]] = []
         gaps: list[int] = []
-        received: Counter[tuple[str, int, int]] = Counter()
-        drops, drop_records = dropped_scans(logs, evictions, gaps, out is not None, owns, received)
-        # an older service's log: the first scan of a dropped stamp is the one dropped
-        exact = received if drops_at_receipt([lf.library() for lf in logs]) else None
+        drops = LiveDrops(logs, evictions, gaps, out is not None, owns)
         result.gap_ns = min(gaps, default=None)
         result.match = PoseMatch(result.gap_ns)
         if on_total is not None:
@@ -459,8 +443,8 @@ def replay(
                         "settings_file": str(settings_file or ""),
                     },
                 )
-                writer.write_all(drop_records)
-            run = _Run(result, drops, writer, owns, count_shared, exact)
+                writer.write_all(drops.records)
+            run = _Run(result, drops, writer, owns, count_shared)
             run.evictions = sorted(evictions)
             last_ns = 0
             for rec in merged_messages(logs, REPLAYED):
@@ -468,6 +452,8 @@ def replay(
                 last_ns = rec.log_time_ns
                 if progress is not None:
                     progress(1)
+            if writer is not None:
+                writer.write_all(drops.left())
             run.finish_health(last_ns)
             result.match.end_ns = last_ns
             result.completeness = check_run(logs)
@@ -484,12 +470,3 @@ def replay(
         os.replace(part, out)
         result.out = out
     return result
-
-
-K = TypeVar("K")
-
-
-def _take(counts: Counter[K], key: K) -> None:
-    counts[key] -= 1
-    if not counts[key]:
-        del counts[key]

@@ -107,7 +107,8 @@ def test_recorded_drops_are_honoured(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, library: str
 ) -> None:
     """The service logs a drop at the dropped scan's own log_time (since 0.5.3); an older one
-    logged it when the newer scan arrived, and replay drops the first scan of its stamp."""
+    logged it when the newer scan arrived, and replay drops the first scan of its stamp. The
+    output, this code's log, drops it again in either case."""
     records = simulated_inputs(("r1",), steps=8)
     dropped_stamp = T0 + 4 * 100_000_000
     (scan,) = [
@@ -120,8 +121,11 @@ def test_recorded_drops_are_honoured(
     at = scan.log_time_ns if library == "now" else T0 + 5 * 100_000_000 + 2_000_000
     with_drop = [*records, _drop_event("r1", dropped_stamp, at)]
     without_scan = [r for r in records if r is not scan]
-    a = replay([write_log(tmp_path / "drop.mcap", with_drop)], tmp_path / "a.mcap")
-    b = replay([write_log(tmp_path / "noscan.mcap", without_scan)])
+    dropping = write_log(tmp_path / "drop.mcap", with_drop)
+    missing = write_log(tmp_path / "noscan.mcap", without_scan)
+    monkeypatch.undo()  # the replay's output is this code's log
+    a = replay([dropping], tmp_path / "a.mcap")
+    b = replay([missing])
     assert a.dropped == 1
     stamps = [p.stamp_ns for p in a.recomputed["r1"]]
     assert dropped_stamp not in stamps and len(stamps) == 7
